@@ -1,0 +1,130 @@
+"""The one interface every chain solver sits behind, and the Specular Polynomials solver.
+
+``solve_tuples`` is the public entry point (contract in CONTRACT.md).  A solver object
+(``SpecularPolynomialSolver``, later the baselines) exposes ``name`` and
+``solve(chain, x_start, x_end, P, N, eta) -> SolveResult`` whose ``report`` says what it
+did (tuples tried, tuples skipped early, resultant roots, candidates, paths, seconds per
+stage), so the benchmarks can chart speed against accuracy for all of them.
+"""
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+ONE_BOUNCE_CHAINS = ("R", "T")
+TWO_BOUNCE_CHAINS = ("RR", "RT", "TR", "TT")
+CHAIN_LENGTH = {c: len(c) for c in ONE_BOUNCE_CHAINS + TWO_BOUNCE_CHAINS}
+
+
+@dataclass
+class SolveReport:
+    """What one solve call did.  Counts are summed over the batch."""
+
+    solver: str
+    chain: str
+    tuples: int = 0
+    skipped: int = 0  # rejected before solving (sides, degenerate triangle or normals)
+    roots: int = 0  # real resultant roots in range
+    candidates: int = 0  # (u, v) candidates polished and validated
+    paths: int = 0
+    overflow: int = 0  # tuples whose paths did not all fit the per-tuple capacity
+    seconds: dict = field(default_factory=dict)  # stage -> wall seconds
+
+    def as_dict(self):
+        return dict(self.__dict__)
+
+
+@dataclass
+class SolveResult:
+    tuple_index: np.ndarray  # (m,) int64
+    uv: np.ndarray  # (m, 2k) float64
+    report: SolveReport
+
+
+def _as_float_array(name, value, shape_tail):
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim != 1 + len(shape_tail) or tuple(arr.shape[1:]) != shape_tail:
+        raise ValueError(f"{name} must have shape (n, {', '.join(map(str, shape_tail))}), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.argwhere(~np.isfinite(arr))[0][0])
+        raise ValueError(f"{name} contains NaN or Inf (first at tuple {bad})")
+    return np.ascontiguousarray(arr)
+
+
+def validate_inputs(chain, x_start, x_end, P, N, eta):
+    """Check and convert solver inputs; raise ValueError with a clear reason."""
+    if chain not in CHAIN_LENGTH:
+        raise ValueError(f"unknown chain {chain!r}; expected one of {', '.join(CHAIN_LENGTH)}")
+    k = CHAIN_LENGTH[chain]
+    x_start = _as_float_array("x_start", x_start, (3,))
+    n = x_start.shape[0]
+    x_end = _as_float_array("x_end", x_end, (3,))
+    P = _as_float_array("P", P, (k, 3, 3))
+    N = _as_float_array("N", N, (k, 3, 3))
+    for name, arr in (("x_end", x_end), ("P", P), ("N", N)):
+        if arr.shape[0] != n:
+            raise ValueError(f"{name} has {arr.shape[0]} tuples but x_start has {n}")
+    eta_arr = np.asarray(eta, dtype=np.float64)
+    if eta_arr.ndim == 0:
+        eta_arr = np.full(n, float(eta_arr))
+    elif eta_arr.shape != (n,):
+        raise ValueError(f"eta must be a scalar or have shape ({n},), got {eta_arr.shape}")
+    if not np.all(np.isfinite(eta_arr)) or np.any(eta_arr <= 0.0):
+        raise ValueError("eta must be finite and positive")
+    return x_start, x_end, P, N, np.ascontiguousarray(eta_arr)
+
+
+class SpecularPolynomialSolver:
+    """Deterministic solver of Fan et al. 2024 (one bounce: R, T)."""
+
+    name = "spoly"
+
+    def solve(self, chain, x_start, x_end, P, N, eta, stop_after=0):
+        """Solve a batch of tuples; see CONTRACT.md.  ``stop_after`` is for stage timing."""
+        t0 = time.perf_counter()
+        x_start, x_end, P, N, eta = validate_inputs(chain, x_start, x_end, P, N, eta)
+        report = SolveReport(solver=self.name, chain=chain, tuples=x_start.shape[0])
+        if chain not in ONE_BOUNCE_CHAINS:
+            raise ValueError(f"chain {chain!r} is not supported yet by the {self.name} solver")
+        from .one_bounce import MAX_PATHS_ONE_BOUNCE, N_STATS, solve_one_bounce_batch
+
+        n = x_start.shape[0]
+        out_uv = np.empty((n, MAX_PATHS_ONE_BOUNCE, 2))
+        out_count = np.zeros(n, dtype=np.int64)
+        stats = np.zeros((n, N_STATS), dtype=np.int64)
+        t1 = time.perf_counter()
+        if n:
+            solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), out_uv, out_count, stats)
+        t2 = time.perf_counter()
+        tuple_index, uv = compact_paths(out_uv, out_count)
+        t3 = time.perf_counter()
+        totals = stats.sum(axis=0)
+        report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals)
+        report.overflow = int(np.count_nonzero(stats[:, 2] > MAX_PATHS_ONE_BOUNCE))
+        report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
+        return SolveResult(tuple_index, uv, report)
+
+
+def compact_paths(out_uv, out_count):
+    """(n, cap, 2k) per-tuple slots + counts -> (tuple_index (m,), uv (m, 2k)), tuple order."""
+    cap = out_uv.shape[1]
+    counts = np.minimum(out_count, cap)
+    tuple_index = np.repeat(np.arange(out_uv.shape[0], dtype=np.int64), counts)
+    slot = np.arange(tuple_index.shape[0]) - np.repeat(np.cumsum(counts) - counts, counts)
+    uv = np.ascontiguousarray(out_uv[tuple_index, slot])
+    return tuple_index, uv
+
+
+_DEFAULT_SOLVER = SpecularPolynomialSolver()
+
+
+def solve_tuples(chain, x_start, x_end, P, N, eta):
+    """All admissible specular paths x_start → triangles → x_end (Fan et al. 2024).
+
+    chain: "R" or "T"; x_start, x_end: (n,3); P, N: (n,k,3,3) vertex positions / normals of
+    the k triangles in path order; eta: scalar or (n,), IOR behind each surface.
+    Returns (tuple_index (m,) int64, uv (m,2k) float64) with x = p0 + u e1 + v e2.
+    """
+    result = _DEFAULT_SOLVER.solve(chain, x_start, x_end, P, N, eta)
+    return result.tuple_index, result.uv

@@ -1,0 +1,477 @@
+"""One-bounce Specular Polynomials: the R and T chains (Fan et al. 2024, §3.3–4.3).
+
+For a tuple (x0, triangle, x2) the unknowns are the barycentrics (u, v) of the specular
+vertex x1.  Two bivariate polynomials vanish at every admissible path:
+
+* a(u, v): coplanarity, endpoint-difference form, eq (6): ((x1 - x0) × (x2 - x0)) · n = 0,
+  total degree 2 (eq 25/26, first line);
+* b(u, v): angularity, the product form for reflection, eq (13) (degree 4, eq 25), or the
+  square form for refraction, eq (10) (degree 6, eq 26).
+
+u is eliminated with the resultant r(v) = Res_u(a, b) (eq 28–30) and the real roots of r in
+[0, 1] are found by derivative isolation (``roots.py``); u follows from a(u, v*) = 0, and
+each candidate is Newton-polished and validated in path space (``path_space.py``).
+
+Resultant in closed form.  a has total degree 2, so its u² coefficient a2 is a constant and
+a = a2 u² + a1(v) u + a0(v).  The Bézout matrix (eq 29) of (a, b) would be n×n with
+polynomial entries; because a is quadratic it collapses to the symmetric-function identity
+Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a), which expanded with power sums
+s_m = σ_m / a2^m (σ_0 = 2, σ_1 = -a1, σ_m = -a1 σ_{m-1} - a0 a2 σ_{m-2}) is
+
+    Res = Σ_i a0^i b_i T_i,   T_i = b_i a2^(n-i) + Σ_{j>i} b_j a2^(n-j) σ_{j-i},
+
+a polynomial in the coefficients with no division: it stays exact when a2 → 0 (flat
+normals, where a is linear in u) instead of blowing up like a remainder-based reduction.
+Its univariate coefficients are formed explicitly, as in §4.2, and it has degree ≤ 8 (R) or
+≤ 12 (T) in v.
+
+The projection vector b (eq 10) and the tangent t = n × b (eq 13) are chosen per tuple as
+the normal of the plane of incidence at the mean shading normal, b = (x2 - x0) × n̄, so
+neither form degenerates (the paper's fixed (1,0,0) / n × e1 vanish on whole curves when
+the plane of incidence contains that axis, e.g. a mirror and a light in the x-y plane).
+"""
+
+import math
+
+import numpy as np
+
+from .jit import kernel, prange
+from .path_space import geometric_normal, polish_and_validate
+from .roots import MAX_DEGREE, roots_in_interval
+from .vec3 import cross, dot, madd, norm, row, scale, sub
+
+MAX_PATHS_ONE_BOUNCE = 8  # per tuple; a one-bounce tuple seldom has more than 2
+CHUNK = 256  # tuples per parallel work item (scratch is allocated once per chunk)
+
+ROOT_X_TOLERANCE = 1e-13
+ROOT_TOUCH_TOLERANCE = 1e-10
+V_MARGIN = 1e-6  # v roots are searched slightly outside [0, 1]; the inside test is exact
+NEGLIGIBLE = 1e-13  # relative size below which a coefficient is treated as exactly zero
+
+# Indices into the per-tuple statistics row.
+STAT_ROOTS = 0  # real resultant roots in range
+STAT_CANDIDATES = 1  # (u, v) candidates polished and validated
+STAT_PATHS = 2  # accepted paths
+STAT_SKIPPED = 3  # 1 when the tuple was rejected before solving (sides, degeneracy)
+N_STATS = 4
+
+
+# --- bivariate polynomials: p[i, j] multiplies u^i v^j -------------------------------------
+
+
+@kernel
+def _lin_dot(out, a0, au, av, b0, bu, bv):
+    """(a0 + u au + v av) · (b0 + u bu + v bv) as a quadratic in (u, v)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = 0.0
+    out[0, 0] = dot(a0, b0)
+    out[1, 0] = dot(a0, bu) + dot(au, b0)
+    out[0, 1] = dot(a0, bv) + dot(av, b0)
+    out[2, 0] = dot(au, bu)
+    out[1, 1] = dot(au, bv) + dot(av, bu)
+    out[0, 2] = dot(av, bv)
+
+
+@kernel
+def _bmul(p, dp, q, dq, out):
+    """out = p q for bivariate polynomials of total degree dp and dq."""
+    d = dp + dq
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            out[i, j] = 0.0
+    for i1 in range(dp + 1):
+        for j1 in range(dp + 1 - i1):
+            c = p[i1, j1]
+            if c == 0.0:
+                continue
+            for i2 in range(dq + 1):
+                for j2 in range(dq + 1 - i2):
+                    out[i1 + i2, j1 + j2] += c * q[i2, j2]
+
+
+@kernel
+def _bcombine(out, d, ca, a, cb, b):
+    """out = ca a + cb b (total degree d)."""
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            out[i, j] = ca * a[i, j] + cb * b[i, j]
+
+
+@kernel
+def _bmax(p, d):
+    m = 0.0
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            m = max(m, abs(p[i, j]))
+    return m
+
+
+# --- univariate polynomials in v -----------------------------------------------------------
+
+
+@kernel
+def _umul(p, dp, q, dq, out):
+    for k in range(dp + dq + 1):
+        out[k] = 0.0
+    for i in range(dp + 1):
+        c = p[i]
+        if c != 0.0:
+            for j in range(dq + 1):
+                out[i + j] += c * q[j]
+
+
+@kernel
+def _resultant_quadratic_in_u(a, b, nb, tb, uni, out):
+    """Res_u(a, b) as a polynomial in v (see the module docstring); returns its degree.
+
+    a: bivariate, total degree 2 (a[2, 0] is the constant a2); b: bivariate of total degree
+    tb and effective u-degree nb (b[i, :] = b_i(v), degree tb - i).
+    """
+    a2 = a[2, 0]
+    # Rows of the scratch: 0..nb sigma_m, nb+1 T_i, nb+2 product, nb+3 a0, nb+4 a1,
+    # nb+5 b_i T_i, nb+6 Horner accumulator (uses nb+7 as temporary).
+    a0 = uni[nb + 3]
+    a1 = uni[nb + 4]
+    a0[0] = a[0, 0]
+    a0[1] = a[0, 1]
+    a0[2] = a[0, 2]
+    a1[0] = a[1, 0]
+    a1[1] = a[1, 1]
+    sigma = uni
+    sigma[0, 0] = 2.0
+    if nb >= 1:
+        sigma[1, 0] = -a1[0]
+        sigma[1, 1] = -a1[1]
+    tmp = uni[nb + 2]
+    for m in range(2, nb + 1):
+        # sigma_m = -a1 sigma_{m-1} - a2 a0 sigma_{m-2}   (degree m)
+        _umul(a1, 1, sigma[m - 1], m - 1, sigma[m])
+        _umul(a0, 2, sigma[m - 2], m - 2, tmp)
+        for k in range(m + 1):
+            sigma[m, k] = -sigma[m, k] - a2 * tmp[k]
+    acc = uni[nb + 6]
+    acc_tmp = uni[nb + 7]
+    acc_deg = -1
+    t_poly = uni[nb + 1]
+    bt = uni[nb + 5]
+    for i in range(nb, -1, -1):
+        deg_t = tb - i
+        for k in range(deg_t + 1):
+            t_poly[k] = 0.0
+        # b_i a2^(nb-i)
+        p = a2 ** (nb - i)
+        if p != 0.0:
+            for k in range(tb - i + 1):
+                t_poly[k] += p * b[i, k]
+        for j in range(i + 1, nb + 1):
+            p = a2 ** (nb - j)
+            if p == 0.0:
+                continue
+            _umul(b[j], tb - j, sigma[j - i], j - i, tmp)
+            for k in range(tb - i + 1):
+                t_poly[k] += p * tmp[k]
+        _umul(b[i], tb - i, t_poly, deg_t, bt)
+        deg_bt = 2 * (tb - i)
+        # acc = acc * a0 + b_i T_i
+        if acc_deg < 0:
+            for k in range(deg_bt + 1):
+                acc[k] = bt[k]
+            acc_deg = deg_bt
+        else:
+            _umul(acc, acc_deg, a0, 2, acc_tmp)
+            acc_deg += 2
+            for k in range(acc_deg + 1):
+                acc[k] = acc_tmp[k]
+            for k in range(deg_bt + 1):
+                acc[k] += bt[k]
+    for k in range(acc_deg + 1):
+        out[k] = acc[k]
+    return acc_deg
+
+
+@kernel
+def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scratch_biv, scratch_uni, chain, lists, root_buf, out_uv, stats):
+    """All admissible one-bounce paths of one tuple; returns how many were written to out_uv.
+
+    ``stop_after`` cuts the pipeline for stage timing in the benchmark: 1 = polynomials and
+    resultant only, 2 = also the v roots, 0 = everything.
+    """
+    for k in range(N_STATS):
+        stats[k] = 0
+    p0 = row(tri_p, 0)
+    e1 = sub(row(tri_p, 1), p0)
+    e2 = sub(row(tri_p, 2), p0)
+    n0 = row(tri_n, 0)
+    m1 = sub(row(tri_n, 1), n0)
+    m2 = sub(row(tri_n, 2), n0)
+    ng, area2 = geometric_normal(e1, e2)
+    length = max(norm(e1), norm(e2))
+    if not (area2 > 1e-14 * length * length) or not (eta > 0.0):
+        stats[STAT_SKIPPED] = 1
+        return 0
+    # Sides of the endpoints against the triangle's plane: a reflection needs both on one
+    # side, a refraction one on each.  Endpoints in the plane have no path.
+    side0 = dot(sub(x0, p0), ng)
+    side2 = dot(sub(x2, p0), ng)
+    tiny = 1e-12 * length
+    if abs(side0) <= tiny or abs(side2) <= tiny or (side0 * side2 < 0.0) != refract:
+        stats[STAT_SKIPPED] = 1
+        return 0
+    n_mean = madd(madd(scale(n0, 3.0), m1, 1.0), m2, 1.0)
+    if norm(n_mean) == 0.0:
+        stats[STAT_SKIPPED] = 1
+        return 0
+
+    # Local frame: origin p0, unit scale, so coefficients are O(1) for any scene size.
+    inv_l = 1.0 / length
+    E1 = scale(e1, inv_l)
+    E2 = scale(e2, inv_l)
+    A = scale(sub(x0, p0), inv_l)
+    B = scale(sub(x2, p0), inv_l)
+    w = sub(B, A)
+    # Projection / tangent vector: normal of the plane of incidence at the mean normal.
+    C = cross(w, n_mean)
+    lc = norm(C)
+    if not lc > 1e-9 * norm(w) * norm(n_mean):
+        C = cross(E1, n_mean)
+        lc = norm(C)
+    C = scale(C, 1.0 / lc)
+
+    zero = (0.0, 0.0, 0.0)
+    minus_a = scale(A, -1.0)
+    t0 = cross(n0, C)
+    tu = cross(m1, C)
+    tv = cross(m2, C)
+    a_poly = scratch_biv[0]
+    f1 = scratch_biv[1]
+    f3 = scratch_biv[2]
+    g = scratch_biv[3]
+    h = scratch_biv[4]
+    b_poly = scratch_biv[5]
+    t1 = scratch_biv[6]
+    t2 = scratch_biv[7]
+    t3 = scratch_biv[8]
+    t4 = scratch_biv[9]
+    t5 = scratch_biv[10]
+    t6 = scratch_biv[11]
+    t7 = scratch_biv[12]
+    # a = ((x1 - x0) × w) · n                                           eq (6)
+    _lin_dot(a_poly, cross(minus_a, w), cross(E1, w), cross(E2, w), n0, m1, m2)
+    # f1 = d0 · n,  f3 = d0 · t,  g = w · t,  h = w · n   with d0 = x1 - x0, d1 = w - d0
+    _lin_dot(f1, minus_a, E1, E2, n0, m1, m2)
+    _lin_dot(f3, minus_a, E1, E2, t0, tu, tv)
+    _lin_dot(g, w, zero, zero, t0, tu, tv)
+    _lin_dot(h, w, zero, zero, n0, m1, m2)
+    max_a = _bmax(a_poly, 2)
+    if not (max_a > 0.0) or not np.isfinite(max_a):
+        stats[STAT_SKIPPED] = 1
+        return 0
+    for i in range(3):
+        for j in range(3 - i):
+            if abs(a_poly[i, j]) <= NEGLIGIBLE * max_a:
+                a_poly[i, j] = 0.0
+
+    count = 0
+    if not refract:
+        # Product form, eq (13): (d0·n)(d1·t) + (d0·t)(d1·n) = f1 g + f3 h - 2 f1 f3.
+        _bmul(f1, 2, g, 2, t1)
+        _bmul(f3, 2, h, 2, t2)
+        _bmul(f1, 2, f3, 2, t3)
+        for i in range(5):
+            for j in range(5 - i):
+                b_poly[i, j] = t1[i, j] + t2[i, j] - 2.0 * t3[i, j]
+        count = _solve_system(a_poly, max_a, b_poly, 4, False, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta, A, E1, E2,
+                              stop_after, scratch_uni, chain, lists, root_buf, out_uv, count, stats)
+        stats[STAT_PATHS] = count
+        return count
+
+    # Square form, eq (10): eta_in² |d1|² (d0·t)² - eta_out² |d0|² (d1·t)².
+    minus_e1 = scale(E1, -1.0)
+    minus_e2 = scale(E2, -1.0)
+    _lin_dot(t1, minus_a, E1, E2, minus_a, E1, E2)  # |d0|²
+    _lin_dot(t2, B, minus_e1, minus_e2, B, minus_e1, minus_e2)  # |d1|², d1 = B - u E1 - v E2
+    _bmul(f3, 2, f3, 2, t3)  # (d0·t)²
+    _bcombine(t4, 2, 1.0, g, -1.0, f3)  # d1·t
+    _bmul(t4, 2, t4, 2, t5)  # (d1·t)²
+    _bmul(t2, 2, t3, 4, t6)  # |d1|² (d0·t)²
+    _bmul(t1, 2, t5, 4, t7)  # |d0|² (d1·t)²
+    # Which side holds the medium follows the shading normal at the solution (CONTRACT.md).
+    # ng·n is linear in (u, v), so its signs at the vertices tell whether the normal field
+    # turns over the face; then both IOR assignments are solved.
+    s0 = dot(ng, n0)
+    s1 = dot(ng, row(tri_n, 1))
+    s2 = dot(ng, row(tri_n, 2))
+    any_front = s0 > 0.0 or s1 > 0.0 or s2 > 0.0
+    any_back = s0 < 0.0 or s1 < 0.0 or s2 < 0.0
+    for outward in (True, False):
+        if (outward and not any_front) or (not outward and not any_back):
+            continue
+        from_outside = (side0 > 0.0) == outward
+        eta_in = 1.0 if from_outside else eta
+        eta_out = eta if from_outside else 1.0
+        _bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7)
+        count = _solve_system(a_poly, max_a, b_poly, 6, True, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta, A, E1, E2,
+                              stop_after, scratch_uni, chain, lists, root_buf, out_uv, count, stats)
+    stats[STAT_PATHS] = count
+    return count
+
+
+@kernel
+def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta, A, E1, E2,
+                  stop_after, scratch_uni, chain, lists, root_buf, out_uv, count, stats):
+    """Roots of {a = 0, b = 0} in the triangle -> validated paths appended to out_uv.
+
+    Returns the new path count; candidates that converge onto a stored path are merged,
+    keeping the smaller residual.
+    """
+    # Effective u-degree of b: exactly-zero leading terms (flat normals) must not stay as
+    # rounding noise, or the resultant would be noise too.
+    max_b = _bmax(b_poly, total_b)
+    if not (max_b > 0.0) or not np.isfinite(max_b):
+        return count
+    nb = total_b
+    while nb > 0:
+        big = 0.0
+        for j in range(total_b - nb + 1):
+            big = max(big, abs(b_poly[nb, j]))
+        if big > NEGLIGIBLE * max_b:
+            break
+        for j in range(total_b - nb + 1):
+            b_poly[nb, j] = 0.0
+        nb -= 1
+
+    res = scratch_uni[15]
+    if nb == 0:
+        # b does not depend on u: its own roots in v are the candidates.
+        deg_r = total_b
+        for k in range(deg_r + 1):
+            res[k] = b_poly[0, k]
+    else:
+        deg_r = _resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, scratch_uni, res)
+    if stop_after == 1:
+        return count
+    v_roots = root_buf[0]
+    n_v = roots_in_interval(res, deg_r, -V_MARGIN, 1.0 + V_MARGIN, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, v_roots)
+    stats[STAT_ROOTS] += n_v
+    if stop_after == 2:
+        return count
+    degenerate_a = True
+    for i in range(3):
+        for j in range(3 - i):
+            if a_poly[i, j] != 0.0:
+                degenerate_a = False
+
+    u_roots = root_buf[1]
+    b_at_v = root_buf[2]
+    n_rounds = n_v + (1 if degenerate_a else 0)
+    for iv in range(n_rounds):
+        if iv < n_v:
+            vr = v_roots[iv]
+            a2 = a_poly[2, 0]
+            a1 = a_poly[1, 0] + a_poly[1, 1] * vr
+            a0 = a_poly[0, 0] + (a_poly[0, 1] + a_poly[0, 2] * vr) * vr
+            u_hi = 1.0 - vr + V_MARGIN
+            if abs(a2) + abs(a1) > 1e-10 * max_a:
+                n_u = _quadratic_u_roots(a2, a1, a0, -V_MARGIN, u_hi, u_roots)
+            else:
+                # a vanishes identically in u at this v: u comes from b(u, v*) = 0.
+                for i in range(nb + 1):
+                    acc = 0.0
+                    for j in range(total_b - i, -1, -1):
+                        acc = acc * vr + b_poly[i, j]
+                    b_at_v[i] = acc
+                n_u = roots_in_interval(b_at_v, nb, -V_MARGIN, u_hi, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, u_roots)
+        else:
+            # Coplanarity holds everywhere (light and receiver on a line along a flat
+            # normal): the only candidate is the foot of the normal through x0.
+            vr, ur = _foot_of_normal(A, E1, E2, n0)
+            u_roots[0] = ur
+            n_u = 1
+        for iu in range(n_u):
+            stats[STAT_CANDIDATES] += 1
+            ok, uu, vv, err = polish_and_validate(u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, 4)
+            if not ok:
+                continue
+            dup = -1
+            for q in range(min(count, out_uv.shape[0])):
+                if abs(out_uv[q, 0] - uu) + abs(out_uv[q, 1] - vv) < 1e-8:
+                    dup = q
+                    break
+            if dup >= 0:
+                if err < root_buf[3, dup]:
+                    out_uv[dup, 0] = uu
+                    out_uv[dup, 1] = vv
+                    root_buf[3, dup] = err
+                continue
+            if count < out_uv.shape[0]:
+                out_uv[count, 0] = uu
+                out_uv[count, 1] = vv
+                root_buf[3, count] = err
+            count += 1
+    return count
+
+
+@kernel
+def _quadratic_u_roots(a2, a1, a0, lo, hi, out):
+    """Roots of a2 u² + a1 u + a0 in [lo, hi] (a1 or a2 nonzero); near-double roots kept."""
+    if a2 == 0.0:
+        u = -a0 / a1
+        if u >= lo and u <= hi:
+            out[0] = u
+            return 1
+        return 0
+    disc = a1 * a1 - 4.0 * a2 * a0
+    if disc < 0.0:
+        if disc < -1e-12 * (a1 * a1 + abs(4.0 * a2 * a0)):
+            return 0
+        disc = 0.0
+    sq = math.sqrt(disc)
+    q = -0.5 * (a1 + sq) if a1 >= 0.0 else -0.5 * (a1 - sq)
+    n = 0
+    r1 = q / a2
+    if r1 >= lo and r1 <= hi:
+        out[n] = r1
+        n += 1
+    if q != 0.0:
+        r2 = a0 / q
+        if r2 >= lo and r2 <= hi and (n == 0 or r2 != r1):
+            out[n] = r2
+            n += 1
+    return n
+
+
+@kernel
+def _foot_of_normal(A, E1, E2, n):
+    """Barycentrics (v, u) of the projection of A onto the plane span(E1, E2) along n."""
+    # Solve u E1 + v E2 + s n = A for (u, v, s) by Cramer's rule.
+    det = dot(E1, cross(E2, n))
+    if det == 0.0:
+        return -1.0, -1.0
+    u = dot(A, cross(E2, n)) / det
+    v = dot(E1, cross(A, n)) / det
+    return v, u
+
+
+@kernel(parallel=True)
+def solve_one_bounce_batch(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_count, stats):
+    """Solve every tuple of a batch in parallel (chunks of ``CHUNK`` tuples per worker)."""
+    n = x_start.shape[0]
+    n_chunks = (n + CHUNK - 1) // CHUNK
+    for c in prange(n_chunks):
+        biv, uni, chain, lists, roots = make_scratch()
+        for t in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
+            out_count[t] = solve_one_bounce_tuple(
+                refract, row(x_start, t), row(x_end, t), P[t, 0], N[t, 0], eta[t], stop_after,
+                biv, uni, chain, lists, roots, out_uv[t], stats[t])
+
+
+@kernel
+def make_scratch():
+    """Per-worker scratch: bivariate terms, univariate polynomials, root lists."""
+    biv = np.zeros((13, 7, 7))
+    uni = np.zeros((16, 2 * MAX_DEGREE + 2))
+    chain = np.zeros((MAX_DEGREE + 1, MAX_DEGREE + 1))
+    lists = np.zeros((2, MAX_DEGREE + 1))
+    roots = np.zeros((4, MAX_DEGREE + 1))
+    return biv, uni, chain, lists, roots

@@ -1,0 +1,134 @@
+"""The specular constraint in path space: residual, Jacobian, Newton polish, validation.
+
+A candidate vertex x1 = p0 + u e1 + v e2 with normal n̂ = normalize(n0 + u m1 + v m2) is a
+true specular vertex when the outgoing unit direction equals the reflected / refracted
+incoming one.  That is the full vertex constraint, eq (3) of Fan et al. 2024
+(h × n = 0, the generalised half vector parallel to the normal), written with the side
+rules that eq (3) alone does not see: the incoming side is the geometric side x0 lies on,
+a reflection leaves on that side, a refraction crosses, and total internal reflection has
+no refracted direction.  The rules are spelled out in ``CONTRACT.md``.
+"""
+
+import math
+
+from .jit import kernel
+from .vec3 import cross, dot, madd, norm, scale, sub, tangent_derivative
+
+DIRECTION_TOLERANCE = 1e-7  # |wo - expected| for an accepted path (unit vectors)
+INSIDE_EPSILON = 1e-9  # barycentric slack at triangle edges
+
+
+@kernel
+def scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta):
+    """Residual wo - expected(wi, n̂) at barycentrics (u, v) and its (u, v) Jacobian.
+
+    Returns (ok, residual, d_residual/du, d_residual/dv); ok is False when the
+    configuration has no scattered direction (wrong side, back-facing shading normal,
+    total internal reflection, zero-length segments or normals).
+    """
+    zero = (0.0, 0.0, 0.0)
+    x1 = madd(madd(p0, e1, u), e2, v)
+    n = madd(madd(n0, m1, u), m2, v)
+    ln = norm(n)
+    di = sub(x1, x0)
+    li = norm(di)
+    do = sub(x2, x1)
+    lo = norm(do)
+    if not (ln > 0.0 and li > 0.0 and lo > 0.0):
+        return False, zero, zero, zero
+    nh = scale(n, 1.0 / ln)
+    wi = scale(di, 1.0 / li)
+    wo = scale(do, 1.0 / lo)
+    ng = ng_raw if dot(ng_raw, nh) >= 0.0 else scale(ng_raw, -1.0)
+    side_in = -dot(di, ng)
+    side_out = dot(do, ng)
+    if side_in == 0.0 or side_out == 0.0:
+        return False, zero, zero, zero
+    if refract == (side_in * side_out > 0.0):
+        return False, zero, zero, zero
+    s = 1.0 if side_in > 0.0 else -1.0
+    no = scale(nh, s)
+    c = -dot(wi, no)
+    if not c > 0.0:
+        return False, zero, zero, zero
+    if refract:
+        r = 1.0 / eta if s > 0.0 else eta
+        k = 1.0 - r * r * (1.0 - c * c)
+        if not k > 1e-24:
+            return False, zero, zero, zero
+        sk = math.sqrt(k)
+        expected = madd(scale(wi, r), no, r * c - sk)
+    else:
+        r = 1.0
+        sk = 0.0
+        expected = madd(wi, no, 2.0 * c)
+    res = sub(wo, expected)
+    jac_u = zero
+    jac_v = zero
+    for axis in range(2):
+        d = e1 if axis == 0 else e2
+        dm = m1 if axis == 0 else m2
+        dwi = tangent_derivative(wi, d, li)
+        dwo = scale(tangent_derivative(wo, d, lo), -1.0)
+        dno = scale(tangent_derivative(nh, dm, ln), s)
+        dc = -(dot(dwi, no) + dot(wi, dno))
+        if refract:
+            dsk = r * r * c * dc / sk
+            dexp = madd(madd(scale(dwi, r), no, r * dc - dsk), dno, r * c - sk)
+        else:
+            dexp = madd(madd(dwi, no, 2.0 * dc), dno, 2.0 * c)
+        col = sub(dwo, dexp)
+        if axis == 0:
+            jac_u = col
+        else:
+            jac_v = col
+    return True, res, jac_u, jac_v
+
+
+@kernel
+def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps):
+    """Gauss-Newton on the path-space residual from (u, v), then the acceptance test.
+
+    The polynomial roots are already close (the system is exact for one bounce), so one
+    or two steps reach rounding level; the loop stops early once the step stalls.
+    Returns (accepted, u, v, |residual|).
+    """
+    ok, res, ju, jv = scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
+    if not ok:
+        return False, u, v, math.inf
+    err = norm(res)
+    for _ in range(max_steps):
+        if err < 1e-15:
+            break
+        # Normal equations of the 3x2 least-squares step: (J^T J) delta = -J^T r.
+        a11 = dot(ju, ju)
+        a12 = dot(ju, jv)
+        a22 = dot(jv, jv)
+        b1 = -dot(ju, res)
+        b2 = -dot(jv, res)
+        det = a11 * a22 - a12 * a12
+        if not abs(det) > 1e-300:
+            break
+        du = (b1 * a22 - b2 * a12) / det
+        dv = (a11 * b2 - a12 * b1) / det
+        ok2, res2, ju2, jv2 = scatter_residual(u + du, v + dv, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
+        if not ok2:
+            break
+        err2 = norm(res2)
+        if not err2 < err:
+            break
+        u += du
+        v += dv
+        res, ju, jv, err = res2, ju2, jv2, err2
+    inside = u >= -INSIDE_EPSILON and v >= -INSIDE_EPSILON and u + v <= 1.0 + INSIDE_EPSILON
+    return inside and err <= DIRECTION_TOLERANCE, u, v, err
+
+
+@kernel
+def geometric_normal(e1, e2):
+    """Unit normal of the triangle's plane (unoriented) and twice its area."""
+    g = cross(e1, e2)
+    area2 = norm(g)
+    if area2 > 0.0:
+        return scale(g, 1.0 / area2), area2
+    return g, 0.0

@@ -59,7 +59,7 @@ N_STATS = 4
 # --- bivariate polynomials: p[i, j] multiplies u^i v^j -------------------------------------
 
 
-@kernel
+@kernel(inline="always")
 def _lin_dot(out, a0, au, av, b0, bu, bv):
     """(a0 + u au + v av) · (b0 + u bu + v bv) as a quadratic in (u, v)."""
     for i in range(3):
@@ -73,7 +73,7 @@ def _lin_dot(out, a0, au, av, b0, bu, bv):
     out[0, 2] = dot(av, bv)
 
 
-@kernel
+@kernel(inline="always")
 def _bmul(p, dp, q, dq, out):
     """out = p q for bivariate polynomials of total degree dp and dq."""
     d = dp + dq
@@ -90,7 +90,7 @@ def _bmul(p, dp, q, dq, out):
                     out[i1 + i2, j1 + j2] += c * q[i2, j2]
 
 
-@kernel
+@kernel(inline="always")
 def _bcombine(out, d, ca, a, cb, b):
     """out = ca a + cb b (total degree d)."""
     for i in range(d + 1):
@@ -98,7 +98,7 @@ def _bcombine(out, d, ca, a, cb, b):
             out[i, j] = ca * a[i, j] + cb * b[i, j]
 
 
-@kernel
+@kernel(inline="always")
 def _bmax(p, d):
     m = 0.0
     for i in range(d + 1):
@@ -110,7 +110,7 @@ def _bmax(p, d):
 # --- univariate polynomials in v -----------------------------------------------------------
 
 
-@kernel
+@kernel(inline="always")
 def _umul(p, dp, q, dq, out):
     for k in range(dp + dq + 1):
         out[k] = 0.0
@@ -271,6 +271,9 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
         for j in range(3 - i):
             if abs(a_poly[i, j]) <= NEGLIGIBLE * max_a:
                 a_poly[i, j] = 0.0
+    if _conic_misses_triangle(a_poly, max_a):
+        stats[STAT_SKIPPED] = 1
+        return 0
 
     count = 0
     if not refract:
@@ -352,7 +355,12 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
     if stop_after == 1:
         return count
     v_roots = root_buf[0]
-    n_v = roots_in_interval(res, deg_r, -V_MARGIN, 1.0 + V_MARGIN, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, v_roots)
+    # Roots in v ∈ [-V_MARGIN, 1 + V_MARGIN], found as roots in s ∈ [0, 1] of
+    # r(-V_MARGIN + (1 + 2 V_MARGIN) s), so the root finder's [0, 1] fast path applies.
+    _shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN)
+    n_v = roots_in_interval(res, deg_r, 0.0, 1.0, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, v_roots)
+    for iv in range(n_v):
+        v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     stats[STAT_ROOTS] += n_v
     if stop_after == 2:
         return count
@@ -410,6 +418,38 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
                 root_buf[3, count] = err
             count += 1
     return count
+
+
+@kernel
+def _conic_misses_triangle(a, scale):
+    """True when the coplanarity conic a(u, v) = 0 has no point on the triangle.
+
+    The six Bernstein coefficients of the quadratic over the triangle bound its values there
+    (convex hull property); if all share one sign, by more than a rounding margin that also
+    covers the INSIDE_EPSILON slack at the edges, no path can exist.
+    """
+    b200 = a[0, 0]
+    b020 = a[0, 0] + a[1, 0] + a[2, 0]
+    b002 = a[0, 0] + a[0, 1] + a[0, 2]
+    b110 = a[0, 0] + 0.5 * a[1, 0]
+    b101 = a[0, 0] + 0.5 * a[0, 1]
+    b011 = a[0, 0] + 0.5 * (a[1, 0] + a[0, 1] + a[1, 1])
+    lo = min(min(b200, b020), min(min(b002, b110), min(b101, b011)))
+    hi = max(max(b200, b020), max(max(b002, b110), max(b101, b011)))
+    margin = 1e-7 * scale
+    return lo > margin or hi < -margin
+
+
+@kernel
+def _shift_to_unit_interval(c, deg, origin, width):
+    """In place: c(x) -> c(origin + width s), by Taylor shift (Horner, O(deg²))."""
+    for i in range(deg):
+        for j in range(deg - 1, i - 1, -1):
+            c[j] += origin * c[j + 1]
+    p = 1.0
+    for k in range(deg + 1):
+        c[k] *= p
+        p *= width
 
 
 @kernel

@@ -86,6 +86,42 @@ def _solve_monotone(c, deg, a, b, fa, fb, x_tolerance):
 
 
 @kernel
+def _bernstein_sign_changes(c, deg, work, zero_tolerance):
+    """Sign changes of the Bernstein coefficients of c[0..deg] on [0, 1] (2 = 'two or more').
+
+    Bernstein coefficient k is sum_{i<=k} C(k,i)/C(deg,i) c_i.  Coefficients within
+    ``zero_tolerance`` of zero count as a sign change: a root may touch there.
+    """
+    binom_deg = 1.0
+    for i in range(deg + 1):
+        # work[i] = c_i / C(deg, i)
+        work[i] = c[i] / binom_deg
+        binom_deg = binom_deg * (deg - i) / (i + 1)
+    changes = 0
+    prev_sign = 0
+    scale = 0.0
+    for i in range(deg + 1):
+        scale = max(scale, abs(c[i]))
+    # Forward differences: b_k = sum_i C(k,i) work_i, computed by the Pascal recurrence.
+    for k in range(deg + 1):
+        # b_k uses binomials of row k
+        bk = 0.0
+        binom = 1.0
+        for i in range(k + 1):
+            bk += binom * work[i]
+            binom = binom * (k - i) / (i + 1)
+        if abs(bk) <= zero_tolerance * scale:
+            return 2
+        sign = 1 if bk > 0.0 else -1
+        if prev_sign != 0 and sign != prev_sign:
+            changes += 1
+            if changes >= 2:
+                return 2
+        prev_sign = sign
+    return changes
+
+
+@kernel
 def _quadratic_roots_in(c0, c1, c2, lo, hi, out):
     """Real roots of c2 x^2 + c1 x + c0 in [lo, hi], ascending; returns the count.
 
@@ -151,6 +187,18 @@ def roots_in_interval(coeffs, degree, lo, hi, x_tolerance, touch_tolerance, chai
     inv = 1.0 / norm
     for i in range(deg + 1):
         chain[deg, i] = coeffs[i] * inv
+    if deg > 2 and lo == 0.0 and hi == 1.0:
+        # Descartes' rule on the Bernstein coefficients over [0, 1]: no sign change means
+        # no root, exactly one means exactly one root, bracketed by the endpoint values.
+        changes = _bernstein_sign_changes(chain[deg], deg, lists[0], touch_tolerance)
+        if changes == 0:
+            return 0
+        if changes == 1:
+            fa = horner(chain[deg], deg, 0.0)
+            fb = horner(chain[deg], deg, 1.0)
+            if fa != 0.0 and fb != 0.0 and (fa < 0.0) != (fb < 0.0):
+                out[0] = _solve_monotone(chain[deg], deg, 0.0, 1.0, fa, fb, x_tolerance)
+                return 1
     if deg <= 2:
         c2 = chain[deg, 2] if deg == 2 else 0.0
         return _quadratic_roots_in(chain[deg, 0], chain[deg, 1], c2, lo, hi, out)

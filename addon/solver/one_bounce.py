@@ -400,6 +400,13 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
             stats[STAT_CANDIDATES] += 1
             ok, uu, vv, err = polish_and_validate(u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, 4)
             if not ok:
+                # Fallback: Newton on the exact polynomial system, which stays smooth where
+                # the path-space residual is undefined (a resultant root a hair past the
+                # critical angle of a grazing refraction), then polish again.  Not first:
+                # between two close roots it may jump to the neighbour and lose one.
+                uu, vv = _refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr)
+                ok, uu, vv, err = polish_and_validate(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, 4)
+            if not ok:
                 continue
             dup = -1
             for q in range(min(count, out_uv.shape[0])):
@@ -418,6 +425,53 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
                 root_buf[3, count] = err
             count += 1
     return count
+
+
+@kernel
+def _eval_with_gradient(p, d, u, v):
+    """Value and (d/du, d/dv) of the bivariate polynomial p of total degree d."""
+    f = 0.0
+    fu = 0.0
+    fv = 0.0
+    ui = 1.0  # u^i
+    ui_1 = 0.0  # u^(i-1)
+    for i in range(d + 1):
+        vj = 1.0  # v^j
+        vj_1 = 0.0  # j v^(j-1)
+        for j in range(d + 1 - i):
+            c = p[i, j]
+            f += c * ui * vj
+            fv += c * ui * vj_1
+            if i > 0:
+                fu += c * i * ui_1 * vj
+            vj_1 = (j + 1) * vj
+            vj *= v
+        ui_1 = ui
+        ui *= u
+    return f, fu, fv
+
+
+@kernel
+def _refine_on_polynomials(a, b, db, u, v):
+    """A few Newton steps on {a(u,v) = 0, b(u,v) = 0}, kept only while they reduce |a|+|b|."""
+    fa, au, av = _eval_with_gradient(a, 2, u, v)
+    fb, bu, bv = _eval_with_gradient(b, db, u, v)
+    size = abs(fa) + abs(fb)
+    for _ in range(4):
+        det = au * bv - av * bu
+        if det == 0.0 or size == 0.0:
+            break
+        du = -(fa * bv - av * fb) / det
+        dv = -(au * fb - fa * bu) / det
+        ga, gau, gav = _eval_with_gradient(a, 2, u + du, v + dv)
+        gb, gbu, gbv = _eval_with_gradient(b, db, u + du, v + dv)
+        new_size = abs(ga) + abs(gb)
+        if not new_size < size:
+            break
+        u += du
+        v += dv
+        fa, au, av, fb, bu, bv, size = ga, gau, gav, gb, gbu, gbv, new_size
+    return u, v
 
 
 @kernel

@@ -36,7 +36,7 @@ import math
 import numpy as np
 
 from .jit import kernel, prange
-from .path_space import geometric_normal, polish_and_validate
+from .path_space import geometric_normal, polish_and_validate, scatter_residual
 from .roots import MAX_DEGREE, roots_in_interval
 from .vec3 import cross, dot, madd, norm, row, scale, sub
 
@@ -46,7 +46,10 @@ CHUNK = 256  # tuples per parallel work item (scratch is allocated once per chun
 ROOT_X_TOLERANCE = 1e-13
 ROOT_TOUCH_TOLERANCE = 1e-10
 V_MARGIN = 1e-6  # v roots are searched slightly outside [0, 1]; the inside test is exact
-NEGLIGIBLE = 1e-13  # relative size below which a coefficient is treated as exactly zero
+SAME_PATH = 1e-7  # barycentric distance under which two polished candidates are one path
+NEGLIGIBLE = 1e-13
+FOLD_RATIO = 1e-4  # lam_min / lam_max of J^T J under which a path counts as near a fold
+FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null direction  # relative size below which a coefficient is treated as exactly zero
 
 # Indices into the per-tuple statistics row.
 STAT_ROOTS = 0  # real resultant roots in range
@@ -408,9 +411,12 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
                 ok, uu, vv, err = polish_and_validate(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, 4)
             if not ok:
                 continue
+            # Two candidates are one path when they polish to within SAME_PATH of each other:
+            # in ill-conditioned tuples (tiny triangle, far endpoints) Newton stalls a few
+            # 1e-9 apart.  Distinct paths that close lie on a fold of the caustic.
             dup = -1
             for q in range(min(count, out_uv.shape[0])):
-                if abs(out_uv[q, 0] - uu) + abs(out_uv[q, 1] - vv) < 1e-8:
+                if max(abs(out_uv[q, 0] - uu), abs(out_uv[q, 1] - vv)) < SAME_PATH:
                     dup = q
                     break
             if dup >= 0:
@@ -419,6 +425,54 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
                     out_uv[dup, 1] = vv
                     root_buf[3, dup] = err
                 continue
+            if count < out_uv.shape[0]:
+                out_uv[count, 0] = uu
+                out_uv[count, 1] = vv
+                root_buf[3, count] = err
+            count += 1
+            count = _probe_fold(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count)
+    return count
+
+
+@kernel
+def _probe_fold(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count):
+    """Near a fold of the caustic two paths can lie within ~1e-5 of each other and project
+    onto one (double) resultant root, so only one of them is a candidate.  When the path's
+    Jacobian is nearly singular, polish from a few points along its null direction and keep
+    any new path."""
+    ok, res, ju, jv = scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta)
+    if not ok:
+        return count
+    a11 = dot(ju, ju)
+    a12 = dot(ju, jv)
+    a22 = dot(jv, jv)
+    tr = a11 + a22
+    disc = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))
+    lam_min = 0.5 * tr - disc
+    lam_max = 0.5 * tr + disc
+    if not (lam_max > 0.0) or lam_min > FOLD_RATIO * lam_max:
+        return count
+    # Null direction: eigenvector of J^T J for lam_min.
+    if abs(a12) > 0.0:
+        su, sv = a12, lam_min - a11
+    elif a11 <= a22:
+        su, sv = 1.0, 0.0
+    else:
+        su, sv = 0.0, 1.0
+    ls = math.sqrt(su * su + sv * sv)
+    su /= ls
+    sv /= ls
+    for k in range(6):
+        step = FOLD_STEPS[k // 2] * (1.0 if k % 2 == 0 else -1.0)
+        ok2, uu, vv, err = polish_and_validate(u + step * su, v + step * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, 8)
+        if not ok2:
+            continue
+        new = True
+        for q in range(min(count, out_uv.shape[0])):
+            if max(abs(out_uv[q, 0] - uu), abs(out_uv[q, 1] - vv)) < SAME_PATH:
+                new = False
+                break
+        if new:
             if count < out_uv.shape[0]:
                 out_uv[count, 0] = uu
                 out_uv[count, 1] = vv

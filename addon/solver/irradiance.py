@@ -79,13 +79,12 @@ def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tup
         ok, res, ju, jv = scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta[t])
         if not ok:
             continue
-        x1 = madd(madd(p0, e1, u), e2, v)
         n = madd(madd(n0, m1, u), m2, v)
         nh = scale(n, 1.0 / norm(n))
-        di = sub(x1, x0)
+        di = madd(madd(sub(p0, x0), e1, u), e2, v)  # from p0: see path_space.scatter_residual
         li = norm(di)
         wi = scale(di, 1.0 / li)
-        do = sub(x2, x1)
+        do = madd(madd(sub(x2, p0), e1, -u), e2, -v)
         big_l = norm(do)
         wo = scale(do, 1.0 / big_l)
         # Scattered-direction derivatives: the residual's Jacobian is d(wo)/d(uv) minus them.

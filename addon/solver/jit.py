@@ -11,22 +11,61 @@ import os
 _PROJECT_CACHE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), ".numba_cache")
 
 
-def configure_cache(directory=None):
-    """Point numba's kernel cache at ``directory`` (default: the project-local folder).
+def source_fingerprint():
+    """Hash of every solver source file.
 
-    Has an effect only if called before numba is first imported, or to re-point it
-    afterwards through ``numba.config`` for kernels not yet compiled.
+    Numba's on-disk cache is keyed per file: when a kernel inlines a function from another
+    module and only that module changes, the caller's stale machine code is still loaded.
+    Caching under a folder named by this fingerprint makes any source change (an edit, an
+    extension update) a clean recompile.
     """
-    directory = directory or os.environ.get("NUMBA_CACHE_DIR") or _PROJECT_CACHE
-    os.makedirs(directory, exist_ok=True)
-    os.environ["NUMBA_CACHE_DIR"] = directory
+    import hashlib
+
+    digest = hashlib.sha1()
+    folder = os.path.dirname(os.path.abspath(__file__))
+    for name in sorted(os.listdir(folder)):
+        if name.endswith(".py"):
+            digest.update(name.encode())
+            with open(os.path.join(folder, name), "rb") as f:
+                digest.update(f.read())
+    return digest.hexdigest()[:16]
+
+
+_FINGERPRINT = source_fingerprint()
+_base_directory = None
+
+
+def configure_cache(directory=None):
+    """Point numba's kernel cache at ``directory``/<source fingerprint>.
+
+    ``directory`` defaults to the one configured before, then ``NUMBA_CACHE_DIR`` (set by the
+    Blender UI layer to the extension's user directory), then ``<repo>/.numba_cache``.  Cache
+    folders of other fingerprints (older sources) in it are removed.  Takes full effect if
+    called before numba is first imported; afterwards it re-points ``numba.config`` for
+    kernels not yet compiled.
+    """
+    import shutil
     import sys
 
+    global _base_directory
+    if directory is None:
+        directory = _base_directory or os.environ.get("NUMBA_CACHE_DIR") or _PROJECT_CACHE
+        if os.path.basename(os.path.normpath(directory)) == _FINGERPRINT:
+            directory = os.path.dirname(os.path.normpath(directory))
+    _base_directory = directory
+    os.makedirs(directory, exist_ok=True)
+    for name in os.listdir(directory):
+        stale = os.path.join(directory, name)
+        if name != _FINGERPRINT and len(name) == 16 and all(c in "0123456789abcdef" for c in name) and os.path.isdir(stale):
+            shutil.rmtree(stale, ignore_errors=True)
+    actual = os.path.join(directory, _FINGERPRINT)
+    os.makedirs(actual, exist_ok=True)
+    os.environ["NUMBA_CACHE_DIR"] = actual
     if "numba" in sys.modules:
         import numba
 
-        numba.config.CACHE_DIR = directory
-    return directory
+        numba.config.CACHE_DIR = actual
+    return actual
 
 
 configure_cache()

@@ -37,7 +37,7 @@ import numpy as np
 
 from .jit import kernel, prange
 from .path_space import geometric_normal, polish_and_validate, scatter_residual
-from .roots import MAX_DEGREE, roots_in_interval
+from .roots import MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval
 from .vec3 import cross, dot, madd, norm, row, scale, sub
 
 MAX_PATHS_ONE_BOUNCE = 8  # per tuple; a one-bounce tuple seldom has more than 2
@@ -47,6 +47,9 @@ ROOT_X_TOLERANCE = 1e-13
 ROOT_TOUCH_TOLERANCE = 1e-10
 V_MARGIN = 1e-6  # v roots are searched slightly outside [0, 1]; the inside test is exact
 SAME_PATH = 1e-7  # barycentric distance under which two polished candidates are one path
+NEAR_PATH = 1e-5  # largest merge radius, used where the Jacobian barely pins the path
+POLISH_STEPS = 40  # Gauss-Newton steps at most (stops once converged or a step stops helping)
+ACCEPT_RESIDUAL = 1e-12  # residual accepted outright; above it (up to 1e-7) Newton must have settled
 NEGLIGIBLE = 1e-13
 FOLD_RATIO = 1e-4  # lam_min / lam_max of J^T J under which a path counts as near a fold
 FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null direction  # relative size below which a coefficient is treated as exactly zero
@@ -194,7 +197,7 @@ def _resultant_quadratic_in_u(a, b, nb, tb, uni, out):
 
 
 @kernel
-def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scratch_biv, scratch_uni, chain, lists, root_buf, out_uv, stats):
+def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scratch_biv, scratch_uni, chain, lists, stack, root_buf, out_uv, stats):
     """All admissible one-bounce paths of one tuple; returns how many were written to out_uv.
 
     ``stop_after`` cuts the pipeline for stage timing in the benchmark: 1 = polynomials and
@@ -267,9 +270,17 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
     _lin_dot(g, w, zero, zero, t0, tu, tv)
     _lin_dot(h, w, zero, zero, n0, m1, m2)
     max_a = _bmax(a_poly, 2)
-    if not (max_a > 0.0) or not np.isfinite(max_a):
+    if not np.isfinite(max_a):
         stats[STAT_SKIPPED] = 1
         return 0
+    # Size a's terms could have: |x1 - x0| |w| |n| over the triangle (local units).
+    natural_a = (norm(A) + 1.0) * norm(w) * (norm(n0) + norm(m1) + norm(m2))
+    if max_a <= 1e-13 * natural_a:
+        # Coplanarity holds everywhere up to rounding (flat normals along x2 - x0): only a
+        # path at normal incidence is possible.
+        count = _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, 0, stats)
+        stats[STAT_PATHS] = count
+        return count
     for i in range(3):
         for j in range(3 - i):
             if abs(a_poly[i, j]) <= NEGLIGIBLE * max_a:
@@ -287,8 +298,10 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
         for i in range(5):
             for j in range(5 - i):
                 b_poly[i, j] = t1[i, j] + t2[i, j] - 2.0 * t3[i, j]
-        count = _solve_system(a_poly, max_a, b_poly, 4, False, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta, A, E1, E2,
-                              stop_after, scratch_uni, chain, lists, root_buf, out_uv, count, stats)
+        count = _solve_system(a_poly, max_a, b_poly, 4, False, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
+                              stop_after, scratch_uni, chain, lists, stack, root_buf, out_uv, count, stats)
+        if stop_after == 0:
+            count = _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count, stats)
         stats[STAT_PATHS] = count
         return count
 
@@ -317,15 +330,17 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
         eta_in = 1.0 if from_outside else eta
         eta_out = eta if from_outside else 1.0
         _bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7)
-        count = _solve_system(a_poly, max_a, b_poly, 6, True, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta, A, E1, E2,
-                              stop_after, scratch_uni, chain, lists, root_buf, out_uv, count, stats)
+        count = _solve_system(a_poly, max_a, b_poly, 6, True, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
+                              stop_after, scratch_uni, chain, lists, stack, root_buf, out_uv, count, stats)
+    if stop_after == 0:
+        count = _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count, stats)
     stats[STAT_PATHS] = count
     return count
 
 
 @kernel
-def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta, A, E1, E2,
-                  stop_after, scratch_uni, chain, lists, root_buf, out_uv, count, stats):
+def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
+                  stop_after, scratch_uni, chain, lists, stack, root_buf, out_uv, count, stats):
     """Roots of {a = 0, b = 0} in the triangle -> validated paths appended to out_uv.
 
     Returns the new path count; candidates that converge onto a stored path are merged,
@@ -361,77 +376,82 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
     # Roots in v ∈ [-V_MARGIN, 1 + V_MARGIN], found as roots in s ∈ [0, 1] of
     # r(-V_MARGIN + (1 + 2 V_MARGIN) s), so the root finder's [0, 1] fast path applies.
     _shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN)
-    n_v = roots_in_interval(res, deg_r, 0.0, 1.0, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, v_roots)
+    n_v = roots_in_unit_interval(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, stack, v_roots)
     for iv in range(n_v):
         v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     stats[STAT_ROOTS] += n_v
     if stop_after == 2:
         return count
-    degenerate_a = True
-    for i in range(3):
-        for j in range(3 - i):
-            if a_poly[i, j] != 0.0:
-                degenerate_a = False
-
     u_roots = root_buf[1]
     b_at_v = root_buf[2]
-    n_rounds = n_v + (1 if degenerate_a else 0)
-    for iv in range(n_rounds):
-        if iv < n_v:
-            vr = v_roots[iv]
-            a2 = a_poly[2, 0]
-            a1 = a_poly[1, 0] + a_poly[1, 1] * vr
-            a0 = a_poly[0, 0] + (a_poly[0, 1] + a_poly[0, 2] * vr) * vr
-            u_hi = 1.0 - vr + V_MARGIN
-            if abs(a2) + abs(a1) > 1e-10 * max_a:
-                n_u = _quadratic_u_roots(a2, a1, a0, -V_MARGIN, u_hi, u_roots)
-            else:
-                # a vanishes identically in u at this v: u comes from b(u, v*) = 0.
-                for i in range(nb + 1):
-                    acc = 0.0
-                    for j in range(total_b - i, -1, -1):
-                        acc = acc * vr + b_poly[i, j]
-                    b_at_v[i] = acc
-                n_u = roots_in_interval(b_at_v, nb, -V_MARGIN, u_hi, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, u_roots)
+    for iv in range(n_v):
+        vr = v_roots[iv]
+        a2 = a_poly[2, 0]
+        a1 = a_poly[1, 0] + a_poly[1, 1] * vr
+        a0 = a_poly[0, 0] + (a_poly[0, 1] + a_poly[0, 2] * vr) * vr
+        u_hi = 1.0 - vr + V_MARGIN
+        if abs(a2) + abs(a1) > 1e-10 * max_a:
+            n_u = _quadratic_u_roots(a2, a1, a0, -V_MARGIN, u_hi, u_roots)
         else:
-            # Coplanarity holds everywhere (light and receiver on a line along a flat
-            # normal): the only candidate is the foot of the normal through x0.
-            vr, ur = _foot_of_normal(A, E1, E2, n0)
-            u_roots[0] = ur
-            n_u = 1
+            # a vanishes identically in u at this v: u comes from b(u, v*) = 0.
+            for i in range(nb + 1):
+                acc = 0.0
+                for j in range(total_b - i, -1, -1):
+                    acc = acc * vr + b_poly[i, j]
+                b_at_v[i] = acc
+            n_u = roots_in_interval(b_at_v, nb, -V_MARGIN, u_hi, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, u_roots)
         for iu in range(n_u):
             stats[STAT_CANDIDATES] += 1
-            ok, uu, vv, err = polish_and_validate(u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, 4)
+            ok, uu, vv, err, sig = polish_and_validate(u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
             if not ok:
                 # Fallback: Newton on the exact polynomial system, which stays smooth where
                 # the path-space residual is undefined (a resultant root a hair past the
                 # critical angle of a grazing refraction), then polish again.  Not first:
                 # between two close roots it may jump to the neighbour and lose one.
                 uu, vv = _refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr)
-                ok, uu, vv, err = polish_and_validate(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, 4)
+                ok, uu, vv, err, sig = polish_and_validate(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
             if not ok:
                 continue
-            # Two candidates are one path when they polish to within SAME_PATH of each other:
-            # in ill-conditioned tuples (tiny triangle, far endpoints) Newton stalls a few
-            # 1e-9 apart.  Distinct paths that close lie on a fold of the caustic.
-            dup = -1
-            for q in range(min(count, out_uv.shape[0])):
-                if max(abs(out_uv[q, 0] - uu), abs(out_uv[q, 1] - vv)) < SAME_PATH:
-                    dup = q
-                    break
-            if dup >= 0:
-                if err < root_buf[3, dup]:
-                    out_uv[dup, 0] = uu
-                    out_uv[dup, 1] = vv
-                    root_buf[3, dup] = err
+            before = count
+            count = _store_path(uu, vv, err, sig, root_buf, out_uv, count)
+            if count == before:
                 continue
-            if count < out_uv.shape[0]:
-                out_uv[count, 0] = uu
-                out_uv[count, 1] = vv
-                root_buf[3, count] = err
-            count += 1
             count = _probe_fold(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count)
     return count
+
+
+@kernel
+def _store_path(uu, vv, err, sigma_min, root_buf, out_uv, count):
+    """Append (uu, vv) unless it is a path already stored; returns the new count.
+
+    Two polished candidates are one path when they are closer than the residuals can tell
+    apart: |Δuv| ≲ (err_a + err_b + rounding) / σ_min(J), and at least SAME_PATH.  In an
+    ill-conditioned tuple (small triangle, far endpoints, near a fold) Newton lands anywhere
+    on a short segment at rounding-level residual, so the radius grows there (capped at
+    NEAR_PATH); two well-pinned paths farther apart than SAME_PATH stay distinct.  The
+    copy with the smaller residual is kept.
+    """
+    for q in range(min(count, out_uv.shape[0])):
+        dist = max(abs(out_uv[q, 0] - uu), abs(out_uv[q, 1] - vv))
+        sig = min(sigma_min, root_buf[4, q])
+        radius = SAME_PATH
+        if sig > 0.0:
+            radius = max(radius, 4.0 * (err + root_buf[3, q] + 1e-12) / sig)
+        else:
+            radius = NEAR_PATH
+        if dist < min(radius, NEAR_PATH):
+            if err < root_buf[3, q]:
+                out_uv[q, 0] = uu
+                out_uv[q, 1] = vv
+                root_buf[3, q] = err
+                root_buf[4, q] = sigma_min
+            return count
+    if count < out_uv.shape[0]:
+        out_uv[count, 0] = uu
+        out_uv[count, 1] = vv
+        root_buf[3, count] = err
+        root_buf[4, count] = sigma_min
+    return count + 1
 
 
 @kernel
@@ -464,20 +484,10 @@ def _probe_fold(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf
     sv /= ls
     for k in range(6):
         step = FOLD_STEPS[k // 2] * (1.0 if k % 2 == 0 else -1.0)
-        ok2, uu, vv, err = polish_and_validate(u + step * su, v + step * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, 8)
+        ok2, uu, vv, err, sig = polish_and_validate(u + step * su, v + step * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
         if not ok2:
             continue
-        new = True
-        for q in range(min(count, out_uv.shape[0])):
-            if max(abs(out_uv[q, 0] - uu), abs(out_uv[q, 1] - vv)) < SAME_PATH:
-                new = False
-                break
-        if new:
-            if count < out_uv.shape[0]:
-                out_uv[count, 0] = uu
-                out_uv[count, 1] = vv
-                root_buf[3, count] = err
-            count += 1
+        count = _store_path(uu, vv, err, sig, root_buf, out_uv, count)
     return count
 
 
@@ -590,15 +600,44 @@ def _quadratic_u_roots(a2, a1, a0, lo, hi, out):
 
 
 @kernel
-def _foot_of_normal(A, E1, E2, n):
-    """Barycentrics (v, u) of the projection of A onto the plane span(E1, E2) along n."""
-    # Solve u E1 + v E2 + s n = A for (u, v, s) by Cramer's rule.
-    det = dot(E1, cross(E2, n))
-    if det == 0.0:
-        return -1.0, -1.0
-    u = dot(A, cross(E2, n)) / det
-    v = dot(E1, cross(A, n)) / det
-    return v, u
+def _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count, stats):
+    """The path at normal incidence, where x1 lies on the line x0-x2 and n(x1) is along it.
+
+    There the coplanarity conic a = 0 degenerates (identically zero for flat normals, a
+    double point otherwise), so the resultant does not isolate this path reliably; the
+    candidate is the line's intersection with the triangle's plane, kept when the normal
+    there is nearly along the line and the polish validates it.
+    """
+    w = sub(x2, x0)
+    denom = dot(w, ng)
+    if denom == 0.0:
+        return count
+    t = dot(sub(p0, x0), ng) / denom
+    xc = madd(x0, w, t)
+    # Barycentrics of xc by Cramer's rule in the triangle's plane.
+    rel = sub(xc, p0)
+    d11 = dot(e1, e1)
+    d12 = dot(e1, e2)
+    d22 = dot(e2, e2)
+    r1 = dot(rel, e1)
+    r2 = dot(rel, e2)
+    det = d11 * d22 - d12 * d12
+    if not det > 0.0:
+        return count
+    u = (r1 * d22 - r2 * d12) / det
+    v = (d11 * r2 - d12 * r1) / det
+    if u < -1e-6 or v < -1e-6 or u + v > 1.0 + 1e-6:
+        return count
+    n = madd(madd(n0, m1, u), m2, v)
+    ln = norm(n)
+    lw = norm(w)
+    if not (ln > 0.0 and lw > 0.0) or norm(cross(n, w)) > 1e-2 * ln * lw:
+        return count
+    stats[STAT_CANDIDATES] += 1
+    ok, uu, vv, err, sig = polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
+    if ok:
+        count = _store_path(uu, vv, err, sig, root_buf, out_uv, count)
+    return count
 
 
 @kernel(parallel=True)
@@ -607,11 +646,11 @@ def solve_one_bounce_batch(refract, x_start, x_end, P, N, eta, stop_after, out_u
     n = x_start.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     for c in prange(n_chunks):
-        biv, uni, chain, lists, roots = make_scratch()
+        biv, uni, chain, lists, stack, roots = make_scratch()
         for t in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             out_count[t] = solve_one_bounce_tuple(
                 refract, row(x_start, t), row(x_end, t), P[t, 0], N[t, 0], eta[t], stop_after,
-                biv, uni, chain, lists, roots, out_uv[t], stats[t])
+                biv, uni, chain, lists, stack, roots, out_uv[t], stats[t])
 
 
 @kernel
@@ -621,5 +660,6 @@ def make_scratch():
     uni = np.zeros((16, 2 * MAX_DEGREE + 2))
     chain = np.zeros((MAX_DEGREE + 1, MAX_DEGREE + 1))
     lists = np.zeros((2, MAX_DEGREE + 1))
-    roots = np.zeros((4, MAX_DEGREE + 1))
-    return biv, uni, chain, lists, roots
+    stack = np.zeros((STACK_ROWS + 1, MAX_DEGREE + 4))
+    roots = np.zeros((5, MAX_DEGREE + 1))
+    return biv, uni, chain, lists, stack, roots

@@ -16,6 +16,7 @@ from .vec3 import cross, dot, madd, norm, scale, sub, tangent_derivative
 
 DIRECTION_TOLERANCE = 1e-7  # |wo - expected| for an accepted path (unit vectors)
 INSIDE_EPSILON = 1e-9  # barycentric slack at triangle edges
+SETTLED_STEP = 1e-9  # a Newton step this small in (u, v) means the iterate has converged
 
 
 @kernel
@@ -27,12 +28,14 @@ def scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
     total internal reflection, zero-length segments or normals).
     """
     zero = (0.0, 0.0, 0.0)
-    x1 = madd(madd(p0, e1, u), e2, v)
+    # Segments from the vertex p0, not from absolute positions: in a scene far from the
+    # origin x1 - x0 would carry the rounding of |x1| (1e-14 at 100 units), which on a
+    # small triangle is a 1e-12 direction error and a visible positional blur.
+    di = madd(madd(sub(p0, x0), e1, u), e2, v)
+    do = madd(madd(sub(x2, p0), e1, -u), e2, -v)
     n = madd(madd(n0, m1, u), m2, v)
     ln = norm(n)
-    di = sub(x1, x0)
     li = norm(di)
-    do = sub(x2, x1)
     lo = norm(do)
     if not (ln > 0.0 and li > 0.0 and lo > 0.0):
         return False, zero, zero, zero
@@ -86,19 +89,25 @@ def scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
 
 
 @kernel
-def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps):
+def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps, tolerance):
     """Gauss-Newton on the path-space residual from (u, v), then the acceptance test.
 
     The polynomial roots are already close (the system is exact for one bounce), so one
     or two steps reach rounding level; the loop stops early once the step stalls.
-    Returns (accepted, u, v, |residual|).
+    Near a fold of the caustic the residual is flat along one direction and Gauss-Newton
+    converges only linearly, so a stalled iterate can sit ~1e-3 from the root with a
+    residual of 1e-8: ``tolerance`` (well below DIRECTION_TOLERANCE) rejects such points,
+    unless Newton has settled in position (its next step at rounding level).
+    Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian).
     """
     ok, res, ju, jv = scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
     if not ok:
-        return False, u, v, math.inf
+        return False, u, v, math.inf, 0.0
     err = norm(res)
+    last_step = math.inf
     for _ in range(max_steps):
         if err < 1e-15:
+            last_step = 0.0
             break
         # Normal equations of the 3x2 least-squares step: (J^T J) delta = -J^T r.
         a11 = dot(ju, ju)
@@ -111,6 +120,7 @@ def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, e
             break
         du = (b1 * a22 - b2 * a12) / det
         dv = (a11 * b2 - a12 * b1) / det
+        last_step = max(abs(du), abs(dv))
         ok2, res2, ju2, jv2 = scatter_residual(u + du, v + dv, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
         if not ok2:
             break
@@ -121,7 +131,18 @@ def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, e
         v += dv
         res, ju, jv, err = res2, ju2, jv2, err2
     inside = u >= -INSIDE_EPSILON and v >= -INSIDE_EPSILON and u + v <= 1.0 + INSIDE_EPSILON
-    return inside and err <= DIRECTION_TOLERANCE, u, v, err
+    # Converged in position: the step Newton still wants is negligible, so the residual is
+    # at its rounding floor (near total internal reflection that floor is ~1e-8).  A point
+    # stalled near a fold, where the residual is flat, still wants a large step.
+    settled = last_step <= SETTLED_STEP
+    accepted = inside and (err <= tolerance or (settled and err <= DIRECTION_TOLERANCE))
+    # Smallest singular value of the Jacobian: how well (u, v) is pinned by the residual.
+    a11 = dot(ju, ju)
+    a12 = dot(ju, jv)
+    a22 = dot(jv, jv)
+    half_gap = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))
+    sigma_min = math.sqrt(max(0.0, 0.5 * (a11 + a22) - half_gap))
+    return accepted, u, v, err, sigma_min
 
 
 @kernel

@@ -19,9 +19,15 @@ MAX_DEGREE = 24  # scratch arrays are (MAX_DEGREE + 1) wide; the one-bounce resu
 NEWTON_ITERATIONS = 64  # bisection fallback halves the bracket: 64 steps reach any float64 width.
 
 
+SUBDIVISION_DEPTH = 5  # Bernstein halvings before a piece falls back to derivative isolation
+STACK_ROWS = 2 * SUBDIVISION_DEPTH + 4
+NEAR_TOUCH = 1e-6  # a root-free Bernstein piece this close to zero is re-checked for touching roots
+
+
 def make_root_scratch():
-    """Scratch arrays for :func:`roots_in_interval`: the derivative chain and two root lists."""
-    return np.zeros((MAX_DEGREE + 1, MAX_DEGREE + 1)), np.zeros((2, MAX_DEGREE + 1))
+    """Scratch arrays for the root finders: derivative chain, two root lists, Bernstein stack."""
+    return (np.zeros((MAX_DEGREE + 1, MAX_DEGREE + 1)), np.zeros((2, MAX_DEGREE + 1)),
+            np.zeros((STACK_ROWS + 1, MAX_DEGREE + 4)))
 
 
 @kernel
@@ -86,38 +92,20 @@ def _solve_monotone(c, deg, a, b, fa, fb, x_tolerance):
 
 
 @kernel
-def _bernstein_sign_changes(c, deg, work, zero_tolerance):
-    """Sign changes of the Bernstein coefficients of c[0..deg] on [0, 1] (2 = 'two or more').
-
-    Bernstein coefficient k is sum_{i<=k} C(k,i)/C(deg,i) c_i.  Coefficients within
-    ``zero_tolerance`` of zero count as a sign change: a root may touch there.
-    """
-    binom_deg = 1.0
-    for i in range(deg + 1):
-        # work[i] = c_i / C(deg, i)
-        work[i] = c[i] / binom_deg
-        binom_deg = binom_deg * (deg - i) / (i + 1)
+def _sign_changes(b, deg, zero_level):
+    """Sign changes in b[0..deg] (2 means 'two or more'); an entry within zero_level of zero
+    counts as 2: a root may touch there, so the piece must be looked at more closely."""
     changes = 0
-    prev_sign = 0
-    scale = 0.0
-    for i in range(deg + 1):
-        scale = max(scale, abs(c[i]))
-    # Forward differences: b_k = sum_i C(k,i) work_i, computed by the Pascal recurrence.
+    prev = 0
     for k in range(deg + 1):
-        # b_k uses binomials of row k
-        bk = 0.0
-        binom = 1.0
-        for i in range(k + 1):
-            bk += binom * work[i]
-            binom = binom * (k - i) / (i + 1)
-        if abs(bk) <= zero_tolerance * scale:
+        if abs(b[k]) <= zero_level:
             return 2
-        sign = 1 if bk > 0.0 else -1
-        if prev_sign != 0 and sign != prev_sign:
+        sign = 1 if b[k] > 0.0 else -1
+        if prev != 0 and sign != prev:
             changes += 1
             if changes >= 2:
                 return 2
-        prev_sign = sign
+        prev = sign
     return changes
 
 
@@ -187,18 +175,6 @@ def roots_in_interval(coeffs, degree, lo, hi, x_tolerance, touch_tolerance, chai
     inv = 1.0 / norm
     for i in range(deg + 1):
         chain[deg, i] = coeffs[i] * inv
-    if deg > 2 and lo == 0.0 and hi == 1.0:
-        # Descartes' rule on the Bernstein coefficients over [0, 1]: no sign change means
-        # no root, exactly one means exactly one root, bracketed by the endpoint values.
-        changes = _bernstein_sign_changes(chain[deg], deg, lists[0], touch_tolerance)
-        if changes == 0:
-            return 0
-        if changes == 1:
-            fa = horner(chain[deg], deg, 0.0)
-            fb = horner(chain[deg], deg, 1.0)
-            if fa != 0.0 and fb != 0.0 and (fa < 0.0) != (fb < 0.0):
-                out[0] = _solve_monotone(chain[deg], deg, 0.0, 1.0, fa, fb, x_tolerance)
-                return 1
     if deg <= 2:
         c2 = chain[deg, 2] if deg == 2 else 0.0
         return _quadratic_roots_in(chain[deg, 0], chain[deg, 1], c2, lo, hi, out)
@@ -243,3 +219,107 @@ def roots_in_interval(coeffs, degree, lo, hi, x_tolerance, touch_tolerance, chai
     for j in range(n_critical):
         out[j] = critical[j]
     return n_critical
+
+
+@kernel
+def roots_in_unit_interval(coeffs, degree, x_tolerance, touch_tolerance, chain, lists, stack, out):
+    """All real roots of ``coeffs[0..degree]`` in [0, 1], ascending; returns their count.
+
+    Isolation by Descartes' rule of signs on Bernstein coefficients (a piece whose
+    coefficients change sign once holds exactly one root, none if they never do), halving
+    pieces by de Casteljau; each isolated root is found by the same safeguarded Newton as
+    :func:`roots_in_interval`.  Pieces still ambiguous after ``SUBDIVISION_DEPTH`` halvings
+    (clustered or touching roots) are handed to the derivative isolation of Yuksel 2022.
+    Cost adapts to the number of roots instead of always walking the whole derivative chain.
+    """
+    norm = 0.0
+    for i in range(degree + 1):
+        norm = max(norm, abs(coeffs[i]))
+    if norm == 0.0 or not np.isfinite(norm):
+        return 0
+    deg = degree
+    while deg > 0 and abs(coeffs[deg]) <= 1e-15 * norm:
+        deg -= 1
+    if deg <= 2:
+        return roots_in_interval(coeffs, deg, 0.0, 1.0, x_tolerance, touch_tolerance, chain, lists, out)
+    # Power -> Bernstein on [0, 1]: b_k = sum_{i<=k} C(k,i)/C(deg,i) c_i.
+    work = stack[STACK_ROWS]
+    binom_deg = 1.0
+    for i in range(deg + 1):
+        work[i] = coeffs[i] / norm / binom_deg
+        binom_deg = binom_deg * (deg - i) / (i + 1)
+    top_row = stack[0]
+    scale = 0.0
+    for k in range(deg + 1):
+        bk = 0.0
+        binom = 1.0
+        for i in range(k + 1):
+            bk += binom * work[i]
+            binom = binom * (k - i) / (i + 1)
+        top_row[k] = bk
+        scale = max(scale, abs(bk))
+    zero_level = touch_tolerance * scale
+    # The stack: row j holds Bernstein coefficients, then lo, hi, depth in the last slots.
+    meta = deg + 1
+    top_row[meta] = 0.0
+    top_row[meta + 1] = 1.0
+    top_row[meta + 2] = 0.0
+    top = 1
+    n_out = 0
+    while top > 0:
+        top -= 1
+        row = stack[top]
+        lo = row[meta]
+        hi = row[meta + 1]
+        depth = row[meta + 2]
+        changes = _sign_changes(row, deg, zero_level)
+        if changes == 0:
+            # No root, unless the piece comes close to touching zero: there rounding can
+            # hide a pair of real roots (a fold of the caustic), which the derivative
+            # isolation's touch test still reports as a candidate.
+            closest = abs(row[0])
+            for k in range(1, deg + 1):
+                closest = min(closest, abs(row[k]))
+            if closest > NEAR_TOUCH * scale:
+                continue
+            changes = 2
+            depth = SUBDIVISION_DEPTH
+        if changes == 1:
+            fa = horner(coeffs, deg, lo)
+            fb = horner(coeffs, deg, hi)
+            if fa != 0.0 and fb != 0.0 and (fa < 0.0) != (fb < 0.0):
+                x = _solve_monotone(coeffs, deg, lo, hi, fa, fb, x_tolerance)
+                if n_out == 0 or x - out[n_out - 1] > x_tolerance:
+                    out[n_out] = x
+                    n_out += 1
+                continue
+        if depth >= SUBDIVISION_DEPTH:
+            n_piece = roots_in_interval(coeffs, deg, lo, hi, x_tolerance, touch_tolerance, chain, lists, lists[1])
+            # roots_in_interval used lists[0..1] as scratch; its result sits in lists[1].
+            for j in range(n_piece):
+                x = lists[1, j]
+                if n_out == 0 or x - out[n_out - 1] > x_tolerance:
+                    out[n_out] = x
+                    n_out += 1
+            continue
+        # de Casteljau at the midpoint: right half into this row, left half on top of it,
+        # so the left half is processed first and roots come out in ascending order.
+        for i in range(deg + 1):
+            work[i] = row[i]
+        left = stack[top + 1]
+        left[0] = work[0]
+        row[deg] = work[deg]
+        for r in range(1, deg + 1):
+            for i in range(deg - r + 1):
+                work[i] = 0.5 * (work[i] + work[i + 1])
+            left[r] = work[0]
+            row[deg - r] = work[deg - r]
+        mid = 0.5 * (lo + hi)
+        left[meta] = lo
+        left[meta + 1] = mid
+        left[meta + 2] = depth + 1.0
+        row[meta] = mid
+        row[meta + 1] = hi
+        row[meta + 2] = depth + 1.0
+        top += 2
+    return n_out

@@ -74,7 +74,11 @@ def unregister():
     global numba_cache_dir, _previous_cache_env
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)
-    if numba_cache_dir is not None and os.environ.get("NUMBA_CACHE_DIR") == numba_cache_dir:
+    current = os.environ.get("NUMBA_CACHE_DIR")
+    # addon.solver.jit caches under <our directory>/<source fingerprint>: that is ours too.
+    ours = current is not None and numba_cache_dir is not None and (
+        current == numba_cache_dir or os.path.dirname(os.path.normpath(current)) == os.path.normpath(numba_cache_dir))
+    if ours:
         if _previous_cache_env is None:
             os.environ.pop("NUMBA_CACHE_DIR", None)
         else:

@@ -19,7 +19,7 @@ import numpy as np
 
 from .api import CHAIN_LENGTH, ONE_BOUNCE_CHAINS, validate_inputs
 from .jit import kernel, prange
-from .path_space import geometric_normal, scatter_residual
+from .path_space import geometric_normal, scatter_residual, triangle_frame
 from .vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
 
 PathIrradiance = namedtuple("PathIrradiance", "irradiance geometry fresnel cos_receiver direction")
@@ -63,14 +63,7 @@ def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tup
         t = tuple_index[s]
         x0 = row(x_start, t)
         x2 = row(x_end, t)
-        tri_p = P[t, 0]
-        tri_n = N[t, 0]
-        p0 = row(tri_p, 0)
-        e1 = sub(row(tri_p, 1), p0)
-        e2 = sub(row(tri_p, 2), p0)
-        n0 = row(tri_n, 0)
-        m1 = sub(row(tri_n, 1), n0)
-        m2 = sub(row(tri_n, 2), n0)
+        p0, e1, e2, n0, m1, m2 = triangle_frame(P[t, 0], N[t, 0])
         u = uv[s, 0]
         v = uv[s, 1]
         for k in range(6):

@@ -36,7 +36,7 @@ import math
 import numpy as np
 
 from .jit import kernel, prange
-from .path_space import geometric_normal, polish_and_validate, scatter_residual
+from .path_space import geometric_normal, polish_and_validate, scatter_residual, triangle_frame
 from .roots import MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval
 from .vec3 import cross, dot, madd, norm, row, scale, sub
 
@@ -205,12 +205,7 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
     """
     for k in range(N_STATS):
         stats[k] = 0
-    p0 = row(tri_p, 0)
-    e1 = sub(row(tri_p, 1), p0)
-    e2 = sub(row(tri_p, 2), p0)
-    n0 = row(tri_n, 0)
-    m1 = sub(row(tri_n, 1), n0)
-    m2 = sub(row(tri_n, 2), n0)
+    p0, e1, e2, n0, m1, m2 = triangle_frame(tri_p, tri_n)
     ng, area2 = geometric_normal(e1, e2)
     length = max(norm(e1), norm(e2))
     if not (area2 > 1e-14 * length * length) or not (eta > 0.0):

@@ -12,7 +12,7 @@ no refracted direction.  The rules are spelled out in ``CONTRACT.md``.
 import math
 
 from .jit import kernel
-from .vec3 import cross, dot, madd, norm, scale, sub, tangent_derivative
+from .vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
 
 DIRECTION_TOLERANCE = 1e-7  # |wo - expected| for an accepted path (unit vectors)
 INSIDE_EPSILON = 1e-9  # barycentric slack at triangle edges
@@ -143,6 +143,15 @@ def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, e
     half_gap = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))
     sigma_min = math.sqrt(max(0.0, 0.5 * (a11 + a22) - half_gap))
     return accepted, u, v, err, sigma_min
+
+
+@kernel
+def triangle_frame(tri_p, tri_n):
+    """(p0, e1, e2, n0, m1, m2) of a (3,3) vertex / normal pair: x = p0 + u e1 + v e2,
+    n = n0 + u m1 + v m2 (eq 1-2)."""
+    p0 = row(tri_p, 0)
+    n0 = row(tri_n, 0)
+    return p0, sub(row(tri_p, 1), p0), sub(row(tri_p, 2), p0), n0, sub(row(tri_n, 1), n0), sub(row(tri_n, 2), n0)
 
 
 @kernel

@@ -108,6 +108,8 @@ def main():
                              paths=rep.paths, skipped=rep.skipped, roots=rep.roots, candidates=rep.candidates, recall=recall))
             stage_rows.append(dict(chain=chain, workload=name, stages=stages))
 
+    opencl_rows = opencl_comparison(solver, args, threads_all)
+
     lines = []
     lines.append(f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
                  f"{args.tuples:,} tuples per row; best of {args.repeats}; date {time.strftime('%Y-%m-%d')}.")
@@ -133,10 +135,50 @@ def main():
     lines.append("|---|---|---|---|---|")
     lines.append(f"| empty (compile) | {imp_cold:.2f} | {compile_s:.2f} | {imp_cold + compile_s:.2f} | — |")
     lines.append(f"| warm Numba cache | {imp_warm:.2f} | {first_warm:.2f} | {imp_warm + first_warm:.2f} | ≤ 1 s |")
+    lines.append("")
+    lines.append("Numba against the OpenCL back end (`device=\"opencl\"`), same tuples, same paths required:")
+    lines.append("")
+    if isinstance(opencl_rows, str):
+        lines.append(opencl_rows)
+    else:
+        lines.append(f"| chain | workload | Numba {threads_all} threads (µs/tuple) | OpenCL (µs/tuple) | OpenCL / Numba | device | same paths |")
+        lines.append("|---|---|---|---|---|---|---|")
+        for r in opencl_rows:
+            lines.append(f"| {r['chain']} | {r['workload']} | {r['numba']:.3f} | {r['opencl']:.3f} | {r['opencl'] / r['numba']:.2f}× | {r['device']} | {r['same']} |")
+        lines.append("")
+        lines.append("No GPU was lent to this task; on an NVIDIA GPU run the same script with the device index of the GPU "
+                     "(`OPENCL_DEVICE=N`) to add its row.")
     section = "\n".join(lines)
     print(section)
     if not args.no_write:
         write_section(os.path.join(ROOT, "BENCHMARKS.md"), "solver", "Solver: one-bounce Specular Polynomials (`bench/solver.py`)", section)
+
+
+def opencl_comparison(solver, args, threads_all):
+    """Rows comparing the two back ends, or a sentence saying why there are none."""
+    from addon.solver import jit, opencl_backend
+
+    try:
+        devices = [d for d in opencl_backend.list_devices() if d[3]]
+    except opencl_backend.OpenCLUnavailable as ex:
+        return f"(not measured: {ex})"
+    if not devices:
+        return "(not measured: no OpenCL device with double precision)"
+    index = int(os.environ.get("OPENCL_DEVICE", devices[0][0]))
+    device = f"opencl:{index}"
+    jit.set_num_threads(threads_all)
+    rows = []
+    for chain in ("R", "T"):
+        x0p, x2p, Pp, Np, _ = planted_tuples(args.tuples, chain, seed=1)
+        for name, (x0, x2, P, N) in {"random": random_tuples(args.tuples, seed=2), "planted": (x0p, x2p, Pp, Np)}.items():
+            n = x0.shape[0]
+            solver.solve(chain, x0[:64], x2[:64], P[:64], N[:64], 1.5, device=device)  # build the program
+            t_numba, a = best_time(lambda: solver.solve(chain, x0, x2, P, N, 1.5), args.repeats)
+            t_ocl, b = best_time(lambda: solver.solve(chain, x0, x2, P, N, 1.5, device=device), args.repeats)
+            same = np.array_equal(a.tuple_index, b.tuple_index) and (a.uv.size == 0 or np.abs(a.uv - b.uv).max() <= 1e-9)
+            rows.append(dict(chain=chain, workload=name, numba=t_numba / n * 1e6, opencl=t_ocl / n * 1e6,
+                             device=b.report.device.replace("opencl: ", ""), same="yes" if same else "NO"))
+    return rows
 
 
 def write_section(path, key, title, body):

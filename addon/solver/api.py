@@ -8,6 +8,7 @@ stage), so the benchmarks can chart speed against accuracy for all of them.
 """
 
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +30,8 @@ class SolveReport:
     candidates: int = 0  # (u, v) candidates polished and validated
     paths: int = 0
     overflow: int = 0  # tuples whose paths did not all fit the per-tuple capacity
+    determinants: int = 0  # two bounces: Bézout determinant evaluations
+    device: str = "numba"  # where the solve ran
     seconds: dict = field(default_factory=dict)  # stage -> wall seconds
 
     def as_dict(self):
@@ -76,15 +79,20 @@ def validate_inputs(chain, x_start, x_end, P, N, eta):
 
 
 class SpecularPolynomialSolver:
-    """Deterministic solver of Fan et al. 2024 (one bounce: R, T)."""
+    """Deterministic solver of Fan et al. 2024 (one bounce: R, T; two bounces: RR, RT, TR, TT)."""
 
     name = "spoly"
 
-    def solve(self, chain, x_start, x_end, P, N, eta, stop_after=0):
-        """Solve a batch of tuples; see CONTRACT.md.  ``stop_after`` is for stage timing."""
+    def solve(self, chain, x_start, x_end, P, N, eta, stop_after=0, pieces=None, device="numba"):
+        """Solve a batch of tuples; see CONTRACT.md.  ``stop_after`` is for stage timing;
+        ``pieces`` (two bounces only) the number of pieces of the resultant's sign scan;
+        ``device``: "numba" (default), "opencl" or "opencl:N" (see :func:`solve_tuples`)."""
         t0 = time.perf_counter()
         x_start, x_end, P, N, eta = validate_inputs(chain, x_start, x_end, P, N, eta)
         report = SolveReport(solver=self.name, chain=chain, tuples=x_start.shape[0])
+        device_index = self._opencl_device(device, chain, report)
+        if chain in TWO_BOUNCE_CHAINS:
+            return self._solve_two_bounce(chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0)
         if chain not in ONE_BOUNCE_CHAINS:
             raise ValueError(f"chain {chain!r} is not supported yet by the {self.name} solver")
         from .one_bounce import MAX_PATHS_ONE_BOUNCE, N_STATS, solve_one_bounce_batch
@@ -94,7 +102,11 @@ class SpecularPolynomialSolver:
         out_count = np.zeros(n, dtype=np.int64)
         stats = np.zeros((n, N_STATS), dtype=np.int64)
         t1 = time.perf_counter()
-        if n:
+        if device_index is not None and not stop_after:
+            from .opencl_backend import solve_one_bounce_opencl
+
+            out_uv, out_count, stats = solve_one_bounce_opencl(device_index, chain == "T", x_start, x_end, P, N, eta)
+        elif n:
             solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), out_uv, out_count, stats)
         t2 = time.perf_counter()
         tuple_index, uv = compact_paths(out_uv, out_count)
@@ -106,25 +118,79 @@ class SpecularPolynomialSolver:
         return SolveResult(tuple_index, uv, report)
 
 
+    @staticmethod
+    def _opencl_device(device, chain, report):
+        """The OpenCL device index to use, or None for Numba (with a warning saying why)."""
+        from .opencl_backend import OpenCLUnavailable, device_name, parse_device
+
+        index = parse_device(device)
+        if index is None:
+            report.device = "numba"
+            return None
+        if chain not in ONE_BOUNCE_CHAINS:
+            warnings.warn(f"the OpenCL back end solves R and T so far; chain {chain} runs on Numba", RuntimeWarning, stacklevel=4)
+            report.device = "numba"
+            return None
+        try:
+            report.device = "opencl: " + device_name(index)  # builds the program; OpenCLNoDoublePrecision propagates
+        except OpenCLUnavailable as ex:
+            warnings.warn(f"OpenCL unavailable ({ex}); solving on Numba instead", RuntimeWarning, stacklevel=4)
+            report.device = "numba"
+            return None
+        return index
+
+    def _solve_two_bounce(self, chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0):
+        from .two_bounce import DEFAULT_PIECES, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, N_STATS, solve_two_bounce_batch
+
+        pieces = DEFAULT_PIECES if pieces is None else int(pieces)
+        if not 1 <= pieces <= MAX_PIECES:
+            raise ValueError(f"pieces must be in [1, {MAX_PIECES}], got {pieces}")
+        n = x_start.shape[0]
+        out_uv = np.empty((n, MAX_PATHS_TWO_BOUNCE, 4))
+        out_count = np.zeros(n, dtype=np.int64)
+        stats = np.zeros((n, N_STATS), dtype=np.int64)
+        t1 = time.perf_counter()
+        if n:
+            solve_two_bounce_batch(chain[0] == "T", chain[1] == "T", x_start, x_end, P, N, eta, pieces, int(stop_after),
+                                   out_uv, out_count, stats)
+        t2 = time.perf_counter()
+        tuple_index, uv = compact_paths(out_uv, out_count)
+        t3 = time.perf_counter()
+        totals = stats.sum(axis=0)
+        report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals[:4])
+        report.overflow = int(np.count_nonzero(stats[:, 2] > MAX_PATHS_TWO_BOUNCE))
+        report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
+        report.determinants = int(totals[4])
+        return SolveResult(tuple_index, uv, report)
+
+
 def compact_paths(out_uv, out_count):
     """(n, cap, 2k) per-tuple slots + counts -> (tuple_index (m,), uv (m, 2k)), tuple order."""
     cap = out_uv.shape[1]
     counts = np.minimum(out_count, cap)
     tuple_index = np.repeat(np.arange(out_uv.shape[0], dtype=np.int64), counts)
     slot = np.arange(tuple_index.shape[0]) - np.repeat(np.cumsum(counts) - counts, counts)
-    uv = np.ascontiguousarray(out_uv[tuple_index, slot])
-    return tuple_index, uv
+    uv = out_uv[tuple_index, slot]
+    # Canonical order inside a tuple (by u, then v): the order candidates happen to be found
+    # in is not part of the result, and must not differ between back ends.
+    if uv.shape[0]:
+        order = np.lexsort(tuple(uv[:, k] for k in range(uv.shape[1] - 1, -1, -1)) + (tuple_index,))
+        tuple_index, uv = tuple_index[order], uv[order]
+    return tuple_index, np.ascontiguousarray(uv)
 
 
 _DEFAULT_SOLVER = SpecularPolynomialSolver()
 
 
-def solve_tuples(chain, x_start, x_end, P, N, eta):
+def solve_tuples(chain, x_start, x_end, P, N, eta, device="numba"):
     """All admissible specular paths x_start → triangles → x_end (Fan et al. 2024).
 
-    chain: "R" or "T"; x_start, x_end: (n,3); P, N: (n,k,3,3) vertex positions / normals of
+    chain: "R", "T", "RR", "RT", "TR" or "TT"; x_start, x_end: (n,3); P, N: (n,k,3,3) vertex positions / normals of
     the k triangles in path order; eta: scalar or (n,), IOR behind each surface.
     Returns (tuple_index (m,) int64, uv (m,2k) float64) with x = p0 + u e1 + v e2.
+    device: "numba" (default), "opencl" (first OpenCL device) or "opencl:N"; OpenCL needs
+    pyopencl and a device with double precision (a device without cl_khr_fp64 raises
+    OpenCLNoDoublePrecision); without pyopencl or a device it warns and uses Numba.
     """
-    result = _DEFAULT_SOLVER.solve(chain, x_start, x_end, P, N, eta)
+    result = _DEFAULT_SOLVER.solve(chain, x_start, x_end, P, N, eta, device=device)
     return result.tuple_index, result.uv

@@ -1,0 +1,643 @@
+// One-bounce Specular Polynomials (R, T) in OpenCL C: the same algorithm, step for step, as
+// addon/solver/one_bounce.py, roots.py and path_space.py (Fan et al. 2024, eq 6, 10, 13,
+// 28-31), so both back ends return the same paths.  One work-item per tuple; all scratch is
+// private and fixed-size.  Double precision (cl_khr_fp64) is required.
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL FP_CONTRACT OFF
+
+#define MAXD 12            // degree of the one-bounce resultant at most
+#define UNI 26             // univariate scratch width (2 * MAXD + 2)
+#define DEPTH 5            // Bernstein halvings before derivative isolation
+#define STACK (2 * DEPTH + 4)
+#define NEWTON_ITERATIONS 64
+#define POLISH_STEPS 40
+#define V_MARGIN 1e-6
+#define ROOT_X_TOLERANCE 1e-13
+#define ROOT_TOUCH_TOLERANCE 1e-10
+#define NEAR_TOUCH 1e-6
+#define NEGLIGIBLE 1e-13
+#define SAME_PATH 1e-7
+#define NEAR_PATH 1e-5
+#define ACCEPT_RESIDUAL 1e-12
+#define DIRECTION_TOLERANCE 1e-7
+#define INSIDE_EPSILON 1e-9
+#define SETTLED_STEP 1e-9
+#define FOLD_RATIO 1e-4
+
+typedef double3 vec;
+
+// ---------------------------------------------------------------- univariate helpers
+static double horner(const double *c, int deg, double x) {
+    double f = c[deg];
+    for (int i = deg - 1; i >= 0; --i) f = f * x + c[i];
+    return f;
+}
+
+static double2 horner_d(const double *c, int deg, double x) {
+    double f = c[deg], df = 0.0;
+    for (int i = deg - 1; i >= 0; --i) { df = df * x + f; f = f * x + c[i]; }
+    return (double2)(f, df);
+}
+
+static double magnitude_at(const double *c, int deg, double x) {
+    double ax = fabs(x), m = fabs(c[deg]);
+    for (int i = deg - 1; i >= 0; --i) m = m * ax + fabs(c[i]);
+    return m;
+}
+
+static double solve_monotone(const double *c, int deg, double a, double b, double fa, double fb, double tol) {
+    double x = a - fa * (b - a) / (fb - fa);
+    if (!(x > a && x < b)) x = 0.5 * (a + b);
+    int neg_a = fa < 0.0;
+    for (int it = 0; it < NEWTON_ITERATIONS; ++it) {
+        double2 fd = horner_d(c, deg, x);
+        double f = fd.x, df = fd.y;
+        if (f == 0.0) return x;
+        if ((f < 0.0) == neg_a) a = x; else b = x;
+        double xn = (df != 0.0) ? x - f / df : 0.5 * (a + b);
+        if (!(xn > a && xn < b)) xn = 0.5 * (a + b);
+        if (fabs(xn - x) <= tol || b - a <= tol) return xn;
+        x = xn;
+    }
+    return x;
+}
+
+static int quadratic_roots_in(double c0, double c1, double c2, double lo, double hi, double *out) {
+    int n = 0;
+    if (c2 == 0.0) {
+        if (c1 != 0.0) { double x = -c0 / c1; if (x >= lo && x <= hi) { out[0] = x; n = 1; } }
+        return n;
+    }
+    double disc = c1 * c1 - 4.0 * c2 * c0;
+    if (disc < 0.0) {
+        if (disc > -1e-14 * (c1 * c1 + fabs(4.0 * c2 * c0))) disc = 0.0; else return 0;
+    }
+    double sq = sqrt(disc);
+    double q = (c1 >= 0.0) ? -0.5 * (c1 + sq) : -0.5 * (c1 - sq);
+    double r1 = q / c2, r2 = (q != 0.0) ? c0 / q : r1;
+    if (r1 > r2) { double t = r1; r1 = r2; r2 = t; }
+    if (r1 >= lo && r1 <= hi) out[n++] = r1;
+    if (r2 >= lo && r2 <= hi && (n == 0 || r2 != out[0])) out[n++] = r2;
+    return n;
+}
+
+// Yuksel 2022: derivative isolation + safeguarded Newton (roots.roots_in_interval).
+static int roots_in_interval(const double *coeffs, int degree, double lo, double hi, double tol, double touch,
+                             double chain[MAXD + 1][MAXD + 1], double *critical, double *found, double *out) {
+    double scale = fmax(fmax(fabs(lo), fabs(hi)), 1.0), norm = 0.0, p = 1.0;
+    for (int i = 0; i <= degree; ++i) { norm = fmax(norm, fabs(coeffs[i]) * p); p *= scale; }
+    if (norm == 0.0 || !isfinite(norm)) return 0;
+    int deg = degree;
+    p = pown(scale, deg);
+    while (deg > 0 && fabs(coeffs[deg]) * p <= 1e-15 * norm) { deg--; p /= scale; }
+    if (deg == 0) return 0;
+    double inv = 1.0 / norm;
+    for (int i = 0; i <= deg; ++i) chain[deg][i] = coeffs[i] * inv;
+    if (deg <= 2) return quadratic_roots_in(chain[deg][0], chain[deg][1], deg == 2 ? chain[deg][2] : 0.0, lo, hi, out);
+    for (int k = deg; k > 2; --k)
+        for (int i = 0; i < k; ++i) chain[k - 1][i] = chain[k][i + 1] * (i + 1) / k;
+    int n_critical = quadratic_roots_in(chain[2][0], chain[2][1], chain[2][2], lo, hi, critical);
+    for (int k = 3; k <= deg; ++k) {
+        const double *c = chain[k];
+        int n_found = 0;
+        double a = lo, fa = horner(c, k, a);
+        for (int j = 0; j <= n_critical; ++j) {
+            double b = (j < n_critical) ? critical[j] : hi;
+            if (b <= a) continue;
+            double fb = horner(c, k, b);
+            if (fa == 0.0) {
+                if (n_found == 0 || found[n_found - 1] != a) found[n_found++] = a;
+            } else if (fb != 0.0 && ((fa < 0.0) != (fb < 0.0))) {
+                found[n_found++] = solve_monotone(c, k, a, b, fa, fb, tol);
+            } else if (k == deg && touch > 0.0 && j < n_critical && fb != 0.0) {
+                if (fabs(fb) <= touch * magnitude_at(c, k, b)) found[n_found++] = b;
+            }
+            a = b; fa = fb;
+        }
+        if (fa == 0.0 && (n_found == 0 || found[n_found - 1] != a)) found[n_found++] = a;
+        for (int j = 0; j < n_found; ++j) critical[j] = found[j];
+        n_critical = n_found;
+    }
+    for (int j = 0; j < n_critical; ++j) out[j] = critical[j];
+    return n_critical;
+}
+
+static int sign_changes(const double *b, int deg, double zero_level) {
+    int changes = 0, prev = 0;
+    for (int k = 0; k <= deg; ++k) {
+        if (fabs(b[k]) <= zero_level) return 2;
+        int s = b[k] > 0.0 ? 1 : -1;
+        if (prev != 0 && s != prev) { if (++changes >= 2) return 2; }
+        prev = s;
+    }
+    return changes;
+}
+
+// Descartes/Bernstein isolation with de Casteljau halving (roots.roots_in_unit_interval).
+static int roots_in_unit_interval(const double *coeffs, int degree, double tol, double touch,
+                                  double chain[MAXD + 1][MAXD + 1], double *critical, double *found,
+                                  double stack[STACK + 1][MAXD + 4], double *out) {
+    double norm = 0.0;
+    for (int i = 0; i <= degree; ++i) norm = fmax(norm, fabs(coeffs[i]));
+    if (norm == 0.0 || !isfinite(norm)) return 0;
+    int deg = degree;
+    while (deg > 0 && fabs(coeffs[deg]) <= 1e-15 * norm) deg--;
+    if (deg <= 2) return roots_in_interval(coeffs, deg, 0.0, 1.0, tol, touch, chain, critical, found, out);
+    double *work = stack[STACK];
+    double binom_deg = 1.0;
+    for (int i = 0; i <= deg; ++i) { work[i] = coeffs[i] / norm / binom_deg; binom_deg = binom_deg * (deg - i) / (i + 1); }
+    double *top_row = stack[0];
+    double scale = 0.0;
+    for (int k = 0; k <= deg; ++k) {
+        double bk = 0.0, binom = 1.0;
+        for (int i = 0; i <= k; ++i) { bk += binom * work[i]; binom = binom * (k - i) / (i + 1); }
+        top_row[k] = bk; scale = fmax(scale, fabs(bk));
+    }
+    double zero_level = touch * scale;
+    int meta = deg + 1;
+    top_row[meta] = 0.0; top_row[meta + 1] = 1.0; top_row[meta + 2] = 0.0;
+    int top = 1, n_out = 0;
+    double piece[MAXD + 1];
+    while (top > 0) {
+        top--;
+        double *row = stack[top];
+        double lo = row[meta], hi = row[meta + 1], depth = row[meta + 2];
+        int changes = sign_changes(row, deg, zero_level);
+        if (changes == 0) {
+            double closest = fabs(row[0]);
+            for (int k = 1; k <= deg; ++k) closest = fmin(closest, fabs(row[k]));
+            if (closest > NEAR_TOUCH * scale) continue;
+            changes = 2;
+            depth = DEPTH;
+        }
+        if (changes == 1) {
+            double fa = horner(coeffs, deg, lo), fb = horner(coeffs, deg, hi);
+            if (fa != 0.0 && fb != 0.0 && ((fa < 0.0) != (fb < 0.0))) {
+                double x = solve_monotone(coeffs, deg, lo, hi, fa, fb, tol);
+                if (n_out == 0 || x - out[n_out - 1] > tol) out[n_out++] = x;
+                continue;
+            }
+        }
+        if (depth >= DEPTH) {
+            int n_piece = roots_in_interval(coeffs, deg, lo, hi, tol, touch, chain, critical, found, piece);
+            for (int j = 0; j < n_piece; ++j)
+                if (n_out == 0 || piece[j] - out[n_out - 1] > tol) out[n_out++] = piece[j];
+            continue;
+        }
+        for (int i = 0; i <= deg; ++i) work[i] = row[i];
+        double *left = stack[top + 1];
+        left[0] = work[0];
+        row[deg] = work[deg];
+        for (int r = 1; r <= deg; ++r) {
+            for (int i = 0; i <= deg - r; ++i) work[i] = 0.5 * (work[i] + work[i + 1]);
+            left[r] = work[0];
+            row[deg - r] = work[deg - r];
+        }
+        double mid = 0.5 * (lo + hi);
+        left[meta] = lo; left[meta + 1] = mid; left[meta + 2] = depth + 1.0;
+        row[meta] = mid; row[meta + 1] = hi; row[meta + 2] = depth + 1.0;
+        top += 2;
+    }
+    return n_out;
+}
+
+// ---------------------------------------------------------------- bivariate polynomials
+typedef double biv[7][7];
+
+static void lin_dot(biv out, vec a0, vec au, vec av, vec b0, vec bu, vec bv) {
+    for (int i = 0; i < 3; ++i) for (int j = 0; j < 3; ++j) out[i][j] = 0.0;
+    out[0][0] = dot(a0, b0);
+    out[1][0] = dot(a0, bu) + dot(au, b0);
+    out[0][1] = dot(a0, bv) + dot(av, b0);
+    out[2][0] = dot(au, bu);
+    out[1][1] = dot(au, bv) + dot(av, bu);
+    out[0][2] = dot(av, bv);
+}
+
+static void bmul(biv p, int dp, biv q, int dq, biv out) {
+    int d = dp + dq;
+    for (int i = 0; i <= d; ++i) for (int j = 0; j <= d - i; ++j) out[i][j] = 0.0;
+    for (int i1 = 0; i1 <= dp; ++i1)
+        for (int j1 = 0; j1 <= dp - i1; ++j1) {
+            double c = p[i1][j1];
+            if (c == 0.0) continue;
+            for (int i2 = 0; i2 <= dq; ++i2)
+                for (int j2 = 0; j2 <= dq - i2; ++j2) out[i1 + i2][j1 + j2] += c * q[i2][j2];
+        }
+}
+
+static void bcombine(biv out, int d, double ca, biv a, double cb, biv b) {
+    for (int i = 0; i <= d; ++i) for (int j = 0; j <= d - i; ++j) out[i][j] = ca * a[i][j] + cb * b[i][j];
+}
+
+static double bmax(biv p, int d) {
+    double m = 0.0;
+    for (int i = 0; i <= d; ++i) for (int j = 0; j <= d - i; ++j) m = fmax(m, fabs(p[i][j]));
+    return m;
+}
+
+static void umul(const double *p, int dp, const double *q, int dq, double *out) {
+    for (int k = 0; k <= dp + dq; ++k) out[k] = 0.0;
+    for (int i = 0; i <= dp; ++i) { double c = p[i]; if (c != 0.0) for (int j = 0; j <= dq; ++j) out[i + j] += c * q[j]; }
+}
+
+// Res_u(a, b) by the power-sum identity (one_bounce._resultant_quadratic_in_u).
+static int resultant_quadratic_in_u(biv a, biv b, int nb, int tb, double uni[16][UNI], double *out) {
+    double a2 = a[2][0];
+    double *a0 = uni[nb + 3], *a1 = uni[nb + 4];
+    a0[0] = a[0][0]; a0[1] = a[0][1]; a0[2] = a[0][2];
+    a1[0] = a[1][0]; a1[1] = a[1][1];
+    uni[0][0] = 2.0;
+    if (nb >= 1) { uni[1][0] = -a1[0]; uni[1][1] = -a1[1]; }
+    double *tmp = uni[nb + 2];
+    for (int m = 2; m <= nb; ++m) {
+        umul(a1, 1, uni[m - 1], m - 1, uni[m]);
+        umul(a0, 2, uni[m - 2], m - 2, tmp);
+        for (int k = 0; k <= m; ++k) uni[m][k] = -uni[m][k] - a2 * tmp[k];
+    }
+    double *acc = uni[nb + 6], *acc_tmp = uni[nb + 7], *t_poly = uni[nb + 1], *bt = uni[nb + 5];
+    int acc_deg = -1;
+    for (int i = nb; i >= 0; --i) {
+        int deg_t = tb - i;
+        for (int k = 0; k <= deg_t; ++k) t_poly[k] = 0.0;
+        double p = pown(a2, nb - i);
+        if (nb - i == 0) p = 1.0;
+        if (p != 0.0) for (int k = 0; k <= tb - i; ++k) t_poly[k] += p * b[i][k];
+        for (int j = i + 1; j <= nb; ++j) {
+            p = (nb - j == 0) ? 1.0 : pown(a2, nb - j);
+            if (p == 0.0) continue;
+            umul(b[j], tb - j, uni[j - i], j - i, tmp);
+            for (int k = 0; k <= tb - i; ++k) t_poly[k] += p * tmp[k];
+        }
+        umul(b[i], tb - i, t_poly, deg_t, bt);
+        int deg_bt = 2 * (tb - i);
+        if (acc_deg < 0) {
+            for (int k = 0; k <= deg_bt; ++k) acc[k] = bt[k];
+            acc_deg = deg_bt;
+        } else {
+            umul(acc, acc_deg, a0, 2, acc_tmp);
+            acc_deg += 2;
+            for (int k = 0; k <= acc_deg; ++k) acc[k] = acc_tmp[k];
+            for (int k = 0; k <= deg_bt; ++k) acc[k] += bt[k];
+        }
+    }
+    for (int k = 0; k <= acc_deg; ++k) out[k] = acc[k];
+    return acc_deg;
+}
+
+static void shift_to_unit_interval(double *c, int deg, double origin, double width) {
+    for (int i = 0; i < deg; ++i) for (int j = deg - 1; j >= i; --j) c[j] += origin * c[j + 1];
+    double p = 1.0;
+    for (int k = 0; k <= deg; ++k) { c[k] *= p; p *= width; }
+}
+
+static int conic_misses_triangle(biv a, double scale) {
+    double b200 = a[0][0], b020 = a[0][0] + a[1][0] + a[2][0], b002 = a[0][0] + a[0][1] + a[0][2];
+    double b110 = a[0][0] + 0.5 * a[1][0], b101 = a[0][0] + 0.5 * a[0][1];
+    double b011 = a[0][0] + 0.5 * (a[1][0] + a[0][1] + a[1][1]);
+    double lo = fmin(fmin(b200, b020), fmin(fmin(b002, b110), fmin(b101, b011)));
+    double hi = fmax(fmax(b200, b020), fmax(fmax(b002, b110), fmax(b101, b011)));
+    double margin = 1e-7 * scale;
+    return lo > margin || hi < -margin;
+}
+
+static double3 eval_with_gradient(biv p, int d, double u, double v) {
+    double f = 0.0, fu = 0.0, fv = 0.0, ui = 1.0, ui_1 = 0.0;
+    for (int i = 0; i <= d; ++i) {
+        double vj = 1.0, vj_1 = 0.0;
+        for (int j = 0; j <= d - i; ++j) {
+            double c = p[i][j];
+            f += c * ui * vj;
+            fv += c * ui * vj_1;
+            if (i > 0) fu += c * i * ui_1 * vj;
+            vj_1 = (j + 1) * vj;
+            vj *= v;
+        }
+        ui_1 = ui;
+        ui *= u;
+    }
+    return (double3)(f, fu, fv);
+}
+
+static double2 refine_on_polynomials(biv a, biv b, int db, double u, double v) {
+    double3 A = eval_with_gradient(a, 2, u, v), B = eval_with_gradient(b, db, u, v);
+    double size = fabs(A.x) + fabs(B.x);
+    for (int it = 0; it < 4; ++it) {
+        double det = A.y * B.z - A.z * B.y;
+        if (det == 0.0 || size == 0.0) break;
+        double du = -(A.x * B.z - A.z * B.x) / det, dv = -(A.y * B.x - A.x * B.y) / det;
+        double3 GA = eval_with_gradient(a, 2, u + du, v + dv), GB = eval_with_gradient(b, db, u + du, v + dv);
+        double ns = fabs(GA.x) + fabs(GB.x);
+        if (!(ns < size)) break;
+        u += du; v += dv; A = GA; B = GB; size = ns;
+    }
+    return (double2)(u, v);
+}
+
+// ---------------------------------------------------------------- path space
+static vec tangent_derivative(vec unit, vec d, double len) { return (d - dot(unit, d) * unit) / len; }
+
+typedef struct { vec p0, e1, e2, n0, m1, m2, ng, x0, x2; int refract; double eta; } Tuple;
+
+// scatter_residual: residual wo - expected(wi, n̂) and its (u, v) Jacobian; returns ok.
+static int scatter_residual(const Tuple *T, double u, double v, vec *res, vec *ju, vec *jv) {
+    vec di = (T->p0 - T->x0) + u * T->e1 + v * T->e2;
+    vec dov = (T->x2 - T->p0) - u * T->e1 - v * T->e2;
+    vec n = T->n0 + u * T->m1 + v * T->m2;
+    double ln = length(n), li = length(di), lo = length(dov);
+    if (!(ln > 0.0 && li > 0.0 && lo > 0.0)) return 0;
+    vec nh = n / ln, wi = di / li, wo = dov / lo;
+    vec ng = dot(T->ng, nh) >= 0.0 ? T->ng : -T->ng;
+    double side_in = -dot(di, ng), side_out = dot(dov, ng);
+    if (side_in == 0.0 || side_out == 0.0) return 0;
+    if (T->refract == (side_in * side_out > 0.0)) return 0;
+    double s = side_in > 0.0 ? 1.0 : -1.0;
+    vec no = s * nh;
+    double c = -dot(wi, no);
+    if (!(c > 0.0)) return 0;
+    double r = 1.0, sk = 0.0;
+    vec expected;
+    if (T->refract) {
+        r = s > 0.0 ? 1.0 / T->eta : T->eta;
+        double k = 1.0 - r * r * (1.0 - c * c);
+        if (!(k > 1e-24)) return 0;
+        sk = sqrt(k);
+        expected = r * wi + (r * c - sk) * no;
+    } else {
+        expected = wi + 2.0 * c * no;
+    }
+    *res = wo - expected;
+    for (int axis = 0; axis < 2; ++axis) {
+        vec d = axis == 0 ? T->e1 : T->e2;
+        vec dm = axis == 0 ? T->m1 : T->m2;
+        vec dwi = tangent_derivative(wi, d, li);
+        vec dwo = -tangent_derivative(wo, d, lo);
+        vec dno = s * tangent_derivative(nh, dm, ln);
+        double dc = -(dot(dwi, no) + dot(wi, dno));
+        vec dexp;
+        if (T->refract) {
+            double dsk = r * r * c * dc / sk;
+            dexp = r * dwi + (r * dc - dsk) * no + (r * c - sk) * dno;
+        } else {
+            dexp = dwi + 2.0 * dc * no + 2.0 * c * dno;
+        }
+        if (axis == 0) *ju = dwo - dexp; else *jv = dwo - dexp;
+    }
+    return 1;
+}
+
+// polish_and_validate: returns accepted; writes u, v, err, sigma_min.
+static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *perr, double *psig) {
+    double u = *pu, v = *pv;
+    vec res, ju, jv;
+    if (!scatter_residual(T, u, v, &res, &ju, &jv)) { *perr = INFINITY; *psig = 0.0; return 0; }
+    double err = length(res), last_step = INFINITY;
+    for (int it = 0; it < POLISH_STEPS; ++it) {
+        if (err < 1e-15) { last_step = 0.0; break; }
+        double a11 = dot(ju, ju), a12 = dot(ju, jv), a22 = dot(jv, jv);
+        double b1 = -dot(ju, res), b2 = -dot(jv, res);
+        double det = a11 * a22 - a12 * a12;
+        if (!(fabs(det) > 1e-300)) break;
+        double du = (b1 * a22 - b2 * a12) / det, dv = (a11 * b2 - a12 * b1) / det;
+        last_step = fmax(fabs(du), fabs(dv));
+        vec res2, ju2, jv2;
+        if (!scatter_residual(T, u + du, v + dv, &res2, &ju2, &jv2)) break;
+        double err2 = length(res2);
+        if (!(err2 < err)) break;
+        u += du; v += dv; res = res2; ju = ju2; jv = jv2; err = err2;
+    }
+    int inside = u >= -INSIDE_EPSILON && v >= -INSIDE_EPSILON && u + v <= 1.0 + INSIDE_EPSILON;
+    int settled = last_step <= SETTLED_STEP;
+    double a11 = dot(ju, ju), a12 = dot(ju, jv), a22 = dot(jv, jv);
+    double half_gap = sqrt(fmax(0.0, 0.25 * (a11 - a22) * (a11 - a22) + a12 * a12));
+    *psig = sqrt(fmax(0.0, 0.5 * (a11 + a22) - half_gap));
+    *pu = u; *pv = v; *perr = err;
+    return inside && (err <= ACCEPT_RESIDUAL || (settled && err <= DIRECTION_TOLERANCE));
+}
+
+typedef struct { double u[8], v[8], err[8], sig[8]; int count; } Paths;
+
+static void store_path(Paths *out, double uu, double vv, double err, double sig) {
+    int n = min(out->count, 8);
+    for (int q = 0; q < n; ++q) {
+        double dist = fmax(fabs(out->u[q] - uu), fabs(out->v[q] - vv));
+        double s = fmin(sig, out->sig[q]);
+        double radius = s > 0.0 ? fmax(SAME_PATH, 4.0 * (err + out->err[q] + 1e-12) / s) : NEAR_PATH;
+        if (dist < fmin(radius, NEAR_PATH)) {
+            if (err < out->err[q]) { out->u[q] = uu; out->v[q] = vv; out->err[q] = err; out->sig[q] = sig; }
+            return;
+        }
+    }
+    if (out->count < 8) { int c = out->count; out->u[c] = uu; out->v[c] = vv; out->err[c] = err; out->sig[c] = sig; }
+    out->count++;
+}
+
+static void probe_fold(const Tuple *T, double u, double v, Paths *out) {
+    vec res, ju, jv;
+    if (!scatter_residual(T, u, v, &res, &ju, &jv)) return;
+    double a11 = dot(ju, ju), a12 = dot(ju, jv), a22 = dot(jv, jv);
+    double disc = sqrt(fmax(0.0, 0.25 * (a11 - a22) * (a11 - a22) + a12 * a12));
+    double lam_min = 0.5 * (a11 + a22) - disc, lam_max = 0.5 * (a11 + a22) + disc;
+    if (!(lam_max > 0.0) || lam_min > FOLD_RATIO * lam_max) return;
+    double su, sv;
+    if (fabs(a12) > 0.0) { su = a12; sv = lam_min - a11; }
+    else if (a11 <= a22) { su = 1.0; sv = 0.0; }
+    else { su = 0.0; sv = 1.0; }
+    double ls = sqrt(su * su + sv * sv);
+    su /= ls; sv /= ls;
+    const double steps[3] = {1e-5, 1e-4, 1e-3};
+    for (int k = 0; k < 6; ++k) {
+        double step = steps[k / 2] * ((k % 2 == 0) ? 1.0 : -1.0);
+        double uu = u + step * su, vv = v + step * sv, err, sig;
+        if (polish_and_validate(T, &uu, &vv, &err, &sig)) store_path(out, uu, vv, err, sig);
+    }
+}
+
+static void on_axis_candidate(const Tuple *T, Paths *out, int *candidates) {
+    vec w = T->x2 - T->x0;
+    double denom = dot(w, T->ng);
+    if (denom == 0.0) return;
+    double t = dot(T->p0 - T->x0, T->ng) / denom;
+    vec rel = (T->x0 + t * w) - T->p0;
+    double d11 = dot(T->e1, T->e1), d12 = dot(T->e1, T->e2), d22 = dot(T->e2, T->e2);
+    double r1 = dot(rel, T->e1), r2 = dot(rel, T->e2), det = d11 * d22 - d12 * d12;
+    if (!(det > 0.0)) return;
+    double u = (r1 * d22 - r2 * d12) / det, v = (d11 * r2 - d12 * r1) / det;
+    if (u < -1e-6 || v < -1e-6 || u + v > 1.0 + 1e-6) return;
+    vec n = T->n0 + u * T->m1 + v * T->m2;
+    double ln = length(n), lw = length(w);
+    if (!(ln > 0.0 && lw > 0.0) || length(cross(n, w)) > 1e-2 * ln * lw) return;
+    (*candidates)++;
+    double err, sig;
+    if (polish_and_validate(T, &u, &v, &err, &sig)) store_path(out, u, v, err, sig);
+}
+
+// _solve_system: roots of {a = 0, b = 0} in the triangle -> validated paths.
+static void solve_system(const Tuple *T, biv a_poly, double max_a, biv b_poly, int total_b, double uni[16][UNI],
+                         double chain[MAXD + 1][MAXD + 1], double stack[STACK + 1][MAXD + 4], Paths *out,
+                         int *n_roots, int *n_candidates) {
+    double max_b = bmax(b_poly, total_b);
+    if (!(max_b > 0.0) || !isfinite(max_b)) return;
+    int nb = total_b;
+    while (nb > 0) {
+        double big = 0.0;
+        for (int j = 0; j <= total_b - nb; ++j) big = fmax(big, fabs(b_poly[nb][j]));
+        if (big > NEGLIGIBLE * max_b) break;
+        for (int j = 0; j <= total_b - nb; ++j) b_poly[nb][j] = 0.0;
+        nb--;
+    }
+    double res[UNI];
+    int deg_r;
+    if (nb == 0) { deg_r = total_b; for (int k = 0; k <= deg_r; ++k) res[k] = b_poly[0][k]; }
+    else deg_r = resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, uni, res);
+    shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN);
+    double v_roots[MAXD + 1], critical[MAXD + 1], found[MAXD + 1];
+    int n_v = roots_in_unit_interval(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, critical, found, stack, v_roots);
+    for (int iv = 0; iv < n_v; ++iv) v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv];
+    *n_roots += n_v;
+    double u_roots[MAXD + 1], b_at_v[MAXD + 1];
+    for (int iv = 0; iv < n_v; ++iv) {
+        double vr = v_roots[iv];
+        double a2 = a_poly[2][0], a1 = a_poly[1][0] + a_poly[1][1] * vr;
+        double a0 = a_poly[0][0] + (a_poly[0][1] + a_poly[0][2] * vr) * vr;
+        double u_hi = 1.0 - vr + V_MARGIN;
+        int n_u;
+        if (fabs(a2) + fabs(a1) > 1e-10 * max_a) {
+            n_u = 0;
+            if (a2 == 0.0) {
+                double uu = -a0 / a1;
+                if (uu >= -V_MARGIN && uu <= u_hi) u_roots[n_u++] = uu;
+            } else {
+                double disc = a1 * a1 - 4.0 * a2 * a0;
+                if (disc < 0.0 && disc >= -1e-12 * (a1 * a1 + fabs(4.0 * a2 * a0))) disc = 0.0;
+                if (disc >= 0.0) {
+                    double sq = sqrt(disc);
+                    double q = a1 >= 0.0 ? -0.5 * (a1 + sq) : -0.5 * (a1 - sq);
+                    double r1 = q / a2;
+                    if (r1 >= -V_MARGIN && r1 <= u_hi) u_roots[n_u++] = r1;
+                    if (q != 0.0) {
+                        double r2 = a0 / q;
+                        if (r2 >= -V_MARGIN && r2 <= u_hi && (n_u == 0 || r2 != r1)) u_roots[n_u++] = r2;
+                    }
+                }
+            }
+        } else {
+            for (int i = 0; i <= nb; ++i) {
+                double acc = 0.0;
+                for (int j = total_b - i; j >= 0; --j) acc = acc * vr + b_poly[i][j];
+                b_at_v[i] = acc;
+            }
+            n_u = roots_in_interval(b_at_v, nb, -V_MARGIN, u_hi, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, critical, found, u_roots);
+        }
+        for (int iu = 0; iu < n_u; ++iu) {
+            (*n_candidates)++;
+            double uu = u_roots[iu], vv = vr, err, sig;
+            int ok = polish_and_validate(T, &uu, &vv, &err, &sig);
+            if (!ok) {
+                double2 r = refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr);
+                uu = r.x; vv = r.y;
+                ok = polish_and_validate(T, &uu, &vv, &err, &sig);
+            }
+            if (!ok) continue;
+            int before = out->count;
+            store_path(out, uu, vv, err, sig);
+            if (out->count == before) continue;
+            probe_fold(T, uu, vv, out);
+        }
+    }
+}
+
+static vec load3(__global const double *a, long i) { return (vec)(a[3 * i], a[3 * i + 1], a[3 * i + 2]); }
+
+__kernel void solve_one_bounce(const int refract, __global const double *x_start, __global const double *x_end,
+                               __global const double *P, __global const double *N, __global const double *eta,
+                               const int n, __global double *out_uv, __global long *out_count, __global long *stats) {
+    int t = get_global_id(0);
+    if (t >= n) return;
+    Tuple T;
+    T.x0 = load3(x_start, t);
+    T.x2 = load3(x_end, t);
+    T.p0 = load3(P, 3L * t);
+    T.e1 = load3(P, 3L * t + 1) - T.p0;
+    T.e2 = load3(P, 3L * t + 2) - T.p0;
+    T.n0 = load3(N, 3L * t);
+    T.m1 = load3(N, 3L * t + 1) - T.n0;
+    T.m2 = load3(N, 3L * t + 2) - T.n0;
+    T.refract = refract;
+    T.eta = eta[t];
+    Paths out;
+    out.count = 0;
+    int n_roots = 0, n_candidates = 0, skipped = 0;
+    __global long *st = stats + 4L * t;
+
+    vec g = cross(T.e1, T.e2);
+    double area2 = length(g);
+    T.ng = area2 > 0.0 ? g / area2 : g;
+    double len = fmax(length(T.e1), length(T.e2));
+    double side0 = dot(T.x0 - T.p0, T.ng), side2 = dot(T.x2 - T.p0, T.ng);
+    vec n_mean = 3.0 * T.n0 + T.m1 + T.m2;
+    double tiny = 1e-12 * len;
+    if (!(area2 > 1e-14 * len * len) || !(T.eta > 0.0) || fabs(side0) <= tiny || fabs(side2) <= tiny ||
+        ((side0 * side2 < 0.0) != refract) || length(n_mean) == 0.0) {
+        skipped = 1;
+    } else {
+        double inv_l = 1.0 / len;
+        vec E1 = T.e1 * inv_l, E2 = T.e2 * inv_l, A = (T.x0 - T.p0) * inv_l, B = (T.x2 - T.p0) * inv_l;
+        vec w = B - A;
+        vec C = cross(w, n_mean);
+        if (!(length(C) > 1e-9 * length(w) * length(n_mean))) C = cross(E1, n_mean);
+        C = C / length(C);
+        vec zero = (vec)(0.0, 0.0, 0.0), minus_a = -A;
+        vec t0 = cross(T.n0, C), tu = cross(T.m1, C), tv = cross(T.m2, C);
+        biv a_poly, f1, f3, g2, h, b_poly, t1, t2, t3, t4, t5, t6, t7;
+        lin_dot(a_poly, cross(minus_a, w), cross(E1, w), cross(E2, w), T.n0, T.m1, T.m2);
+        lin_dot(f1, minus_a, E1, E2, T.n0, T.m1, T.m2);
+        lin_dot(f3, minus_a, E1, E2, t0, tu, tv);
+        lin_dot(g2, w, zero, zero, t0, tu, tv);
+        lin_dot(h, w, zero, zero, T.n0, T.m1, T.m2);
+        double max_a = bmax(a_poly, 2);
+        double uni[16][UNI];
+        double chain[MAXD + 1][MAXD + 1];
+        double stack[STACK + 1][MAXD + 4];
+        if (!isfinite(max_a)) {
+            skipped = 1;
+        } else if (max_a <= 1e-13 * (length(A) + 1.0) * length(w) * (length(T.n0) + length(T.m1) + length(T.m2))) {
+            on_axis_candidate(&T, &out, &n_candidates);
+        } else {
+            for (int i = 0; i < 3; ++i) for (int j = 0; j < 3 - i; ++j) if (fabs(a_poly[i][j]) <= NEGLIGIBLE * max_a) a_poly[i][j] = 0.0;
+            if (conic_misses_triangle(a_poly, max_a)) {
+                skipped = 1;
+            } else if (!refract) {
+                bmul(f1, 2, g2, 2, t1);
+                bmul(f3, 2, h, 2, t2);
+                bmul(f1, 2, f3, 2, t3);
+                for (int i = 0; i < 5; ++i) for (int j = 0; j < 5 - i; ++j) b_poly[i][j] = t1[i][j] + t2[i][j] - 2.0 * t3[i][j];
+                solve_system(&T, a_poly, max_a, b_poly, 4, uni, chain, stack, &out, &n_roots, &n_candidates);
+                on_axis_candidate(&T, &out, &n_candidates);
+            } else {
+                lin_dot(t1, minus_a, E1, E2, minus_a, E1, E2);
+                lin_dot(t2, B, -E1, -E2, B, -E1, -E2);
+                bmul(f3, 2, f3, 2, t3);
+                bcombine(t4, 2, 1.0, g2, -1.0, f3);
+                bmul(t4, 2, t4, 2, t5);
+                bmul(t2, 2, t3, 4, t6);
+                bmul(t1, 2, t5, 4, t7);
+                double s0 = dot(T.ng, T.n0), s1 = dot(T.ng, T.n0 + T.m1), s2 = dot(T.ng, T.n0 + T.m2);
+                int any_front = s0 > 0.0 || s1 > 0.0 || s2 > 0.0, any_back = s0 < 0.0 || s1 < 0.0 || s2 < 0.0;
+                for (int pass = 0; pass < 2; ++pass) {
+                    int outward = pass == 0;
+                    if ((outward && !any_front) || (!outward && !any_back)) continue;
+                    int from_outside = (side0 > 0.0) == outward;
+                    double eta_in = from_outside ? 1.0 : T.eta, eta_out = from_outside ? T.eta : 1.0;
+                    bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7);
+                    solve_system(&T, a_poly, max_a, b_poly, 6, uni, chain, stack, &out, &n_roots, &n_candidates);
+                }
+                on_axis_candidate(&T, &out, &n_candidates);
+            }
+        }
+    }
+    int stored = min(out.count, 8);
+    for (int q = 0; q < stored; ++q) { out_uv[16L * t + 2 * q] = out.u[q]; out_uv[16L * t + 2 * q + 1] = out.v[q]; }
+    out_count[t] = out.count;
+    st[0] = n_roots; st[1] = n_candidates; st[2] = out.count; st[3] = skipped;
+}

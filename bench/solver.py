@@ -1,6 +1,7 @@
 """Solver benchmark: µs per tuple for R and T, one thread and all threads, cold and warm.
 
     .venv/bin/python bench/solver.py [--tuples 100000] [--no-write]
+    .venv/bin/python bench/solver.py --two-bounce [--tuples 400] [--no-write]   (RR, RT, TR, TT)
 
 Prints a table and rewrites the "solver" section of BENCHMARKS.md.  Timings are the best of
 several repeats; the machines are shared and noisy, so each table also gives ratios
@@ -181,6 +182,114 @@ def opencl_comparison(solver, args, threads_all):
     return rows
 
 
+TWO_BOUNCE_TARGET_US = {"RR": 100.0, "RT": None, "TR": None, "TT": 300.0}
+AUTHORS_TWO_BOUNCE = "the authors' scalar C++: RR 213 µs at 94.5 % recall; their TT finds no path"
+
+COLD_SNIPPET_2 = """
+import time, sys
+t0 = time.perf_counter()
+sys.path.insert(0, {root!r})
+import numpy as np
+from addon.solver import solve_tuples
+t1 = time.perf_counter()
+sys.path.insert(0, {bench!r})
+from workloads import planted_two_bounce
+for chain in ("RR", "RT", "TR", "TT"):
+    x0, x3, P, N, uv = planted_two_bounce(8, chain, seed=5)
+    solve_tuples(chain, x0[:1], x3[:1], P[:1], N[:1], 1.5)
+t2 = time.perf_counter()
+print(t1 - t0, t2 - t1)
+"""
+
+
+def cold_start_two_bounce(cache_dir):
+    env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
+    out = subprocess.run([sys.executable, "-c", COLD_SNIPPET_2.format(root=ROOT, bench=HERE)], env=env, capture_output=True,
+                         text=True, check=True)
+    imp, first = (float(x) for x in out.stdout.split())
+    return imp, first
+
+
+def two_bounce_main(argv=None):
+    """µs per tuple for RR, RT, TR, TT (planted and random workloads; 1 and all threads; cold
+    and warm start) and planted recall against time for 25 / 50 / 100 / 200 pieces."""
+    parser = argparse.ArgumentParser(description="two-bounce solver benchmark")
+    parser.add_argument("--two-bounce", action="store_true")
+    parser.add_argument("--tuples", type=int, default=400)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--no-write", action="store_true")
+    args = parser.parse_args(argv)
+    from workloads import planted_recall, planted_two_bounce, random_two_bounce
+
+    with tempfile.TemporaryDirectory() as empty_cache:
+        imp_cold, compile_s = cold_start_two_bounce(empty_cache)
+        imp_warm, first_warm = cold_start_two_bounce(empty_cache)
+
+    from addon.solver import jit
+    from addon.solver.api import SpecularPolynomialSolver
+
+    solver = SpecularPolynomialSolver()
+    threads_all = jit.get_num_threads()
+    rows = []
+    curve = []
+    for chain in ("RR", "RT", "TR", "TT"):
+        x0p, x3p, Pp, Np, uvp = planted_two_bounce(int(args.tuples * 2), chain, seed=1)
+        x0p, x3p, Pp, Np, uvp = x0p[:args.tuples], x3p[:args.tuples], Pp[:args.tuples], Np[:args.tuples], uvp[:args.tuples]
+        workloads = {"random": random_two_bounce(args.tuples, seed=2), "planted": (x0p, x3p, Pp, Np)}
+        for name, (x0, x3, P, N) in workloads.items():
+            n = x0.shape[0]
+            solver.solve(chain, x0[:4], x3[:4], P[:4], N[:4], 1.5)
+            per_thread = {1: float("inf"), threads_all: float("inf")}
+            result = None
+            for _ in range(args.repeats):
+                for threads in (1, threads_all):
+                    jit.set_num_threads(threads)
+                    seconds, result = best_time(lambda: solver.solve(chain, x0, x3, P, N, 1.5), 1)
+                    per_thread[threads] = min(per_thread[threads], seconds / n * 1e6)
+            jit.set_num_threads(threads_all)
+            rep = result.report
+            recall = planted_recall(result.tuple_index, result.uv, uvp) if name == "planted" else float("nan")
+            rows.append(dict(chain=chain, workload=name, tuples=n, us1=per_thread[1], usall=per_thread[threads_all],
+                             paths=rep.paths, roots=rep.roots, dets=rep.determinants, candidates=rep.candidates,
+                             recall=recall))
+        jit.set_num_threads(1)
+        for pieces in (25, 50, 100, 200):
+            s, res = best_time(lambda: solver.solve(chain, x0p, x3p, Pp, Np, 1.5, pieces=pieces), 1)
+            curve.append(dict(chain=chain, pieces=pieces, us=s / x0p.shape[0] * 1e6,
+                              recall=planted_recall(res.tuple_index, res.uv, uvp)))
+        jit.set_num_threads(threads_all)
+
+    lines = [f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
+             f"{args.tuples:,} tuples per row; best of {args.repeats}; date {time.strftime('%Y-%m-%d')}; default 100 pieces. "
+             f"Reference: {AUTHORS_TWO_BOUNCE}.", ""]
+    lines.append(f"| chain | workload | tuples | µs/tuple 1 thread | µs/tuple {threads_all} threads | target (1 thread) | paths | resultant roots | determinants / tuple | candidates | planted recall |")
+    lines.append("|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        tgt = TWO_BOUNCE_TARGET_US[r["chain"]]
+        recall = "" if np.isnan(r["recall"]) else f"{100 * r['recall']:.2f} %"
+        lines.append(f"| {r['chain']} | {r['workload']} | {r['tuples']:,} | {r['us1']:.0f} | {r['usall']:.0f} | "
+                     f"{'≤ %d' % tgt if tgt else '—'} | {r['paths']:,} | {r['roots']:,} | {r['dets'] / r['tuples']:.0f} | "
+                     f"{r['candidates']:,} | {recall} |")
+    lines.append("")
+    lines.append("Speed against accuracy (planted workload, 1 thread): pieces of the resultant's sign scan.")
+    lines.append("")
+    lines.append("| chain | pieces | µs/tuple | planted recall |")
+    lines.append("|---|---|---|---|")
+    for c in curve:
+        lines.append(f"| {c['chain']} | {c['pieces']} | {c['us']:.0f} | {100 * c['recall']:.2f} % |")
+    lines.append("")
+    lines.append("Start-up (fresh interpreter, RR, RT, TR, TT each solved once):")
+    lines.append("")
+    lines.append("| cache | import addon.solver (s) | first solves (s) |")
+    lines.append("|---|---|---|")
+    lines.append(f"| empty (compile) | {imp_cold:.2f} | {compile_s:.2f} |")
+    lines.append(f"| warm Numba cache | {imp_warm:.2f} | {first_warm:.2f} |")
+    section = "\n".join(lines)
+    print(section)
+    if not args.no_write:
+        write_section(os.path.join(ROOT, "BENCHMARKS.md"), "solver2", "Solver: two-bounce Specular Polynomials (`bench/solver.py --two-bounce`)", section)
+
+
 def write_section(path, key, title, body):
     """Replace (or append) the section between <!-- key:begin --> and <!-- key:end -->."""
     begin, end = f"<!-- {key}:begin -->", f"<!-- {key}:end -->"
@@ -195,4 +304,7 @@ def write_section(path, key, title, body):
 
 
 if __name__ == "__main__":
-    main()
+    if "--two-bounce" in sys.argv[1:]:
+        two_bounce_main()
+    else:
+        main()

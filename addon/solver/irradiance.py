@@ -17,9 +17,10 @@ from collections import namedtuple
 
 import numpy as np
 
-from .api import CHAIN_LENGTH, ONE_BOUNCE_CHAINS, validate_inputs
+from .api import CHAIN_LENGTH, validate_inputs
 from .jit import kernel, prange
 from .path_space import geometric_normal, scatter_residual, triangle_frame
+from .path_space2 import pack_geometry, two_bounce_footprint
 from .vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
 
 PathIrradiance = namedtuple("PathIrradiance", "irradiance geometry fresnel cos_receiver direction")
@@ -120,18 +121,66 @@ def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tup
         out[s, 5] = wo[2]
 
 
+@kernel
+def _vertex_fresnel(refract, model, cos_i, side, eta, kappa):
+    """Fresnel factor of one vertex; side > 0: the light arrives from outside (IOR 1)."""
+    eta_i = 1.0 if side > 0.0 else eta
+    eta_t = eta if side > 0.0 else 1.0
+    if refract:
+        return 1.0 - fresnel_dielectric(cos_i, eta_i, eta_t)
+    if model == 1:
+        return fresnel_dielectric(cos_i, eta_i, eta_t)
+    if model == 2:
+        return fresnel_conductor(cos_i, eta, kappa)
+    return 1.0
+
+
+@kernel(parallel=True)
+def _two_bounce_irradiance(refract1, refract2, model, x_start, x_end, P, N, eta, kappa, tuple_index, uv, receiver_normal,
+                           has_receiver, out):
+    """Per solution: out[:, 0..5] = geometry, fresnel (product over both vertices),
+    cos_receiver, direction xyz."""
+    for s in prange(tuple_index.shape[0]):
+        t = tuple_index[s]
+        geo = np.empty((15, 3))
+        th = np.empty(4)
+        for k in range(6):
+            out[s, k] = 0.0
+        x0 = row(x_start, t)
+        x3 = row(x_end, t)
+        if not pack_geometry(x0, x3, P[t, 0], N[t, 0], P[t, 1], N[t, 1], geo):
+            continue
+        for k in range(4):
+            th[k] = uv[s, k]
+        ok, geometry, c1, s1, c2, s2, w2 = two_bounce_footprint(th, geo, refract1, refract2, eta[t])
+        if not ok:
+            continue
+        fresnel = _vertex_fresnel(refract1, model, c1, s1, eta[t], kappa[t]) * \
+            _vertex_fresnel(refract2, model, c2, s2, eta[t], kappa[t])
+        cos_r = 1.0
+        if has_receiver:
+            nr = row(receiver_normal, t)
+            lr = norm(nr)
+            cos_r = abs(dot(w2, nr)) / lr if lr > 0.0 else 0.0
+        out[s, 0] = geometry
+        out[s, 1] = fresnel
+        out[s, 2] = cos_r
+        out[s, 3] = w2[0]
+        out[s, 4] = w2[1]
+        out[s, 5] = w2[2]
+
+
 def path_irradiance(chain, x_start, x_end, P, N, eta, tuple_index, uv, receiver_normal=None,
                     reflectance="mirror", conductor_k=None):
     """Irradiance at x_end of each solved path per unit intensity of a point light at x_start.
 
     Fan et al. 2025 eq 15 (chain-rule Jacobian) for the geometry term; Fresnel per
     ``reflectance`` ("mirror": 1, "dielectric": IOR eta, "conductor": eta + i·conductor_k)
-    for R, dielectric transmittance for T.  ``receiver_normal``: (n,3) per tuple, or None
-    for irradiance on the plane perpendicular to the arriving ray.  See CONTRACT.md.
+    for R, dielectric transmittance for T; for two bounces (RR, RT, TR, TT) the geometry term
+    is chained through both vertices and the Fresnel factor is the product of the vertices'.
+    ``receiver_normal``: (n,3) per tuple, or None for irradiance on the plane perpendicular to the arriving ray.  See CONTRACT.md.
     """
     x_start, x_end, P, N, eta = validate_inputs(chain, x_start, x_end, P, N, eta)
-    if chain not in ONE_BOUNCE_CHAINS:
-        raise ValueError(f"path_irradiance supports {ONE_BOUNCE_CHAINS} so far, not {chain!r}")
     if reflectance not in REFLECTANCE_MODELS:
         raise ValueError(f"reflectance must be one of {sorted(REFLECTANCE_MODELS)}, got {reflectance!r}")
     n = x_start.shape[0]
@@ -150,7 +199,10 @@ def path_irradiance(chain, x_start, x_end, P, N, eta, tuple_index, uv, receiver_
     has_receiver = receiver_normal is not None
     rn = np.zeros((n, 3)) if not has_receiver else np.ascontiguousarray(np.broadcast_to(np.asarray(receiver_normal, dtype=np.float64), (n, 3)))
     out = np.zeros((tuple_index.shape[0], 6))
-    if tuple_index.shape[0]:
+    if tuple_index.shape[0] and k == 2:
+        _two_bounce_irradiance(chain[0] == "T", chain[1] == "T", REFLECTANCE_MODELS[reflectance], x_start, x_end, P, N,
+                               eta, kappa, tuple_index, uv, rn, has_receiver, out)
+    elif tuple_index.shape[0]:
         _one_bounce_irradiance(chain == "T", REFLECTANCE_MODELS[reflectance], x_start, x_end, P, N, eta, kappa,
                                tuple_index, uv, rn, has_receiver, out)
     geometry, fresnel, cos_r = out[:, 0], out[:, 1], out[:, 2]

@@ -1,0 +1,1235 @@
+"""Two-bounce Specular Polynomials: the RR, RT, TR and TT chains (Fan et al. 2024, §3.4–4.3).
+
+For a tuple (x0, triangle 1, triangle 2, x3) the unknowns are the barycentrics (u1, v1) of
+x1; x2 follows by the *rational coordinate mapping* (eq 14–17): the scaled scattered
+direction d̃1 at x1 is intersected with triangle 2's plane (Möller–Trumbore),
+
+    u2 = ũ2 / κ,  v2 = ṽ2 / κ,   ũ2 = (d̃1 × e2,2)·(x1 - p2,0),
+    ṽ2 = ((x1 - p2,0) × e2,1)·d̃1,  κ = (d̃1 × e2,2)·e2,1,
+
+so every quantity at vertex 2 is a polynomial in (u1, v1) once multiplied by κ:
+κ x2 - κ p2,0 = ũ2 e2,1 + ṽ2 e2,2, κ n2 = κ n2,0 + ũ2 m2,1 + ṽ2 m2,2 (m = corner normal
+differences), κ (x3 - x2) = κ (x3 - p2,0) - ũ2 e2,1 - ṽ2 e2,2, and x2 - x1 ∥ d̃1.
+
+d̃1 (scaled so that it stays a polynomial):
+
+* reflection, eq (19): d̃1 = -2 (d0·n1) n1 + d0 |n1|²  (degree 3, exact);
+* refraction, eq (21–22): d̃1 = η' (d0 |n1|² - (d0·n1) n1) - √β n1_o, with
+  β = |n1|²|d0|² - η'² (|n1|²|d0|² - (d0·n1)²) and n1_o the normal turned to the incoming
+  side.  √β is not rational; with S² = max|n1|² · max|d0|² over the triangle's corners
+  (so x = β / S² ∈ [0, 1]), √β ≈ S r(x) with the piecewise rational r of eq (23) below;
+  multiplying through by r's denominator keeps d̃1 a polynomial (degree 7).  β < 0 (total
+  internal reflection) has no refracted ray and is rejected explicitly when candidates are
+  mapped to triangle 2 (the exact refraction, ``path_space2.trace_to_second``).
+
+The bivariate system at vertex 2 (Table 3):
+
+* a(u1, v1) = (d̃1 × (x3 - x1)) · κn2 — coplanarity, eq (6);
+* R at vertex 2: the product form, eq (13): (d̃1·κn2)(κd2·t2) + (d̃1·t2)(κd2·κn2),
+  t2 = κn2 × c2;
+* T at vertex 2: the square form, eq (10): η_in² |κd2|² ((d̃1 × κn2)·c2)²
+  - η_out² |d̃1|² ((κd2 × κn2)·c2)², where η_in is the IOR on the side the light arrives
+  from at vertex 2 and η_out the other one — at the exit of a glass object η_in = eta and
+  η_out = 1 (the authors' released TT code swaps them and finds no TT path).
+
+c2 is the normal of the plane of incidence at vertex 2 ((x3 - centroid 1) × mean n2) so
+that neither form degenerates (the paper's fixed (1,0,0) vanishes on whole curves).  Total
+degrees (a, b): RR (8, 15), RT (8, 22), TR (16, 31), TT (16, 46) (the paper's Table 3 has
+(10, 16), (10, 24), (18, 48) with its endpoint-difference form at vertex 2).  A flat
+triangle 2 uses its constant normal, which removes a common factor κ (else the resultant
+vanishes identically).
+
+Elimination (eq 28–31).  u1 is the eliminated variable; the Bézout matrix R(v1) of a and b
+(eq 29; entries are polynomials in v1, built per evaluation from a_i(v1), b_i(v1) with the
+O(n²) recurrence R[i, j] = R[i-1, j+1] + a_i b_{j+1} - b_i a_{j+1}) is n × n with n the
+u-degree of b (15 … 46).  Its determinant is evaluated at a given v1 by Gaussian elimination
+with partial pivoting that carries the sign and the logarithm of the magnitude (TT
+coefficients span ~60 orders of magnitude: a product of pivots underflows to ±0 in plain
+doubles).  a_i and b_i are scaled to unit max-norm at each v1 (positive factors: the sign
+is unchanged).  An exactly singular elimination is never taken for a root: the point is
+re-evaluated a hair away, and a tuple whose determinant is zero at most samples is a
+degenerate system (common factor, e.g. the on-axis slab) handled by a seeded polish.
+
+Roots in v1 (§4.2, made reliable): the range [-m, 1 + m] is cut into ``pieces`` (default
+100); every sign change is pinned by the Illinois variant of regula falsi on the signed
+log-magnitude (bisection safeguard) until the bracket is below 1e-12.  Resultant roots
+cluster (all solutions through a small or distant second triangle lie in a small patch of
+the first), so pieces are refined (``SUB_SAMPLES`` sub-pieces, ``REFINE_LEVELS`` levels):
+the pieces around every sign change, and pieces next to a convex kink of log|det| deflated
+by the roots already found (what is left of a kink is a root the scan did not see: a pair
+inside one piece).  A sub-sampled piece with more than ``NOISY_CHANGES`` sign changes is at
+rounding level and left alone; a one-signed deflated dip at the last level is tried as a
+(double-root) candidate.  Root pairs closer than a sub-piece in v1 are still missed by one
+orientation, so the chain is also solved reversed (reciprocity: x3 -> triangle 2 ->
+triangle 1 -> x0, parametrised by (u2, v2)), where the same solutions are spread out.
+
+m = 1e-6 for exact systems (RR, RT) and 2e-2 where √ is approximated (TR, TT).  For a
+refraction at the first vertex the system is solved once per √ piece holding β/S² at one
+of the triangle's sample points (corners, edge thirds, centroid): usually one or two
+(``SQRT_ALL_PIECES`` solves once per piece overlapping the whole sampled β range instead:
+more recall where x0 is close to a curved triangle, several times the cost); the path-space
+polish removes the error of a piece used a little outside its interval.  A candidate from the straight
+line x0 -> x3 covers the normal-incidence path through parallel faces (on-axis slab), where
+the coplanarity polynomial vanishes identically.
+
+Path phase (§4.3): at each root v1*, u1 are the roots of a(·, v1*) in the triangle whose
+b(u1, v1*) is relatively small (the smallest always); (u1, v1) is mapped to (u2, v2) by the
+exact scattered ray (no √ approximation, TIR rejected), and the whole path is Gauss–Newton
+polished and validated in path space (both vertices, sides, TIR, inside both triangles:
+``path_space2``), which removes the √ approximation error (paper Fig. 12).  Paths that
+converge onto a stored one are merged keeping the smaller residual (same rule as
+``one_bounce._store_path``, in 4 dimensions).
+
+Piecewise rational √ (eq 23).  r(x) = (c0 + c1 x) / (1 + d1 x) on 15 consecutive pieces of
+[0, 1].  Fit (this file's ``SQRT_PIECES``, checked by tests/test_solver_two_bounce.py
+``test_sqrt_fit``): greedy from x = 1 downwards, each piece the widest
+interval on which a minimax fit (Lawson's iteratively reweighted least squares on the
+linearised error √x (1 + d1 x) - c0 - c1 x, 4,000 linear + 2,000 log-spaced points)
+stays below 6e-5 absolute; the first piece [0, 8.4e-8] (error 2.2e-5: near 0 the error of
+a (1,1) rational fit on [0, b] scales as 0.044 √b, so the first piece must be tiny).  Max
+absolute error over [0, 1] including x → 0: 6.0e-5 (the authors' 6-piece table: 1.7e-2 at
+x = 0).
+"""
+
+import math
+
+import numpy as np
+
+from .jit import kernel, prange
+from .path_space2 import pack_geometry, polish_and_validate2, trace_to_second
+from .roots import MAX_DEGREE, roots_in_interval
+
+MAX_PATHS_TWO_BOUNCE = 8
+CHUNK = 4  # tuples per parallel work item: a two-bounce tuple costs ~1-200 ms, so small chunks balance threads
+MAXD = 47  # bivariate arrays are (MAXD + 1)²; b has total degree ≤ 46 (TT)
+N_SLOTS = 40
+DEFAULT_PIECES = 100
+MAX_PIECES = 1024
+ROOT_TOL = 1e-12  # v1 roots are pinned to this (bracket width)
+V_MARGIN_EXACT = 1e-6
+V_MARGIN_APPROX = 2e-2  # √-approximated systems: their roots may sit a little off
+REFINE_LEVELS = 1
+KINK = 1.0  # second difference of log|det| that flags a root cluster nearby
+SUB_SAMPLES = 8
+NOISY_CHANGES = 3  # sign changes among one piece's sub-samples beyond which it is noise
+STACK_CAP = 64
+TWO_PROJECTIONS = False  # also scan the other hidden variable (u1) of each orientation
+BOTH_DIRECTIONS = True  # solve the chain forward and reversed (reciprocity)
+SQRT_ALL_PIECES = False  # solve once per √ piece overlapping the triangle's β range (slow)
+B_RELATIVE = 1e-2  # a u-root of a(·, v*) is a candidate when |b| / Σ|b_i u^i| is below this
+POLISH_STEPS = 40
+ACCEPT_RESIDUAL = 1e-12
+SAME_PATH = 1e-7
+NEAR_PATH = 1e-5
+N_SEEDS = 6  # seeded-polish fallback: grid divisions on triangle 1
+
+# Statistics row (summed by the API's report).
+STAT_ROOTS = 0
+STAT_CANDIDATES = 1
+STAT_PATHS = 2
+STAT_SKIPPED = 3
+STAT_DETS = 4
+N_STATS = 5
+
+# (lo, hi, c0, c1, d1): √x ≈ (c0 + c1 x) / (1 + d1 x) on [lo, hi].
+SQRT_PIECES = np.array([
+    [0.0, 8.446092340565198e-08, 7.902524043324177e-06, 9273.011659325857, 20933683.488983016],
+    [8.446092340565198e-08, 7.382000202911856e-06, 0.0002833414823529851, 865.3912558767215, 204672.27299967175],
+    [7.382000202911856e-06, 7.996008668082331e-05, 0.0016021152181714942, 190.08358008482014, 11150.216722758309],
+    [7.996008668082331e-05, 0.0004273580422165819, 0.004470744106873375, 71.31728523639126, 1627.426048518019],
+    [0.0004273580422165819, 0.0015686563924769323, 0.009457574738559115, 34.3184711592571, 382.77147728374246],
+    [0.0015686563924769323, 0.004549308378447099, 0.01712939245697036, 19.11602546583693, 119.7286577063096],
+    [0.004549308378447099, 0.011215438668410951, 0.028054589379623806, 11.73073766943272, 45.301964781877075],
+    [0.011215438668410951, 0.02454642456699124, 0.04280101287940887, 7.713421305240593, 19.645973977707882],
+    [0.02454642456699124, 0.04904548364121981, 0.061936514380999695, 5.341605188295157, 9.440828307171655],
+    [0.04904548364121981, 0.09118830881277133, 0.08602895090623522, 3.851396317329236, 4.915076382580425],
+    [0.09118830881277133, 0.15992975382726443, 0.11564618494862205, 2.8681479761581574, 2.728706973589053],
+    [0.15992975382726443, 0.26726856704054847, 0.15135608405954754, 2.1932417983266723, 1.596886526213849],
+    [0.26726856704054847, 0.4288701802945861, 0.19372652037895371, 1.71462827644936, 0.9765838960781249],
+    [0.4288701802945861, 0.6647475381741225, 0.24332536975163052, 1.365797818199514, 0.6199467885521434],
+    [0.6647475381741225, 1.0, 0.30072051142615275, 1.1055615503450655, 0.4063663121380604],
+])
+
+
+@kernel
+def _sqrt_piece(x):
+    k = 0
+    while k < SQRT_PIECES.shape[0] - 1 and x > SQRT_PIECES[k, 1]:
+        k += 1
+    return k
+
+
+@kernel
+def sqrt_approx(x):
+    """The piecewise rational √x of eq (23) (x clamped to [0, 1])."""
+    x = min(max(x, 0.0), 1.0)
+    k = 0
+    while k < SQRT_PIECES.shape[0] - 1 and x > SQRT_PIECES[k, 1]:
+        k += 1
+    return (SQRT_PIECES[k, 2] + SQRT_PIECES[k, 3] * x) / (1.0 + SQRT_PIECES[k, 4] * x)
+
+
+# --- bivariate polynomials: p[i, j] multiplies u^i v^j, total degree tracked by the caller --
+
+
+@kernel
+def _bzero(p, d):
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            p[i, j] = 0.0
+
+
+@kernel
+def _bmul_acc(p, dp, q, dq, out, coef):
+    """out += coef p q (out must be sized for total degree dp + dq)."""
+    for i1 in range(dp + 1):
+        for j1 in range(dp + 1 - i1):
+            c = p[i1, j1]
+            if c == 0.0:
+                continue
+            c *= coef
+            for i2 in range(dq + 1):
+                for j2 in range(dq + 1 - i2):
+                    out[i1 + i2, j1 + j2] += c * q[i2, j2]
+
+
+@kernel
+def _badd(out, d, a, da, ca):
+    """out += ca a (da ≤ d)."""
+    for i in range(da + 1):
+        for j in range(da + 1 - i):
+            out[i, j] += ca * a[i, j]
+
+
+@kernel
+def _vlin(V, c0, cu, cv):
+    """Vector polynomial of degree 1: c0 + u cu + v cv."""
+    for c in range(3):
+        _bzero(V[c], 1)
+        V[c, 0, 0] = c0[c]
+        V[c, 1, 0] = cu[c]
+        V[c, 0, 1] = cv[c]
+
+
+@kernel
+def _vdot(A, dA, B, dB, out):
+    d = dA + dB
+    _bzero(out, d)
+    for c in range(3):
+        _bmul_acc(A[c], dA, B[c], dB, out, 1.0)
+    return d
+
+
+@kernel
+def _vcross(A, dA, B, dB, out):
+    d = dA + dB
+    for c in range(3):
+        _bzero(out[c], d)
+    for c in range(3):
+        c1 = (c + 1) % 3
+        c2 = (c + 2) % 3
+        _bmul_acc(A[c1], dA, B[c2], dB, out[c], 1.0)
+        _bmul_acc(A[c2], dA, B[c1], dB, out[c], -1.0)
+    return d
+
+
+@kernel
+def _vdot_const(A, dA, w, out):
+    _bzero(out, dA)
+    for c in range(3):
+        _badd(out, dA, A[c], dA, w[c])
+    return dA
+
+
+@kernel
+def _vcross_const(A, dA, w, out):
+    """out = A × w."""
+    for c in range(3):
+        _bzero(out[c], dA)
+    for c in range(3):
+        c1 = (c + 1) % 3
+        c2 = (c + 2) % 3
+        _badd(out[c], dA, A[c1], dA, w[c2])
+        _badd(out[c], dA, A[c2], dA, -w[c1])
+    return dA
+
+
+@kernel
+def _bmax(p, d):
+    m = 0.0
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            m = max(m, abs(p[i, j]))
+    return m
+
+
+@kernel
+def _u_degree(p, d, tiny):
+    """Largest i with a coefficient above tiny in row i; smaller rows are zeroed."""
+    n = d
+    while n > 0:
+        big = 0.0
+        for j in range(d - n + 1):
+            big = max(big, abs(p[n, j]))
+        if big > tiny:
+            break
+        for j in range(d - n + 1):
+            p[n, j] = 0.0
+        n -= 1
+    return n
+
+
+@kernel
+def _bernstein_has_zero(p, d, rel_margin, work):
+    """False when p (total degree d) provably has no zero on the triangle u, v ≥ 0, u+v ≤ 1:
+    all triangular Bernstein coefficients share one sign by more than rel_margin · max."""
+    lo = math.inf
+    hi = -math.inf
+    big = 0.0
+    # falling factorial ratios via work[0]: log-free direct products (d ≤ 16 here)
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            acc = 0.0
+            fi = 1.0  # i! / (i - i')!
+            for i2 in range(i + 1):
+                fj = 1.0
+                # (d - i2 - j2)! / d!  = 1 / (d (d-1) ... (d - i2 - j2 + 1))
+                g = 1.0
+                for t in range(i2):
+                    g /= (d - t)
+                for j2 in range(j + 1):
+                    c = p[i2, j2]
+                    if c != 0.0:
+                        acc += c * fi * fj * g
+                    fj *= (j - j2)
+                    if d - i2 - j2 > 0:
+                        g /= (d - i2 - j2)
+                fi *= (i - i2)
+            lo = min(lo, acc)
+            hi = max(hi, acc)
+            big = max(big, abs(acc))
+    margin = rel_margin * big
+    return not (lo > margin or hi < -margin)
+
+
+# --- the resultant's determinant at one v1 -----------------------------------------------
+
+
+@kernel
+def _coeffs_at(p, d, n, v, out):
+    """out[i] = p_i(v) (coefficient of u^i) for i ≤ n, scaled to unit max-norm; returns the scale."""
+    m = 0.0
+    for i in range(n + 1):
+        acc = 0.0
+        for j in range(d - i, -1, -1):
+            acc = acc * v + p[i, j]
+        out[i] = acc
+        m = max(m, abs(acc))
+    if m > 0.0 and np.isfinite(m):
+        inv = 1.0 / m
+        for i in range(n + 1):
+            out[i] *= inv
+    return m
+
+
+@kernel
+def det_bezout(a, da, b, db, n, v, cf, mat):
+    """Sign and log|det| of the n × n Bézout matrix of (a(·, v), b(·, v)) (eq 29).
+
+    cf: (2, MAXD + 1) scratch, mat: (MAXD, MAXD) scratch.  Returns (sign, log|det|); sign 0
+    when the elimination meets an exactly zero column (or a coefficient vector vanishes)."""
+    A = cf[0]
+    B = cf[1]
+    ma = _coeffs_at(a, da, min(n, da), v, A)
+    mb = _coeffs_at(b, db, n, v, B)
+    for i in range(min(n, da) + 1, n + 1):
+        A[i] = 0.0
+    if not (ma > 0.0 and mb > 0.0) or not (np.isfinite(ma) and np.isfinite(mb)):
+        return 0, -math.inf
+    if n == 0:
+        return 1, 0.0
+    # R[i, j] = R[i-1, j+1] + a_i b_{j+1} - b_i a_{j+1}
+    for j in range(n):
+        mat[0, j] = A[0] * B[j + 1] - B[0] * A[j + 1]
+    for i in range(1, n):
+        for j in range(n):
+            t = A[i] * B[j + 1] - B[i] * A[j + 1]
+            if j + 1 < n:
+                t += mat[i - 1, j + 1]
+            mat[i, j] = t
+    sign = 1
+    logm = 0.0
+    for k in range(n):
+        p = k
+        big = abs(mat[k, k])
+        for i in range(k + 1, n):
+            x = abs(mat[i, k])
+            if x > big:
+                big = x
+                p = i
+        if big == 0.0 or not np.isfinite(big):
+            return 0, -math.inf
+        if p != k:
+            sign = -sign
+            for j in range(k, n):
+                t = mat[k, j]
+                mat[k, j] = mat[p, j]
+                mat[p, j] = t
+        piv = mat[k, k]
+        if piv < 0.0:
+            sign = -sign
+        logm += math.log(abs(piv))
+        inv = 1.0 / piv
+        for i in range(k + 1, n):
+            f = mat[i, k] * inv
+            if f != 0.0:
+                for j in range(k + 1, n):
+                    mat[i, j] -= f * mat[k, j]
+    return sign, logm
+
+
+@kernel
+def _det_checked(a, da, b, db, n, v, cf, mat, stats):
+    """det_bezout, with an exact zero re-checked a hair away (never taken as a root as is)."""
+    stats[STAT_DETS] += 1
+    s, lg = det_bezout(a, da, b, db, n, v, cf, mat)
+    if s != 0:
+        return s, lg
+    for k in range(1, 4):
+        h = 1e-13 * (10.0 ** k)
+        stats[STAT_DETS] += 1
+        s, lg = det_bezout(a, da, b, db, n, v + h, cf, mat)
+        if s != 0:
+            return s, lg
+    return 0, -math.inf
+
+
+@kernel
+def _illinois(a, da, b, db, n, lo, hi, slo, llo, shi, lhi, cf, mat, stats):
+    """Root of det in [lo, hi] (opposite signs at the ends) pinned to ROOT_TOL."""
+    side = 0
+    width_before = hi - lo
+    for it in range(200):
+        w = hi - lo
+        if w <= ROOT_TOL:
+            break
+        dl = lhi - llo
+        if dl > 700.0:
+            t = 0.0
+        elif dl < -700.0:
+            t = 1.0
+        else:
+            t = 1.0 / (1.0 + math.exp(dl))
+        if it % 4 == 3:
+            # safeguard: bisect unless the last steps shrank the bracket well
+            if w > 0.25 * width_before:
+                t = 0.5
+            width_before = w
+        x = lo + t * w
+        if not (x > lo and x < hi):
+            x = lo + 0.5 * w
+            if not (x > lo and x < hi):
+                break
+        s, lg = _det_checked(a, da, b, db, n, x, cf, mat, stats)
+        if s == 0:
+            return x
+        if s == slo:
+            lo = x
+            llo = lg
+            if side == -1:
+                lhi -= 0.6931471805599453
+            side = -1
+        else:
+            hi = x
+            lhi = lg
+            if side == 1:
+                llo -= 0.6931471805599453
+            side = 1
+    return 0.5 * (lo + hi)
+
+
+@kernel
+def find_v_roots(a, da, b, db, n, lo, hi, pieces, cf, mat, scan, out_roots, stats):
+    """Real roots of det R(v) in [lo, hi]: piecewise sign scan, adaptive refinement, Illinois.
+
+    The range is cut into ``pieces``; a piece is refined (cut into ``SUB_SAMPLES`` sub-pieces,
+    recursively up to ``REFINE_LEVELS`` levels) when it holds a sign change, touches a piece
+    that does, or touches a local minimum of log|det| (a dip towards zero without a sign
+    change: a root pair inside one piece).  Every sign change at the finest level examined
+    is pinned by Illinois to ROOT_TOL; a dip that never changes sign down to the last level
+    is reported at its deepest sample (a double-root candidate; the path check decides).
+    scan: (4, MAX_PIECES + 1) scratch.  Returns the root count, or -1 when the determinant
+    vanishes at most samples (degenerate system)."""
+    stack = scan[3, 0:STACK_CAP * 7].reshape((STACK_CAP, 7))
+    sub = scan[3, STACK_CAP * 7:STACK_CAP * 7 + 3 * (SUB_SAMPLES + 1)].reshape((3, SUB_SAMPLES + 1))
+    vs = scan[0]
+    sg = scan[1]
+    lgs = scan[2]
+    h = (hi - lo) / pieces
+    zeros = 0
+    for k in range(pieces + 1):
+        v = lo + k * h
+        s, lg = _det_checked(a, da, b, db, n, v, cf, mat, stats)
+        vs[k] = v
+        sg[k] = s
+        lgs[k] = lg
+        if s == 0:
+            zeros += 1
+    if zeros * 2 > pieces:
+        return -1
+    cap = out_roots.shape[0]
+    count = 0
+    # 1. sign changes of the uniform scan
+    for k in range(pieces):
+        if sg[k] != sg[k + 1] and sg[k] != 0 and sg[k + 1] != 0 and count < cap:
+            out_roots[count] = _illinois(a, da, b, db, n, vs[k], vs[k + 1], sg[k], lgs[k], sg[k + 1], lgs[k + 1], cf, mat, stats)
+            count += 1
+        elif sg[k] == 0 and count < cap:
+            out_roots[count] = vs[k]
+            count += 1
+    if REFINE_LEVELS == 0:
+        return count
+    # 2. log|det| deflated by the roots found: what is left of a convex kink is a root the
+    #    scan did not see (a pair inside one piece, a third root next to a sign change)
+    #    Roots cluster (solutions through a small or far second triangle all lie in a small
+    #    patch of the first): the pieces around every sign change are cut again, and a
+    #    convex kink of the deflated log|det| flags a piece too.
+    n_found = count
+    for k in range(pieces + 1):
+        lgs[k] = _deflate(vs[k], lgs[k], out_roots, n_found)
+    for k in range(pieces):
+        flagged = (k > 0 and lgs[k - 1] + lgs[k + 1] - 2.0 * lgs[k] > KINK) or \
+                  (k + 1 < pieces and lgs[k] + lgs[k + 2] - 2.0 * lgs[k + 1] > KINK)
+        for j in range(max(0, k - 1), min(pieces, k + 2)):
+            if sg[j] != sg[j + 1]:
+                flagged = True
+        if flagged:
+            count = _refine_interval(a, da, b, db, n, vs[k], vs[k + 1], sg[k], sg[k + 1], cf, mat, stack, sub,
+                                     out_roots, count, stats)
+    return count
+
+
+@kernel
+def _deflate(v, lg, roots, n_roots):
+    """log|det(v)| minus Σ log|v - r| over known roots r (their share of the curvature)."""
+    for i in range(n_roots):
+        d = abs(v - roots[i])
+        if d > 0.0:
+            lg -= math.log(d)
+    return lg
+
+
+@kernel
+def _refine_interval(a, da, b, db, n, lo, hi, slo, shi, cf, mat, stack, sub, out_roots, count, stats):
+    """Roots in [lo, hi] the uniform scan missed: recursive sub-sampling (explicit stack); a
+    sub-piece next to a convex kink of the deflated log|det| is cut again (up to
+    REFINE_LEVELS levels); new sign changes are pinned by Illinois; at the last level a
+    one-signed deflated dip is reported at its deepest sample (double-root candidate)."""
+    cap = out_roots.shape[0]
+    stack[0, 0] = lo
+    stack[0, 1] = hi
+    stack[0, 2] = slo
+    stack[0, 4] = shi
+    stack[0, 6] = 1.0
+    top = 1
+    sv = sub[0]
+    ss = sub[1]
+    sl = sub[2]
+    M = SUB_SAMPLES
+    while top > 0:
+        top -= 1
+        lo = stack[top, 0]
+        hi = stack[top, 1]
+        level = stack[top, 6]
+        h = (hi - lo) / M
+        for k in range(M + 1):
+            v = lo + k * h
+            if k == M:
+                v = hi
+            s, lg = _det_checked(a, da, b, db, n, v, cf, mat, stats)
+            sv[k] = v
+            ss[k] = s
+            sl[k] = lg
+        # new sign changes (a sub-piece around an already known root is skipped); more than
+        # NOISY_CHANGES of them in one piece is a stretch where the determinant's sign is at
+        # rounding level (no polynomial of this degree wiggles like that): left alone
+        n_before = count
+        changes = 0
+        for k in range(M):
+            if ss[k] != ss[k + 1]:
+                changes += 1
+        if changes > NOISY_CHANGES:
+            continue
+        for k in range(M):
+            if ss[k] != ss[k + 1] and ss[k] != 0 and ss[k + 1] != 0 and count < cap:
+                known = False
+                for i in range(n_before):
+                    if out_roots[i] >= sv[k] and out_roots[i] <= sv[k + 1]:
+                        known = True
+                if not known:
+                    out_roots[count] = _illinois(a, da, b, db, n, sv[k], sv[k + 1], ss[k], sl[k], ss[k + 1], sl[k + 1], cf, mat, stats)
+                    count += 1
+        for k in range(M + 1):
+            sl[k] = _deflate(sv[k], sl[k], out_roots, count)
+        last = level >= REFINE_LEVELS
+        for k in range(M):
+            kink_l = k > 0 and sl[k - 1] + sl[k + 1] - 2.0 * sl[k] > KINK
+            kink_r = k + 1 < M and sl[k] + sl[k + 2] - 2.0 * sl[k + 1] > KINK
+            if not (kink_l or kink_r):
+                continue
+            if not last:
+                if top < stack.shape[0]:
+                    stack[top, 0] = sv[k]
+                    stack[top, 1] = sv[k + 1]
+                    stack[top, 2] = ss[k]
+                    stack[top, 4] = ss[k + 1]
+                    stack[top, 6] = level + 1.0
+                    top += 1
+            elif kink_l and count < cap and ss[k] == ss[k - 1] and ss[k] == ss[k + 1] \
+                    and sl[k] < sl[k - 1] and sl[k] < sl[k + 1]:
+                out_roots[count] = sv[k]  # a one-signed dip: (near-)double root candidate
+                count += 1
+    return count
+
+
+# --- building the bivariate system ---------------------------------------------------------
+
+
+@kernel
+def _build_system(refract1, refract2, orient1, eta1_ratio, piece, S, eta_in2, eta_out2, flat2, c2, geo_l, biv):
+    """Fill biv[0] = a (returned da) and biv[1] = b (returned db) in the local frame geo_l.
+
+    orient1: ±1, the sign turning n1 to the incoming side (refraction only);
+    eta1_ratio: η' at vertex 1; piece: row of SQRT_PIECES; S: √β scale."""
+    x0 = (geo_l[0, 0], geo_l[0, 1], geo_l[0, 2])
+    x3 = (geo_l[1, 0], geo_l[1, 1], geo_l[1, 2])
+    e11 = (geo_l[2, 0], geo_l[2, 1], geo_l[2, 2])
+    e12 = (geo_l[3, 0], geo_l[3, 1], geo_l[3, 2])
+    n10 = (geo_l[4, 0], geo_l[4, 1], geo_l[4, 2])
+    m11 = (geo_l[5, 0], geo_l[5, 1], geo_l[5, 2])
+    m12 = (geo_l[6, 0], geo_l[6, 1], geo_l[6, 2])
+    p20 = (geo_l[7, 0], geo_l[7, 1], geo_l[7, 2])
+    e21 = (geo_l[8, 0], geo_l[8, 1], geo_l[8, 2])
+    e22 = (geo_l[9, 0], geo_l[9, 1], geo_l[9, 2])
+    n20 = (geo_l[10, 0], geo_l[10, 1], geo_l[10, 2])
+    m21 = (geo_l[11, 0], geo_l[11, 1], geo_l[11, 2])
+    m22 = (geo_l[12, 0], geo_l[12, 1], geo_l[12, 2])
+    zero = (0.0, 0.0, 0.0)
+    # slots: vector polys use biv[k:k+3]
+    a = biv[0]
+    b = biv[1]
+    s1 = biv[2]
+    s2 = biv[3]
+    s3 = biv[4]
+    s4 = biv[5]
+    s5 = biv[6]
+    D0 = biv[7:10]
+    N1 = biv[10:13]
+    DT = biv[13:16]  # d̃1
+    V1 = biv[16:19]
+    N2 = biv[19:22]  # κ n2
+    D2 = biv[22:25]  # κ (x3 - x2)
+    T2 = biv[25:28]
+    V2 = biv[28:31]
+    S1 = biv[31:34]  # x1 - p20
+    Q = biv[34:37]
+    _vlin(D0, (-x0[0], -x0[1], -x0[2]), e11, e12)
+    _vlin(N1, n10, m11, m12)
+    # --- d̃1
+    dd0n = _vdot(D0, 1, N1, 1, s1)  # d0·n1
+    _vdot(N1, 1, N1, 1, s2)  # |n1|²
+    if not refract1:
+        # d̃ = -2 (d0·n) n + d0 |n|²
+        for c in range(3):
+            _bzero(DT[c], 3)
+            _bmul_acc(s1, 2, N1[c], 1, DT[c], -2.0)
+            _bmul_acc(s2, 2, D0[c], 1, DT[c], 1.0)
+        ddt = 3
+    else:
+        r = eta1_ratio
+        _vdot(D0, 1, D0, 1, s3)  # |d0|²
+        # β = |n|²|d0|² (1 - r²) + r² (d0·n)²   (degree 4)  -> s4
+        _bzero(s4, 4)
+        _bmul_acc(s2, 2, s3, 2, s4, 1.0 - r * r)
+        _bmul_acc(s1, 2, s1, 2, s4, r * r)
+        c0 = SQRT_PIECES[piece, 2]
+        c1 = SQRT_PIECES[piece, 3]
+        d1 = SQRT_PIECES[piece, 4]
+        # √β ≈ S (c0 + c1 β/S²) / (1 + d1 β/S²) = (S c0 S² + S c1 β) / (S² + d1 β)
+        # Rn -> s5, Rd -> s3 (|d0|² no longer needed)
+        S2 = S * S
+        _bzero(s5, 4)
+        _badd(s5, 4, s4, 4, S * c1)
+        s5[0, 0] += S * c0 * S2
+        _bzero(s3, 4)
+        _badd(s3, 4, s4, 4, d1)
+        s3[0, 0] += S2
+        # d̃ = Rd r (d0 |n|² - (d0·n) n) - orient Rn n       (degree 7)
+        for c in range(3):
+            _bzero(V1[c], 3)
+            _bmul_acc(s2, 2, D0[c], 1, V1[c], r)
+            _bmul_acc(s1, 2, N1[c], 1, V1[c], -r)
+            _bzero(DT[c], 7)
+            _bmul_acc(s3, 4, V1[c], 3, DT[c], 1.0)
+            _bmul_acc(s5, 4, N1[c], 1, DT[c], -orient1)
+        ddt = 7
+    # --- mapping to triangle 2: PV = d̃ × e22, κ = PV·e21, ũ = PV·(x1 - p20), ṽ = d̃·((x1 - p20) × e21)
+    _vlin(S1, (-p20[0], -p20[1], -p20[2]), e11, e12)
+    _vcross_const(DT, ddt, e22, V1)  # PV
+    _vdot_const(V1, ddt, e21, s1)  # κ      (degree ddt)
+    _vdot(V1, ddt, S1, 1, s2)  # ũ        (degree ddt + 1)
+    # (x1 - p20) × e21 is linear: Q
+    _vcross_const(S1, 1, e21, Q)
+    _vdot(DT, ddt, Q, 1, s3)  # ṽ
+    dm = ddt + 1
+    # κ n2 and κ (x3 - p20) - ũ e21 - ṽ e22
+    x3r = (x3[0] - p20[0], x3[1] - p20[1], x3[2] - p20[2])
+    for c in range(3):
+        _bzero(D2[c], dm)
+        _badd(D2[c], dm, s1, ddt, x3r[c])
+        _badd(D2[c], dm, s2, dm, -e21[c])
+        _badd(D2[c], dm, s3, dm, -e22[c])
+    if flat2:
+        dn2 = 0
+        for c in range(3):
+            _bzero(N2[c], 0)
+            N2[c, 0, 0] = n20[c]
+    else:
+        dn2 = dm
+        for c in range(3):
+            _bzero(N2[c], dm)
+            _badd(N2[c], dm, s1, ddt, n20[c])
+            _badd(N2[c], dm, s2, dm, m21[c])
+            _badd(N2[c], dm, s3, dm, m22[c])
+    # --- a = (d̃ × (x3 - x1)) · κn2
+    _vlin(S1, x3, (-e11[0], -e11[1], -e11[2]), (-e12[0], -e12[1], -e12[2]))  # x3 - x1
+    _vcross(DT, ddt, S1, 1, V1)
+    da = _vdot(V1, ddt + 1, N2, dn2, a)
+    # --- b
+    if not refract2:
+        _vcross_const(N2, dn2, c2, T2)  # t2 = κn2 × c2
+        d_a = _vdot(DT, ddt, N2, dn2, s1)  # d̃·n
+        d_b = _vdot(D2, dm, T2, dn2, s2)  # d2·t
+        _vdot(DT, ddt, T2, dn2, s3)  # d̃·t
+        _vdot(D2, dm, N2, dn2, s4)  # d2·n
+        db = d_a + d_b
+        _bzero(b, db)
+        _bmul_acc(s1, d_a, s2, d_b, b, 1.0)
+        _bmul_acc(s3, d_a, s4, d_b, b, 1.0)
+    else:
+        # η_in² |d2|² ((d̃ × n)·c)² - η_out² |d̃|² ((d2 × n)·c)²
+        _vcross(DT, ddt, N2, dn2, V1)
+        dq1 = _vdot_const(V1, ddt + dn2, c2, s1)  # (d̃ × n)·c
+        _vcross(D2, dm, N2, dn2, V2)
+        dq2 = _vdot_const(V2, dm + dn2, c2, s2)  # (d2 × n)·c
+        _vdot(D2, dm, D2, dm, s3)  # |d2|²
+        _vdot(DT, ddt, DT, ddt, s4)  # |d̃|²
+        # s5 = s1², then b = η_in² s3 s5
+        _bzero(s5, 2 * dq1)
+        _bmul_acc(s1, dq1, s1, dq1, s5, 1.0)
+        db = 2 * dm + 2 * dq1
+        _bzero(b, db)
+        _bmul_acc(s3, 2 * dm, s5, 2 * dq1, b, eta_in2 * eta_in2)
+        _bzero(s5, 2 * dq2)
+        _bmul_acc(s2, dq2, s2, dq2, s5, 1.0)
+        _bmul_acc(s4, 2 * ddt, s5, 2 * dq2, b, -eta_out2 * eta_out2)
+    return da, db
+
+
+# --- per tuple ------------------------------------------------------------------------------
+
+
+@kernel
+def _store_path2(th, err, sigma, out_uv, meta, count):
+    for q in range(min(count, out_uv.shape[0])):
+        dist = 0.0
+        for i in range(4):
+            dist = max(dist, abs(out_uv[q, i] - th[i]))
+        sig = min(sigma, meta[q, 1])
+        radius = SAME_PATH
+        if sig > 0.0:
+            radius = max(radius, 4.0 * (err + meta[q, 0] + 1e-12) / sig)
+        else:
+            radius = NEAR_PATH
+        if dist < min(radius, NEAR_PATH):
+            if err < meta[q, 0]:
+                for i in range(4):
+                    out_uv[q, i] = th[i]
+                meta[q, 0] = err
+                meta[q, 1] = sigma
+            return count
+    if count < out_uv.shape[0]:
+        for i in range(4):
+            out_uv[count, i] = th[i]
+        meta[count, 0] = err
+        meta[count, 1] = sigma
+    return count + 1
+
+
+@kernel
+def _try_candidate(u1, v1, geo, refract1, refract2, eta, rev, geo_fwd, work, th, out_uv, meta, count, stats):
+    """(u1, v1) on the first triangle of the oriented chain -> exact map to the second ->
+    polish and validate in forward path space (``rev``: the chain was solved reversed,
+    from x3, and (u1, v1) are the forward (u2, v2))."""
+    stats[STAT_CANDIDATES] += 1
+    ok, u2, v2 = trace_to_second(u1, v1, geo, refract1, eta)
+    if not ok:
+        return count
+    if rev:
+        th[0] = u2
+        th[1] = v2
+        th[2] = u1
+        th[3] = v1
+        acc, err, sig = polish_and_validate2(th, geo_fwd, refract2, refract1, eta, POLISH_STEPS, ACCEPT_RESIDUAL, work)
+    else:
+        th[0] = u1
+        th[1] = v1
+        th[2] = u2
+        th[3] = v2
+        acc, err, sig = polish_and_validate2(th, geo_fwd, refract1, refract2, eta, POLISH_STEPS, ACCEPT_RESIDUAL, work)
+    if not acc:
+        return count
+    return _store_path2(th, err, sig, out_uv, meta, count)
+
+
+@kernel
+def _seeded(geo, refract1, refract2, eta, rev, geo_fwd, work, th, out_uv, meta, count, stats):
+    """Fallback for degenerate systems (determinant identically zero): polish from a grid."""
+    for i in range(N_SEEDS + 1):
+        for j in range(N_SEEDS + 1 - i):
+            u = (i + 1.0 / 3.0) / (N_SEEDS + 1.0)
+            v = (j + 1.0 / 3.0) / (N_SEEDS + 1.0)
+            count = _try_candidate(u, v, geo, refract1, refract2, eta, rev, geo_fwd, work, th, out_uv, meta, count, stats)
+    return count
+
+
+@kernel
+def _straight_candidate(geo, refract1, refract2, eta, work, th, out_uv, meta, count, stats):
+    """The straight line x0 -> x3 through triangle 1's plane as a candidate: the path at
+    normal incidence through parallel faces (light and receiver on the normal of a slab),
+    where the coplanarity polynomial vanishes identically and the resultant carries no root."""
+    x0 = (geo[0, 0], geo[0, 1], geo[0, 2])
+    w = (geo[1, 0] - x0[0], geo[1, 1] - x0[1], geo[1, 2] - x0[2])
+    ng = (geo[13, 0], geo[13, 1], geo[13, 2])
+    denom = w[0] * ng[0] + w[1] * ng[1] + w[2] * ng[2]
+    if denom == 0.0:
+        return count
+    t = -(x0[0] * ng[0] + x0[1] * ng[1] + x0[2] * ng[2]) / denom
+    xc = (x0[0] + t * w[0], x0[1] + t * w[1], x0[2] + t * w[2])
+    e1 = (geo[2, 0], geo[2, 1], geo[2, 2])
+    e2 = (geo[3, 0], geo[3, 1], geo[3, 2])
+    d11 = e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2]
+    d12 = e1[0] * e2[0] + e1[1] * e2[1] + e1[2] * e2[2]
+    d22 = e2[0] * e2[0] + e2[1] * e2[1] + e2[2] * e2[2]
+    r1 = xc[0] * e1[0] + xc[1] * e1[1] + xc[2] * e1[2]
+    r2 = xc[0] * e2[0] + xc[1] * e2[1] + xc[2] * e2[2]
+    det = d11 * d22 - d12 * d12
+    if not det > 0.0:
+        return count
+    u = (r1 * d22 - r2 * d12) / det
+    v = (d11 * r2 - d12 * r1) / det
+    if u < -1e-6 or v < -1e-6 or u + v > 1.0 + 1e-6:
+        return count
+    return _try_candidate(u, v, geo, refract1, refract2, eta, False, geo, work, th, out_uv, meta, count, stats)
+
+
+@kernel
+def solve_two_bounce_tuple(refract1, refract2, x0, x3, P, N, eta, pieces, stop_after, sc_biv, sc_cf, sc_mat, sc_scan,
+                           sc_geo, sc_work, sc_roots, sc_chain, sc_lists, out_uv, stats):
+    """All admissible two-bounce paths of one tuple; returns their count (may exceed the
+    capacity of out_uv: the caller reports the overflow).
+
+    The system is solved twice: parametrised by triangle 1 (x0 -> 1 -> 2 -> x3) and, by
+    reciprocity, by triangle 2 on the reversed chain (x3 -> 2 -> 1 -> x0).  When the first
+    bounce magnifies (a curved or small triangle 1 seeing a large or far triangle 2), every
+    solution through triangle 2 lies in a tiny patch of (u1, v1), where a sign scan cannot
+    separate their v1 roots; on the reversed chain the same solutions spread over (u2, v2)."""
+    for k in range(N_STATS):
+        stats[k] = 0
+    geo_fwd = sc_geo[0]
+    meta = sc_roots[0:out_uv.shape[0] + 1, 0:2]
+    if not pack_geometry(x0, x3, P[0], N[0], P[1], N[1], geo_fwd) or not (eta > 0.0):
+        stats[STAT_SKIPPED] = 1
+        return 0
+    count = _solve_oriented(refract1, refract2, x0, x3, P[0], N[0], P[1], N[1], eta, pieces, stop_after, sc_biv, sc_cf,
+                            sc_mat, sc_scan, sc_geo[0], sc_geo[1], False, geo_fwd, sc_work, sc_roots, sc_chain, sc_lists,
+                            out_uv, meta, 0, stats)
+    if stop_after == 0:
+        count = _straight_candidate(geo_fwd, refract1, refract2, eta, sc_work, sc_roots[out_uv.shape[0] + 1, 0:4],
+                                    out_uv, meta, count, stats)
+    if BOTH_DIRECTIONS:
+        pack_geometry(x3, x0, P[1], N[1], P[0], N[0], sc_geo[2])
+        count = _solve_oriented(refract2, refract1, x3, x0, P[1], N[1], P[0], N[0], eta, pieces, stop_after, sc_biv,
+                                sc_cf, sc_mat, sc_scan, sc_geo[2], sc_geo[1], True, geo_fwd, sc_work, sc_roots, sc_chain,
+                                sc_lists, out_uv, meta, count, stats)
+    # skipped: every orientation's system was rejected before solving
+    stats[STAT_SKIPPED] = 1 if stats[STAT_SKIPPED] >= (2 if BOTH_DIRECTIONS else 1) else 0
+    stats[STAT_PATHS] = count
+    return count
+
+
+@kernel
+def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, stop_after, sc_biv, sc_cf, sc_mat, sc_scan,
+                    geo, geo_l, rev, geo_fwd, sc_work, sc_roots, sc_chain, sc_lists, out_uv, meta, count_in, stats):
+    """The pipeline for one orientation of the chain (triangle A first); see
+    :func:`solve_two_bounce_tuple`.  Returns the new path count."""
+    th = sc_roots[out_uv.shape[0] + 1, 0:4]
+    v_roots = sc_roots[out_uv.shape[0] + 2]
+    u_roots = sc_roots[out_uv.shape[0] + 3]
+    coeffs = sc_roots[out_uv.shape[0] + 4]
+    if not pack_geometry(x0, x3, PA, NA, PB, NB, geo):
+        return count_in
+    # --- cheap side tests -------------------------------------------------------------------
+    ng1 = (geo[13, 0], geo[13, 1], geo[13, 2])
+    ng2 = (geo[14, 0], geo[14, 1], geo[14, 2])
+    e11 = (geo[2, 0], geo[2, 1], geo[2, 2])
+    e12 = (geo[3, 0], geo[3, 1], geo[3, 2])
+    p20 = (geo[7, 0], geo[7, 1], geo[7, 2])
+    e21 = (geo[8, 0], geo[8, 1], geo[8, 2])
+    e22 = (geo[9, 0], geo[9, 1], geo[9, 2])
+    L1 = max(math.sqrt(e11[0] ** 2 + e11[1] ** 2 + e11[2] ** 2), math.sqrt(e12[0] ** 2 + e12[1] ** 2 + e12[2] ** 2))
+    L2 = max(math.sqrt(e21[0] ** 2 + e21[1] ** 2 + e21[2] ** 2), math.sqrt(e22[0] ** 2 + e22[1] ** 2 + e22[2] ** 2))
+    side0 = geo[0, 0] * ng1[0] + geo[0, 1] * ng1[1] + geo[0, 2] * ng1[2]
+    if abs(side0) <= 1e-12 * L1:
+        stats[STAT_SKIPPED] += 1
+        return count_in
+    # triangle 2's corners against plane 1 (through the origin p1,0)
+    lo2 = math.inf
+    hi2 = -math.inf
+    for c in range(3):
+        q = p20
+        if c == 1:
+            q = (p20[0] + e21[0], p20[1] + e21[1], p20[2] + e21[2])
+        elif c == 2:
+            q = (p20[0] + e22[0], p20[1] + e22[1], p20[2] + e22[2])
+        sd = q[0] * ng1[0] + q[1] * ng1[1] + q[2] * ng1[2]
+        lo2 = min(lo2, sd * side0)
+        hi2 = max(hi2, sd * side0)
+    tol1 = 1e-9 * (L1 + L2) * abs(side0)
+    if (not refract1 and hi2 <= tol1) or (refract1 and lo2 >= -tol1):
+        stats[STAT_SKIPPED] += 1
+        return count_in
+    # x3 and triangle 1's corners against plane 2
+    side3 = (geo[1, 0] - p20[0]) * ng2[0] + (geo[1, 1] - p20[1]) * ng2[1] + (geo[1, 2] - p20[2]) * ng2[2]
+    if abs(side3) <= 1e-12 * L2:
+        stats[STAT_SKIPPED] += 1
+        return count_in
+    lo1 = math.inf
+    hi1 = -math.inf
+    for c in range(3):
+        q = (0.0, 0.0, 0.0)
+        if c == 1:
+            q = e11
+        elif c == 2:
+            q = e12
+        sd = (q[0] - p20[0]) * ng2[0] + (q[1] - p20[1]) * ng2[1] + (q[2] - p20[2]) * ng2[2]
+        lo1 = min(lo1, sd * side3)
+        hi1 = max(hi1, sd * side3)
+    tol2 = 1e-9 * (L1 + L2) * abs(side3)
+    if (not refract2 and hi1 <= tol2) or (refract2 and lo1 >= -tol2):
+        stats[STAT_SKIPPED] += 1
+        return count_in
+
+    # --- local frame: unit = L1, origin p1,0 (geo is already relative to p1,0) ------------
+    inv = 1.0 / L1
+    for r in range(13):
+        f = inv if (r <= 3 or (r >= 7 and r <= 9)) else 1.0
+        for c in range(3):
+            geo_l[r, c] = geo[r, c] * f
+    # normal orientation over each face (a normal field that turns over the face gives two
+    # side assignments to try)
+    any_front1 = False
+    any_back1 = False
+    any_front2 = False
+    any_back2 = False
+    nmax1 = 0.0
+    flat2 = True
+    nscale2 = 0.0
+    for c in range(3):
+        n1c = (geo[4, 0], geo[4, 1], geo[4, 2])
+        n2c = (geo[10, 0], geo[10, 1], geo[10, 2])
+        if c > 0:
+            n1c = (n1c[0] + geo[4 + c, 0], n1c[1] + geo[4 + c, 1], n1c[2] + geo[4 + c, 2])
+            n2c = (n2c[0] + geo[10 + c, 0], n2c[1] + geo[10 + c, 1], n2c[2] + geo[10 + c, 2])
+        s_1 = n1c[0] * ng1[0] + n1c[1] * ng1[1] + n1c[2] * ng1[2]
+        s_2 = n2c[0] * ng2[0] + n2c[1] * ng2[1] + n2c[2] * ng2[2]
+        any_front1 = any_front1 or s_1 > 0.0
+        any_back1 = any_back1 or s_1 < 0.0
+        any_front2 = any_front2 or s_2 > 0.0
+        any_back2 = any_back2 or s_2 < 0.0
+        nmax1 = max(nmax1, n1c[0] ** 2 + n1c[1] ** 2 + n1c[2] ** 2)
+        nscale2 = max(nscale2, math.sqrt(n2c[0] ** 2 + n2c[1] ** 2 + n2c[2] ** 2))
+    for r in (11, 12):
+        if abs(geo[r, 0]) + abs(geo[r, 1]) + abs(geo[r, 2]) > 1e-12 * nscale2:
+            flat2 = False
+    if not (nmax1 > 0.0 and nscale2 > 0.0):
+        stats[STAT_SKIPPED] += 1
+        return count_in
+    # plane-of-incidence normal at vertex 2: (x3 - centroid1) × mean n2
+    cx = ((e11[0] + e12[0]) / 3.0, (e11[1] + e12[1]) / 3.0, (e11[2] + e12[2]) / 3.0)
+    w = (geo[1, 0] - cx[0], geo[1, 1] - cx[1], geo[1, 2] - cx[2])
+    nb = (3.0 * geo[10, 0] + geo[11, 0] + geo[12, 0], 3.0 * geo[10, 1] + geo[11, 1] + geo[12, 1], 3.0 * geo[10, 2] + geo[11, 2] + geo[12, 2])
+    c2 = (w[1] * nb[2] - w[2] * nb[1], w[2] * nb[0] - w[0] * nb[2], w[0] * nb[1] - w[1] * nb[0])
+    lc = math.sqrt(c2[0] ** 2 + c2[1] ** 2 + c2[2] ** 2)
+    lw = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
+    lnb = math.sqrt(nb[0] ** 2 + nb[1] ** 2 + nb[2] ** 2)
+    if not lc > 1e-6 * lw * lnb:
+        c2 = (e21[1] * nb[2] - e21[2] * nb[1], e21[2] * nb[0] - e21[0] * nb[2], e21[0] * nb[1] - e21[1] * nb[0])
+        lc = math.sqrt(c2[0] ** 2 + c2[1] ** 2 + c2[2] ** 2)
+        if not lc > 0.0:
+            stats[STAT_SKIPPED] += 1
+            return count_in
+    c2 = (c2[0] / lc, c2[1] / lc, c2[2] / lc)
+
+    # √β scale and the x = β/S² range over triangle 1 (for the pieces to use)
+    dmax = 0.0
+    for c in range(3):
+        q = (0.0, 0.0, 0.0)
+        if c == 1:
+            q = e11
+        elif c == 2:
+            q = e12
+        dv = (q[0] - geo[0, 0], q[1] - geo[0, 1], q[2] - geo[0, 2])
+        dmax = max(dmax, (dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2) * inv * inv)
+    S = math.sqrt(nmax1 * dmax)
+
+    count = count_in
+    margin = V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT
+    biv = sc_biv
+    n_orient1 = 2 if refract1 else 1
+    n_side2 = 2 if refract2 else 1
+    n_pieces_sqrt = SQRT_PIECES.shape[0] if refract1 else 1
+    for o1 in range(n_orient1):
+        sigma1 = 1.0 if o1 == 0 else -1.0  # orientation of the shading normal vs ng1
+        if refract1 and ((sigma1 > 0.0 and not any_front1) or (sigma1 < 0.0 and not any_back1)):
+            continue
+        s_in1 = sigma1 * (1.0 if side0 > 0.0 else -1.0)  # incoming side at vertex 1
+        r1 = (1.0 / eta) if s_in1 > 0.0 else eta
+        # x = β/S² range: sample the triangle
+        xlo = math.inf
+        xhi = -math.inf
+        mask = 0  # √ pieces holding β/S² at the sample points
+        if refract1:
+            for iu in range(4):
+                for iv in range(4 - iu):
+                    uu = iu / 3.0
+                    vv = iv / 3.0
+                    nn = (geo[4, 0] + uu * geo[5, 0] + vv * geo[6, 0], geo[4, 1] + uu * geo[5, 1] + vv * geo[6, 1], geo[4, 2] + uu * geo[5, 2] + vv * geo[6, 2])
+                    dv = ((uu * e11[0] + vv * e12[0] - geo[0, 0]) * inv, (uu * e11[1] + vv * e12[1] - geo[0, 1]) * inv, (uu * e11[2] + vv * e12[2] - geo[0, 2]) * inv)
+                    n2_ = nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2
+                    d2_ = dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2
+                    dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2]
+                    beta = n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn
+                    x = beta / (S * S)
+                    xlo = min(xlo, x)
+                    xhi = max(xhi, x)
+                    if x >= 0.0:
+                        mask |= 1 << _sqrt_piece(x)
+            nn = (geo[4, 0] + (geo[5, 0] + geo[6, 0]) / 3.0, geo[4, 1] + (geo[5, 1] + geo[6, 1]) / 3.0, geo[4, 2] + (geo[5, 2] + geo[6, 2]) / 3.0)
+            dv = ((cx[0] - geo[0, 0]) * inv, (cx[1] - geo[0, 1]) * inv, (cx[2] - geo[0, 2]) * inv)
+            n2_ = nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2
+            d2_ = dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2
+            dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2]
+            xc = min(1.0, max(0.0, (n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn) / (S * S)))
+            if xhi <= 0.0:
+                continue  # TIR everywhere on the triangle
+            if SQRT_ALL_PIECES:
+                xlo = max(0.0, xlo * 0.8)
+                xhi = min(1.0, xhi * 1.25)
+            else:
+                # the pieces holding x at the corners, edge thirds and centroid (the
+                # Gauss-Newton polish in path space removes the error of a piece used
+                # a little outside its interval)
+                mask |= 1 << _sqrt_piece(xc)
+        for piece in range(n_pieces_sqrt):
+            if refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
+                continue
+            if refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
+                continue
+            for o2 in range(n_side2):
+                eta_in2 = 1.0
+                eta_out2 = 1.0
+                if refract2:
+                    sigma2 = 1.0 if o2 == 0 else -1.0
+                    if (sigma2 > 0.0 and not any_front2) or (sigma2 < 0.0 and not any_back2):
+                        continue
+                    # incoming side at vertex 2: x1's side of plane 2 (ng2 oriented by σ2),
+                    # which for a refraction is the side opposite to x3's
+                    s_in2 = -sigma2 * (1.0 if side3 > 0.0 else -1.0)
+                    eta_in2 = 1.0 if s_in2 > 0.0 else eta
+                    eta_out2 = eta if s_in2 > 0.0 else 1.0
+                da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, eta_in2, eta_out2,
+                                       flat2, c2, geo_l, biv)
+                count = _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, geo, eta, sc_cf,
+                                      sc_mat, sc_scan, sc_work, th, v_roots, u_roots, coeffs, sc_chain, sc_lists, rev, geo_fwd, out_uv, meta,
+                                      count, stats)
+                if count < 0:
+                    count = -count - 1
+                    count = _seeded(geo, refract1, refract2, eta, rev, geo_fwd, sc_work, th, out_uv, meta, count, stats)
+    return count
+
+
+@kernel
+def _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
+                  v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
+    """Roots of {a = 0, b = 0} -> polished paths.  Returns the new count, or -(count + 1)
+    when the system is degenerate (identically vanishing resultant)."""
+    a = biv[0]
+    b = biv[1]
+    ma = _bmax(a, da)
+    mb = _bmax(b, db)
+    if not (ma > 0.0 and mb > 0.0) or not (np.isfinite(ma) and np.isfinite(mb)):
+        return -(count + 1)
+    for i in range(da + 1):
+        for j in range(da + 1 - i):
+            a[i, j] /= ma
+            if abs(a[i, j]) <= 1e-14:
+                a[i, j] = 0.0
+    for i in range(db + 1):
+        for j in range(db + 1 - i):
+            b[i, j] /= mb
+            if abs(b[i, j]) <= 1e-15:
+                b[i, j] = 0.0
+    # early exit: the coplanarity polynomial has no zero on triangle 1
+    if da <= 20 and not _bernstein_has_zero(a, da, 1e-2 if refract1 else 1e-9, coeffs):
+        stats[STAT_SKIPPED] = 1
+        return count
+    if stop_after == 1:
+        return count
+    # Hidden variable v1 (u1 eliminated), then hidden u1 (v1 eliminated) on the transposed
+    # system: two solutions whose projections on one axis fall within one piece are a root
+    # pair no sign scan separates, but they are seldom that close on both axes.
+    count = _eliminate(a, da, b, db, False, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
+                       work, th, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
+    if count < 0:
+        return count
+    if not TWO_PROJECTIONS:
+        return count
+    at = biv[37]
+    bt = biv[38]
+    _transpose(a, da, at)
+    _transpose(b, db, bt)
+    return _eliminate(at, da, bt, db, True, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
+                      work, th, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
+
+
+@kernel
+def _transpose(src, d, dst):
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            dst[j, i] = src[i, j]
+
+
+@kernel
+def _eliminate(a, da, b, db, swapped, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
+               v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
+    """Eliminate the first variable (rows of a, b), scan the hidden one (columns), back-solve,
+    polish.  ``swapped``: the hidden variable is u1 (the arrays are transposed)."""
+    na = _u_degree(a, da, 1e-14)
+    nb = _u_degree(b, db, 1e-15)
+    n = max(na, nb)
+    if n == 0 or n >= MAXD:
+        return -(count + 1)
+    nv = find_v_roots(a, da, b, db, n, -margin, 1.0 + margin, pieces, cf, mat, scan, v_roots, stats)
+    if nv < 0:
+        return -(count + 1)
+    stats[STAT_ROOTS] += nv
+    if stop_after == 2:
+        return count
+    for iv in range(nv):
+        v = v_roots[iv]
+        # a(·, v) coefficients
+        deg_u = na
+        for i in range(na + 1):
+            acc = 0.0
+            for j in range(da - i, -1, -1):
+                acc = acc * v + a[i, j]
+            coeffs[i] = acc
+        use_b = False
+        big = 0.0
+        for i in range(na + 1):
+            big = max(big, abs(coeffs[i]))
+        if not big > 1e-12 or na == 0:
+            use_b = True
+        if use_b:
+            if nb > MAX_DEGREE:
+                continue
+            deg_u = nb
+            for i in range(nb + 1):
+                acc = 0.0
+                for j in range(db - i, -1, -1):
+                    acc = acc * v + b[i, j]
+                coeffs[i] = acc
+        if deg_u > MAX_DEGREE or deg_u == 0:
+            continue
+        n_u = roots_in_interval(coeffs, deg_u, -margin, 1.0 - v + margin, 1e-14, 1e-10, chain, lists[0:2], u_roots)
+        # rank by relative |b(u, v)|
+        best = -1
+        best_rel = math.inf
+        for iu in range(n_u):
+            u = u_roots[iu]
+            val = 0.0
+            mag = 0.0
+            up = 1.0
+            for i in range(nb + 1):
+                acc = 0.0
+                for j in range(db - i, -1, -1):
+                    acc = acc * v + b[i, j]
+                val += acc * up
+                mag += abs(acc * up)
+                up *= u
+            rel = abs(val) / mag if mag > 0.0 else 0.0
+            lists[2, iu] = rel
+            if rel < best_rel:
+                best_rel = rel
+                best = iu
+        for iu in range(n_u):
+            if iu != best and not lists[2, iu] < B_RELATIVE:
+                continue
+            u1 = min(max(u_roots[iu], 0.0), 1.0)
+            v1 = min(max(v, 0.0), 1.0)
+            if u1 + v1 > 1.0:
+                excess = 0.5 * (u1 + v1 - 1.0)
+                u1 -= excess
+                v1 -= excess
+            if swapped:
+                u1, v1 = v1, u1
+            if _already_stored(u1, v1, out_uv, 2 if rev else 0, count):
+                continue
+            count = _try_candidate(u1, v1, geo, refract1, refract2, eta, rev, geo_fwd, work, th, out_uv, meta, count, stats)
+    return count
+
+
+@kernel
+def _already_stored(u1, v1, out_uv, off, count):
+    for q in range(min(count, out_uv.shape[0])):
+        if abs(out_uv[q, off] - u1) < 1e-9 and abs(out_uv[q, off + 1] - v1) < 1e-9:
+            return True
+    return False
+
+
+@kernel(parallel=True)
+def solve_two_bounce_batch(refract1, refract2, x_start, x_end, P, N, eta, pieces, stop_after, out_uv, out_count, stats):
+    n = x_start.shape[0]
+    n_chunks = (n + CHUNK - 1) // CHUNK
+    for ch in prange(n_chunks):
+        biv, cf, mat, scan, geo, work, roots, chain, lists = make_scratch2()
+        for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+            x0 = (x_start[t, 0], x_start[t, 1], x_start[t, 2])
+            x3 = (x_end[t, 0], x_end[t, 1], x_end[t, 2])
+            out_count[t] = solve_two_bounce_tuple(refract1, refract2, x0, x3, P[t], N[t], eta[t], pieces, stop_after,
+                                                  biv, cf, mat, scan, geo, work, roots, chain, lists, out_uv[t], stats[t])
+
+
+@kernel
+def make_scratch2():
+    biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
+    cf = np.zeros((2, MAXD + 2))
+    mat = np.zeros((MAXD + 1, MAXD + 1))
+    scan = np.zeros((4, MAX_PIECES + 1))
+    geo = np.zeros((3, 15, 3))
+    work = np.zeros((25, 6))
+    roots = np.zeros((MAX_PATHS_TWO_BOUNCE + 5, 4 * MAX_PIECES))
+    chain = np.zeros((MAX_DEGREE + 1, MAX_DEGREE + 1))
+    lists = np.zeros((3, MAX_DEGREE + 1))
+    return biv, cf, mat, scan, geo, work, roots, chain, lists

@@ -1,7 +1,5 @@
-"""Command line: ``python -m addon demo``.
-
-Runs without Blender (the bake command, which needs the bpy module, comes with the bake
-pipeline).
+"""Command line: ``python -m addon demo`` (no Blender needed) and
+``python -m addon bake SCENE.blend --out DIR`` (needs the bpy module; see addon/bake/cli.py).
 """
 
 import argparse
@@ -14,7 +12,15 @@ def main(argv=None):
     demo = sub.add_parser("demo", help="solve and print the caustic paths of two small sample scenes")
     demo.add_argument("--width", type=int, default=64, help="receiver grid columns (default 64)")
     demo.add_argument("--height", type=int, default=28, help="receiver grid rows (default 28)")
+    bake = sub.add_parser("bake", help="bake the caustics of a .blend into EXR irradiance textures (needs the bpy module)")
+    from .bake.cli import add_arguments
+
+    add_arguments(bake)
     args = parser.parse_args(argv)
+    if args.command == "bake":
+        from .bake.cli import run
+
+        return run(args)
     if args.command == "demo":
         if args.width < 1 or args.height < 1:
             parser.error("--width and --height must be positive")

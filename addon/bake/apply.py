@@ -1,0 +1,298 @@
+"""Baked textures -> Blender images and material nodes, and the exact undo.  Touches bpy.
+
+``apply_bake`` gives every receiver object an Image ("CausticBake <object>", float, Non-Color,
+loaded from the EXR written next to the .blend in ``//caustics/``, or packed into the .blend)
+and inserts into each of its materials, between the surface shader and the Material Output,
+the node group "CausticBake":
+
+    Surface out = Shader + Emission(colour = Base Color x Irradiance / pi, strength 1)
+
+with Irradiance from an Image Texture node on the receiver's UV map and Base Color linked
+from (or copied from) the surface BSDF's base colour.  A diffuse surface of albedo rho under
+irradiance E reflects radiance rho E / pi, so Cycles and EEVEE both show the caustic the way
+they would show direct light.  (Receivers under a refractive surface: Cycles' own MNEE
+caustics give about E / n² there because it skips the n² radiance scaling; this bakes the
+physical irradiance.)
+
+What changed is recorded on the data itself (a JSON custom property on each material and
+object touched, and a tag on images), so ``clear_bake`` removes all of it and restores the
+materials exactly: the added nodes go, the original surface links come back, material copies
+made for receivers that share a material with other objects are removed and the slots
+restored, and the images and node group are deleted.
+"""
+
+import json
+import math
+import os
+
+import bpy
+
+GROUP_NAME = "CausticBake"
+NODE_PREFIX = "CausticBake"
+STATE_KEY = "caustic_bake_state"
+SLOT_KEY = "caustic_bake_slots"
+TAG_KEY = "caustic_bake"
+BASE_COLOR_INPUTS = {"BSDF_PRINCIPLED": "Base Color", "BSDF_DIFFUSE": "Color", "BSDF_SHEEN": "Color", "BSDF_TOON": "Color"}
+
+
+def ensure_node_group():
+    """The shared "CausticBake" shader node group (created once)."""
+    group = bpy.data.node_groups.get(GROUP_NAME)
+    if group is not None and group.get(TAG_KEY):
+        return group
+    group = bpy.data.node_groups.new(GROUP_NAME, "ShaderNodeTree")
+    group[TAG_KEY] = True
+    iface = group.interface
+    iface.new_socket("Shader", in_out="INPUT", socket_type="NodeSocketShader")
+    base = iface.new_socket("Base Color", in_out="INPUT", socket_type="NodeSocketColor")
+    base.default_value = (0.8, 0.8, 0.8, 1.0)
+    irr = iface.new_socket("Irradiance", in_out="INPUT", socket_type="NodeSocketColor")
+    irr.default_value = (0.0, 0.0, 0.0, 1.0)
+    iface.new_socket("Shader", in_out="OUTPUT", socket_type="NodeSocketShader")
+    nodes, links = group.nodes, group.links
+    gin = nodes.new("NodeGroupInput")
+    gin.location = (-600, 0)
+    gout = nodes.new("NodeGroupOutput")
+    gout.location = (400, 0)
+    mul = nodes.new("ShaderNodeVectorMath")
+    mul.operation = "MULTIPLY"
+    mul.location = (-350, -150)
+    scale = nodes.new("ShaderNodeVectorMath")
+    scale.operation = "SCALE"
+    scale.inputs["Scale"].default_value = 1.0 / math.pi
+    scale.location = (-150, -150)
+    emit = nodes.new("ShaderNodeEmission")
+    emit.inputs["Strength"].default_value = 1.0
+    emit.location = (50, -150)
+    add = nodes.new("ShaderNodeAddShader")
+    add.location = (220, 0)
+    links.new(gin.outputs["Base Color"], mul.inputs[0])
+    links.new(gin.outputs["Irradiance"], mul.inputs[1])
+    links.new(mul.outputs["Vector"], scale.inputs[0])
+    links.new(scale.outputs["Vector"], emit.inputs["Color"])
+    links.new(gin.outputs["Shader"], add.inputs[0])
+    links.new(emit.outputs["Emission"], add.inputs[1])
+    links.new(add.outputs["Shader"], gout.inputs["Shader"])
+    return group
+
+
+def _socket_by_id(sockets, identifier):
+    for s in sockets:
+        if s.identifier == identifier:
+            return s
+    return None
+
+
+def _material_users(mat):
+    return [o for o in bpy.data.objects if any(s.material == mat for s in o.material_slots)]
+
+
+def make_image(name, pixels_rgb, directory=None, pack=False):
+    """An Image from (H, W, 3) irradiance (row 0 = bottom): written as EXR into ``directory``
+    (absolute, or relative to the .blend with //) and loaded from there; packed if asked or if
+    there is nowhere to write."""
+    import numpy as np
+
+    from .exr import write_exr
+
+    H, W = pixels_rgb.shape[:2]
+    old = bpy.data.images.get(name)
+    if old is not None and old.get(TAG_KEY):
+        bpy.data.images.remove(old)
+    if directory is None:
+        directory = "//caustics" if bpy.data.filepath else None
+    if directory is not None:
+        abs_dir = bpy.path.abspath(directory)
+        os.makedirs(abs_dir, exist_ok=True)
+        fname = bpy.path.clean_name(name) + ".exr"
+        path = os.path.join(abs_dir, fname)
+        write_exr(path, pixels_rgb)
+        img = bpy.data.images.load(path, check_existing=False)
+        img.name = name
+        if directory.startswith("//"):
+            img.filepath = directory.rstrip("/") + "/" + fname
+        if pack:
+            img.pack()
+    else:
+        img = bpy.data.images.new(name, W, H, float_buffer=True, alpha=False)
+        rgba = np.ones((H, W, 4), dtype=np.float32)
+        rgba[:, :, :3] = pixels_rgb
+        img.pixels.foreach_set(rgba.reshape(-1))
+        img.pack()
+    img.colorspace_settings.name = "Non-Color"
+    img[TAG_KEY] = True
+    return img
+
+
+def _insert_nodes(mat, image, uv_map, group):
+    """Insert the CausticBake nodes into ``mat``; return its state record."""
+    nt = mat.node_tree
+    outputs = []
+    for target in ("CYCLES", "EEVEE", "ALL"):
+        out = nt.get_output_node(target)
+        if out is not None and out not in outputs:
+            outputs.append(out)
+    if not outputs:
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        out.name = NODE_PREFIX + " Output"
+        outputs = [out]
+    added, removed = [], []
+    if outputs[0].name.startswith(NODE_PREFIX):
+        added.append(outputs[0].name)
+    tex = nt.nodes.new("ShaderNodeTexImage")
+    tex.name = tex.label = NODE_PREFIX + " Irradiance"
+    tex.image = image
+    tex.interpolation = "Linear"
+    tex.extension = "EXTEND"
+    uvn = nt.nodes.new("ShaderNodeUVMap")
+    uvn.name = uvn.label = NODE_PREFIX + " UV"
+    uvn.uv_map = uv_map
+    nt.links.new(uvn.outputs["UV"], tex.inputs["Vector"])
+    added += [tex.name, uvn.name]
+    x0, y0 = outputs[0].location
+    tex.location = (x0 - 300, y0 - 320)
+    uvn.location = (x0 - 500, y0 - 320)
+    for k, out in enumerate(outputs):
+        surf = out.inputs["Surface"]
+        gnode = nt.nodes.new("ShaderNodeGroup")
+        gnode.node_tree = group
+        gnode.name = gnode.label = f"{NODE_PREFIX} Group {k}"
+        gnode.location = (out.location[0], out.location[1] + 160)
+        added.append(gnode.name)
+        src = None
+        if surf.is_linked:
+            link = surf.links[0]
+            src = link.from_socket
+            removed.append([link.from_node.name, link.from_socket.identifier, out.name, surf.identifier])
+            nt.links.remove(link)
+            nt.links.new(src, gnode.inputs["Shader"])
+        nt.links.new(gnode.outputs["Shader"], surf)
+        nt.links.new(tex.outputs["Color"], gnode.inputs["Irradiance"])
+        bsdf = src.node if src is not None else None
+        while bsdf is not None and bsdf.type == "REROUTE" and bsdf.inputs[0].is_linked:
+            bsdf = bsdf.inputs[0].links[0].from_node
+        name = BASE_COLOR_INPUTS.get(bsdf.type) if bsdf is not None else None
+        base_in = bsdf.inputs.get(name) if name else None
+        if base_in is not None and base_in.is_linked:
+            nt.links.new(base_in.links[0].from_socket, gnode.inputs["Base Color"])
+        elif base_in is not None:
+            gnode.inputs["Base Color"].default_value = tuple(base_in.default_value)
+        else:
+            gnode.inputs["Base Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    return {"nodes": added, "links": removed}
+
+
+def apply_bake(images, uv_maps, directory=None, pack=False):
+    """Show baked irradiance on receivers.
+
+    ``images``: {object name: (H, W, 3) irradiance array (row 0 = bottom)};
+    ``uv_maps``: {object name: UV layer name}.  Re-applying replaces an earlier bake.
+    Returns {object name: image name}.
+    """
+    clear_bake([name for name in images])
+    group = ensure_node_group()
+    done = {}
+    for obj_name, pixels in images.items():
+        ob = bpy.data.objects.get(obj_name)
+        if ob is None or ob.type != "MESH":
+            continue
+        img = make_image(f"{NODE_PREFIX} {obj_name}", pixels, directory, pack)
+        slot_state = []
+        if len(ob.material_slots) == 0:
+            mat = bpy.data.materials.new(f"{NODE_PREFIX} {obj_name}")
+            mat[TAG_KEY] = True
+            ob.data.materials.append(mat)
+            slot_state.append({"added_slot": True, "material": mat.name})
+        for k, slot in enumerate(ob.material_slots):
+            mat = slot.material
+            if mat is None or (mat.get(STATE_KEY) is None and mat.get(TAG_KEY) is None and _material_users(mat) != [ob]):
+                # Empty slot, or a material other objects use too: this object gets its own copy.
+                if mat is None:
+                    new = bpy.data.materials.new(f"{NODE_PREFIX} {obj_name} {k}")
+                else:
+                    new = mat.copy()
+                    new.name = f"{mat.name} ({NODE_PREFIX} {obj_name})"
+                new[TAG_KEY] = True
+                orig_link = slot.link
+                slot.link = "OBJECT"
+                obj_mat = slot.material
+                slot_state.append({"slot": k, "link": orig_link, "object_material": obj_mat.name if obj_mat else None})
+                slot.material = new
+                mat = new
+            if mat.get(STATE_KEY) is not None:
+                continue  # a material used by several slots of this object: done once
+            if getattr(mat, "node_tree", None) is None:
+                continue
+            state = _insert_nodes(mat, img, uv_maps.get(obj_name, ""), group)
+            state["object"] = obj_name
+            state["image"] = img.name
+            mat[STATE_KEY] = json.dumps(state)
+        if slot_state:
+            ob[SLOT_KEY] = json.dumps(slot_state)
+        done[obj_name] = img.name
+    return done
+
+
+def _restore_material(mat):
+    state = json.loads(mat[STATE_KEY])
+    nt = mat.node_tree
+    for name in state["nodes"]:
+        node = nt.nodes.get(name)
+        if node is not None:
+            nt.nodes.remove(node)
+    for from_node, from_id, to_node, to_id in state["links"]:
+        a = nt.nodes.get(from_node)
+        b = nt.nodes.get(to_node)
+        if a is None or b is None:
+            continue
+        sa = _socket_by_id(a.outputs, from_id)
+        sb = _socket_by_id(b.inputs, to_id)
+        if sa is not None and sb is not None:
+            nt.links.new(sa, sb)
+    del mat[STATE_KEY]
+
+
+def clear_bake(object_names=None):
+    """Remove what :func:`apply_bake` added (for the named objects, or everywhere)."""
+    wanted = None if object_names is None else set(object_names)
+    for mat in list(bpy.data.materials):
+        raw = mat.get(STATE_KEY)
+        if raw is None:
+            continue
+        if wanted is not None and json.loads(raw).get("object") not in wanted:
+            continue
+        _restore_material(mat)
+    for ob in bpy.data.objects:
+        raw = ob.get(SLOT_KEY)
+        if raw is None or (wanted is not None and ob.name not in wanted):
+            continue
+        for st in reversed(json.loads(raw)):
+            if st.get("added_slot"):
+                idx = next((k for k, sl in enumerate(ob.material_slots) if sl.material and sl.material.name == st["material"]), -1)
+                if idx >= 0:
+                    # Through the operator: popping the mesh's list leaves the object's slot behind.
+                    with bpy.context.temp_override(object=ob):
+                        ob.active_material_index = idx
+                        bpy.ops.object.material_slot_remove()
+                continue
+            slot = ob.material_slots[st["slot"]]
+            slot.link = "OBJECT"
+            slot.material = bpy.data.materials.get(st["object_material"]) if st["object_material"] else None
+            slot.link = st["link"]
+        del ob[SLOT_KEY]
+    for mat in list(bpy.data.materials):
+        if mat.get(TAG_KEY) and mat.users == 0:
+            bpy.data.materials.remove(mat)
+    for img in list(bpy.data.images):
+        if img.get(TAG_KEY):
+            name = img.name[len(NODE_PREFIX) + 1:] if img.name.startswith(NODE_PREFIX + " ") else None
+            if wanted is None or name in wanted or img.users == 0:
+                bpy.data.images.remove(img)
+    group = bpy.data.node_groups.get(GROUP_NAME)
+    if group is not None and group.get(TAG_KEY) and group.users == 0:
+        bpy.data.node_groups.remove(group)
+
+
+def receivers_uv_maps(scene_model):
+    """{receiver object name: UV map name} from an extracted scene model."""
+    return {r.name: r.uv_map for r in scene_model.receivers}

@@ -1,0 +1,137 @@
+"""``python -m addon bake SCENE.blend --out DIR ...``: bake a .blend with the bpy module.
+
+Writes ``DIR/<receiver object name>.exr`` (float32 RGB irradiance, W/m²) and ``DIR/report.json``,
+or with ``--frames A:B`` the same per frame in ``DIR/<frame>/``.  Wrong input exits with code 2
+and a one-line reason on stderr (no traceback).
+"""
+
+import os
+import sys
+import time
+
+
+class UserError(Exception):
+    """Bad input: reported as one line, exit code 2."""
+
+
+def add_arguments(parser):
+    parser.add_argument("blend", help="the .blend file to bake")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--resolution", type=int, default=None, help="texels per side for every receiver (default: 256, or the object's caustic_resolution)")
+    parser.add_argument("--samples", type=int, default=4, help="supersamples per texel (default 4)")
+    parser.add_argument("--bounces", type=int, default=1, choices=(1, 2), help="specular bounces (default 1)")
+    parser.add_argument("--frames", default=None, help="frame range A:B (inclusive); default: the current frame")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (supersample jitter, light samples)")
+    parser.add_argument("--light-samples", type=int, default=1, help="samples of light radius / area / sun angle (default 1: point lights)")
+    parser.add_argument("--margin", type=int, default=16, help="texels of padding over UV seams (default 16)")
+    parser.add_argument("--threads", type=int, default=0, help="worker threads (default: all cores)")
+    parser.add_argument("--preview", default=None, metavar="PNG",
+                        help="also render the baked scene with Cycles (scene camera, Cycles' own caustics off) to this PNG")
+    parser.add_argument("--preview-samples", type=int, default=32, help="Cycles samples for --preview (default 32)")
+
+
+def _frames(spec):
+    if spec is None:
+        return None
+    try:
+        a, b = spec.split(":")
+        a, b = int(a), int(b)
+    except ValueError:
+        raise UserError(f"--frames must look like A:B (for example 1:24), got {spec!r}") from None
+    if b < a:
+        raise UserError(f"--frames {spec}: the last frame is before the first")
+    return list(range(a, b + 1))
+
+
+def run(args):
+    """Run the bake command; returns the exit code."""
+    try:
+        return _run(args)
+    except UserError as ex:
+        print(f"error: {ex}", file=sys.stderr)
+        return 2
+
+
+def _run(args):
+    from .scene import SceneError
+
+    path = os.path.abspath(args.blend)
+    if not os.path.isfile(path):
+        raise UserError(f"no such file: {args.blend}")
+    if args.samples < 1:
+        raise UserError("--samples must be at least 1")
+    if args.resolution is not None and not 1 <= args.resolution <= 16384:
+        raise UserError("--resolution must be between 1 and 16384")
+    if args.light_samples < 1 or args.margin < 0 or args.threads < 0:
+        raise UserError("--light-samples must be >= 1, --margin and --threads >= 0")
+    frames = _frames(args.frames)
+    if args.preview and frames:
+        raise UserError("--preview renders one frame; leave out --frames")
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        raise UserError("the bake needs Blender's Python module: pip install bpy==5.0.1 (Python 3.11)") from None
+    with open(path, "rb") as fh:
+        magic = fh.read(7)
+    if magic != b"BLENDER" and magic[:2] not in (b"\x1f\x8b", b"\x28\xb5"):  # plain, gzip or zstd
+        raise UserError(f"not a .blend file: {args.blend}")
+    from .driver import BakeSettings, bake
+    from .extract import extract_scene, open_blend
+
+    try:
+        open_blend(path)
+    except RuntimeError as ex:
+        raise UserError(f"could not open {args.blend}: {str(ex).strip().splitlines()[-1]}") from None
+    import bpy
+
+    settings = BakeSettings(resolution=args.resolution or 0, samples=args.samples, bounces=args.bounces, seed=args.seed,
+                            light_samples=args.light_samples, margin=args.margin, threads=args.threads)
+    default_res = args.resolution or 256
+    for frame in frames or [None]:
+        t0 = time.perf_counter()
+        try:
+            scene = extract_scene(resolution=default_res, frame=frame)
+            t_extract = time.perf_counter() - t0
+            result = bake(scene, settings)
+        except SceneError as ex:
+            where = f" (frame {frame})" if frame is not None else ""
+            raise UserError(f"{ex}{where}") from None
+        out_dir = args.out if frame is None else os.path.join(args.out, str(frame))
+        result.report["input"] = {"blend": path, "frame": int(bpy.context.scene.frame_current)}
+        result.report["timings"]["extract"] = t_extract
+        try:
+            result.write(out_dir)
+        except OSError as ex:
+            raise UserError(f"cannot write to {out_dir}: {ex.strerror or ex}") from None
+        c = result.report["counts"]
+        print(f"{'frame ' + str(frame) + ': ' if frame is not None else ''}baked {len(result.images)} receiver(s) "
+              f"in {result.report['timings']['bake_total']:.2f} s: {c['tuples']:,} tuples, {c['paths_visible']:,} paths, "
+              f"{c['texels_touched']:,} texels lit -> {out_dir}")
+        for w in result.report["warnings"]:
+            print(f"warning: {w}")
+        if args.preview:
+            render_preview(scene, result, out_dir, args.preview, args.preview_samples)
+            print(f"preview -> {args.preview}")
+    return 0
+
+
+def render_preview(scene_model, result, out_dir, png, samples):
+    """Show the bake on the open scene (images from ``out_dir``) and render it with Cycles."""
+    import bpy
+
+    from .apply import apply_bake, receivers_uv_maps
+
+    if bpy.context.scene.camera is None:
+        raise UserError("--preview needs a scene camera")
+    apply_bake(result.images, receivers_uv_maps(scene_model), directory=os.path.abspath(out_dir))
+    sc = bpy.context.scene
+    sc.render.engine = "CYCLES"
+    sc.cycles.device = "CPU"
+    sc.cycles.samples = max(1, int(samples))
+    sc.cycles.use_denoising = False
+    # Cycles' own (noisy) caustics off: the baked ones are shown instead.
+    sc.cycles.caustics_reflective = False
+    sc.cycles.caustics_refractive = False
+    sc.render.image_settings.file_format = "PNG"
+    sc.render.filepath = os.path.abspath(png)
+    bpy.ops.render.render(write_still=True)

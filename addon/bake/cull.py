@@ -1,0 +1,431 @@
+"""Conservative culling of (caster triangle, receiver sample) tuples for one-bounce chains.
+
+For a light sample x0 and a caster triangle, every admissible path x0 -> x1 -> x2 (x1 on the
+triangle, CONTRACT.md) satisfies two necessary conditions, which the cull tests; a tuple
+failing either has no path, so the cull never drops a real one:
+
+1. **Sides** (exact): R needs x0 and x2 strictly on the same side of the triangle's plane,
+   T on opposite sides; x0 in the plane has no path.  The receiver side is exact too: the
+   bake counts only light arriving on the front of the receiver (its geometric normal turned
+   to the shading normal), so a triangle whose bounding sphere lies wholly behind a sample's
+   receiver plane is dropped.
+
+2. **Cone of scattered directions** (a bound): the scattered direction wo(x1) over the
+   triangle lies in a spherical cap C = (d, theta), and x2 - x1 must point into C.
+   - incoming directions wi = (x1 - x0)/|x1 - x0| over the triangle lie in the cap (a, alpha)
+     of the three vertex directions (a = their normalised sum; a cap of radius < 90 degrees
+     is convex, and x0 off the plane keeps them in an open half-space);
+   - shading normals n = normalize(n0 + u m1 + v m2) are normalised convex combinations of
+     the corner normals, so they lie in the cap (c, gamma) of the unit corner normals
+     (needs gamma < 90 degrees);
+   - R: reflection is an isometry in wi for a fixed n, and changing n by an angle g rotates
+     the reflected direction by 2 g, so wo lies in (reflect(a, c), alpha + 2 gamma);
+   - T: with Q the rotation taking c to n (angle <= gamma), wt(wi, n) = Q wt(Q^T wi, c), so
+     angle(wt(wi, n), wt(a, c)) <= gamma + L (alpha + gamma), L the Lipschitz constant of
+     wi -> wt(wi, c) on the cap of incidence angles <= theta_max = theta_a + alpha + gamma:
+     L = max(r, r cos theta_max / cos theta_t(theta_max)) (the radial and the azimuthal
+     stretch of Snell's map, r = eta_i / eta_t), valid when theta_max < 90 degrees and below
+     the critical angle; otherwise no cone is used (theta = pi: only the side tests cull).
+   - the directions from any x1 on the triangle (bounding sphere (c_t, r_t)) to any x2 in a
+     sphere (c_s, rho) lie in the cap (normalize(c_s - c_t), asin((r_t + rho)/|c_s - c_t|));
+     two caps can only share a direction when the angle between their axes is at most the
+     sum of their radii.
+   Each angle gets a margin of 1e-6 rad (the solver accepts paths whose direction is within
+   1e-7 of exact, and barycentrics 1e-9 outside the triangle).
+
+The test runs first on tiles of 8 x 8 texels (bounding spheres of their samples), then on the
+samples of the surviving (triangle, tile) pairs.  ``tests/test_bake_cull.py`` checks against
+the enumeration of every (triangle, sample) pair that the cull loses no path.
+
+Two bounces (x0 -> t1 -> t2 -> x3): a pair survives when t2's bounding sphere reaches t1's
+required side and the directions from t1 to t2 (the cap of the segment between their
+bounding spheres) meet t1's scattered cap; t2's incoming cap is the smaller of those two caps,
+its incoming side is known when t1 lies wholly on one side of t2's plane, and t2's scattered
+cap then follows as above.  Each candidate *emitter* (a triangle, or a pair) is described by
+its last triangle's sphere and plane, the receiver side it requires and its outgoing cap
+(:class:`Emitters`), so the tile / sample stage is the same for both.
+"""
+
+import math
+
+import numpy as np
+
+from ..solver.jit import kernel, prange
+
+ANGLE_MARGIN = 1e-6
+NO_CONE = 4.0  # > pi: "keep every direction"
+TILE = 8
+
+
+def _unit(v):
+    ln = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.divide(v, ln, out=np.zeros_like(v), where=ln > 0), ln[..., 0]
+
+
+def _angle(a, b):
+    """Angle between unit vectors (rows), robust near 0 and pi."""
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))
+
+
+def vertex_cap(x0, tri_p):
+    """Cap (axis (T,3), radius (T,)) of the directions from x0 (T,3) to the triangles' points."""
+    w, _ = _unit(tri_p - x0[:, None, :])
+    a, _ = _unit(w.sum(axis=1))
+    alpha = np.max(np.stack([_angle(a, w[:, j]) for j in range(3)], 1), axis=1)
+    alpha = np.where(alpha < 0.5 * math.pi - 1e-9, alpha, NO_CONE)
+    return a, alpha
+
+
+def normal_cap(tri_n):
+    m, _ = _unit(tri_n)
+    c, lc = _unit(m.sum(axis=1))
+    gamma = np.max(np.stack([_angle(c, m[:, j]) for j in range(3)], 1), axis=1)
+    gamma = np.where((gamma < 0.5 * math.pi - 1e-9) & (lc > 0), gamma, NO_CONE)
+    return c, gamma
+
+
+def propagate_cap(kind, a, alpha, tri_n, ng, side, eta):
+    """Cap (d, theta) of the directions scattered by triangles with corner normals ``tri_n``.
+
+    ``kind`` "R" or "T"; (a, alpha) the cap of incoming directions; ``ng`` unit geometric
+    normals (any orientation); ``side`` the sign of (x_prev - p0) . ng for every incoming
+    point (+1 / -1; 0 when unknown: T then gets no cone); ``eta`` the IOR behind the surface.
+    See the module docstring for the bounds.
+    """
+    c, gamma = normal_cap(tri_n)
+    alpha = alpha + ANGLE_MARGIN
+    gamma = gamma + ANGLE_MARGIN
+    if kind == "R":
+        d = a - 2.0 * np.sum(a * c, axis=1)[:, None] * c
+        theta = np.where((alpha < NO_CONE) & (gamma < NO_CONE), alpha + 2.0 * gamma, NO_CONE)
+        return d, theta
+    # T: orient the normal cap with the geometric normal, then to the incoming side.
+    m, _ = _unit(tri_n)
+    mg = np.einsum("tjk,tk->tj", m, ng)
+    consistent = np.all(mg > 0, axis=1) | np.all(mg < 0, axis=1)
+    s = side * np.where(np.sum(ng * c, axis=1) >= 0, 1.0, -1.0)
+    r = np.where(s > 0, 1.0 / eta, eta)
+    no = s[:, None] * c
+    cos_a = -np.sum(a * no, axis=1)
+    theta_a = np.arccos(np.clip(cos_a, -1.0, 1.0))
+    theta_max = theta_a + alpha + gamma
+    sin_max = np.sin(np.minimum(theta_max, 0.5 * math.pi))
+    ok = (consistent & (side != 0) & (alpha < NO_CONE) & (gamma < NO_CONE) & (cos_a > 0)
+          & (theta_max < 0.5 * math.pi - 1e-6) & (r * sin_max < 1.0 - 1e-9))
+    cos_t_max = np.sqrt(np.maximum(1e-300, 1.0 - (r * sin_max) ** 2))
+    lip = np.maximum(r, r * np.cos(np.minimum(theta_max, 0.5 * math.pi)) / cos_t_max)
+    k = 1.0 - r * r * (1.0 - cos_a * cos_a)
+    d = r[:, None] * a + (r * cos_a - np.sqrt(np.maximum(k, 0.0)))[:, None] * no
+    d, _ = _unit(d)
+    theta = np.where(ok, gamma + lip * (alpha + gamma), NO_CONE)
+    return d, theta
+
+
+def geometric_normals(tri_p):
+    e1 = tri_p[:, 1] - tri_p[:, 0]
+    e2 = tri_p[:, 2] - tri_p[:, 0]
+    return _unit(np.cross(e1, e2))
+
+
+def scatter_caps(chain, x0, tri_p, tri_n, eta, incoming=None):
+    """Per caster triangle: (side (T,), cap axis (T,3), cap radius (T,)) of scattered directions
+    for light from the point x0 (T,3) (one point per triangle).
+
+    ``incoming``: optional (axis, radius) of the incoming directions instead of the vertex cap
+    from x0.  ``side``: sign of (x0 - p0) . ng with ng = e1 x e2 (0: x0 in the plane, no path).
+    """
+    ng, lg = geometric_normals(tri_p)
+    side = np.sign(np.sum((x0 - tri_p[:, 0]) * ng, axis=1))
+    side[lg == 0] = 0.0
+    a, alpha = vertex_cap(x0, tri_p) if incoming is None else incoming
+    d, theta = propagate_cap(chain, a, alpha, tri_n, ng, side, eta)
+    return side, d, theta
+
+
+class Emitters:
+    """Per candidate emitter (a caster triangle, or a pair of them for two bounces): the last
+    triangle's bounding sphere, plane and side rule, and the cap of scattered directions.
+
+    ``side_req``: +1 / -1 the side of the last triangle's plane (ng = e1 x e2) the receiver
+    point must be on, 0 no path at all, 2 unknown (no side test).  ``index`` (m, k) the
+    caster indices (into the arrays the emitters were built from) of each emitter.
+    """
+
+    def __init__(self, index, tri_p_last, side_req, cap_d, cap_t, extra=None):
+        self.index = np.ascontiguousarray(index, dtype=np.int64).reshape(len(side_req), -1)
+        self.tri_c, self.tri_r = tri_spheres(tri_p_last) if len(side_req) else (np.zeros((0, 3)), np.zeros(0))
+        self.tri_ng = np.ascontiguousarray(geometric_normals(tri_p_last)[0]) if len(side_req) else np.zeros((0, 3))
+        self.tri_p0 = np.ascontiguousarray(tri_p_last[:, 0]) if len(side_req) else np.zeros((0, 3))
+        self.side_req = np.ascontiguousarray(side_req, dtype=np.float64)
+        self.cap_d = np.ascontiguousarray(cap_d, dtype=np.float64)
+        self.cap_t = np.ascontiguousarray(cap_t, dtype=np.float64)
+        self.extra = extra or {}
+
+    @property
+    def size(self):
+        return self.side_req.shape[0]
+
+    def without_cone(self):
+        self.cap_t = np.full_like(self.cap_t, NO_CONE)
+        return self
+
+
+def one_bounce_emitters(chain, x0, tri_p, tri_n, eta):
+    """Emitters of chain "R" or "T": one per caster triangle."""
+    side, d, theta = scatter_caps(chain, x0, tri_p, tri_n, eta)
+    return Emitters(np.arange(tri_p.shape[0]), tri_p, side if chain == "R" else -side, d, theta)
+
+
+def two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, ids1=None, ids2=None, same_ior=True, chunk=256):
+    """Emitters of a two-bounce chain ("RR", "RT", "TR", "TT"): the (t1, t2) caster pairs that
+    can carry light x0 -> t1 -> t2, with the cap of directions leaving t2.
+
+    Pair test (conservative): t2's bounding sphere must reach t1's required side and the
+    directions from t1 to t2 must meet t1's scattered cap; t2's incoming cap is the smaller of
+    that scattered cap and the cap of directions t1 -> t2; t2's incoming side is known when t1
+    lies wholly on one side of t2's plane (else T at t2 gets no cone and the receiver side is
+    not tested).  ``ids1`` / ``ids2``: global triangle ids; pairs of a triangle with itself are
+    skipped (a flat triangle cannot scatter light back onto itself).  ``same_ior``: keep only
+    pairs with eta1 == eta2 (solve_tuples takes one IOR per tuple).
+    """
+    k1, k2 = chain[0], chain[1]
+    side1, d1, th1 = scatter_caps(k1, x0, tri_p1, tri_n1, eta1)
+    req1 = side1 if k1 == "R" else -side1
+    c1, r1 = tri_spheres(tri_p1)
+    c2, r2 = tri_spheres(tri_p2)
+    ng1 = geometric_normals(tri_p1)[0]
+    ng2, lg2 = geometric_normals(tri_p2)
+    idx1, idx2, caps_d, caps_t, reqs = [], [], [], [], []
+    T1, T2 = tri_p1.shape[0], tri_p2.shape[0]
+    for a0 in range(0, T1, chunk):
+        a1 = min(T1, a0 + chunk)
+        i1 = np.repeat(np.arange(a0, a1), T2)
+        i2 = np.tile(np.arange(T2), a1 - a0)
+        keep = (req1[i1] != 0) & (lg2[i2] > 0)
+        if ids1 is not None:
+            keep &= ids1[i1] != ids2[i2]
+        if same_ior:
+            keep &= eta1[i1] == eta2[i2]
+        sd = np.sum((c2[i2] - tri_p1[i1, 0]) * ng1[i1], axis=1)
+        keep &= req1[i1] * sd > -r2[i2]
+        i1, i2 = i1[keep], i2[keep]
+        u = c2[i2] - c1[i1]
+        dist = np.linalg.norm(u, axis=1)
+        reach = r1[i1] + r2[i2]
+        u = u / np.maximum(dist, 1e-300)[:, None]
+        beta = np.where(dist > reach, np.arcsin(np.minimum(1.0, reach / np.maximum(dist, 1e-300))) + ANGLE_MARGIN, NO_CONE)
+        theta1 = th1[i1]
+        ang = np.arctan2(np.linalg.norm(np.cross(d1[i1], u), axis=1), np.sum(d1[i1] * u, axis=1))
+        meets = (theta1 >= NO_CONE) | (beta >= NO_CONE) | (theta1 + beta >= math.pi) | (ang <= theta1 + beta)
+        i1, i2, u, beta, theta1 = i1[meets], i2[meets], u[meets], beta[meets], theta1[meets]
+        use1 = theta1 <= beta
+        a_in = np.where(use1[:, None], d1[i1], u)
+        al_in = np.where(use1, theta1, beta)
+        # Side of t2 the light comes from: all of t1 on one side of t2's plane.
+        sv = np.einsum("tjk,tk->tj", tri_p1[i1] - tri_p2[i2, 0][:, None, :], ng2[i2])
+        s2 = np.where(np.all(sv > 0, axis=1), 1.0, np.where(np.all(sv < 0, axis=1), -1.0, 0.0))
+        d2, th2 = propagate_cap(k2, a_in, al_in, tri_n2[i2], ng2[i2], s2, eta2[i2])
+        req2 = np.where(s2 == 0, 2.0, s2 if k2 == "R" else -s2)
+        idx1.append(i1)
+        idx2.append(i2)
+        caps_d.append(d2)
+        caps_t.append(th2)
+        reqs.append(req2)
+    cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape))  # noqa: E731
+    i1, i2 = cat(idx1, (0,)).astype(np.int64), cat(idx2, (0,)).astype(np.int64)
+    return Emitters(np.column_stack([i1, i2]), tri_p2[i2], cat(reqs, (0,)), cat(caps_d, (0, 3)), cat(caps_t, (0,)))
+
+
+def tri_spheres(tri_p):
+    """Bounding spheres (centre = centroid, radius = max vertex distance) of triangles."""
+    c = tri_p.mean(axis=1)
+    r = np.max(np.linalg.norm(tri_p - c[:, None, :], axis=2), axis=1)
+    return c, r * (1.0 + 1e-12) + 1e-300
+
+
+def tile_spheres(texel, width, position):
+    """Group samples by 8x8-texel tiles: (order, tile_start (nt+1,), centre (nt,3), radius (nt,)).
+
+    ``order`` sorts the samples tile by tile (stable), tile k holding
+    order[tile_start[k]:tile_start[k+1]].
+    """
+    i = texel % width
+    j = texel // width
+    tiles_x = (width + TILE - 1) // TILE
+    key = (j // TILE) * tiles_x + i // TILE
+    order = np.argsort(key, kind="stable")
+    k_sorted = key[order]
+    uniq, start = np.unique(k_sorted, return_index=True)
+    tile_start = np.append(start, order.size).astype(np.int64)
+    pos = position[order]
+    nt = uniq.size
+    centre = np.add.reduceat(pos, start, axis=0) / np.diff(tile_start)[:, None] if nt else np.zeros((0, 3))
+    tile_of = np.repeat(np.arange(nt), np.diff(tile_start))
+    radius = np.zeros(nt)
+    if nt:
+        dist = np.linalg.norm(pos - centre[tile_of], axis=1)
+        np.maximum.at(radius, tile_of, dist)
+    return order.astype(np.int64), tile_start, centre, radius * (1.0 + 1e-12) + 1e-12
+
+
+@kernel(inline="always")
+def _cap_meets(dx, dy, dz, cx, cy, cz, theta, reach):
+    """Whether cap (d, theta) meets the cap of directions to a sphere at c (relative) of radius ``reach``."""
+    if theta >= NO_CONE:
+        return True
+    dist = math.sqrt(cx * cx + cy * cy + cz * cz)
+    if not dist > reach:
+        return True
+    beta = math.asin(reach / dist) + ANGLE_MARGIN
+    if theta + beta >= math.pi:
+        return True
+    crx = dy * cz - dz * cy
+    cry = dz * cx - dx * cz
+    crz = dx * cy - dy * cx
+    ang = math.atan2(math.sqrt(crx * crx + cry * cry + crz * crz), dx * cx + dy * cy + dz * cz)
+    return ang <= theta + beta
+
+
+@kernel(parallel=True)
+def _pairs_count(tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r, count):
+    for t in prange(tri_c.shape[0]):
+        c = 0
+        for k in range(tile_c.shape[0]):
+            if _tile_ok(t, k, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r):
+                c += 1
+        count[t] = c
+
+
+@kernel(parallel=True)
+def _pairs_fill(tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r, offset, out_tile):
+    for t in prange(tri_c.shape[0]):
+        o = offset[t]
+        for k in range(tile_c.shape[0]):
+            if _tile_ok(t, k, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r):
+                out_tile[o] = k
+                o += 1
+
+
+@kernel(inline="always")
+def _tile_ok(t, k, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r):
+    req = side_req[t]
+    if req == 0.0:
+        return False
+    # Side: the tile's sphere must reach the required side of the caster's plane.
+    sd = ((tile_c[k, 0] - tri_p0[t, 0]) * tri_ng[t, 0] + (tile_c[k, 1] - tri_p0[t, 1]) * tri_ng[t, 1]
+          + (tile_c[k, 2] - tri_p0[t, 2]) * tri_ng[t, 2])
+    if req != 2.0 and req * sd <= -tile_r[k]:
+        return False
+    return _cap_meets(cap_d[t, 0], cap_d[t, 1], cap_d[t, 2], tile_c[k, 0] - tri_c[t, 0], tile_c[k, 1] - tri_c[t, 1],
+                      tile_c[k, 2] - tri_c[t, 2], cap_t[t], tri_r[t] + tile_r[k])
+
+
+@kernel(inline="always")
+def _sample_ok(t, s, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng):
+    req = side_req[t]
+    sd = ((pos[s, 0] - tri_p0[t, 0]) * tri_ng[t, 0] + (pos[s, 1] - tri_p0[t, 1]) * tri_ng[t, 1]
+          + (pos[s, 2] - tri_p0[t, 2]) * tri_ng[t, 2])
+    if req == 0.0 or (req != 2.0 and not req * sd > 0.0):
+        return False
+    # Receiver front side: some point of the caster's sphere must be in front of the sample.
+    cx = tri_c[t, 0] - pos[s, 0]
+    cy = tri_c[t, 1] - pos[s, 1]
+    cz = tri_c[t, 2] - pos[s, 2]
+    if cx * rec_ng[s, 0] + cy * rec_ng[s, 1] + cz * rec_ng[s, 2] <= -tri_r[t]:
+        return False
+    return _cap_meets(cap_d[t, 0], cap_d[t, 1], cap_d[t, 2], -cx, -cy, -cz, cap_t[t], tri_r[t])
+
+
+@kernel(parallel=True)
+def _emit_count(pair_tri, pair_tile, tile_start, order, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng, count):
+    for q in prange(pair_tri.shape[0]):
+        t = pair_tri[q]
+        k = pair_tile[q]
+        c = 0
+        for z in range(tile_start[k], tile_start[k + 1]):
+            if _sample_ok(t, order[z], tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng):
+                c += 1
+        count[q] = c
+
+
+@kernel(parallel=True)
+def _emit_fill(pair_tri, pair_tile, tile_start, order, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng,
+               offset, out_tri, out_sample):
+    for q in prange(pair_tri.shape[0]):
+        t = pair_tri[q]
+        k = pair_tile[q]
+        o = offset[q]
+        for z in range(tile_start[k], tile_start[k + 1]):
+            s = order[z]
+            if _sample_ok(t, s, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng):
+                out_tri[o] = t
+                out_sample[o] = s
+                o += 1
+
+
+class TupleCull:
+    """Candidate (emitter, sample) tuples of one chain, one light point set and one sample band.
+
+    ``emitters``: :class:`Emitters` (one_bounce_emitters / two_bounce_emitters).  Iterate
+    :meth:`batches` for (emitter index (n,), sample index (n,)) arrays of at most about
+    ``max_tuples`` tuples (one tile pair may exceed it), in a fixed order.
+    """
+
+    def __init__(self, emitters, band_pos, band_geo_normal, band_texel, width):
+        e = emitters
+        self.emitters = e
+        self.tri_c, self.tri_r, self.tri_ng, self.tri_p0 = e.tri_c, e.tri_r, e.tri_ng, e.tri_p0
+        self.side_req, self.cap_d, self.cap_t = e.side_req, e.cap_d, e.cap_t
+        self.pos = np.ascontiguousarray(band_pos)
+        self.rec_ng = np.ascontiguousarray(band_geo_normal)
+        self.order, self.tile_start, self.tile_c, self.tile_r = tile_spheres(band_texel, width, band_pos)
+        T = e.size
+        count = np.zeros(T, dtype=np.int64)
+        args = (self.tri_c, self.tri_r, self.tri_ng, self.tri_p0, self.side_req, self.cap_d, self.cap_t, self.tile_c, self.tile_r)
+        if T and self.tile_c.shape[0]:
+            _pairs_count(*args, count)
+        offset = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
+        self.pair_tile = np.zeros(offset[-1], dtype=np.int64)
+        if offset[-1]:
+            _pairs_fill(*args, offset[:-1].copy(), self.pair_tile)
+        self.pair_tri = np.repeat(np.arange(T, dtype=np.int64), count)
+        self.pair_size = np.diff(self.tile_start)[self.pair_tile] if self.pair_tile.size else np.zeros(0, dtype=np.int64)
+
+    @property
+    def upper_bound(self):
+        """Tuples in the surviving tiles (before the per-sample test)."""
+        return int(self.pair_size.sum())
+
+    def batches(self, max_tuples):
+        n_pairs = self.pair_tri.shape[0]
+        q = 0
+        csum = np.cumsum(self.pair_size)
+        while q < n_pairs:
+            base = csum[q - 1] if q else 0
+            q1 = int(np.searchsorted(csum, base + max_tuples, side="right"))
+            q1 = max(q1, q + 1)
+            pt = self.pair_tri[q:q1]
+            pk = self.pair_tile[q:q1]
+            cnt = np.zeros(pt.shape[0], dtype=np.int64)
+            common = (self.tile_start, self.order, self.tri_c, self.tri_r, self.tri_ng, self.tri_p0, self.side_req, self.cap_d,
+                      self.cap_t, self.pos, self.rec_ng)
+            _emit_count(pt, pk, *common, cnt)
+            off = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
+            out_t = np.empty(off[-1], dtype=np.int64)
+            out_s = np.empty(off[-1], dtype=np.int64)
+            if off[-1]:
+                _emit_fill(pt, pk, *common, off[:-1].copy(), out_t, out_s)
+            q = q1
+            if out_t.size:
+                yield out_t, out_s
+
+
+class OneBounceCull(TupleCull):
+    """TupleCull of a one-bounce chain: emitter index = caster index.  ``use_cone`` False keeps
+    only the side tests."""
+
+    def __init__(self, chain, x0, tri_p, tri_n, eta, band_pos, band_geo_normal, band_texel, width, use_cone=True):
+        e = one_bounce_emitters(chain, x0, tri_p, tri_n, eta)
+        if not use_cone:
+            e.without_cone()
+        super().__init__(e, band_pos, band_geo_normal, band_texel, width)

@@ -1,0 +1,276 @@
+"""bpy -> scene model (addon.bake.scene): only what the bake needs.  Touches bpy.
+
+- Meshes from the evaluated depsgraph (modifiers applied, instances included), as loop
+  triangles with world positions and **corner normals** (``mesh.corner_normals``: the
+  normals Cycles interpolates, sharp edges and custom normals respected), normals
+  transformed by the inverse transpose of the world matrix and normalised.
+- Roles per triangle from its material (auto-detection below), overridable per object with
+  the custom property ``caustic_role`` in {"auto", "reflect", "refract", "both", "none"}:
+    * Glass BSDF with roughness <= ROUGHNESS_MAX -> "both" (Fresnel-weighted R and T), its IOR
+      and colour;
+    * Refraction BSDF, or Principled with Transmission Weight >= 0.5 and roughness <=
+      ROUGHNESS_MAX -> "refract" with its IOR and colour (base colour);
+    * Principled with Metallic >= 0.5, or Glossy BSDF, roughness <= ROUGHNESS_MAX ->
+      "reflect" with its colour;
+    * anything else: occluder.
+  Linked (textured) colour / IOR inputs fall back to the socket's own value (a warning).
+- Receivers: ``caustic_receiver`` in {"auto", "yes", "no"}; auto = every non-caster mesh
+  with a UV map; the texture size is ``caustic_resolution`` on the object or the bake's.
+- What is baked is what the (viewport) depsgraph holds: objects hidden from renders are left
+  out, and so are objects disabled in viewports (the render depsgraph is not reachable from
+  Python outside a render).
+- Lights in Cycles' units (verified against Cycles in tests/test_bake_units.py):
+  point / spot I = P / (4 pi) W/sr, sun S = strength W/m², area on-axis I = P / pi W/sr;
+  times colour and 2^exposure.
+"""
+
+import math
+
+import numpy as np
+
+import bpy
+
+from .scene import ROLE_BOTH, ROLE_NAMES, ROLE_NONE, ROLE_REFLECT, ROLE_REFRACT, Light, Receiver, Scene, SceneError
+
+ROUGHNESS_MAX = 0.2
+GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META", "CURVES"}
+
+
+def _socket_value(node, name, default, warnings, what):
+    sock = node.inputs.get(name)
+    if sock is None:
+        return default
+    if sock.is_linked:
+        warnings.append(f"{what}: input {name!r} is linked; using its unlinked value")
+    val = sock.default_value
+    try:
+        return tuple(val)
+    except TypeError:
+        return float(val)
+
+
+def _surface_node(mat):
+    """The node feeding the active output's Surface (through reroutes), or None."""
+    if mat is None or not getattr(mat, "node_tree", None):
+        return None
+    out = mat.node_tree.get_output_node("CYCLES") or mat.node_tree.get_output_node("ALL")
+    if out is None:
+        return None
+    sock = out.inputs.get("Surface")
+    node = None
+    while sock is not None and sock.is_linked:
+        node = sock.links[0].from_node
+        if node.type == "REROUTE":
+            sock = node.inputs[0]
+            continue
+        break
+    return node
+
+
+def material_role(mat, warnings=None):
+    """(role, ior, tint (3,)) auto-detected from a material (see the module docstring)."""
+    warnings = [] if warnings is None else warnings
+    node = _surface_node(mat)
+    if node is None:
+        return ROLE_NONE, 1.5, (1.0, 1.0, 1.0)
+    what = f"material {mat.name!r}"
+    t = node.type
+    rough = lambda: _socket_value(node, "Roughness", 0.0, warnings, what)  # noqa: E731
+    col = lambda name: tuple(_socket_value(node, name, (1.0, 1.0, 1.0, 1.0), warnings, what)[:3])  # noqa: E731
+    if t == "BSDF_GLASS" and rough() <= ROUGHNESS_MAX:
+        return ROLE_BOTH, _socket_value(node, "IOR", 1.5, warnings, what), col("Color")
+    if t == "BSDF_REFRACTION" and rough() <= ROUGHNESS_MAX:
+        return ROLE_REFRACT, _socket_value(node, "IOR", 1.5, warnings, what), col("Color")
+    if t == "BSDF_GLOSSY" and rough() <= ROUGHNESS_MAX:
+        return ROLE_REFLECT, 1.5, col("Color")
+    if t == "BSDF_PRINCIPLED" and rough() <= ROUGHNESS_MAX:
+        if _socket_value(node, "Transmission Weight", 0.0, warnings, what) >= 0.5:
+            return ROLE_REFRACT, _socket_value(node, "IOR", 1.5, warnings, what), col("Base Color")
+        if _socket_value(node, "Metallic", 0.0, warnings, what) >= 0.5:
+            return ROLE_REFLECT, 1.5, col("Base Color")
+    return ROLE_NONE, 1.5, (1.0, 1.0, 1.0)
+
+
+def _prop(ob, key, allowed, default):
+    val = ob.get(key, default)
+    if isinstance(val, str):
+        val = val.lower()
+    if val not in allowed:
+        raise SceneError(f"object {ob.name!r}: custom property {key}={val!r} is not one of {sorted(allowed)}")
+    return val
+
+
+def _mesh_arrays(ob_eval):
+    """(positions (v,3), loop triangles: vertex ids (t,3), loop ids (t,3), material index (t,),
+    corner normals (l,3), uv layers {name: (l,2)}, active uv name) of an evaluated object."""
+    me = ob_eval.to_mesh()
+    try:
+        me.calc_loop_triangles()
+        nv, nt, nl = len(me.vertices), len(me.loop_triangles), len(me.loops)
+        co = np.empty(nv * 3)
+        me.vertices.foreach_get("co", co)
+        tv = np.empty(nt * 3, dtype=np.int64)
+        tl = np.empty(nt * 3, dtype=np.int64)
+        tm = np.empty(nt, dtype=np.int64)
+        tri32 = np.empty(nt * 3, dtype=np.int32)
+        me.loop_triangles.foreach_get("vertices", tri32)
+        tv[:] = tri32
+        me.loop_triangles.foreach_get("loops", tri32)
+        tl[:] = tri32
+        m32 = np.empty(nt, dtype=np.int32)
+        me.loop_triangles.foreach_get("material_index", m32)
+        tm[:] = m32
+        cn = np.empty(nl * 3)
+        me.corner_normals.foreach_get("vector", cn)
+        uvs = {}
+        active = None
+        for layer in me.uv_layers:
+            uv = np.empty(nl * 2)
+            layer.uv.foreach_get("vector", uv)
+            uvs[layer.name] = uv.reshape(-1, 2)
+            if layer.active_render:
+                active = layer.name
+        if active is None and me.uv_layers.active is not None:
+            active = me.uv_layers.active.name
+        return co.reshape(-1, 3), tv.reshape(-1, 3), tl.reshape(-1, 3), tm, cn.reshape(-1, 3), uvs, active
+    finally:
+        ob_eval.to_mesh_clear()
+
+
+def _light_model(ob, matrix, warnings):
+    L = ob.data
+    M = np.array(matrix, dtype=np.float64)
+    pos = M[:3, 3]
+    direction = -M[:3, 2]
+    color = np.array(L.color[:3], dtype=np.float64) * (2.0 ** float(getattr(L, "exposure", 0.0)))
+    if getattr(L, "use_temperature", False):
+        warnings.append(f"light {ob.name!r}: colour temperature is not modelled; using its colour only")
+    if getattr(L, "use_nodes", False) and L.node_tree is not None:
+        warnings.append(f"light {ob.name!r}: light nodes are not modelled; using its colour and power")
+    energy = float(L.energy)
+    if not getattr(L, "normalize", True) and L.type != "AREA":
+        warnings.append(f"light {ob.name!r}: un-normalised light power is not modelled; treated as normalised")
+    if L.type in ("POINT", "SPOT"):
+        kw = dict(radius=float(L.shadow_soft_size))
+        if L.type == "SPOT":
+            kw.update(direction=direction, spot_size=float(L.spot_size), spot_blend=float(L.spot_blend))
+        return Light(ob.name, L.type.lower(), color, energy / (4.0 * math.pi), position=pos, **kw)
+    if L.type == "SUN":
+        return Light(ob.name, "sun", color, energy, direction=direction, angle=float(L.angle))
+    if L.type == "AREA":
+        if getattr(L, "spread", math.pi) < math.pi - 1e-6:
+            warnings.append(f"light {ob.name!r}: area light spread below 180 degrees is not modelled")
+        if not getattr(L, "normalize", True):
+            warnings.append(f"light {ob.name!r}: un-normalised area light power is not modelled")
+        ax_u = M[:3, 0]
+        ax_v = M[:3, 1]
+        su = float(L.size) * np.linalg.norm(ax_u)
+        sv = float(L.size_y if L.shape in ("RECTANGLE", "ELLIPSE") else L.size) * np.linalg.norm(ax_v)
+        return Light(ob.name, "area", color, energy / math.pi, position=pos, direction=direction,
+                     axis_u=ax_u / max(np.linalg.norm(ax_u), 1e-300), axis_v=ax_v / max(np.linalg.norm(ax_v), 1e-300),
+                     size_u=su, size_v=sv, ellipse=L.shape in ("DISK", "ELLIPSE"))
+    warnings.append(f"light {ob.name!r}: type {L.type} is not supported; skipped")
+    return None
+
+
+def extract_scene(depsgraph=None, resolution=256, frame=None):
+    """The :class:`~addon.bake.scene.Scene` of the current (or given) depsgraph.
+
+    ``resolution``: texture size (texels per side) of receivers without a
+    ``caustic_resolution`` property.  Objects hidden from renders are skipped.
+    """
+    if frame is not None:
+        bpy.context.scene.frame_set(int(frame))
+    depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
+    warnings = []
+    tri_p, tri_n, tri_obj, tri_role, tri_ior, tri_tint, tri_mat = [], [], [], [], [], [], []
+    names, materials, receivers, lights = [], [], [], []
+    mat_index = {}
+    role_cache = {}
+    offset = 0
+    for inst in depsgraph.object_instances:
+        ob = inst.object
+        orig = ob.original
+        if orig.hide_render or not inst.show_self:
+            continue
+        if ob.type == "LIGHT":
+            light = _light_model(orig, inst.matrix_world, warnings)
+            if light is not None:
+                if inst.is_instance:
+                    light.name = f"{orig.name} [instance {len(lights)}]"
+                lights.append(light)
+            continue
+        if ob.type not in GEOMETRY_TYPES:
+            continue
+        co, tv, tl, tm, cn, uvs, active_uv = _mesh_arrays(ob)
+        if tv.shape[0] == 0:
+            continue
+        M = np.array(inst.matrix_world, dtype=np.float64)
+        A = M[:3, :3]
+        world = co @ A.T + M[:3, 3]
+        try:
+            nmat = np.linalg.inv(A).T
+        except np.linalg.LinAlgError:
+            raise SceneError(f"object {orig.name!r} has a degenerate (zero-scale) transform") from None
+        ncorner = cn @ nmat.T
+        ln = np.linalg.norm(ncorner, axis=1, keepdims=True)
+        ncorner = np.divide(ncorner, ln, out=np.zeros_like(ncorner), where=ln > 0)
+        P = world[tv]
+        N = ncorner[tl]
+        m = P.shape[0]
+        oi = len(names)
+        name = orig.name if not inst.is_instance else f"{orig.name} [instance {oi}]"
+        names.append(name)
+        # Materials: per slot, roles auto-detected, then the object override.
+        slots = list(orig.material_slots) if not inst.is_instance else list(ob.material_slots)
+        slot_mats = [s.material for s in slots] or [None]
+        local_role = np.zeros(len(slot_mats), dtype=np.int64)
+        local_ior = np.full(len(slot_mats), 1.5)
+        local_tint = np.ones((len(slot_mats), 3))
+        local_mat = np.zeros(len(slot_mats), dtype=np.int64)
+        for k, mat in enumerate(slot_mats):
+            key = mat.name if mat is not None else ""
+            if key not in role_cache:
+                role_cache[key] = material_role(mat, warnings)
+            local_role[k], local_ior[k], local_tint[k] = role_cache[key][0], role_cache[key][1], role_cache[key][2]
+            if key not in mat_index:
+                mat_index[key] = len(materials)
+                materials.append(key)
+            local_mat[k] = mat_index[key]
+        override = _prop(orig, "caustic_role", set(ROLE_NAMES) | {"auto"}, "auto")
+        mi = np.clip(tm, 0, len(slot_mats) - 1)
+        role = local_role[mi]
+        if override != "auto":
+            role = np.full(m, ROLE_NAMES[override], dtype=np.int64)
+        tri_p.append(P)
+        tri_n.append(N)
+        tri_obj.append(np.full(m, oi, dtype=np.int64))
+        tri_role.append(role)
+        tri_ior.append(local_ior[mi])
+        tri_tint.append(local_tint[mi])
+        tri_mat.append(local_mat[mi])
+        want = _prop(orig, "caustic_receiver", {"auto", "yes", "no"}, "auto")
+        is_caster = bool(np.any(role != ROLE_NONE))
+        if want == "yes" or (want == "auto" and not is_caster and uvs):
+            if inst.is_instance:
+                if want == "yes":
+                    warnings.append(f"{name}: an instance cannot be a receiver (no image of its own); skipped")
+            elif not uvs:
+                raise SceneError(f"receiver {orig.name!r} has no UV map")
+            else:
+                res = int(orig.get("caustic_resolution", resolution))
+                uv = uvs[active_uv][tl]
+                receivers.append(Receiver(orig.name, oi, np.arange(offset, offset + m), uv, (res, res), active_uv))
+        offset += m
+    if not tri_p:
+        raise SceneError("the scene has no meshes")
+    cat = np.concatenate
+    scene = Scene(tri_p=cat(tri_p), tri_n=cat(tri_n), tri_object=cat(tri_obj), tri_role=cat(tri_role), tri_ior=cat(tri_ior),
+                  tri_tint=cat(tri_tint), tri_material=cat(tri_mat), objects=names, materials=materials,
+                  receivers=receivers, lights=lights, frame=int(bpy.context.scene.frame_current), warnings=warnings)
+    return scene
+
+
+def open_blend(path):
+    """Open a .blend file (the whole session switches to it)."""
+    bpy.ops.wm.open_mainfile(filepath=str(path))

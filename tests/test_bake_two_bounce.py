@@ -1,0 +1,167 @@
+"""The bake's two-bounce plumbing (pair cull, (n, 2, 3, 3) tuples, three shadow segments, tint
+product), run with a stand-in RR solver for flat mirrors (the double image source) until
+addon.solver supports the two-bounce chains.  When it does, the same scene checks the real
+solver (``test_real_solver_matches_double_image_when_available``)."""
+
+import numpy as np
+import pytest
+
+import addon.bake.driver as driver
+from addon.bake.driver import BakeSettings, bake, chain_supported
+from addon.bake.raster import rasterise
+from addon.bake.scene import Light, build_scene
+from addon.solver.irradiance import PathIrradiance
+
+from bake_scenes import floor, mirror_facing
+
+RES = 32
+LIGHT = np.array([-1.3, 0.1, 1.4])
+
+
+def _periscope():
+    """Light under a ceiling mirror A; A sends light to mirror B, which sends it to the floor."""
+    PA, NA, RA, nA, _ = mirror_facing((0.0, 0.0, -1.0), size=1.2, centre=(-0.8, 0.0, 2.2))
+    PB, NB, RB, nB, _ = mirror_facing((-0.8, 0.0, -0.6), size=1.2, centre=(0.6, 0.0, 1.4))
+    sc = build_scene([floor(resolution=RES), dict(name="A", tri_p=PA, tri_n=NA, role="reflect", tint=(0.9, 0.9, 0.9)),
+                      dict(name="B", tri_p=PB, tri_n=NB, role="reflect", tint=(1.0, 0.5, 0.25))],
+                     [Light("Point", "point", (1, 1, 1), 30.0, position=LIGHT)])
+    planes = [(PA[0, 0], nA), (PB[0, 0], nB)]
+    return sc, planes
+
+
+def _reflect_point(x, plane):
+    p0, n = plane
+    return x - 2 * np.sum((x - p0) * n, axis=-1, keepdims=True) * n
+
+
+def _cross_plane(a, b, plane):
+    p0, n = plane
+    t = np.sum((p0 - a) * n, axis=-1) / np.sum((b - a) * n, axis=-1)
+    return t, a + t[..., None] * (b - a)
+
+
+def _bary(x, tri):
+    p0 = tri[:, 0]
+    e1, e2 = tri[:, 1] - p0, tri[:, 2] - p0
+    d = x - p0
+    d11, d12, d22 = np.sum(e1 * e1, 1), np.sum(e1 * e2, 1), np.sum(e2 * e2, 1)
+    b1, b2 = np.sum(d * e1, 1), np.sum(d * e2, 1)
+    det = d11 * d22 - d12 * d12
+    return (d22 * b1 - d12 * b2) / det, (d11 * b2 - d12 * b1) / det
+
+
+def _double_image(x0, x3, P):
+    """Flat-mirror RR paths of each tuple: (ok, x1, x2, I2, uv (n,4))."""
+    n1 = np.cross(P[:, 0, 1] - P[:, 0, 0], P[:, 0, 2] - P[:, 0, 0])
+    n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
+    n2 = np.cross(P[:, 1, 1] - P[:, 1, 0], P[:, 1, 2] - P[:, 1, 0])
+    n2 /= np.linalg.norm(n2, axis=1, keepdims=True)
+    pl1, pl2 = (P[:, 0, 0], n1), (P[:, 1, 0], n2)
+    I1 = _reflect_point(x0, pl1)
+    I2 = _reflect_point(I1, pl2)
+    t2, x2 = _cross_plane(I2, x3, pl2)
+    t1, x1 = _cross_plane(I1, x2, pl1)
+    u1, v1 = _bary(x1, P[:, 0])
+    u2, v2 = _bary(x2, P[:, 1])
+    same = lambda a, b, pl: np.sum((a - pl[0]) * pl[1], 1) * np.sum((b - pl[0]) * pl[1], 1) > 0  # noqa: E731
+    ok = ((t1 > 0) & (t1 < 1) & (t2 > 0) & (t2 < 1) & (u1 >= 0) & (v1 >= 0) & (u1 + v1 <= 1) & (u2 >= 0) & (v2 >= 0) & (u2 + v2 <= 1)
+          & same(x0, x2, pl1) & same(x1, x3, pl2))
+    return ok, x1, x2, I2, np.column_stack([u1, v1, u2, v2])
+
+
+def _mock_solve(chain, x_start, x_end, P, N, eta):
+    assert chain == "RR" and P.shape[1:] == (2, 3, 3) and N.shape == P.shape and x_start.shape == x_end.shape
+    ok, _, _, _, uv = _double_image(x_start, x_end, P)
+    ti = np.flatnonzero(ok)
+    return ti, uv[ti]
+
+
+def _mock_irradiance(chain, x_start, x_end, P, N, eta, tuple_index, uv, receiver_normal=None, reflectance="mirror", conductor_k=None):
+    assert reflectance == "mirror"
+    ok, x1, x2, I2, _ = _double_image(x_start[tuple_index], x_end[tuple_index], P[tuple_index])
+    assert ok.all()
+    d = x_end[tuple_index] - I2
+    geometry = 1.0 / np.sum(d * d, 1)
+    w = x_end[tuple_index] - x2
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    one = np.ones(tuple_index.size)
+    return PathIrradiance(geometry, geometry, one, one, w)
+
+
+def _reference(sc, planes, band):
+    I2 = _reflect_point(_reflect_point(LIGHT, planes[0]), planes[1])
+    x3 = band.position
+    ok = np.zeros(x3.shape[0], bool)
+    # A path exists when the double-image construction lands inside both squares (any triangle).
+    PA = sc.tri_p[sc.tri_object == 1]
+    PB = sc.tri_p[sc.tri_object == 2]
+    for ta in PA:
+        for tb in PB:
+            P = np.broadcast_to(np.stack([ta, tb]), (x3.shape[0], 2, 3, 3))
+            ok |= _double_image(np.broadcast_to(LIGHT, x3.shape), x3, P)[0]
+    d = x3 - I2
+    dist = np.linalg.norm(d, axis=1)
+    return np.where(ok, 30.0 * np.abs(d[:, 2]) / dist**3, 0.0)
+
+
+def _texel_mean(band, values):
+    n = RES * RES
+    cnt = np.bincount(band.texel, minlength=n)
+    out = np.bincount(band.texel, weights=values, minlength=n)
+    return (out / np.maximum(cnt, 1)).reshape(RES, RES)
+
+
+def test_two_bounce_plumbing_with_a_double_image_solver(monkeypatch):
+    monkeypatch.setattr(driver, "solve_tuples", _mock_solve)
+    monkeypatch.setattr(driver, "path_irradiance", _mock_irradiance)
+    monkeypatch.setitem(driver._SUPPORT, "RR", True)
+    sc, planes = _periscope()
+    settings = BakeSettings(samples=4, seed=2, bounces=2, chains=("RR",), margin=0)
+    res = bake(sc, settings)
+    assert [c["chain"] for c in res.report["chains"]] == ["RR"] and res.report["chains"][0]["status"] == "baked"
+    band = rasterise(sc, sc.receivers[0], settings.samples, settings.seed, settings.jitter)
+    ref = _texel_mean(band, _reference(sc, planes, band))
+    lit = ref > 0
+    assert lit.sum() > 30
+    tint = np.array([0.9 * 1.0, 0.9 * 0.5, 0.9 * 0.25])
+    for c in range(3):
+        got = res.raw["floor"][:, :, c]
+        np.testing.assert_allclose(got[lit], ref[lit] * tint[c], rtol=1e-9)
+        assert np.all(got[~lit] == 0)
+    counts = res.report["counts"]
+    # The pair cull keeps far fewer than every (A tri, B tri, sample) tuple in both orders.
+    assert counts["tuples"] < 0.25 * counts["tuples_naive"]
+    assert counts["paths_visible"] == counts["paths_lit"] > 0
+    # A blocker between B and the floor shadows the two-bounce caustic: the third segment is tested.
+    sc2, _ = _periscope()
+    blocker = np.array([[[0.0, -2.0, 0.3], [2.0, -2.0, 0.3], [2.0, 2.0, 0.3]], [[0.0, -2.0, 0.3], [2.0, 2.0, 0.3], [0.0, 2.0, 0.3]]])
+    sc2 = build_scene([floor(resolution=RES), dict(name="A", tri_p=sc.tri_p[sc.tri_object == 1], role="reflect"),
+                       dict(name="B", tri_p=sc.tri_p[sc.tri_object == 2], role="reflect"), dict(name="blocker", tri_p=blocker)],
+                      sc.lights)
+    res2 = bake(sc2, settings)
+    x = (np.arange(RES) + 0.5) / RES * 4 - 2
+    assert res2.report["counts"]["paths_lit"] > 0
+    assert np.all(res2.raw["floor"][:, x > 0.2, :] == 0) and res2.report["counts"]["paths_visible"] < res2.report["counts"]["paths_lit"]
+
+
+def test_two_bounce_chains_are_skipped_until_the_solver_has_them():
+    sc, _ = _periscope()
+    res = bake(sc, BakeSettings(samples=1, bounces=2, margin=0, resolution=8))
+    status = {c["chain"]: c["status"] for c in res.report["chains"]}
+    assert status["R"] == "baked"
+    if not chain_supported("RR"):
+        assert status["RR"].startswith("skipped") and any("RR" in w for w in res.report["warnings"])
+    else:
+        assert status["RR"] == "baked"
+
+
+@pytest.mark.skipif(not chain_supported("RR"), reason="addon.solver does not solve RR yet")
+def test_real_solver_matches_double_image_when_available():
+    sc, planes = _periscope()
+    settings = BakeSettings(samples=4, seed=2, bounces=2, chains=("RR",), margin=0)
+    res = bake(sc, settings)
+    band = rasterise(sc, sc.receivers[0], settings.samples, settings.seed, settings.jitter)
+    ref = _texel_mean(band, _reference(sc, planes, band))
+    lit = ref > 0
+    tint = 0.9 * 1.0
+    np.testing.assert_allclose(res.raw["floor"][:, :, 0][lit], ref[lit] * tint, rtol=1e-3)

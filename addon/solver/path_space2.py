@@ -90,6 +90,20 @@ def _vertex_derivative(ddi, ddo, dn, wi, wo, li, lo, nh, ln, s, c, r, sk, refrac
     return sub(dwo, dexp)
 
 
+@kernel(inline="always")
+def _unpack(geo, th):
+    """The packed geometry (see :func:`pack_geometry`) as named vectors, plus the two
+    vertices and their unnormalised normals at θ = (u1, v1, u2, v2)."""
+    x0, x3, e11, e12, n10, m11, m12 = row(geo, 0), row(geo, 1), row(geo, 2), row(geo, 3), row(geo, 4), row(geo, 5), row(geo, 6)
+    p20, e21, e22, n20, m21, m22 = row(geo, 7), row(geo, 8), row(geo, 9), row(geo, 10), row(geo, 11), row(geo, 12)
+    ng1, ng2 = row(geo, 13), row(geo, 14)
+    x1 = madd(scale(e11, th[0]), e12, th[1])
+    x2 = madd(madd(p20, e21, th[2]), e22, th[3])
+    n1 = madd(madd(n10, m11, th[0]), m12, th[1])
+    n2 = madd(madd(n20, m21, th[2]), m22, th[3])
+    return x0, x3, e11, e12, n10, m11, m12, p20, e21, e22, n20, m21, m22, ng1, ng2, x1, x2, n1, n2
+
+
 @kernel
 def two_vertex_residual(th, geo, refract1, refract2, eta, res, jac):
     """Residual (6,) and Jacobian (6, 4) at θ = th (4,); returns ok.
@@ -99,29 +113,8 @@ def two_vertex_residual(th, geo, refract1, refract2, eta, res, jac):
     13 and 14 the unit geometric normals of triangles 1 and 2 (m = corner normal differences).
     """
     zero = (0.0, 0.0, 0.0)
-    u1 = th[0]
-    v1 = th[1]
-    u2 = th[2]
-    v2 = th[3]
-    x0 = (geo[0, 0], geo[0, 1], geo[0, 2])
-    x3 = (geo[1, 0], geo[1, 1], geo[1, 2])
-    e11 = (geo[2, 0], geo[2, 1], geo[2, 2])
-    e12 = (geo[3, 0], geo[3, 1], geo[3, 2])
-    n10 = (geo[4, 0], geo[4, 1], geo[4, 2])
-    m11 = (geo[5, 0], geo[5, 1], geo[5, 2])
-    m12 = (geo[6, 0], geo[6, 1], geo[6, 2])
-    p20 = (geo[7, 0], geo[7, 1], geo[7, 2])
-    e21 = (geo[8, 0], geo[8, 1], geo[8, 2])
-    e22 = (geo[9, 0], geo[9, 1], geo[9, 2])
-    n20 = (geo[10, 0], geo[10, 1], geo[10, 2])
-    m21 = (geo[11, 0], geo[11, 1], geo[11, 2])
-    m22 = (geo[12, 0], geo[12, 1], geo[12, 2])
-    ng1 = (geo[13, 0], geo[13, 1], geo[13, 2])
-    ng2 = (geo[14, 0], geo[14, 1], geo[14, 2])
-    x1 = madd(scale(e11, u1), e12, v1)
-    x2 = madd(madd(p20, e21, u2), e22, v2)
-    n1 = madd(madd(n10, m11, u1), m12, v1)
-    n2 = madd(madd(n20, m21, u2), m22, v2)
+    (x0, x3, e11, e12, n10, m11, m12, p20, e21, e22, n20, m21, m22, ng1, ng2,
+     x1, x2, n1, n2) = _unpack(geo, th)
     ok1, r1, wi1, wo1, li1, lo1, nh1, ln1, s1, c1, q1, sk1 = _vertex(x0, x1, x2, n1, ng1, refract1, eta)
     if not ok1:
         return False
@@ -394,29 +387,8 @@ def two_bounce_footprint(th, geo, refract1, refract2, eta):
     to the arriving ray, that the ray tube covers at x3 — chain rule through both vertices:
     x1(u1, v1) → scattered w1 → x2 on triangle 2's plane → n2(x2) → scattered w2 → x3 + L w2."""
     zero = (0.0, 0.0, 0.0)
-    u1 = th[0]
-    v1 = th[1]
-    u2 = th[2]
-    v2 = th[3]
-    x0 = (geo[0, 0], geo[0, 1], geo[0, 2])
-    x3 = (geo[1, 0], geo[1, 1], geo[1, 2])
-    e11 = (geo[2, 0], geo[2, 1], geo[2, 2])
-    e12 = (geo[3, 0], geo[3, 1], geo[3, 2])
-    n10 = (geo[4, 0], geo[4, 1], geo[4, 2])
-    m11 = (geo[5, 0], geo[5, 1], geo[5, 2])
-    m12 = (geo[6, 0], geo[6, 1], geo[6, 2])
-    p20 = (geo[7, 0], geo[7, 1], geo[7, 2])
-    e21 = (geo[8, 0], geo[8, 1], geo[8, 2])
-    e22 = (geo[9, 0], geo[9, 1], geo[9, 2])
-    n20 = (geo[10, 0], geo[10, 1], geo[10, 2])
-    m21 = (geo[11, 0], geo[11, 1], geo[11, 2])
-    m22 = (geo[12, 0], geo[12, 1], geo[12, 2])
-    ng1 = (geo[13, 0], geo[13, 1], geo[13, 2])
-    ng2 = (geo[14, 0], geo[14, 1], geo[14, 2])
-    x1 = madd(scale(e11, u1), e12, v1)
-    x2 = madd(madd(p20, e21, u2), e22, v2)
-    n1 = madd(madd(n10, m11, u1), m12, v1)
-    n2 = madd(madd(n20, m21, u2), m22, v2)
+    (x0, x3, e11, e12, n10, m11, m12, p20, e21, e22, n20, m21, m22, ng1, ng2,
+     x1, x2, n1, n2) = _unpack(geo, th)
     ok1, r1, wi1, wo1, li1, lo1, nh1, ln1, s1, c1, q1, sk1 = _vertex(x0, x1, x2, n1, ng1, refract1, eta)
     ok2, r2, wi2, wo2, li2, lo2, nh2, ln2, s2, c2, q2, sk2 = _vertex(x1, x2, x3, n2, ng2, refract2, eta)
     if not (ok1 and ok2):

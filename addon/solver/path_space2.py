@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from .jit import kernel
-from .vec3 import cross, dot, madd, norm, scale, sub, tangent_derivative
+from .vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
 
 DIRECTION_TOLERANCE = 1e-7  # |r_i| per vertex for an accepted path (contract)
 INSIDE_EPSILON = 1e-9

@@ -57,6 +57,22 @@ def fresnel_conductor(cos_i, eta, k):
     return 0.5 * (rs + rp)
 
 
+@kernel(inline="always")
+def _write_solution(out, s, geometry, fresnel, w, receiver_normal, t, has_receiver):
+    """out[s] = geometry, fresnel, |cos| at the receiver (1 without a normal), direction w."""
+    cos_r = 1.0
+    if has_receiver:
+        nr = row(receiver_normal, t)
+        lr = norm(nr)
+        cos_r = abs(dot(w, nr)) / lr if lr > 0.0 else 0.0
+    out[s, 0] = geometry
+    out[s, 1] = fresnel
+    out[s, 2] = cos_r
+    out[s, 3] = w[0]
+    out[s, 4] = w[1]
+    out[s, 5] = w[2]
+
+
 @kernel(parallel=True)
 def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tuple_index, uv, receiver_normal, has_receiver, out):
     """Per solution: out[:, 0..5] = geometry, fresnel, cos_receiver, direction xyz."""
@@ -108,17 +124,7 @@ def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tup
             fresnel = fresnel_conductor(cos_i, eta[t], kappa[t])
         else:
             fresnel = 1.0
-        cos_r = 1.0
-        if has_receiver:
-            nr = row(receiver_normal, t)
-            lr = norm(nr)
-            cos_r = abs(dot(wo, nr)) / lr if lr > 0.0 else 0.0
-        out[s, 0] = geometry
-        out[s, 1] = fresnel
-        out[s, 2] = cos_r
-        out[s, 3] = wo[0]
-        out[s, 4] = wo[1]
-        out[s, 5] = wo[2]
+        _write_solution(out, s, geometry, fresnel, wo, receiver_normal, t, has_receiver)
 
 
 @kernel
@@ -157,17 +163,7 @@ def _two_bounce_irradiance(refract1, refract2, model, x_start, x_end, P, N, eta,
             continue
         fresnel = _vertex_fresnel(refract1, model, c1, s1, eta[t], kappa[t]) * \
             _vertex_fresnel(refract2, model, c2, s2, eta[t], kappa[t])
-        cos_r = 1.0
-        if has_receiver:
-            nr = row(receiver_normal, t)
-            lr = norm(nr)
-            cos_r = abs(dot(w2, nr)) / lr if lr > 0.0 else 0.0
-        out[s, 0] = geometry
-        out[s, 1] = fresnel
-        out[s, 2] = cos_r
-        out[s, 3] = w2[0]
-        out[s, 4] = w2[1]
-        out[s, 5] = w2[2]
+        _write_solution(out, s, geometry, fresnel, w2, receiver_normal, t, has_receiver)
 
 
 def path_irradiance(chain, x_start, x_end, P, N, eta, tuple_index, uv, receiver_normal=None,

@@ -36,7 +36,7 @@ import math
 import numpy as np
 
 from .jit import kernel, prange
-from .path_space import geometric_normal, polish_and_validate, scatter_residual, triangle_frame
+from .path_space import geometric_normal, line_crossing_barycentrics, polish_and_validate, scatter_residual, triangle_frame
 from .roots import MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval
 from .vec3 import cross, dot, madd, norm, row, scale, sub
 
@@ -603,24 +603,10 @@ def _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_bu
     candidate is the line's intersection with the triangle's plane, kept when the normal
     there is nearly along the line and the polish validates it.
     """
+    ok, u, v = line_crossing_barycentrics(x0, x2, p0, e1, e2, ng)
+    if not ok:
+        return count
     w = sub(x2, x0)
-    denom = dot(w, ng)
-    if denom == 0.0:
-        return count
-    t = dot(sub(p0, x0), ng) / denom
-    xc = madd(x0, w, t)
-    # Barycentrics of xc by Cramer's rule in the triangle's plane.
-    rel = sub(xc, p0)
-    d11 = dot(e1, e1)
-    d12 = dot(e1, e2)
-    d22 = dot(e2, e2)
-    r1 = dot(rel, e1)
-    r2 = dot(rel, e2)
-    det = d11 * d22 - d12 * d12
-    if not det > 0.0:
-        return count
-    u = (r1 * d22 - r2 * d12) / det
-    v = (d11 * r2 - d12 * r1) / det
     if u < -1e-6 or v < -1e-6 or u + v > 1.0 + 1e-6:
         return count
     n = madd(madd(n0, m1, u), m2, v)

@@ -155,6 +155,27 @@ def triangle_frame(tri_p, tri_n):
 
 
 @kernel
+def line_crossing_barycentrics(x0, x2, p0, e1, e2, ng):
+    """(ok, u, v): where the line x0 -> x2 crosses the triangle's plane, in barycentrics
+    (Cramer's rule in the plane); ok is False when the line is parallel to the plane or
+    the triangle is degenerate.  No inside test."""
+    w = sub(x2, x0)
+    denom = dot(w, ng)
+    if denom == 0.0:
+        return False, 0.0, 0.0
+    rel = sub(madd(x0, w, dot(sub(p0, x0), ng) / denom), p0)
+    d11 = dot(e1, e1)
+    d12 = dot(e1, e2)
+    d22 = dot(e2, e2)
+    r1 = dot(rel, e1)
+    r2 = dot(rel, e2)
+    det = d11 * d22 - d12 * d12
+    if not det > 0.0:
+        return False, 0.0, 0.0
+    return True, (r1 * d22 - r2 * d12) / det, (d11 * r2 - d12 * r1) / det
+
+
+@kernel
 def geometric_normal(e1, e2):
     """Unit normal of the triangle's plane (unoriented) and twice its area."""
     g = cross(e1, e2)

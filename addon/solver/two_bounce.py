@@ -96,7 +96,9 @@ import math
 import numpy as np
 
 from .jit import kernel, prange
+from .path_space import line_crossing_barycentrics
 from .path_space2 import pack_geometry, polish_and_validate2, trace_to_second
+from .vec3 import row
 from .roots import MAX_DEGREE, roots_in_interval
 
 MAX_PATHS_TWO_BOUNCE = 8
@@ -808,26 +810,10 @@ def _straight_candidate(geo, refract1, refract2, eta, work, th, out_uv, meta, co
     """The straight line x0 -> x3 through triangle 1's plane as a candidate: the path at
     normal incidence through parallel faces (light and receiver on the normal of a slab),
     where the coplanarity polynomial vanishes identically and the resultant carries no root."""
-    x0 = (geo[0, 0], geo[0, 1], geo[0, 2])
-    w = (geo[1, 0] - x0[0], geo[1, 1] - x0[1], geo[1, 2] - x0[2])
-    ng = (geo[13, 0], geo[13, 1], geo[13, 2])
-    denom = w[0] * ng[0] + w[1] * ng[1] + w[2] * ng[2]
-    if denom == 0.0:
+    # geo holds positions relative to triangle 1's first vertex (p0 = origin).
+    ok, u, v = line_crossing_barycentrics(row(geo, 0), row(geo, 1), (0.0, 0.0, 0.0), row(geo, 2), row(geo, 3), row(geo, 13))
+    if not ok:
         return count
-    t = -(x0[0] * ng[0] + x0[1] * ng[1] + x0[2] * ng[2]) / denom
-    xc = (x0[0] + t * w[0], x0[1] + t * w[1], x0[2] + t * w[2])
-    e1 = (geo[2, 0], geo[2, 1], geo[2, 2])
-    e2 = (geo[3, 0], geo[3, 1], geo[3, 2])
-    d11 = e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2]
-    d12 = e1[0] * e2[0] + e1[1] * e2[1] + e1[2] * e2[2]
-    d22 = e2[0] * e2[0] + e2[1] * e2[1] + e2[2] * e2[2]
-    r1 = xc[0] * e1[0] + xc[1] * e1[1] + xc[2] * e1[2]
-    r2 = xc[0] * e2[0] + xc[1] * e2[1] + xc[2] * e2[2]
-    det = d11 * d22 - d12 * d12
-    if not det > 0.0:
-        return count
-    u = (r1 * d22 - r2 * d12) / det
-    v = (d11 * r2 - d12 * r1) / det
     if u < -1e-6 or v < -1e-6 or u + v > 1.0 + 1e-6:
         return count
     return _try_candidate(u, v, geo, refract1, refract2, eta, False, geo, work, th, out_uv, meta, count, stats)

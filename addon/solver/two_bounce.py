@@ -51,13 +51,21 @@ re-evaluated a hair away, and a tuple whose determinant is zero at most samples 
 degenerate system (common factor, e.g. the on-axis slab) handled by a seeded polish.
 
 Roots in v1 (§4.2, made reliable): the range [-m, 1 + m] is cut into ``pieces`` (default
-100); every sign change is pinned by the Illinois variant of regula falsi on the signed
-log-magnitude (bisection safeguard) until the bracket is below 1e-12.  Resultant roots
-cluster (all solutions through a small or distant second triangle lie in a small patch of
-the first), so pieces are refined (``SUB_SAMPLES`` sub-pieces, ``REFINE_LEVELS`` levels):
-the pieces around every sign change, and pieces next to a convex kink of log|det| deflated
-by the roots already found (what is left of a kink is a root the scan did not see: a pair
-inside one piece).  A sub-sampled piece with more than ``NOISY_CHANGES`` sign changes is at
+100); every sign change is bracketed by the Illinois variant of regula falsi on the signed
+log-magnitude (bisection safeguard) down to ``ROOT_TOL`` = 1e-7, and its candidates are
+polished in path space, where Gauss-Newton converges quadratically: the accepted path has
+v1 to ~1e-15, and a strict path check never sees the bracket's error (pinning every bracket
+to 1e-12 instead cost 1.5x the determinants for the same paths; the authors' 10 bisection
+steps reach 1e-5 and validate that unpolished).  Resultant roots cluster (all solutions
+through a small or distant second triangle lie in a small patch of the first), so pieces are
+refined (``SUB_SAMPLES`` sub-pieces, ``REFINE_LEVELS`` levels): the pieces around a sign
+change whose root polished into a path, and pieces next to a convex kink of log|det|
+deflated by the roots already found (what is left of a kink is a root the scan did not see:
+a pair inside one piece).  Most sign changes are resultant roots whose common u1 lies
+outside the triangle or whose path is invalid (TT: ~600 real roots per planted tuple for ~1
+path); refining around those too was ~40 % of the determinant evaluations and found no
+path the kink rule missed (tests/test_solver_two_bounce.py recall unchanged or better).  A
+sub-sampled piece with more than ``NOISY_CHANGES`` sign changes is at
 rounding level and left alone; a one-signed deflated dip at the last level is tried as a
 (double-root) candidate.  Root pairs closer than a sub-piece in v1 are still missed by one
 orientation, so the chain is also solved reversed (reciprocity: x3 -> triangle 2 ->
@@ -107,7 +115,7 @@ MAXD = 47  # bivariate arrays are (MAXD + 1)²; b has total degree ≤ 46 (TT)
 N_SLOTS = 40
 DEFAULT_PIECES = 100
 MAX_PIECES = 1024
-ROOT_TOL = 1e-12  # v1 roots are pinned to this (bracket width)
+ROOT_TOL = 1e-7  # v1 brackets are pinned to this; the path-space Newton polish takes it to ~1e-15
 V_MARGIN_EXACT = 1e-6
 V_MARGIN_APPROX = 2e-2  # √-approximated systems: their roots may sit a little off
 REFINE_LEVELS = 1
@@ -131,7 +139,8 @@ STAT_CANDIDATES = 1
 STAT_PATHS = 2
 STAT_SKIPPED = 3
 STAT_DETS = 4
-N_STATS = 5
+STAT_ACCEPTED = 5  # candidates that polished into a valid path (new or a copy)
+N_STATS = 6
 
 # (lo, hi, c0, c1, d1): √x ≈ (c0 + c1 x) / (1 + d1 x) on [lo, hi].
 SQRT_PIECES = np.array([
@@ -452,21 +461,17 @@ def _illinois(a, da, b, db, n, lo, hi, slo, llo, shi, lhi, cf, mat, stats):
 
 @kernel
 def find_v_roots(a, da, b, db, n, lo, hi, pieces, cf, mat, scan, out_roots, stats):
-    """Real roots of det R(v) in [lo, hi]: piecewise sign scan, adaptive refinement, Illinois.
+    """Real roots of det R(v) in [lo, hi] seen by the piecewise sign scan, pinned by Illinois.
 
-    The range is cut into ``pieces``; a piece is refined (cut into ``SUB_SAMPLES`` sub-pieces,
-    recursively up to ``REFINE_LEVELS`` levels) when it holds a sign change, touches a piece
-    that does, or touches a local minimum of log|det| (a dip towards zero without a sign
-    change: a root pair inside one piece).  Every sign change at the finest level examined
-    is pinned by Illinois to ROOT_TOL; a dip that never changes sign down to the last level
-    is reported at its deepest sample (a double-root candidate; the path check decides).
-    scan: (4, MAX_PIECES + 1) scratch.  Returns the root count, or -1 when the determinant
+    The range is cut into ``pieces``; every sign change is pinned to ROOT_TOL (the path-space
+    polish of its candidates takes v1 the rest of the way).  The scan (v, sign, log|det|)
+    stays in scan[0:3] and each root's piece index in scan[4], for :func:`refine_v_roots`.
+    scan: (5, MAX_PIECES + 1) scratch.  Returns the root count, or -1 when the determinant
     vanishes at most samples (degenerate system)."""
-    stack = scan[3, 0:STACK_CAP * 7].reshape((STACK_CAP, 7))
-    sub = scan[3, STACK_CAP * 7:STACK_CAP * 7 + 3 * (SUB_SAMPLES + 1)].reshape((3, SUB_SAMPLES + 1))
     vs = scan[0]
     sg = scan[1]
     lgs = scan[2]
+    piece_of = scan[4]
     h = (hi - lo) / pieces
     zeros = 0
     for k in range(pieces + 1):
@@ -479,32 +484,50 @@ def find_v_roots(a, da, b, db, n, lo, hi, pieces, cf, mat, scan, out_roots, stat
             zeros += 1
     if zeros * 2 > pieces:
         return -1
-    cap = out_roots.shape[0]
+    cap = min(out_roots.shape[0], piece_of.shape[0])
     count = 0
-    # 1. sign changes of the uniform scan
     for k in range(pieces):
         if sg[k] != sg[k + 1] and sg[k] != 0 and sg[k + 1] != 0 and count < cap:
             out_roots[count] = _illinois(a, da, b, db, n, vs[k], vs[k + 1], sg[k], lgs[k], sg[k + 1], lgs[k + 1], cf, mat, stats)
+            piece_of[count] = k
             count += 1
         elif sg[k] == 0 and count < cap:
             out_roots[count] = vs[k]
+            piece_of[count] = k
             count += 1
+    return count
+
+
+@kernel
+def refine_v_roots(a, da, b, db, n, pieces, cf, mat, scan, out_roots, n_found, productive, stats):
+    """Roots the uniform scan of :func:`find_v_roots` missed; returns the new root count.
+
+    Solutions cluster (all paths through a small or distant second triangle lie in a small
+    patch of the first), so the pieces around a sign change whose root polished into a path
+    (``productive[i]`` for root i) are cut again; so is a piece next to a convex kink of
+    log|det| deflated by the roots found (what is left of a kink is a root the scan did not
+    see: a pair inside one piece).  Sign changes whose roots gave no path are resultant roots
+    with their common u1 outside the triangle or the path invalid — most of them — and are
+    not refined around: that is most of the cost of the old always-refine rule."""
     if REFINE_LEVELS == 0:
-        return count
-    # 2. log|det| deflated by the roots found: what is left of a convex kink is a root the
-    #    scan did not see (a pair inside one piece, a third root next to a sign change)
-    #    Roots cluster (solutions through a small or far second triangle all lie in a small
-    #    patch of the first): the pieces around every sign change are cut again, and a
-    #    convex kink of the deflated log|det| flags a piece too.
-    n_found = count
+        return n_found
+    stack = scan[3, 0:STACK_CAP * 7].reshape((STACK_CAP, 7))
+    sub = scan[3, STACK_CAP * 7:STACK_CAP * 7 + 3 * (SUB_SAMPLES + 1)].reshape((3, SUB_SAMPLES + 1))
+    vs = scan[0]
+    sg = scan[1]
+    lgs = scan[2]
+    piece_of = scan[4]
     for k in range(pieces + 1):
         lgs[k] = _deflate(vs[k], lgs[k], out_roots, n_found)
+    count = n_found
     for k in range(pieces):
         flagged = (k > 0 and lgs[k - 1] + lgs[k + 1] - 2.0 * lgs[k] > KINK) or \
                   (k + 1 < pieces and lgs[k] + lgs[k + 2] - 2.0 * lgs[k + 1] > KINK)
-        for j in range(max(0, k - 1), min(pieces, k + 2)):
-            if sg[j] != sg[j + 1]:
-                flagged = True
+        if not flagged:
+            for i in range(n_found):
+                if productive[i] and abs(int(piece_of[i]) - k) <= 1:
+                    flagged = True
+                    break
         if flagged:
             count = _refine_interval(a, da, b, db, n, vs[k], vs[k + 1], sg[k], sg[k + 1], cf, mat, stack, sub,
                                      out_roots, count, stats)
@@ -791,6 +814,7 @@ def _try_candidate(u1, v1, geo, refract1, refract2, eta, rev, geo_fwd, work, th,
         acc, err, sig = polish_and_validate2(th, geo_fwd, refract1, refract2, eta, POLISH_STEPS, ACCEPT_RESIDUAL, work)
     if not acc:
         return count
+    stats[STAT_ACCEPTED] += 1
     return _store_path2(th, err, sig, out_uv, meta, count)
 
 
@@ -1119,70 +1143,88 @@ def _eliminate(a, da, b, db, swapped, refract1, refract2, margin, pieces, stop_a
     nv = find_v_roots(a, da, b, db, n, -margin, 1.0 + margin, pieces, cf, mat, scan, v_roots, stats)
     if nv < 0:
         return -(count + 1)
-    stats[STAT_ROOTS] += nv
     if stop_after == 2:
+        stats[STAT_ROOTS] += nv
         return count
+    productive = scan[5]  # per scan root: did one of its candidates polish into a path?
     for iv in range(nv):
-        v = v_roots[iv]
-        # a(·, v) coefficients
-        deg_u = na
-        for i in range(na + 1):
+        accepted = stats[STAT_ACCEPTED]
+        count = _candidates_at(v_roots[iv], a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta,
+                               work, th, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
+        productive[iv] = 1.0 if stats[STAT_ACCEPTED] > accepted else 0.0
+    nv_all = refine_v_roots(a, da, b, db, n, pieces, cf, mat, scan, v_roots, nv, productive, stats)
+    for iv in range(nv, nv_all):
+        count = _candidates_at(v_roots[iv], a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta,
+                               work, th, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
+    stats[STAT_ROOTS] += max(nv, nv_all)
+    return count
+
+
+@kernel
+def _candidates_at(v, a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta, work, th, u_roots, coeffs,
+                   chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
+    """Back-substitution at a resultant root v (§4.3): the roots u of a(·, v) in the
+    triangle whose b(u, v) is relatively small (the smallest always) are polished as paths."""
+    # a(·, v) coefficients
+    deg_u = na
+    for i in range(na + 1):
+        acc = 0.0
+        for j in range(da - i, -1, -1):
+            acc = acc * v + a[i, j]
+        coeffs[i] = acc
+    use_b = False
+    big = 0.0
+    for i in range(na + 1):
+        big = max(big, abs(coeffs[i]))
+    if not big > 1e-12 or na == 0:
+        use_b = True
+    if use_b:
+        if nb > MAX_DEGREE:
+            return count
+        deg_u = nb
+        for i in range(nb + 1):
             acc = 0.0
-            for j in range(da - i, -1, -1):
-                acc = acc * v + a[i, j]
+            for j in range(db - i, -1, -1):
+                acc = acc * v + b[i, j]
             coeffs[i] = acc
-        use_b = False
-        big = 0.0
-        for i in range(na + 1):
-            big = max(big, abs(coeffs[i]))
-        if not big > 1e-12 or na == 0:
-            use_b = True
-        if use_b:
-            if nb > MAX_DEGREE:
-                continue
-            deg_u = nb
-            for i in range(nb + 1):
-                acc = 0.0
-                for j in range(db - i, -1, -1):
-                    acc = acc * v + b[i, j]
-                coeffs[i] = acc
-        if deg_u > MAX_DEGREE or deg_u == 0:
+    if deg_u > MAX_DEGREE or deg_u == 0:
+        return count
+    n_u = roots_in_interval(coeffs, deg_u, -margin, 1.0 - v + margin, 1e-14, 1e-10, chain, lists[0:2], u_roots)
+    # rank by relative |b(u, v)|
+    best = -1
+    best_rel = math.inf
+    for iu in range(n_u):
+        u = u_roots[iu]
+        val = 0.0
+        mag = 0.0
+        up = 1.0
+        for i in range(nb + 1):
+            acc = 0.0
+            for j in range(db - i, -1, -1):
+                acc = acc * v + b[i, j]
+            val += acc * up
+            mag += abs(acc * up)
+            up *= u
+        rel = abs(val) / mag if mag > 0.0 else 0.0
+        lists[2, iu] = rel
+        if rel < best_rel:
+            best_rel = rel
+            best = iu
+    for iu in range(n_u):
+        if iu != best and not lists[2, iu] < B_RELATIVE:
             continue
-        n_u = roots_in_interval(coeffs, deg_u, -margin, 1.0 - v + margin, 1e-14, 1e-10, chain, lists[0:2], u_roots)
-        # rank by relative |b(u, v)|
-        best = -1
-        best_rel = math.inf
-        for iu in range(n_u):
-            u = u_roots[iu]
-            val = 0.0
-            mag = 0.0
-            up = 1.0
-            for i in range(nb + 1):
-                acc = 0.0
-                for j in range(db - i, -1, -1):
-                    acc = acc * v + b[i, j]
-                val += acc * up
-                mag += abs(acc * up)
-                up *= u
-            rel = abs(val) / mag if mag > 0.0 else 0.0
-            lists[2, iu] = rel
-            if rel < best_rel:
-                best_rel = rel
-                best = iu
-        for iu in range(n_u):
-            if iu != best and not lists[2, iu] < B_RELATIVE:
-                continue
-            u1 = min(max(u_roots[iu], 0.0), 1.0)
-            v1 = min(max(v, 0.0), 1.0)
-            if u1 + v1 > 1.0:
-                excess = 0.5 * (u1 + v1 - 1.0)
-                u1 -= excess
-                v1 -= excess
-            if swapped:
-                u1, v1 = v1, u1
-            if _already_stored(u1, v1, out_uv, 2 if rev else 0, count):
-                continue
-            count = _try_candidate(u1, v1, geo, refract1, refract2, eta, rev, geo_fwd, work, th, out_uv, meta, count, stats)
+        u1 = min(max(u_roots[iu], 0.0), 1.0)
+        v1 = min(max(v, 0.0), 1.0)
+        if u1 + v1 > 1.0:
+            excess = 0.5 * (u1 + v1 - 1.0)
+            u1 -= excess
+            v1 -= excess
+        if swapped:
+            u1, v1 = v1, u1
+        if _already_stored(u1, v1, out_uv, 2 if rev else 0, count):
+            stats[STAT_ACCEPTED] += 1
+            continue
+        count = _try_candidate(u1, v1, geo, refract1, refract2, eta, rev, geo_fwd, work, th, out_uv, meta, count, stats)
     return count
 
 
@@ -1212,7 +1254,7 @@ def make_scratch2():
     biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
     cf = np.zeros((2, MAXD + 2))
     mat = np.zeros((MAXD + 1, MAXD + 1))
-    scan = np.zeros((4, MAX_PIECES + 1))
+    scan = np.zeros((6, MAX_PIECES + 1))
     geo = np.zeros((3, 15, 3))
     work = np.zeros((25, 6))
     roots = np.zeros((MAX_PATHS_TWO_BOUNCE + 5, 4 * MAX_PIECES))

@@ -397,7 +397,8 @@ def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, t
         P = scene.tri_p[tri]
         N = scene.tri_n[tri]
         eta = scene.tri_ior[tri[:, 0]]
-        ti, uv = solve_tuples(chain, x_start, x_end, P, N, eta, device=settings.device)
+        # The device only when it is not the default (solve_tuples' signature stays optional).
+        ti, uv = solve_tuples(chain, x_start, x_end, P, N, eta, **({} if settings.device == "numba" else {"device": settings.device}))
         timer.add("solve", time.perf_counter() - t0)
         st["paths"] += ti.size
         if ti.size:

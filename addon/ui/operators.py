@@ -22,8 +22,6 @@ import bpy
 
 from .state import MISSING_NUMBA, SHORT_MISSING_NUMBA, STATE, numba_missing
 
-_MISSING_NUMBA = MISSING_NUMBA  # kept: older name
-
 
 class UserError(Exception):
     """A problem the user can fix: reported as one line, no traceback."""

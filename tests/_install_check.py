@@ -18,6 +18,11 @@ hide the bundled one.  ``--numba`` decides where numba/llvmlite may come from:
 ``--reuse``: the zip was installed into this profile by an earlier run; only enable it (a new
 Blender session), so the kernels should now load from the cache in the extension user dir.
 
+``--bake=BLEND``: after the solver step, the headless bake as a TD runs it,
+``blender -b BLEND --python-expr "import bpy; bpy.ops.caustics.bake()"``: open BLEND, call
+``bpy.ops.caustics.bake()`` (background mode: synchronous, then saves BLEND), and record what
+it made; then open the saved file again and record what is in it.
+
 Writes a JSON report; the test makes the assertions.  Exits 3 if the profile is not the
 temporary one (so that a real user profile is never touched).
 """
@@ -29,6 +34,7 @@ import time
 import traceback
 
 PKG = "bl_ext.user_default.caustic_bake"
+UI_TYPES = ("CAUSTICS_OT_bake", "CAUSTICS_OT_clear", "RENDER_PT_caustic_bake", "OBJECT_PT_caustic_bake")
 
 
 class _RestrictNumba:
@@ -50,11 +56,52 @@ class _RestrictNumba:
         raise ModuleNotFoundError("No module named {!r} (hidden by the test)".format(fullname), name=fullname)
 
 
+def bake_step(bpy, blend, step):
+    """The headless bake: open, bpy.ops.caustics.bake(), then what the saved file holds."""
+    bpy.ops.wm.open_mainfile(filepath=blend)
+    mtime = os.stat(blend).st_mtime_ns
+    t0 = time.perf_counter()
+    try:
+        bake_result, bake_error = sorted(bpy.ops.caustics.bake()), None
+    except RuntimeError as ex:
+        bake_result, bake_error = None, str(ex)
+    seconds = time.perf_counter() - t0
+    images = {img.name: [os.path.realpath(bpy.path.abspath(img.filepath)), list(img.size)] for img in bpy.data.images}
+    folder = os.path.join(os.path.dirname(blend), "caustics")
+    step(
+        "bake",
+        bake_result=bake_result,
+        bake_error=bake_error,
+        bake_seconds=seconds,
+        bake_images=images,
+        bake_node_groups=sorted(g.name for g in bpy.data.node_groups),
+        bake_files=sorted(os.listdir(folder)) if os.path.isdir(folder) else None,
+        bake_blend_saved=os.stat(blend).st_mtime_ns != mtime,
+    )
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.wm.open_mainfile(filepath=blend)
+    floor_mat = None
+    for ob in bpy.data.objects:
+        for slot in ob.material_slots:
+            if slot.material is not None and slot.material.node_tree is not None and any(
+                    n.type == "GROUP" and n.node_tree is not None and n.node_tree.name == "CausticBake"
+                    for n in slot.material.node_tree.nodes):
+                floor_mat = [ob.name, slot.material.name]
+    step(
+        "reopen",
+        reopened_images=sorted(img.name for img in bpy.data.images),
+        reopened_node_groups=sorted(g.name for g in bpy.data.node_groups),
+        reopened_material_with_group=floor_mat,
+    )
+
+
 def main():
     zip_path, out_path = os.path.abspath(sys.argv[1]), os.path.abspath(sys.argv[2])
     modes = [a.partition("=")[2] for a in sys.argv[3:] if a.startswith("--numba=")]
     mode = modes[-1] if modes else "any"
     reuse = "--reuse" in sys.argv[3:]
+    bakes = [a.partition("=")[2] for a in sys.argv[3:] if a.startswith("--bake=")]
+    bake_blend = os.path.abspath(bakes[-1]) if bakes else None
     resources = os.environ.get("BLENDER_USER_RESOURCES")
     if not resources or not os.path.isdir(resources):
         print("BLENDER_USER_RESOURCES must name an existing (temporary) folder", file=sys.stderr)
@@ -106,6 +153,8 @@ def main():
             site_packages_content=sorted(os.listdir(site_packages)) if os.path.isdir(site_packages) else None,
             operator_registered=hasattr(bpy.types, "CAUSTICS_OT_prepare_solver"),
             operator_in_ops="prepare_solver" in dir(bpy.ops.caustics),
+            ui_registered=[hasattr(bpy.types, n) for n in UI_TYPES] + [
+                hasattr(bpy.types.Scene, "caustic_bake"), hasattr(bpy.types.Object, "caustic_bake")],
             cache_env=os.environ.get("NUMBA_CACHE_DIR"),
             expected_cache_dir=bpy.utils.extension_path_user(PKG, path="numba_cache"),
             numba_imported_after_enable=("numba" in sys.modules),
@@ -145,6 +194,15 @@ def main():
             ) + (([".numba_cache"]) if os.path.exists(os.path.join(package_dir, ".numba_cache")) else []),
         )
 
+        if mode == "none":  # the bake is greyed out, saying why
+            try:
+                bpy.ops.caustics.bake()
+                step("bake_without_numba", bake_poll_error=None)
+            except RuntimeError as ex:
+                step("bake_without_numba", bake_poll_error=str(ex))
+        if bake_blend:
+            bake_step(bpy, bake_blend, step)
+
         result = bpy.ops.preferences.addon_disable(module=PKG)
         step(
             "disable",
@@ -152,6 +210,8 @@ def main():
             enabled_after_disable=PKG in bpy.context.preferences.addons,
             operator_registered_after_disable=hasattr(bpy.types, "CAUSTICS_OT_prepare_solver"),
             operator_in_ops_after_disable="prepare_solver" in dir(bpy.ops.caustics),
+            ui_registered_after_disable=[hasattr(bpy.types, n) for n in UI_TYPES] + [
+                hasattr(bpy.types.Scene, "caustic_bake"), hasattr(bpy.types.Object, "caustic_bake")],
             cache_env_after_disable=os.environ.get("NUMBA_CACHE_DIR"),
         )
     except Exception:

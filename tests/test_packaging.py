@@ -10,6 +10,7 @@ a temporary folder, so neither this process's bpy state nor the user's profile i
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -81,7 +82,8 @@ def test_zip_contents(zips):
         names = _names(path)
         # The add-on itself.
         for required in ("__init__.py", "blender_manifest.toml", "addon/__init__.py",
-                         "addon/ui/__init__.py", "addon/ui/operators.py", "addon/solver/jit.py"):
+                         "addon/ui/__init__.py", "addon/ui/operators.py", "addon/ui/panels.py",
+                         "addon/ui/properties.py", "addon/ui/state.py", "addon/solver/jit.py"):
             assert required in names, (platform, required)
         # Nothing from development.
         for name in names:
@@ -108,7 +110,7 @@ def test_zip_contents(zips):
         assert listed == wheels
 
 
-def _install_check(zip_path, tmp_path, numba_mode, reuse=False):
+def _install_check(zip_path, tmp_path, numba_mode, reuse=False, bake=None):
     resources = tmp_path / "blender_user"
     resources.mkdir(exist_ok=reuse)
     out = tmp_path / ("report_reuse.json" if reuse else "report.json")
@@ -119,7 +121,7 @@ def _install_check(zip_path, tmp_path, numba_mode, reuse=False):
     env["BLENDER_USER_RESOURCES"] = str(resources)
     proc = subprocess.run(
         [sys.executable, os.path.join(ROOT, "tests", "_install_check.py"), zip_path, str(out),
-         "--numba=" + numba_mode] + (["--reuse"] if reuse else []),
+         "--numba=" + numba_mode] + (["--reuse"] if reuse else []) + (["--bake=" + str(bake)] if bake else []),
         env=env, capture_output=True, text=True, timeout=900, cwd=str(tmp_path),
     )
     log = proc.stdout + proc.stderr
@@ -135,6 +137,7 @@ def _assert_installed_and_disabled(report, resources):
     assert report["package_dir_exists"]
     assert report["enabled_after_install"]
     assert report["operator_registered"] and report["operator_in_ops"]
+    assert all(report["ui_registered"]), report["ui_registered"]  # bake, clear, panels, properties
     # Registration points numba's cache at the extension's user directory...
     cache_dir = os.path.join(resources, "extensions", ".user", "user_default", "caustic_bake", "numba_cache")
     assert report["expected_cache_dir"] == cache_dir
@@ -144,6 +147,7 @@ def _assert_installed_and_disabled(report, resources):
     assert not report["enabled_after_disable"]
     assert not report["operator_registered_after_disable"]
     assert not report["operator_in_ops_after_disable"]
+    assert not any(report["ui_registered_after_disable"]), report["ui_registered_after_disable"]
     assert report["cache_env_after_disable"] is None
 
 
@@ -174,8 +178,11 @@ def test_install_enable_prepare_disable_with_bundled_numba(zips, tmp_path):
 
     # A second Blender session on the same profile: enabling alone brings the wheels back,
     # and the kernels load from the cache instead of being compiled again (no cache file is
-    # rewritten, none is added).
-    _, again, log = _install_check(zips["linux-x64"], tmp_path, "bundle", reuse=True)
+    # rewritten, none is added).  This session then bakes a sample scene headless.
+    blend = tmp_path / "scene" / "mirror_plane.blend"
+    blend.parent.mkdir()
+    shutil.copy(os.path.join(ROOT, "sample_blends", "mirror_plane.blend"), blend)
+    _, again, log = _install_check(zips["linux-x64"], tmp_path, "bundle", reuse=True, bake=blend)
     _assert_installed_and_disabled(again, resources)
     assert again["operator_result"] == ["FINISHED"], log
     assert again["numba_file"] == report["numba_file"]
@@ -183,6 +190,20 @@ def test_install_enable_prepare_disable_with_bundled_numba(zips, tmp_path):
     assert again["package_caches"] == []
     print("prepare_solver: {:.1f} s compiling, {:.1f} s from the cache".format(
         report["operator_seconds"], again["operator_seconds"]))
+
+    # The headless bake (blender -b scene.blend --python-expr "import bpy; bpy.ops.caustics.bake()"):
+    # the installed extension baked, wrote the texture next to the .blend and saved the .blend.
+    assert again["bake_error"] is None, again["bake_error"] + "\n" + log
+    assert again["bake_result"] == ["FINISHED"], log
+    assert again["bake_node_groups"] == ["CausticBake"]
+    exr = os.path.realpath(str(blend.parent / "caustics" / "CausticBake_Floor.exr"))
+    assert again["bake_images"]["CausticBake Floor"] == [exr, [256, 256]]
+    assert "CausticBake_Floor.exr" in again["bake_files"] and os.path.getsize(exr) > 1000
+    assert again["bake_blend_saved"]
+    assert again["reopened_node_groups"] == ["CausticBake"]
+    assert again["reopened_images"] == ["CausticBake Floor"]
+    assert again["reopened_material_with_group"][0] == "Floor"
+    print("headless bake: {:.1f} s".format(again["bake_seconds"]))
 
 
 def test_without_numba_the_operator_fails_cleanly(zips, tmp_path):
@@ -193,3 +214,5 @@ def test_without_numba_the_operator_fails_cleanly(zips, tmp_path):
     assert "needs numba and llvmlite" in report["operator_error"], report["operator_error"]
     assert "Traceback" not in log, log
     assert report["numba_file"] is None
+    # The bake is greyed out with the reason (poll_message_set), not a traceback.
+    assert "numba/llvmlite missing" in report["bake_poll_error"], report["bake_poll_error"]

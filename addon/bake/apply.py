@@ -87,10 +87,47 @@ def _material_users(mat):
     return [o for o in bpy.data.objects if any(s.material == mat for s in o.material_slots)]
 
 
+FILES_MANIFEST = ".caustic_bake_files.json"  # in an output folder: the files Caustic Bake wrote there
+
+
+def _written_here(abs_dir):
+    try:
+        with open(os.path.join(abs_dir, FILES_MANIFEST), encoding="utf-8") as fh:
+            return set(json.load(fh))
+    except (OSError, ValueError, TypeError):
+        return set()
+
+
+def _record_written(abs_dir, fname):
+    names = _written_here(abs_dir) | {fname}
+    with open(os.path.join(abs_dir, FILES_MANIFEST), "w", encoding="utf-8") as fh:
+        json.dump(sorted(names), fh, indent=1)
+
+
+def image_file(name, directory):
+    """(absolute folder, file name) :func:`make_image` writes the image ``name`` to."""
+    return bpy.path.abspath(directory), bpy.path.clean_name(name) + ".exr"
+
+
+def foreign_files(object_names, directory):
+    """The files :func:`apply_bake` would write over in ``directory`` that Caustic Bake did not
+    write there itself (a user's own files, never overwritten); [] when ``directory`` is None."""
+    if directory is None:
+        return []
+    out = []
+    for obj_name in object_names:
+        abs_dir, fname = image_file(f"{NODE_PREFIX} {obj_name}", directory)
+        path = os.path.join(abs_dir, fname)
+        if os.path.exists(path) and fname not in _written_here(abs_dir):
+            out.append(path)
+    return out
+
+
 def make_image(name, pixels_rgb, directory=None, pack=False):
     """An Image from (H, W, 3) irradiance (row 0 = bottom): written as EXR into ``directory``
     (absolute, or relative to the .blend with //) and loaded from there; packed if asked or if
-    there is nowhere to write."""
+    there is nowhere to write.  A file there that Caustic Bake did not write (see
+    :func:`foreign_files`) is never overwritten: FileExistsError."""
     import numpy as np
 
     from .exr import write_exr
@@ -102,11 +139,13 @@ def make_image(name, pixels_rgb, directory=None, pack=False):
     if directory is None:
         directory = "//caustics" if bpy.data.filepath else None
     if directory is not None:
-        abs_dir = bpy.path.abspath(directory)
-        os.makedirs(abs_dir, exist_ok=True)
-        fname = bpy.path.clean_name(name) + ".exr"
+        abs_dir, fname = image_file(name, directory)
         path = os.path.join(abs_dir, fname)
+        if os.path.exists(path) and fname not in _written_here(abs_dir):
+            raise FileExistsError(f"{path} exists and was not written by Caustic Bake; choose another output folder")
+        os.makedirs(abs_dir, exist_ok=True)
         write_exr(path, pixels_rgb)
+        _record_written(abs_dir, fname)
         img = bpy.data.images.load(path, check_existing=False)
         img.name = name
         if directory.startswith("//"):

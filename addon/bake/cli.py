@@ -6,6 +6,7 @@ and a one-line reason on stderr (no traceback).
 """
 
 import os
+import re
 import sys
 import time
 
@@ -25,6 +26,10 @@ def add_arguments(parser):
     parser.add_argument("--light-samples", type=int, default=1, help="samples of light radius / area / sun angle (default 1: point lights)")
     parser.add_argument("--margin", type=int, default=16, help="texels of padding over UV seams (default 16)")
     parser.add_argument("--threads", type=int, default=0, help="worker threads (default: all cores)")
+    parser.add_argument("--device", default="numba", metavar="DEVICE",
+                        help="solver device: numba (CPU, default), opencl (first OpenCL device) or opencl:N; OpenCL "
+                        "solves the one-bounce chains R and T, everything else (and a missing pyopencl / device) "
+                        "runs on Numba with a warning")
     parser.add_argument("--preview", default=None, metavar="PNG",
                         help="also render the baked scene with Cycles (scene camera, Cycles' own caustics off) to this PNG")
     parser.add_argument("--preview-samples", type=int, default=32, help="Cycles samples for --preview (default 32)")
@@ -64,6 +69,8 @@ def _run(args):
         raise UserError("--resolution must be between 1 and 16384")
     if args.light_samples < 1 or args.margin < 0 or args.threads < 0:
         raise UserError("--light-samples must be >= 1, --margin and --threads >= 0")
+    if not re.fullmatch(r"numba|opencl(:\d+)?", args.device or ""):
+        raise UserError(f"--device must be numba, opencl or opencl:N, got {args.device!r}")
     frames = _frames(args.frames)
     if args.preview and frames:
         raise UserError("--preview renders one frame; leave out --frames")
@@ -85,7 +92,8 @@ def _run(args):
     import bpy
 
     settings = BakeSettings(resolution=args.resolution or 0, samples=args.samples, bounces=args.bounces, seed=args.seed,
-                            light_samples=args.light_samples, margin=args.margin, threads=args.threads)
+                            light_samples=args.light_samples, margin=args.margin, threads=args.threads,
+                            device=args.device)
     default_res = args.resolution or 256
     for frame in frames or [None]:
         t0 = time.perf_counter()

@@ -63,6 +63,7 @@ class BakeSettings:
     direct: bool = False  # also the direct light (chain of length 0; for the units test)
     chains: tuple = ()  # restrict to these chains (empty: all planned)
     threads: int = 0  # 0: Numba's default
+    device: str = "numba"  # solver device: "numba", "opencl" or "opencl:N" (R and T; others run on Numba)
 
     def as_dict(self):
         d = asdict(self)
@@ -173,8 +174,30 @@ class _Timer:
 def bake(scene, settings=None, progress=None):
     """Bake every receiver of ``scene``; returns a :class:`BakeResult`.
 
-    ``progress(fraction, message)`` is called between batches; returning False cancels
-    (:class:`BakeCancelled`).
+    ``progress(fraction, message)`` is called between batches (``fraction`` is None between
+    tuple batches); returning False cancels (:class:`BakeCancelled`).  A plain loop over
+    :func:`bake_steps`.
+    """
+    steps = bake_steps(scene, settings)
+    while True:
+        try:
+            fraction, message = next(steps)
+        except StopIteration as done:
+            return done.value
+        if progress is not None and progress(fraction, message) is False:
+            steps.close()
+            raise BakeCancelled()
+
+
+def bake_steps(scene, settings=None):
+    """The resumable form of :func:`bake`: checks the settings and the scene now (raising
+    :class:`SceneError`), then returns a generator that does the bake in bounded chunks (one
+    band of texel rows, or one batch of at most ``settings.batch_tuples`` tuples), yielding
+    ``(fraction, message)`` between chunks (``fraction`` in [0, 1], or None between tuple
+    batches) and returning the :class:`BakeResult` (``StopIteration.value``).
+
+    Closing the generator (``.close()``) abandons the bake; nothing outside it was changed.
+    The Blender operator drives it from a timer; :func:`bake` drives it in a loop.
     """
     settings = settings or BakeSettings()
     if settings.bounces not in (1, 2):
@@ -184,6 +207,10 @@ def bake(scene, settings=None, progress=None):
     if settings.resolution < 0 or settings.resolution > 16384:
         raise SceneError("resolution must be between 1 and 16384")
     scene.validate()
+    return _bake_gen(scene, settings)
+
+
+def _bake_gen(scene, settings):
     if settings.threads:
         from ..solver.jit import set_num_threads
 
@@ -202,6 +229,7 @@ def bake(scene, settings=None, progress=None):
             warnings.append(f"chain {item['chain']} {item['status']}")
     if settings.caustics and not plan:
         warnings.append("no casters: the scene has no reflecting or refracting surfaces (only the direct light is baked if asked)")
+    yield 0.0, "preparing"
     lsamples = [sample_light(light, settings.light_samples, settings.seed) for light in scene.lights]
     counts = {"tuples_naive": 0, "tuples_tile_cull": 0, "tuples": 0, "paths": 0, "paths_front": 0, "paths_lit": 0, "paths_visible": 0}
     chain_counts = {item["chain"]: {"tuples": 0, "paths": 0, "paths_visible": 0} for item in plan}
@@ -238,8 +266,8 @@ def bake(scene, settings=None, progress=None):
                             t0 = time.perf_counter()
                             emitter_cache[key] = _emitters(scene, extent, settings, item, ls, m)
                             timer.add("cull", time.perf_counter() - t0)
-                        st = _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer, progress,
-                                         emitter_cache[key])
+                        st = yield from _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer,
+                                                    emitter_cache[key])
                         for k in st:
                             counts[k] += st[k]
                         cc = chain_counts[item["chain"]]
@@ -248,8 +276,7 @@ def bake(scene, settings=None, progress=None):
                         cc["paths_visible"] += st["paths_visible"]
                         rec_paths += st["paths_visible"]
             rows_done += j1 - j0
-            if progress is not None and progress(rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}") is False:
-                raise BakeCancelled()
+            yield rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}"
         t0 = time.perf_counter()
         covered = cover > 0
         img = np.zeros((W * H, 3))
@@ -346,8 +373,9 @@ def _emitters(scene, extent, settings, item, ls, m):
     return em, tri_of, x0_all[em.index[:, 0]]
 
 
-def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer, progress, emitters):
-    """One chain, one light sample, one band: cull, solve in batches, weigh, test, accumulate."""
+def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer, emitters):
+    """One chain, one light sample, one band: cull, solve in batches, weigh, test, accumulate.
+    A generator: yields ``(None, message)`` after every batch, returns the counts."""
     chain = item["chain"]
     k = len(chain)
     st = {"tuples_tile_cull": 0, "tuples": 0, "paths": 0, "paths_front": 0, "paths_lit": 0, "paths_visible": 0}
@@ -369,7 +397,8 @@ def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, t
         P = scene.tri_p[tri]
         N = scene.tri_n[tri]
         eta = scene.tri_ior[tri[:, 0]]
-        ti, uv = solve_tuples(chain, x_start, x_end, P, N, eta)
+        # The device only when it is not the default (solve_tuples' signature stays optional).
+        ti, uv = solve_tuples(chain, x_start, x_end, P, N, eta, **({} if settings.device == "numba" else {"device": settings.device}))
         timer.add("solve", time.perf_counter() - t0)
         st["paths"] += ti.size
         if ti.size:
@@ -401,8 +430,7 @@ def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, t
                 for c in range(3):
                     sums[:, c] += np.bincount(tex, weights=w[:, c], minlength=sums.shape[0])
                 timer.add("accumulate", time.perf_counter() - t0)
-        if progress is not None and progress(None, f"{chain}: {st['tuples']:,} tuples") is False:
-            raise BakeCancelled()
+        yield None, f"{chain}: {st['tuples']:,} tuples"
         t0 = time.perf_counter()
     return st
 

@@ -5,7 +5,8 @@
   normals Cycles interpolates, sharp edges and custom normals respected), normals
   transformed by the inverse transpose of the world matrix and normalised.
 - Roles per triangle from its material (auto-detection below), overridable per object with
-  the custom property ``caustic_role`` in {"auto", "reflect", "refract", "both", "none"}:
+  the add-on's ``object.caustic_bake.role`` (when registered and not "auto") or else the custom
+  property ``caustic_role`` in {"auto", "reflect", "refract", "both", "none"}:
     * Glass BSDF with roughness <= ROUGHNESS_MAX -> "both" (Fresnel-weighted R and T), its IOR
       and colour;
     * Refraction BSDF, or Principled with Transmission Weight >= 0.5 and roughness <=
@@ -14,8 +15,9 @@
       "reflect" with its colour;
     * anything else: occluder.
   Linked (textured) colour / IOR inputs fall back to the socket's own value (a warning).
-- Receivers: ``caustic_receiver`` in {"auto", "yes", "no"}; auto = every non-caster mesh
-  with a UV map; the texture size is ``caustic_resolution`` on the object or the bake's.
+- Receivers: ``object.caustic_bake.receiver`` or else ``caustic_receiver`` in {"auto", "yes",
+  "no"}; auto = every non-caster mesh with a UV map; the texture size is
+  ``object.caustic_bake.resolution`` (if > 0), else ``caustic_resolution``, else the bake's.
 - What is baked is what the (viewport) depsgraph holds: objects hidden from renders are left
   out, and so are objects disabled in viewports (the render depsgraph is not reachable from
   Python outside a render).
@@ -91,8 +93,21 @@ def material_role(mat, warnings=None):
     return ROLE_NONE, 1.5, (1.0, 1.0, 1.0)
 
 
+#: custom property -> attribute of the object's ``caustic_bake`` property group (addon.ui).
+_GROUP_ATTR = {"caustic_role": "role", "caustic_receiver": "receiver", "caustic_resolution": "resolution"}
+
+
 def _prop(ob, key, allowed, default):
+    """An object's role setting: its ``caustic_bake`` property group (the add-on's UI) when that
+    says something other than "auto" (or a resolution > 0), else the custom property ``key``."""
+    group = getattr(ob, "caustic_bake", None)
+    if group is not None:
+        val = getattr(group, _GROUP_ATTR[key], None)
+        if val is not None and val != "auto" and val != 0:
+            return val
     val = ob.get(key, default)
+    if allowed is None:
+        return val
     if isinstance(val, str):
         val = val.lower()
     if val not in allowed:
@@ -258,7 +273,7 @@ def extract_scene(depsgraph=None, resolution=256, frame=None):
             elif not uvs:
                 raise SceneError(f"receiver {orig.name!r} has no UV map")
             else:
-                res = int(orig.get("caustic_resolution", resolution))
+                res = int(_prop(orig, "caustic_resolution", None, resolution))
                 uv = uvs[active_uv][tl]
                 receivers.append(Receiver(orig.name, oi, np.arange(offset, offset + m), uv, (res, res), active_uv))
         offset += m
@@ -269,6 +284,46 @@ def extract_scene(depsgraph=None, resolution=256, frame=None):
                   tri_tint=cat(tri_tint), tri_material=cat(tri_mat), objects=names, materials=materials,
                   receivers=receivers, lights=lights, frame=int(bpy.context.scene.frame_current), warnings=warnings)
     return scene
+
+
+def readiness(bl_scene):
+    """(receivers, lights): how many objects of ``bl_scene`` would be receivers and lights,
+    by the rules of :func:`extract_scene` but without evaluating meshes (cheap enough for a
+    panel's poll).  Objects hidden from renders are left out; instances are not counted."""
+    n_rec = n_light = 0
+    roles = {}
+    for ob in bl_scene.objects:
+        if ob.hide_render:
+            continue
+        if ob.type == "LIGHT":
+            n_light += 1
+            continue
+        if ob.type != "MESH":
+            continue
+        try:
+            want = _prop(ob, "caustic_receiver", {"auto", "yes", "no"}, "auto")
+            override = _prop(ob, "caustic_role", set(ROLE_NAMES) | {"auto"}, "auto")
+        except SceneError:
+            continue
+        if want == "no":
+            continue
+        if want == "auto":
+            if not ob.data.uv_layers:
+                continue
+            if override != "auto":
+                caster = override != "none"
+            else:
+                caster = False
+                for slot in ob.material_slots:
+                    mat = slot.material
+                    key = mat.name if mat is not None else ""
+                    if key not in roles:
+                        roles[key] = material_role(mat)[0]
+                    caster = caster or roles[key] != ROLE_NONE
+            if caster:
+                continue
+        n_rec += 1
+    return n_rec, n_light
 
 
 def open_blend(path):

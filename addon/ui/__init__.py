@@ -9,10 +9,14 @@ even where numba is missing (the operators report that instead).
 import os
 import sys
 
-from . import operators
+from . import operators, panels, properties, state
 
 #: Registered in this order, unregistered in reverse.
-classes = (operators.CAUSTICS_OT_prepare_solver,)
+classes = properties.classes + (
+    operators.CAUSTICS_OT_prepare_solver,
+    operators.CAUSTICS_OT_bake,
+    operators.CAUSTICS_OT_clear,
+) + panels.classes
 
 #: The numba cache directory chosen at registration (None in development: the solver then
 #: uses ``<repo>/.numba_cache``, see ``addon.solver.jit``).
@@ -64,16 +68,21 @@ def register():
     import bpy
 
     _configure_numba_cache()
+    state.forget_numba_check()
+    state.STATE.reset()
     for cls in classes:
         bpy.utils.register_class(cls)
+    properties.register_properties()
 
 
 def unregister():
     import bpy
 
     global numba_cache_dir, _previous_cache_env
+    properties.unregister_properties()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)
+    state.STATE.reset()
     current = os.environ.get("NUMBA_CACHE_DIR")
     # addon.solver.jit caches under <our directory>/<source fingerprint>: that is ours too.
     ours = current is not None and numba_cache_dir is not None and (

@@ -1,18 +1,71 @@
-"""Operators.  Thin: they call into addon.solver / addon.bake and report; no maths here."""
+"""Operators.  Thin: they call into addon.solver / addon.bake and report; no maths here.
+
+- ``caustics.prepare_solver``: compile (or load) the solver kernels ahead of the first bake.
+- ``caustics.bake``: from the UI (invoke) a modal operator that runs the bake in short chunks
+  from a window-manager timer (``addon.bake.driver.bake_steps``; no Python threads), with a
+  progress bar and status text; Esc / right-click cancels and leaves the scene exactly as it
+  was (nothing is applied before the bake is complete).  From scripts and in background mode
+  (``blender -b``) execute() bakes synchronously; in background mode it then saves the .blend
+  (``save_blend``, default: yes there if the file has a path).  Undo restores the state before
+  the bake (everything the bake changes is Blender data: images, node group, materials).
+- ``caustics.clear``: removes what the bake added (images, node group, material copies, nodes).
+
+Errors are reported in the UI as one line (self.report), never as a traceback; unexpected
+exceptions are reported briefly and their traceback goes to the console.
+"""
+
+import time
+import traceback
+import warnings
 
 import bpy
 
-_MISSING_NUMBA = (
-    "Caustic Bake needs numba and llvmlite, which are bundled with the extension, "
-    "but they could not be imported ({}). Reinstall the extension package built for "
-    "this platform and Blender version"
-)
+from .state import MISSING_NUMBA, SHORT_MISSING_NUMBA, STATE, numba_missing
+
+
+class UserError(Exception):
+    """A problem the user can fix: reported as one line, no traceback."""
 
 
 def _is_numba_import_error(ex):
     """True if ``ex`` (an ImportError) is about numba/llvmlite themselves (missing or broken)."""
     name = (getattr(ex, "name", None) or "").split(".")[0]
     return name in ("numba", "llvmlite") or "numba" in str(ex).lower() or "llvmlite" in str(ex).lower()
+
+
+def load_solver():
+    """Import numba and the solver lazily (after register() pointed numba's cache at the
+    extension user directory); raises UserError when numba / llvmlite cannot be imported."""
+    from . import numba_cache_dir
+
+    try:
+        import llvmlite  # noqa: F401
+        import numba  # noqa: F401
+
+        from .. import solver
+
+        if numba_cache_dir:
+            from ..solver.jit import configure_cache
+
+            configure_cache(numba_cache_dir)
+    except ImportError as ex:
+        if _is_numba_import_error(ex):
+            raise UserError(MISSING_NUMBA.format(ex)) from None
+        raise
+    return solver
+
+
+def _report_failure(op, ex, what):
+    """One line in the UI; a traceback in the console only for bugs."""
+    from ..bake.scene import SceneError
+
+    if isinstance(ex, (UserError, SceneError)):
+        op.report({"ERROR"}, "Caustic Bake: {}".format(ex))
+    elif isinstance(ex, OSError):  # cannot write the textures (permissions, disk full, ...)
+        op.report({"ERROR"}, "Caustic Bake: cannot write the textures: {}".format(ex))
+    else:
+        traceback.print_exception(type(ex), ex, ex.__traceback__)
+        op.report({"ERROR"}, "Caustic Bake: {} failed ({}: {}); details in the console".format(what, type(ex).__name__, ex))
 
 
 class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
@@ -23,36 +76,293 @@ class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     def execute(self, context):
-        from . import numba_cache_dir
-
         try:
-            # Lazy: numba is imported only when the solver is needed, after register()
-            # pointed its kernel cache at the extension's user directory.
-            import llvmlite  # noqa: F401
-            import numba  # noqa: F401
-
-            from .. import solver
-
-            if numba_cache_dir:
-                from ..solver.jit import configure_cache
-
-                configure_cache(numba_cache_dir)
+            solver = load_solver()
             seconds = solver.warm_up()
+        except UserError as ex:
+            self.report({"ERROR"}, str(ex))
+            return {"CANCELLED"}
         except ImportError as ex:
-            if _is_numba_import_error(ex):
-                self.report({"ERROR"}, _MISSING_NUMBA.format(ex))
-            else:
-                import traceback
-
-                traceback.print_exc()
-                self.report({"ERROR"}, "Caustic Bake: could not load the solver: {}".format(ex))
+            traceback.print_exc()
+            self.report({"ERROR"}, "Caustic Bake: could not load the solver: {}".format(ex))
             return {"CANCELLED"}
         except Exception as ex:  # a bug: say so in the UI, keep the details in the console
-            import traceback
-
             traceback.print_exc()
             self.report({"ERROR"}, "Caustic Bake: preparing the solver failed: {}".format(ex))
             return {"CANCELLED"}
 
         self.report({"INFO"}, "Caustic solver ready ({:.1f} s)".format(seconds))
+        return {"FINISHED"}
+
+
+def output_directory(props):
+    """Where the textures go: the output folder, or None (pack) when it is relative to an
+    unsaved .blend."""
+    directory = props.output_dir or "//caustics/"
+    if directory.startswith("//") and not bpy.data.filepath:
+        return None
+    return directory
+
+
+class BakeJob:
+    """One bake of the active scene, in steps: :meth:`start` (extract, check), :meth:`step`
+    (bounded chunks of the driver's generator), :meth:`finish` (apply to the scene) or
+    :meth:`cancel`.  Nothing in Blender changes before :meth:`finish`.  The modal operator
+    drives it from a timer; execute() and tests drive it directly."""
+
+    #: Smaller chunks than the driver's defaults, so that one timer tick stays short.
+    MODAL_BATCH_TUPLES = 1 << 16
+    MODAL_BAND_SAMPLES = 1 << 18
+
+    def __init__(self, context, modal=False):
+        self.scene_name = context.scene.name
+        self.modal = modal
+        self.steps = None
+        self.result = None
+        self.model = None
+        self.warnings = []
+        self.t0 = time.perf_counter()
+
+    def start(self, context):
+        load_solver()
+        from ..bake.apply import foreign_files
+        from ..bake.driver import bake_steps
+        from ..bake.extract import extract_scene
+        from .properties import bake_settings
+
+        props = context.scene.caustic_bake
+        settings = bake_settings(props)
+        if self.modal:
+            settings.batch_tuples = self.MODAL_BATCH_TUPLES
+            settings.band_samples = self.MODAL_BAND_SAMPLES
+        self.directory = output_directory(props)
+        self.pack = bool(props.pack)
+        self.model = extract_scene(resolution=int(props.resolution))
+        clash = foreign_files([r.name for r in self.model.receivers], self.directory)
+        if clash:
+            raise UserError("{} exists and was not written by Caustic Bake; choose another output folder".format(clash[0]))
+        self.steps = bake_steps(self.model, settings)
+
+    def step(self, budget=0.1):
+        """Run chunks for about ``budget`` seconds (at least one); True when the bake is done."""
+        t_end = time.perf_counter() + budget
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RuntimeWarning)
+            try:
+                while True:
+                    fraction, message = next(self.steps)
+                    STATE.update(fraction, message)
+                    if time.perf_counter() >= t_end:
+                        return False
+            except StopIteration as done:
+                self.result = done.value
+                STATE.update(1.0, "applying")
+                return True
+            finally:
+                for w in caught:
+                    text = str(w.message)
+                    if text not in self.warnings:
+                        self.warnings.append(text)
+
+    def run(self):
+        while not self.step(budget=1e9):
+            pass
+
+    def cancel(self):
+        if self.steps is not None:
+            self.steps.close()
+            self.steps = None
+
+    def finish(self, context):
+        """Apply the result to the scene; returns the one-line summary."""
+        from ..bake.apply import apply_bake, clear_bake, receivers_uv_maps
+
+        result = self.result
+        clear_bake()  # a new bake replaces every earlier one
+        done = apply_bake(result.images, receivers_uv_maps(self.model), directory=self.directory, pack=self.pack)
+        self.warnings = list(result.report.get("warnings", [])) + self.warnings
+        c = result.report["counts"]
+        return "Caustic Bake: {} receiver(s) in {:.1f} s, {:,} paths, {:,} texels lit".format(
+            len(done), time.perf_counter() - self.t0, c["paths_visible"], c["texels_touched"])
+
+
+class CAUSTICS_OT_bake(bpy.types.Operator):
+    """Bake caustic irradiance textures onto the receivers (Esc cancels)"""
+
+    bl_idname = "caustics.bake"
+    bl_label = "Bake Caustics"
+    bl_options = {"REGISTER", "UNDO"}
+
+    save_blend: bpy.props.BoolProperty(
+        name="Save .blend",
+        description="Save the .blend after the bake (default: only in background mode, blender -b, "
+        "when the file has a path)",
+        default=False,
+        options={"SKIP_SAVE"},
+    )
+
+    @classmethod
+    def poll(cls, context):
+        if STATE.running:
+            cls.poll_message_set("A caustic bake is running (Esc cancels it)")
+            return False
+        if numba_missing():
+            cls.poll_message_set(SHORT_MISSING_NUMBA)
+            return False
+        if context.scene is None or not hasattr(context.scene, "caustic_bake"):
+            return False
+        from ..bake.extract import readiness
+
+        receivers, lights = readiness(context.scene)
+        if not receivers:
+            cls.poll_message_set("No receivers: give a mesh a UV map, or set Receiver to Yes in Object properties")
+            return False
+        if not lights:
+            cls.poll_message_set("No lights in the scene (hidden-from-render lights do not count)")
+            return False
+        return True
+
+    # -- synchronous (scripts, background mode) ------------------------------------------
+    def execute(self, context):
+        job = BakeJob(context)
+        try:
+            job.start(context)
+            job.run()
+            message = job.finish(context)
+        except Exception as ex:
+            job.cancel()
+            _report_failure(self, ex, "the bake")
+            return {"CANCELLED"}
+        self._report_warnings(job)
+        self.report({"INFO"}, message)
+        save = self.save_blend if self.properties.is_property_set("save_blend") else bpy.app.background
+        if save and bpy.data.filepath:
+            bpy.ops.wm.save_mainfile()
+        return {"FINISHED"}
+
+    # -- modal (the UI) -------------------------------------------------------------------
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        self._timer = None
+        self._job = BakeJob(context, modal=True)
+        try:
+            self._job.start(context)
+        except Exception as ex:
+            self._job.cancel()
+            _report_failure(self, ex, "the bake")
+            return {"CANCELLED"}
+        STATE.start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.02, window=context.window)
+        wm.progress_begin(0, 1000)
+        wm.modal_handler_add(self)
+        self._status(context, "Caustic Bake: starting (Esc to cancel)")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type in {"ESC", "RIGHTMOUSE"} and event.value == "PRESS":
+            self._job.cancel()
+            self._end(context)
+            self.report({"WARNING"}, "Caustic Bake cancelled; nothing was changed")
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        try:
+            done = self._job.step()
+            if done:
+                message = self._job.finish(context)
+        except Exception as ex:
+            self._job.cancel()
+            self._end(context)
+            _report_failure(self, ex, "the bake")
+            return {"CANCELLED"}
+        if not done:
+            context.window_manager.progress_update(int(1000 * STATE.fraction))
+            self._status(context, "Caustic Bake {:.0f}%: {} (Esc to cancel)".format(100 * STATE.fraction, STATE.message))
+            self._redraw(context)
+            return {"RUNNING_MODAL"}
+        self._end(context)
+        self._report_warnings(self._job)
+        self.report({"INFO"}, message)
+        return {"FINISHED"}
+
+    def cancel(self, context):  # Blender ends the operator (file load, window closed)
+        if getattr(self, "_job", None) is not None:
+            self._job.cancel()
+        self._end(context)
+
+    def _end(self, context):
+        STATE.reset()
+        wm = context.window_manager
+        if getattr(self, "_timer", None) is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        self._status(context, None)
+        self._redraw(context)
+
+    @staticmethod
+    def _status(context, text):
+        workspace = getattr(context, "workspace", None)
+        if workspace is not None:
+            workspace.status_text_set(text)
+
+    @staticmethod
+    def _redraw(context):
+        screen = getattr(context, "screen", None)
+        for area in (screen.areas if screen is not None else ()):
+            if area.type == "PROPERTIES":
+                area.tag_redraw()
+
+    def _report_warnings(self, job):
+        if job.warnings:
+            more = " (+{} more in the console)".format(len(job.warnings) - 1) if len(job.warnings) > 1 else ""
+            self.report({"WARNING"}, "Caustic Bake: {}{}".format(job.warnings[0], more))
+            for w in job.warnings:
+                print("Caustic Bake warning:", w)
+
+
+def baked_images():
+    """Names of the images an earlier bake made (what Clear would remove)."""
+    from ..bake.apply import TAG_KEY
+
+    return sorted(img.name for img in bpy.data.images if img.get(TAG_KEY))
+
+
+def has_bake():
+    from ..bake.apply import GROUP_NAME, STATE_KEY, TAG_KEY
+
+    group = bpy.data.node_groups.get(GROUP_NAME)
+    return bool(baked_images()) or (group is not None and bool(group.get(TAG_KEY))) or any(
+        m.get(STATE_KEY) is not None for m in bpy.data.materials)
+
+
+class CAUSTICS_OT_clear(bpy.types.Operator):
+    """Remove the baked caustic textures and the nodes and node group the bake added"""
+
+    bl_idname = "caustics.clear"
+    bl_label = "Clear Caustics"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        if STATE.running:
+            cls.poll_message_set("A caustic bake is running")
+            return False
+        if not has_bake():
+            cls.poll_message_set("Nothing to clear: no caustic bake in this file")
+            return False
+        return True
+
+    def execute(self, context):
+        from ..bake.apply import clear_bake
+
+        n = len(baked_images())
+        try:
+            clear_bake()
+        except Exception as ex:
+            _report_failure(self, ex, "clearing")
+            return {"CANCELLED"}
+        self.report({"INFO"}, "Caustic Bake: cleared {} texture(s)".format(n))
         return {"FINISHED"}

@@ -1,0 +1,112 @@
+"""Panels: Properties -> Render -> "Caustic Bake", and Properties -> Object -> "Caustic Bake".
+Thin: they show settings and state; no maths here."""
+
+import bpy
+
+from .state import SHORT_MISSING_NUMBA, STATE, numba_missing
+
+
+class RENDER_PT_caustic_bake(bpy.types.Panel):
+    bl_label = "Caustic Bake"
+    bl_idname = "RENDER_PT_caustic_bake"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "render"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None and hasattr(context.scene, "caustic_bake")
+
+    def draw(self, context):
+        from ..bake.extract import readiness
+        from .operators import baked_images
+
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        props = context.scene.caustic_bake
+
+        missing = numba_missing()
+        if missing:
+            box = layout.box()
+            box.alert = True
+            box.label(text=SHORT_MISSING_NUMBA, icon="ERROR")
+            box.label(text="({} could not be found)".format(missing))
+
+        if STATE.running:
+            col = layout.column()
+            col.progress(factor=STATE.fraction, type="BAR", text="{:.0f}%  {}".format(100 * STATE.fraction, STATE.message))
+            col.label(text="Baking... press Esc to cancel", icon="INFO")
+        else:
+            receivers, lights = readiness(context.scene)
+            if not receivers:
+                layout.label(text="No receivers: a mesh needs a UV map (or Receiver: Yes)", icon="INFO")
+            if not lights:
+                layout.label(text="No lights in the scene", icon="INFO")
+            row = layout.row(align=True)
+            row.scale_y = 1.5
+            row.operator("caustics.bake", icon="RENDER_STILL")
+            row.operator("caustics.clear", text="", icon="TRASH")
+
+        images = baked_images()
+        if images:
+            box = layout.box()
+            box.label(text="Baked: {} texture(s)".format(len(images)), icon="CHECKMARK")
+            for name in images[:8]:
+                box.label(text=name, icon="IMAGE_DATA")
+            if len(images) > 8:
+                box.label(text="... and {} more".format(len(images) - 8))
+
+        col = layout.column()
+        col.enabled = not STATE.running
+        col.prop(props, "resolution")
+        col.prop(props, "quality")
+        sub = col.column()
+        sub.active = props.quality == "FINAL"
+        sub.prop(props, "samples")
+        sub.prop(props, "light_samples")
+        sub.prop(props, "bounces")
+        col.separator()
+        col.prop(props, "solver")
+        col.prop(props, "device")
+        col.prop(props, "seed")
+        col.prop(props, "margin")
+        col.separator()
+        col.prop(props, "output_dir")
+        col.prop(props, "pack")
+        if not bpy.data.filepath and (props.output_dir or "//").startswith("//"):
+            col.label(text="Unsaved file: the textures will be packed", icon="PACKAGE")
+
+
+class OBJECT_PT_caustic_bake(bpy.types.Panel):
+    bl_label = "Caustic Bake"
+    bl_idname = "OBJECT_PT_caustic_bake"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "object"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def poll(cls, context):
+        ob = context.object
+        return ob is not None and ob.type == "MESH" and hasattr(ob, "caustic_bake")
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        ob = context.object
+        props = ob.caustic_bake
+        col = layout.column()
+        col.enabled = not STATE.running
+        col.prop(props, "role")
+        col.prop(props, "receiver")
+        sub = col.column()
+        sub.active = props.receiver != "no"
+        sub.prop(props, "resolution")
+        if props.receiver != "no" and not ob.data.uv_layers:
+            col.label(text="No UV map: cannot receive caustics", icon="ERROR" if props.receiver == "yes" else "INFO")
+
+
+classes = (RENDER_PT_caustic_bake, OBJECT_PT_caustic_bake)

@@ -1,0 +1,101 @@
+"""RNA properties: scene bake settings (``scene.caustic_bake``) and per-object roles
+(``object.caustic_bake``).  Thin: plain settings, turned into a BakeSettings by
+:func:`bake_settings`; no maths here.
+
+The object roles are read by ``addon.bake.extract``; an object whose group says "auto" falls
+back to the custom properties ``caustic_role`` / ``caustic_receiver`` / ``caustic_resolution``
+(scripts and older files keep working).
+"""
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, IntProperty, PointerProperty, StringProperty
+
+# Only what the bake driver can really do: one solver (Specular Polynomials) drives the bake;
+# the Newton / SMS baselines of addon/solver are research comparison points, not wired into
+# the bake, so they are not offered.
+SOLVER_ITEMS = (
+    ("spoly", "Specular Polynomials", "Deterministic: every specular path of each triangle tuple (Fan et al. 2024)"),
+)
+DEVICE_ITEMS = (
+    ("numba", "CPU", "Solve on the CPU with Numba"),
+    ("opencl", "OpenCL",
+     "Solve one-bounce chains (R, T) on the first OpenCL device with double precision; two-bounce chains, "
+     "or no OpenCL device / pyopencl, fall back to the CPU with a warning"),
+)
+QUALITY_ITEMS = (
+    ("PREVIEW", "Preview", "Fast look: 1 sample per texel, 1 light sample, 1 bounce (the fields below are ignored)"),
+    ("FINAL", "Final", "The samples, light samples and bounces set below"),
+)
+ROLE_ITEMS = (
+    ("auto", "Auto", "From the material: glass = reflect + refract, metal / glossy = reflect, "
+     "transmissive = refract, anything else casts no caustics"),
+    ("reflect", "Reflect", "A mirror (tinted by the material colour)"),
+    ("refract", "Refract", "A single refracting interface (water surface)"),
+    ("both", "Reflect & Refract", "Glass: Fresnel-weighted reflection and refraction"),
+    ("none", "None", "Casts no caustics (still blocks light)"),
+)
+RECEIVER_ITEMS = (
+    ("auto", "Auto", "A receiver if it has a UV map and casts no caustics"),
+    ("yes", "Yes", "Always a receiver (needs a UV map)"),
+    ("no", "No", "Never a receiver"),
+)
+
+
+class CausticBakeSceneSettings(bpy.types.PropertyGroup):
+    resolution: IntProperty(name="Resolution", description="Texels per side of each receiver's caustic texture "
+                            "(unless the object overrides it)", default=256, min=8, max=16384, soft_max=4096)
+    samples: IntProperty(name="Samples per Texel", description="Supersamples per texel (rounded up to a square grid)",
+                         default=4, min=1, max=256, soft_max=64)
+    light_samples: IntProperty(name="Light Samples", description="Samples over the size of sized lights "
+                               "(soft caustics); 1 treats every light as a point", default=1, min=1, max=4096, soft_max=64)
+    bounces: IntProperty(name="Max Bounces", description="Specular bounces: 1 (R, T) or 2 (also RR, RT, TR, TT)",
+                         default=1, min=1, max=2)
+    quality: EnumProperty(name="Quality", items=QUALITY_ITEMS, default="FINAL")
+    solver: EnumProperty(name="Solver", items=SOLVER_ITEMS, default="spoly")
+    device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="numba")
+    seed: IntProperty(name="Seed", description="Seed of the supersample jitter and light samples", default=0, min=0)
+    margin: IntProperty(name="Margin", description="Texels of padding over UV seams", default=16, min=0, max=256)
+    output_dir: StringProperty(name="Output Folder", description="Where the EXR textures are written "
+                               "(// = next to the .blend); an unsaved file packs them", default="//caustics/",
+                               subtype="DIR_PATH")
+    pack: BoolProperty(name="Pack Textures", description="Pack the baked textures into the .blend", default=False)
+
+
+class CausticBakeObjectSettings(bpy.types.PropertyGroup):
+    role: EnumProperty(name="Caster", items=ROLE_ITEMS, default="auto",
+                       description="How this object casts caustics")
+    receiver: EnumProperty(name="Receiver", items=RECEIVER_ITEMS, default="auto",
+                           description="Whether this object receives a caustic texture")
+    resolution: IntProperty(name="Resolution", description="Texels per side of this receiver's texture "
+                            "(0: the scene's setting)", default=0, min=0, max=16384, soft_max=4096)
+
+
+classes = (CausticBakeSceneSettings, CausticBakeObjectSettings)
+
+
+def register_properties():
+    bpy.types.Scene.caustic_bake = PointerProperty(type=CausticBakeSceneSettings)
+    bpy.types.Object.caustic_bake = PointerProperty(type=CausticBakeObjectSettings)
+
+
+def unregister_properties():
+    del bpy.types.Object.caustic_bake
+    del bpy.types.Scene.caustic_bake
+
+
+def bake_settings(props):
+    """The driver's BakeSettings for the scene settings ``props`` (a CausticBakeSceneSettings,
+    or anything with the same attributes).  ``resolution`` stays 0: every receiver brings its
+    own (its override, or the scene's resolution given to extract_scene)."""
+    from ..bake.driver import BakeSettings
+
+    preview = props.quality == "PREVIEW"
+    return BakeSettings(
+        resolution=0,
+        samples=1 if preview else int(props.samples),
+        light_samples=1 if preview else int(props.light_samples),
+        bounces=1 if preview else int(props.bounces),
+        seed=int(props.seed),
+        margin=int(props.margin),
+        device=str(props.device),
+    )

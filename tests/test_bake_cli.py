@@ -130,3 +130,25 @@ def test_frames_write_one_directory_each(tmp_path, capsys):
 def test_demo_still_runs(capsys):
     assert main(["demo", "--width", "16", "--height", "4"]) == 0
     assert "Concave mirror" in capsys.readouterr().out
+
+
+def test_preview_shows_the_written_exr_without_a_second_copy(tmp_path, capsys):
+    """--preview renders the bake through the node group from the EXRs the CLI wrote: no
+    second copy of each texture next to them, nothing written next to the .blend."""
+    blend = os.path.join(SAMPLES, "metal_ring.blend")
+    before = sorted(os.listdir(SAMPLES))
+    out = tmp_path / "ring"
+    png = tmp_path / "preview.png"
+    assert main(["bake", blend, "--out", str(out), "--resolution", "16", "--samples", "1",
+                 "--preview", str(png), "--preview-samples", "1"]) == 0
+    assert png.is_file() and png.stat().st_size > 0
+    report = json.loads((out / "report.json").read_text())
+    exrs = sorted(f for f in os.listdir(out) if f.endswith(".exr"))
+    assert exrs == sorted(report["files"].values())  # exactly one EXR per receiver
+    assert sorted(os.listdir(SAMPLES)) == before
+    for name, fname in report["files"].items():
+        img = bpy.data.images[f"CausticBake {name}"]
+        assert os.path.samefile(bpy.path.abspath(img.filepath), out / fname)
+        H, W = img.size[1], img.size[0]
+        px = np.array(img.pixels[:], dtype=np.float32).reshape(H, W, 4)[:, :, :3]
+        np.testing.assert_allclose(px, read_exr(str(out / fname)), rtol=1e-6, atol=1e-7)

@@ -123,11 +123,12 @@ def foreign_files(object_names, directory):
     return out
 
 
-def make_image(name, pixels_rgb, directory=None, pack=False):
+def make_image(name, pixels_rgb, directory=None, pack=False, source=None):
     """An Image from (H, W, 3) irradiance (row 0 = bottom): written as EXR into ``directory``
     (absolute, or relative to the .blend with //) and loaded from there; packed if asked or if
     there is nowhere to write.  A file there that Caustic Bake did not write (see
-    :func:`foreign_files`) is never overwritten: FileExistsError."""
+    :func:`foreign_files`) is never overwritten: FileExistsError.  ``source``: an EXR of these
+    pixels already written (by the CLI): loaded from there, nothing is written."""
     import numpy as np
 
     from .exr import write_exr
@@ -136,6 +137,14 @@ def make_image(name, pixels_rgb, directory=None, pack=False):
     old = bpy.data.images.get(name)
     if old is not None and old.get(TAG_KEY):
         bpy.data.images.remove(old)
+    if source is not None and os.path.isfile(source):
+        img = bpy.data.images.load(os.path.abspath(source), check_existing=False)
+        img.name = name
+        if pack:
+            img.pack()
+        img.colorspace_settings.name = "Non-Color"
+        img[TAG_KEY] = True
+        return img
     if directory is None:
         directory = "//caustics" if bpy.data.filepath else None
     if directory is not None:
@@ -221,12 +230,13 @@ def _insert_nodes(mat, image, uv_map, group):
     return {"nodes": added, "links": removed}
 
 
-def apply_bake(images, uv_maps, directory=None, pack=False):
+def apply_bake(images, uv_maps, directory=None, pack=False, files=None):
     """Show baked irradiance on receivers.
 
     ``images``: {object name: (H, W, 3) irradiance array (row 0 = bottom)};
-    ``uv_maps``: {object name: UV layer name}.  Re-applying replaces an earlier bake.
-    Returns {object name: image name}.
+    ``uv_maps``: {object name: UV layer name}; ``files``: {object name: path of an EXR of that
+    same array already on disk (the CLI's output)}: loaded as is instead of writing a second
+    copy.  Re-applying replaces an earlier bake.  Returns {object name: image name}.
     """
     clear_bake([name for name in images])
     group = ensure_node_group()
@@ -235,7 +245,7 @@ def apply_bake(images, uv_maps, directory=None, pack=False):
         ob = bpy.data.objects.get(obj_name)
         if ob is None or ob.type != "MESH":
             continue
-        img = make_image(f"{NODE_PREFIX} {obj_name}", pixels, directory, pack)
+        img = make_image(f"{NODE_PREFIX} {obj_name}", pixels, directory, pack, source=(files or {}).get(obj_name))
         slot_state = []
         if len(ob.material_slots) == 0:
             mat = bpy.data.materials.new(f"{NODE_PREFIX} {obj_name}")

@@ -131,7 +131,9 @@ def render_preview(scene_model, result, out_dir, png, samples):
 
     if bpy.context.scene.camera is None:
         raise UserError("--preview needs a scene camera")
-    apply_bake(result.images, receivers_uv_maps(scene_model), directory=os.path.abspath(out_dir))
+    # the EXRs result.write() put in out_dir are what the preview shows (no second copy)
+    files = {name: os.path.join(os.path.abspath(out_dir), fname) for name, fname in result.report.get("files", {}).items()}
+    apply_bake(result.images, receivers_uv_maps(scene_model), directory=os.path.abspath(out_dir), files=files)
     sc = bpy.context.scene
     sc.render.engine = "CYCLES"
     sc.cycles.device = "CPU"

@@ -12,7 +12,7 @@ _PROJECT_CACHE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os
 
 
 def source_fingerprint():
-    """Hash of every solver source file.
+    """Hash of every solver source file, subpackages included (sorted relative paths).
 
     Numba's on-disk cache is keyed per file: when a kernel inlines a function from another
     module and only that module changes, the caller's stale machine code is still loaded.
@@ -23,11 +23,14 @@ def source_fingerprint():
 
     digest = hashlib.sha1()
     folder = os.path.dirname(os.path.abspath(__file__))
-    for name in sorted(os.listdir(folder)):
-        if name.endswith(".py"):
-            digest.update(name.encode())
-            with open(os.path.join(folder, name), "rb") as f:
-                digest.update(f.read())
+    files = []
+    for root, dirs, names in os.walk(folder):
+        dirs[:] = sorted(d for d in dirs if d != "__pycache__")
+        files.extend(os.path.relpath(os.path.join(root, n), folder).replace(os.sep, "/") for n in names if n.endswith(".py"))
+    for name in sorted(files):  # relative paths: subpackages (bounds/) count too
+        digest.update(name.encode())
+        with open(os.path.join(folder, name), "rb") as f:
+            digest.update(f.read())
     return digest.hexdigest()[:16]
 
 

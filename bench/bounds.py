@@ -1,0 +1,136 @@
+"""Benchmark of the Bernstein bounds precompute (Fan et al. 2025, Tables 2–3) on the paper's meshes.
+
+Rows: plane7k R, pool4k T, pool20k T (one-bounce chains; slab/ball TT need the two-bounce
+bounds, not done yet).  Light positions and receivers are chosen here (the paper does not
+publish them) and printed.  Per row: cold time (a fresh process with an empty Numba cache
+directory: compile + run, as a user's first bake), warm time (cached kernels, second run in
+process), tuples, pieces per tuple, memory of the stored bounds, and the validity check
+(forward-traced exact paths inside their piece's position bound and under Ē).
+
+    python bench/bounds.py [--json] [--no-cold] [--rows plane7k,pool4k,pool20k] [--write]
+
+``--json`` ends the output with one JSON list line of rows {"mesh","chain","precompute_s",
+"tuples","pieces_per_tuple","memory_mb","solutions_checked","violations", ...};
+``--write`` replaces the ``bounds`` section of BENCHMARKS.md.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+for p in (os.path.join(ROOT, "tests"), ROOT, HERE):
+    if p not in sys.path:
+        sys.path.insert(0, p)
+
+# name -> settings of the subdivision (§6.1): max depth, σ, α
+SETTINGS = {
+    "plane7k": dict(max_depth=3, sigma=1e-4, alpha=2.0),
+    "pool4k": dict(max_depth=1, sigma=1e-4, alpha=2.0),
+    "pool20k": dict(max_depth=1, sigma=1e-4, alpha=2.0),
+}
+PAPER = {"plane7k": "0.4 s (paper, 32 threads) / 1.7 s (authors' C++, this machine)",
+         "pool4k": "≈1 s (paper)", "pool20k": "0.61 s, 8.2 s with remainder variables (authors' C++, this machine)"}
+
+
+def run_row(name, check=True, samples=4):
+    """Bound one scene; return the row dict (warm time of this call, no compile if cached)."""
+    import bounds_scenes as S
+    from addon.solver.bounds.chain1 import bound_one_bounce
+
+    sc = S.scene(name)
+    t0 = time.perf_counter()
+    res = bound_one_bounce(sc["chain"], sc["light"], sc["caster_P"], sc["caster_N"], sc["receiver_P"], sc["receiver_UV"],
+                           eta=sc["eta"], **SETTINGS[name])
+    seconds = time.perf_counter() - t0
+    row = {"mesh": name, "chain": sc["chain"], "precompute_s": round(seconds, 3), "tuples": res.report["tuples"],
+           "pieces_per_tuple": round(res.report["pieces_per_tuple"], 3), "memory_mb": round(res.report["memory_mb"], 3),
+           "light": list(map(float, sc["light"])), "receiver": "plane y=%g, x in [%g,%g], z in [%g,%g]" % S.SCENES[name][3],
+           "eta": sc["eta"], "settings": SETTINGS[name], "unbounded_pieces": res.report["unbounded_pieces"],
+           "pieces": res.report["pieces"]}
+    if check:
+        c = S.check_bounds(res, sc, samples)
+        row["solutions_checked"] = c["paths"]
+        row["violations"] = c["position_violations"] + c["irradiance_violations"]
+        row["unbounded_paths"] = c["unbounded_paths"]
+        row["median_bound_ratio"] = round(c["median_ratio"], 3)
+    return row
+
+
+def cold_time(name):
+    """Wall seconds of a fresh process with an empty kernel cache (import + compile + bound)."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        t0 = time.perf_counter()
+        out = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", name], env=env, capture_output=True,
+                             text=True, check=True)
+        wall = time.perf_counter() - t0
+    inner = json.loads(out.stdout.strip().splitlines()[-1])
+    return wall, inner["precompute_s"]
+
+
+def warm_up():
+    """Compile (or load) the kernels on a tiny scene so warm timings exclude it."""
+    import numpy as np
+
+    import bounds_scenes as S
+    from addon.solver.bounds.chain1 import bound_one_bounce
+
+    P, N = S.curved_plane(2, 0.3)
+    RP, RUV = S.floor(-2.0, -4, 4, -4, 4)
+    for chain in ("R", "T"):
+        bound_one_bounce(chain, np.array([0.1, 0.2, 3.0]), P, N, RP, RUV, eta=1.33, max_depth=1)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--no-cold", action="store_true")
+    ap.add_argument("--write", action="store_true")
+    ap.add_argument("--rows", default="plane7k,pool4k,pool20k")
+    ap.add_argument("--child")
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(run_row(args.child, check=False)))
+        return
+    from addon.solver.jit import get_num_threads
+
+    rows = []
+    for name in args.rows.split(","):
+        cold = cold_time(name) if not args.no_cold else (None, None)
+        warm_up()
+        row = run_row(name)
+        row["cold_wall_s"] = round(cold[0], 2) if cold[0] is not None else None
+        row["threads"] = get_num_threads()
+        rows.append(row)
+    header = "| mesh | chain | light | warm precompute s | cold wall s (compile incl.) | tuples | pieces/tuple | memory MB | paths checked | violations | paths with Ē = ∞ | median Ē/E | authors |"
+    lines = [header, "|" + "---|" * 13]
+    for r in rows:
+        lines.append(f"| {r['mesh']} | {r['chain']} | {tuple(r['light'])} | {r['precompute_s']} | {r['cold_wall_s']} | {r['tuples']} | "
+                     f"{r['pieces_per_tuple']} | {r['memory_mb']} | {r['solutions_checked']} | {r['violations']} | "
+                     f"{r['unbounded_paths']} | {r['median_bound_ratio']} | {PAPER.get(r['mesh'], '')} |")
+    table = "\n".join(lines)
+    print(table)
+    notes = ("Receivers: a two-triangle floor (plane7k: y = -0.2 over x in [-2,5], z in [-0.6,8]; pools: y = -1.5 over "
+             "x in [-12,12], z in [-14,16], pool units cm), UV = normalised (x, z). Pools: η = 1.33, remainder variables on "
+             "(always). Settings per row: " + json.dumps(SETTINGS) + f". Threads: {rows[0]['threads'] if rows else '?'}. "
+             "Cold = fresh process, empty Numba cache dir. Validity: 4 forward-traced exact paths per caster triangle; "
+             "Ē = ∞ pieces (irradiance not boundable: focal points, normal incidence for the implicit T bound) are kept "
+             "infinite, not clamped.")
+    print(notes)
+    if args.write:
+        from solver import write_section
+
+        write_section(os.path.join(ROOT, "BENCHMARKS.md"), "bounds", "Bernstein bounds precompute (`bench/bounds.py`)",
+                      table + "\n\n" + notes + "\n")
+    if args.json:
+        print(json.dumps(rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -62,7 +62,7 @@ from .irradiance import PathIrradiance, fresnel_dielectric
 from .jit import kernel, prange
 from .one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, POLISH_STEPS, _store_path
 from .path_space import geometric_normal, line_crossing_barycentrics, polish_and_validate, triangle_frame
-from .vec3 import add, cross, dot, madd, norm, row, scale, sub
+from .vec3 import cross, dot, madd, norm, row, scale, sub
 
 DEFAULT_STEPS = 32  # tuple walk: longest marching step 1/DEFAULT_STEPS in barycentric units
 MESH_STEPS = 4  # mesh walk: longest step per triangle 1/MESH_STEPS (f is sampled at entry and exit too)

@@ -109,8 +109,7 @@ def photon_bake_gen(scene, settings):
     if chains and int(emitters.start[-1]) > 0:
         t0 = time.perf_counter()
         steps = photon_steps(scene.tri_p, scene.tri_n, scene.tri_role, scene.tri_ior, scene.tri_tint, tri_rec, tri_uv,
-                             [r.resolution for r in receivers], emitters, chains, seed=settings.seed, bvh=bvh, eps=eps,
-                             batch=max(1024, 4 * int(settings.batch_tuples)))
+                             [r.resolution for r in receivers], emitters, chains, seed=settings.seed, bvh=bvh, eps=eps)
         while True:
             try:
                 done, total = next(steps)

@@ -430,8 +430,9 @@ def trace_photons(*args, **kwargs):
 def photon_steps(tri_p, tri_n, tri_role, tri_ior, tri_tint, tri_rec, tri_uv, rec_res, emitters, chains, seed=0,
                  bvh=None, eps=1e-6, batch=BATCH):
     """Trace every photon of ``emitters`` (:func:`make_emitters`) and bin their flux per texel;
-    a generator yielding ``(photons done, total)`` after every batch of ``batch`` photons (the
-    batch size does not change the result) and returning a :data:`PhotonResult`.
+    a generator yielding ``(photons done, total)`` after every batch of ``batch`` photons and
+    returning a :data:`PhotonResult`.  The batches are summed one after the other, so another
+    ``batch`` changes the rounding of the sums: keep the default for bit-identical results.
 
     ``tri_*`` (n, ...): the scene's triangles (positions, corner normals, role codes 0..3, IOR
     behind the surface, tint); ``tri_rec`` (n,) receiver index or -1, ``tri_uv`` (n,3,2) the

@@ -152,3 +152,20 @@ def test_unknown_method_is_a_clear_value_error():
         bake(sc, BakeSettings(method="sms", sms_seeds=0))
     with pytest.raises(ValueError, match="photons must be"):
         bake(sc, BakeSettings(method="photon", photons=0))
+
+
+def test_cli_method_flag_writes_the_method_into_report(tmp_path, capsys):
+    pytest.importorskip("bpy")
+    import json
+    import os
+
+    from addon.__main__ import main
+
+    blend = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "sample_blends", "mirror_plane.blend")
+    out = tmp_path / "ph"
+    assert main(["bake", blend, "--out", str(out), "--resolution", "16", "--method", "photon", "--photons", "20000"]) == 0
+    rep = json.load(open(out / "report.json"))
+    assert rep["method"] == "photon" and rep["settings"]["photons"] == 20000 and rep["counts"]["photons_deposited"] > 0
+    assert "[photon]" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["bake", blend, "--out", str(out), "--method", "bogus"])

@@ -67,8 +67,8 @@ def check_method(settings):
         raise ValueError(f"sms_seeds must be in [1, 4096], got {settings.sms_seeds}")
     if int(settings.photons) < 1:
         raise ValueError(f"photons must be at least 1, got {settings.photons}")
-    if settings.pieces and not 1 <= int(settings.pieces) <= 64:
-        raise ValueError(f"pieces must be 0 (default) or in [1, 64], got {settings.pieces}")
+    if settings.pieces and not 1 <= int(settings.pieces) <= 1024:
+        raise ValueError(f"pieces must be 0 (the solver's default) or in [1, 1024], got {settings.pieces}")
 
 
 def method_solver(settings):

@@ -75,15 +75,22 @@ def test_registered_classes_and_properties():
     bpy.ops.wm.read_factory_settings(use_empty=True)
     props = bpy.context.scene.caustic_bake
     assert props.resolution == 256 and props.solver == "spoly" and props.device == "numba"
-    # Only options the driver really uses.
+    # Only options the driver really uses: its bake methods.
+    from addon.bake.driver import METHODS
+
     solver_items = {e.identifier for e in props.bl_rna.properties["solver"].enum_items}
-    assert solver_items == {"spoly"}
+    assert solver_items == set(METHODS)
     assert {e.identifier for e in props.bl_rna.properties["device"].enum_items} == {"numba", "opencl"}
     from addon.ui.properties import bake_settings
 
     props.samples, props.light_samples, props.bounces, props.device = 9, 5, 2, "opencl"
     s = bake_settings(props)
     assert (s.samples, s.light_samples, s.bounces, s.device, s.resolution) == (9, 5, 2, "opencl", 0)
+    assert (s.method, s.sms_seeds, s.photons) == ("spoly", 16, 1_000_000)
+    props.solver, props.sms_seeds, props.photons = "photon", 8, 12345
+    s = bake_settings(props)
+    assert (s.method, s.sms_seeds, s.photons) == ("photon", 8, 12345)
+    props.solver = "spoly"
     props.quality = "PREVIEW"
     s = bake_settings(props)
     assert (s.samples, s.light_samples, s.bounces) == (1, 1, 1)

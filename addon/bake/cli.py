@@ -30,6 +30,12 @@ def add_arguments(parser):
                         help="solver device: numba (CPU, default), opencl (first OpenCL device) or opencl:N; OpenCL "
                         "solves the one-bounce chains R and T, everything else (and a missing pyopencl / device) "
                         "runs on Numba with a warning")
+    parser.add_argument("--method", default="spoly", choices=("spoly", "newton", "sms", "curve", "photon"),
+                        help="spoly (Specular Polynomials, default), newton (MNEE from Path Cuts seeds: R, T), sms "
+                        "(Specular Manifold Sampling: R, T), curve (dimension-reduction MNEE: T) or photon (light "
+                        "tracing, every chain); chains a method cannot solve are skipped with a warning")
+    parser.add_argument("--sms-seeds", type=int, default=16, help="method sms: random Newton seeds per tuple (default 16)")
+    parser.add_argument("--photons", type=int, default=1_000_000, help="method photon: photons traced (default 1,000,000)")
     parser.add_argument("--preview", default=None, metavar="PNG",
                         help="also render the baked scene with Cycles (scene camera, Cycles' own caustics off) to this PNG")
     parser.add_argument("--preview-samples", type=int, default=32, help="Cycles samples for --preview (default 32)")
@@ -69,6 +75,8 @@ def _run(args):
         raise UserError("--resolution must be between 1 and 16384")
     if args.light_samples < 1 or args.margin < 0 or args.threads < 0:
         raise UserError("--light-samples must be >= 1, --margin and --threads >= 0")
+    if not 1 <= args.sms_seeds <= 4096 or args.photons < 1:
+        raise UserError("--sms-seeds must be in [1, 4096] and --photons at least 1")
     if not re.fullmatch(r"numba|opencl(:\d+)?", args.device or ""):
         raise UserError(f"--device must be numba, opencl or opencl:N, got {args.device!r}")
     frames = _frames(args.frames)
@@ -93,7 +101,7 @@ def _run(args):
 
     settings = BakeSettings(resolution=args.resolution or 0, samples=args.samples, bounces=args.bounces, seed=args.seed,
                             light_samples=args.light_samples, margin=args.margin, threads=args.threads,
-                            device=args.device)
+                            device=args.device, method=args.method, sms_seeds=args.sms_seeds, photons=args.photons)
     default_res = args.resolution or 256
     for frame in frames or [None]:
         t0 = time.perf_counter()
@@ -112,8 +120,10 @@ def _run(args):
         except OSError as ex:
             raise UserError(f"cannot write to {out_dir}: {ex.strerror or ex}") from None
         c = result.report["counts"]
+        work = (f"{c['photons']:,} photons, {c['photons_deposited']:,} deposited" if args.method == "photon"
+                else f"{c['tuples']:,} tuples, {c['paths_visible']:,} paths")
         print(f"{'frame ' + str(frame) + ': ' if frame is not None else ''}baked {len(result.images)} receiver(s) "
-              f"in {result.report['timings']['bake_total']:.2f} s: {c['tuples']:,} tuples, {c['paths_visible']:,} paths, "
+              f"[{args.method}] in {result.report['timings']['bake_total']:.2f} s: {work}, "
               f"{c['texels_touched']:,} texels lit -> {out_dir}")
         for w in result.report["warnings"]:
             print(f"warning: {w}")

@@ -42,6 +42,75 @@ from .scene import ROLE_BOTH, ROLE_REFLECT, ROLE_REFRACT, SceneError
 VISIBILITY_OFFSET = 1e-6  # x scene size: shadow-ray offset at both ends of a segment
 
 
+METHODS = ("spoly", "newton", "sms", "curve", "photon")
+"""Bake methods.  "spoly": Specular Polynomials (every path of each tuple, the default);
+"newton": MNEE / Newton from Path Cuts' deterministic seeds; "sms": Specular Manifold Sampling
+(``sms_seeds`` random seeds per tuple); "curve": the dimension-reduction MNEE curve walk
+(``addon.solver.curve_walk``, imported when first used); "photon": forward light tracing of
+``photons`` photons into a texel histogram (``addon.bake.photons``), no tuple loop."""
+
+METHOD_CHAINS = {
+    "spoly": ("R", "T", "RR", "RT", "TR", "TT"),
+    "newton": ("R", "T"),
+    "sms": ("R", "T"),
+    "curve": ("T",),
+    "photon": ("R", "T", "RR", "RT", "TR", "TT"),
+}
+"""The chains each method can bake; any other planned chain is skipped with a status."""
+
+
+def check_method(settings):
+    """Raise ValueError for an unknown method or an out-of-range method knob."""
+    if settings.method not in METHODS:
+        raise ValueError(f"unknown bake method {settings.method!r}; expected one of {', '.join(METHODS)}")
+    if not 1 <= int(settings.sms_seeds) <= 4096:
+        raise ValueError(f"sms_seeds must be in [1, 4096], got {settings.sms_seeds}")
+    if int(settings.photons) < 1:
+        raise ValueError(f"photons must be at least 1, got {settings.photons}")
+    if settings.pieces and not 1 <= int(settings.pieces) <= 1024:
+        raise ValueError(f"pieces must be 0 (the solver's default) or in [1, 1024], got {settings.pieces}")
+
+
+def method_solver(settings):
+    """(solve, error) for the per-tuple methods: ``solve(chain, x_start, x_end, P, N, eta) ->
+    (tuple_index, uv)``, or None for the default path (``solve_tuples``, bit-identical to the
+    bakes before methods existed); ``error`` a reason when the method cannot be loaded
+    ("curve" before addon/solver/curve_walk.py exists)."""
+    m = settings.method
+    if m == "spoly" and not settings.pieces:
+        return None, None
+    if m == "spoly":
+        from ..solver.api import SpecularPolynomialSolver
+
+        solver, kw = SpecularPolynomialSolver(), {"pieces": int(settings.pieces), "device": settings.device}
+    elif m == "newton":
+        from ..solver.baselines import NewtonSolver
+
+        solver, kw = NewtonSolver(), {}
+    elif m == "sms":
+        from ..solver.baselines import SMSSolver
+
+        solver, kw = SMSSolver(int(settings.sms_seeds), int(settings.seed)), {}
+    elif m == "curve":
+        try:
+            from ..solver.curve_walk import CurveWalkSolver
+
+            solver, kw = CurveWalkSolver(), {}
+        except Exception as ex:  # not there yet, or broken: the bake says so and skips its chains
+            return None, f"method 'curve' is not available ({type(ex).__name__}: {ex})"
+    else:
+        return None, None
+
+    def solve(chain, x_start, x_end, P, N, eta):
+        kwargs = dict(kw)
+        if "pieces" in kwargs and len(chain) == 1:
+            kwargs.pop("pieces")
+        res = solver.solve(chain, x_start, x_end, P, N, eta, **kwargs)
+        return res.tuple_index, res.uv
+
+    return solve, None
+
+
 class BakeCancelled(Exception):
     """Raised when the progress callback asks to stop."""
 
@@ -64,6 +133,10 @@ class BakeSettings:
     chains: tuple = ()  # restrict to these chains (empty: all planned)
     threads: int = 0  # 0: Numba's default
     device: str = "numba"  # solver device: "numba", "opencl" or "opencl:N" (R and T; others run on Numba)
+    method: str = "spoly"  # see METHODS: the per-tuple solver, or "photon" (light tracing instead of the tuple loop)
+    sms_seeds: int = 16  # method "sms": random Newton seeds per tuple
+    photons: int = 1_000_000  # method "photon": photons traced (over all lights and light samples)
+    pieces: int = 0  # method "spoly", two bounces: pieces of the resultant's sign scan (0: the solver's default)
 
     def as_dict(self):
         d = asdict(self)
@@ -135,14 +208,16 @@ def chain_supported(chain):
 CHAIN_ROLES = {"R": (ROLE_REFLECT, ROLE_BOTH), "T": (ROLE_REFRACT, ROLE_BOTH)}
 
 
-def plan_chains(scene, bounces=1, only=()):
+def plan_chains(scene, bounces=1, only=(), method="spoly", method_error=None):
     """The chains to bake: [{"chain", "vertices": [caster index arrays per vertex], "status"}].
 
     R for reflect and both (glass) casters, T for refract and both; with bounces = 2 also
     RR, RT, TR, TT over the same caster sets.  A single refraction (T) through a *closed*
     object (a solid: glass sphere, slab) ends inside it, so T leaves out closed objects (a
     receiver inside glass is not modelled); open refracting surfaces (water) keep it.  A chain
-    the solver does not support yet is listed with status "skipped: ..." (and a warning).
+    the solver does not support yet is listed with status "skipped: ..." (and a warning), and
+    so is a chain the bake ``method`` does not solve (:data:`METHOD_CHAINS`), or every chain
+    when the method could not be loaded (``method_error``, the reason).
     """
     chains = ["R", "T"] + (["RR", "RT", "TR", "TT"] if bounces >= 2 else [])
     closed = scene.closed_objects() if np.any(np.isin(scene.tri_role, CHAIN_ROLES["T"])) else set()
@@ -157,7 +232,11 @@ def plan_chains(scene, bounces=1, only=()):
         if any(v.size == 0 for v in verts):
             continue
         status = "baked"
-        if not chain_supported(chain):
+        if method_error:
+            status = f"skipped: {method_error}"
+        elif chain not in METHOD_CHAINS.get(method, ()):
+            status = f"skipped: the {method} method does not solve {chain} (it solves {', '.join(METHOD_CHAINS[method])})"
+        elif method != "photon" and not chain_supported(chain):
             status = "skipped: not supported by the solver yet"
         plan.append({"chain": chain, "vertices": verts, "status": status})
     return plan
@@ -206,7 +285,12 @@ def bake_steps(scene, settings=None):
         raise SceneError("samples must be at least 1")
     if settings.resolution < 0 or settings.resolution > 16384:
         raise SceneError("resolution must be between 1 and 16384")
+    check_method(settings)
     scene.validate()
+    if settings.method == "photon":
+        from .photons import photon_bake_gen
+
+        return photon_bake_gen(scene, settings)
     return _bake_gen(scene, settings)
 
 
@@ -223,7 +307,8 @@ def _bake_gen(scene, settings):
     timer.add("bvh", time.perf_counter() - t0)
     extent = scene.extent()
     eps = VISIBILITY_OFFSET * extent
-    plan = plan_chains(scene, settings.bounces, settings.chains) if settings.caustics else []
+    solve, method_error = method_solver(settings)
+    plan = plan_chains(scene, settings.bounces, settings.chains, settings.method, method_error) if settings.caustics else []
     for item in plan:
         if item["status"] != "baked":
             warnings.append(f"chain {item['chain']} {item['status']}")
@@ -267,7 +352,7 @@ def _bake_gen(scene, settings):
                             emitter_cache[key] = _emitters(scene, extent, settings, item, ls, m)
                             timer.add("cull", time.perf_counter() - t0)
                         st = yield from _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer,
-                                                    emitter_cache[key])
+                                                    emitter_cache[key], solve)
                         for k in st:
                             counts[k] += st[k]
                         cc = chain_counts[item["chain"]]
@@ -302,6 +387,7 @@ def _bake_gen(scene, settings):
         counts["tuples_naive"] += n_cast * n_samples * sum(ls.size for ls in lsamples)
     total = time.perf_counter() - t_start
     report = {
+        "method": settings.method,
         "settings": settings.as_dict(),
         "scene": {
             "frame": scene.frame, "triangles": int(scene.n_triangles), "casters": int(scene.casters().size),
@@ -373,8 +459,9 @@ def _emitters(scene, extent, settings, item, ls, m):
     return em, tri_of, x0_all[em.index[:, 0]]
 
 
-def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer, emitters):
+def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer, emitters, solve=None):
     """One chain, one light sample, one band: cull, solve in batches, weigh, test, accumulate.
+    ``solve``: the method's solver (:func:`method_solver`; None: ``solve_tuples``).
     A generator: yields ``(None, message)`` after every batch, returns the counts."""
     chain = item["chain"]
     k = len(chain)
@@ -398,7 +485,10 @@ def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, t
         N = scene.tri_n[tri]
         eta = scene.tri_ior[tri[:, 0]]
         # The device only when it is not the default (solve_tuples' signature stays optional).
-        ti, uv = solve_tuples(chain, x_start, x_end, P, N, eta, **({} if settings.device == "numba" else {"device": settings.device}))
+        if solve is None:
+            ti, uv = solve_tuples(chain, x_start, x_end, P, N, eta, **({} if settings.device == "numba" else {"device": settings.device}))
+        else:
+            ti, uv = solve(chain, x_start, x_end, P, N, eta)
         timer.add("solve", time.perf_counter() - t0)
         st["paths"] += ti.size
         if ti.size:

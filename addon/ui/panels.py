@@ -69,7 +69,12 @@ class RENDER_PT_caustic_bake(bpy.types.Panel):
         sub.prop(props, "bounces")
         col.separator()
         col.prop(props, "solver")
-        col.prop(props, "device")
+        if props.solver == "sms":
+            col.prop(props, "sms_seeds")
+        elif props.solver == "photon":
+            col.prop(props, "photons")
+        if props.solver in ("spoly", "newton", "sms", "curve"):
+            col.prop(props, "device")
         col.prop(props, "seed")
         col.prop(props, "margin")
         col.separator()

@@ -10,11 +10,14 @@ back to the custom properties ``caustic_role`` / ``caustic_receiver`` / ``causti
 import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, PointerProperty, StringProperty
 
-# Only what the bake driver can really do: one solver (Specular Polynomials) drives the bake;
-# the Newton / SMS baselines of addon/solver are research comparison points, not wired into
-# the bake, so they are not offered.
+# The bake methods of addon.bake.driver.METHODS (the chains each solves: driver.METHOD_CHAINS;
+# the others are skipped with a warning).
 SOLVER_ITEMS = (
     ("spoly", "Specular Polynomials", "Deterministic: every specular path of each triangle tuple (Fan et al. 2024)"),
+    ("newton", "Newton (MNEE)", "Newton from one or two deterministic seeds per tuple; misses paths. Chains R and T"),
+    ("sms", "Specular Manifold Sampling", "Newton from random seeds per tuple (biased SMS); misses paths. Chains R and T"),
+    ("curve", "Curve Walk (MNEE)", "Dimension-reduction MNEE: walks the coplanarity curve. Chain T only"),
+    ("photon", "Photon Tracing", "Light tracing into the texture (texel-averaged, noisy); every chain"),
 )
 DEVICE_ITEMS = (
     ("numba", "CPU", "Solve on the CPU with Numba"),
@@ -52,6 +55,10 @@ class CausticBakeSceneSettings(bpy.types.PropertyGroup):
                          default=1, min=1, max=2)
     quality: EnumProperty(name="Quality", items=QUALITY_ITEMS, default="FINAL")
     solver: EnumProperty(name="Solver", items=SOLVER_ITEMS, default="spoly")
+    sms_seeds: IntProperty(name="Seeds per Tuple", description="Specular Manifold Sampling: random Newton seeds per tuple",
+                           default=16, min=1, max=4096, soft_max=256)
+    photons: IntProperty(name="Photons", description="Photon Tracing: photons traced over all lights",
+                         default=1_000_000, min=1, soft_max=100_000_000)
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="numba")
     seed: IntProperty(name="Seed", description="Seed of the supersample jitter and light samples", default=0, min=0)
     margin: IntProperty(name="Margin", description="Texels of padding over UV seams", default=16, min=0, max=256)
@@ -98,4 +105,7 @@ def bake_settings(props):
         seed=int(props.seed),
         margin=int(props.margin),
         device=str(props.device),
+        method=str(props.solver),
+        sms_seeds=int(props.sms_seeds),
+        photons=int(props.photons),
     )

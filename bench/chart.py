@@ -1,0 +1,304 @@
+"""Speed against accuracy: every bake method on every sample scene, error against time.
+
+    .venv/bin/python bench/chart.py [--quick] [--scenes metal_ring,water_pool] [--limit 60] [--no-write]
+
+Each sample scene (sample_blends/*.blend, read with addon/bake/extract.py) is baked with each
+method over a sweep of its speed knob:
+
+- spoly, newton, curve: supersamples per texel (the tuple loop's cost is linear in them);
+- sms: random Newton seeds per tuple (at 4 supersamples);
+- photon: photons traced.
+
+Error: relMSE against a high-count photon reference of the same scene and settings (the
+texel-averaged irradiance, every chain the scene has), all receivers and RGB channels, with
+the definition of tests/test_bake_caustics.py: mean over texels lit in either image of
+(b - r)² / (r² + eps), eps = 1e-2 (mean lit r)².  The reference is the mean of two halves with
+different seeds; relMSE(half1, half2) / 4 estimates its own noise, the floor under every
+error measured against it (given per scene).  References are cached under
+bench/results/ref_<scene>_<key>.npz, the key a hash of the .blend file and the settings.
+
+Time: wall seconds of ``bake()`` in this process after a warm-up bake (kernels loaded).
+A bake longer than ``--limit`` seconds is cancelled (through the progress callback; tuple
+batches are kept small so that it is seen) and reported as too slow; the method's larger
+knobs are then skipped.  Chains a method cannot solve are skipped by the bake (newton / sms:
+R, T; curve: T only) and listed; their light is missing, which the error shows.
+
+Writes bench/results/chart.csv (scene,method,knob,seconds,relmse; empty seconds / relmse:
+too slow or unavailable), bench/results/chart_<scene>.png (log-log error against time) and
+the "chart" section of BENCHMARKS.md.  ``--quick``: 48² textures, 3 knob values, a 5 M photon
+reference, bounces 2 only where the scene needs them (glass: TT), 15 s limit.
+"""
+
+import argparse
+import csv
+import hashlib
+import json
+import math
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path[:0] = [ROOT, HERE]
+RESULTS = os.path.join(HERE, "results")
+SCENES = ("mirror_plane", "metal_ring", "water_pool", "glass_sphere", "glass_slab")
+TWO_BOUNCE_SCENES = ("glass_sphere", "glass_slab")  # their main caustic is TT
+METHODS = ("spoly", "newton", "sms", "curve", "photon")
+
+
+def rel_mse(b, r):
+    """relMSE of tests/test_bake_caustics.py over every texel and channel lit in either."""
+    b = np.asarray(b, dtype=np.float64).ravel()
+    r = np.asarray(r, dtype=np.float64).ravel()
+    lit = (r > 0) | (b > 0)
+    if not lit.any():
+        return 0.0
+    eps = 1e-2 * r[lit].mean() ** 2
+    return float(np.mean((b[lit] - r[lit]) ** 2 / (r[lit] ** 2 + eps)))
+
+
+def stack(result):
+    """All receivers' raw images, concatenated in name order."""
+    return np.concatenate([result.raw[k].ravel() for k in sorted(result.raw)])
+
+
+def load_scene(name, res):
+    from addon.bake.extract import extract_scene, open_blend
+
+    path = os.path.join(ROOT, "sample_blends", name + ".blend")
+    open_blend(path)
+    with open(path, "rb") as fh:
+        digest = hashlib.sha1(fh.read()).hexdigest()[:12]
+    return extract_scene(resolution=res), digest
+
+
+def reference(scene, name, digest, res, bounces, photons, force=False):
+    """(image stack, floor, seconds) of the photon reference, cached on disk."""
+    from addon.bake.driver import BakeSettings, bake
+
+    key = hashlib.sha1(json.dumps(dict(d=digest, res=res, b=bounces, p=photons, v=1)).encode()).hexdigest()[:12]
+    path = os.path.join(RESULTS, f"ref_{name}_{key}.npz")
+    if os.path.exists(path) and not force:
+        z = np.load(path)
+        return z["ref"], float(z["floor"]), float(z["seconds"]), True
+    t0 = time.perf_counter()
+    halves = [stack(bake(scene, BakeSettings(resolution=res, bounces=bounces, margin=0, method="photon",
+                                             photons=photons // 2, seed=1000 + k))) for k in range(2)]
+    seconds = time.perf_counter() - t0
+    ref = 0.5 * (halves[0] + halves[1])
+    floor = rel_mse(halves[0], halves[1]) / 4.0
+    os.makedirs(RESULTS, exist_ok=True)
+    np.savez_compressed(path, ref=ref, floor=floor, seconds=seconds)
+    return ref, floor, seconds, False
+
+
+def settings_for(method, knob, res, bounces):
+    from addon.bake.driver import BakeSettings
+
+    kw = dict(resolution=res, bounces=bounces, margin=0, method=method, seed=1, batch_tuples=1 << 14)
+    if method == "sms":
+        kw.update(samples=4, sms_seeds=knob)
+    elif method == "photon":
+        kw.update(photons=knob)
+    else:
+        kw.update(samples=knob)
+    return BakeSettings(**kw)
+
+
+class TooSlow(Exception):
+    pass
+
+
+def timed_bake(scene, settings, limit):
+    """(result, seconds), or raises TooSlow after ``limit`` seconds."""
+    from addon.bake.driver import BakeCancelled, bake
+
+    t0 = time.perf_counter()
+
+    def progress(_fraction, _message):
+        return time.perf_counter() - t0 < limit
+
+    try:
+        out = bake(scene, settings, progress=progress)
+    except BakeCancelled:
+        raise TooSlow() from None
+    return out, time.perf_counter() - t0
+
+
+def sweep(quick):
+    if quick:
+        return {"spoly": [1, 4, 16], "newton": [1, 4, 16], "curve": [1, 4, 16], "sms": [1, 4, 16],
+                "photon": [100_000, 400_000, 1_600_000]}
+    return {"spoly": [1, 4, 16, 64], "newton": [1, 4, 16, 64], "curve": [1, 4, 16, 64], "sms": [1, 4, 16, 64],
+            "photon": [100_000, 1_000_000, 4_000_000, 16_000_000]}
+
+
+def run_scene(name, args, rows, notes):
+    res = args.res
+    bounces = 2 if name in TWO_BOUNCE_SCENES else 1
+    scene, digest = load_scene(name, res)
+    ref, floor, ref_s, cached = reference(scene, name, digest, res, bounces, args.ref_photons)
+    notes[name] = dict(floor=floor, ref_seconds=ref_s, cached=cached, bounces=bounces, skipped={})
+    print(f"{name}: reference {args.ref_photons:,} photons ({'cached' if cached else f'{ref_s:.1f} s'}), noise floor "
+          f"relMSE {floor:.2e}", flush=True)
+    for method in args.methods:
+        knobs = sweep(args.quick)[method]
+        # Warm-up: load / compile the method's kernels on a tiny bake (not timed).
+        from addon.bake.driver import BakeSettings, bake
+
+        warm = bake(scene, BakeSettings(resolution=8, samples=1, bounces=bounces, margin=0, method=method, photons=1000,
+                                        sms_seeds=1, batch_tuples=1 << 14), progress=None) if method != "spoly" or bounces == 1 else None
+        slow = False
+        for knob in knobs:
+            if slow:
+                rows.append(dict(scene=name, method=method, knob=knob, seconds=None, relmse=None, note="skipped (smaller knob too slow)"))
+                continue
+            try:
+                out, sec = timed_bake(scene, settings_for(method, knob, res, bounces), args.limit)
+            except TooSlow:
+                slow = True
+                rows.append(dict(scene=name, method=method, knob=knob, seconds=None, relmse=None, note=f"too slow (> {args.limit:.0f} s)"))
+                print(f"  {method:7s} {knob:>10,}  too slow (> {args.limit:.0f} s)", flush=True)
+                continue
+            groups = {}
+            for c in out.report["chains"]:
+                if c["status"] != "baked":
+                    groups.setdefault(c["status"], []).append(c["chain"])
+            skipped = [",".join(chs) + " " + st for st, chs in groups.items()]
+            baked = [c["chain"] for c in out.report["chains"] if c["status"] == "baked"]
+            if skipped:
+                notes[name]["skipped"][method] = skipped
+            if not baked:
+                rows.append(dict(scene=name, method=method, knob=knob, seconds=None, relmse=None,
+                                 note="no chain baked: " + "; ".join(skipped)))
+                print(f"  {method:7s} {knob:>10,}  no chain baked ({'; '.join(skipped)})", flush=True)
+                break
+            err = rel_mse(stack(out), ref)
+            rows.append(dict(scene=name, method=method, knob=knob, seconds=sec, relmse=err, note="chains " + ",".join(baked)))
+            print(f"  {method:7s} {knob:>10,}  {sec:8.2f} s  relMSE {err:.3e}  [{','.join(baked)}]", flush=True)
+        del warm
+
+
+def write_csv(rows, path):
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["scene", "method", "knob", "seconds", "relmse"])
+        for r in rows:
+            w.writerow([r["scene"], r["method"], r["knob"], "" if r["seconds"] is None else f"{r['seconds']:.4f}",
+                        "" if r["relmse"] is None else f"{r['relmse']:.6e}"])
+
+
+def plot(rows, notes, scene, path, knob_label):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=100)
+    markers = dict(spoly="o", newton="s", sms="^", curve="D", photon="v", cycles="x")
+    any_point = False
+    for method in METHODS:
+        pts = [r for r in rows if r["scene"] == scene and r["method"] == method and r["relmse"] is not None]
+        if not pts:
+            continue
+        x = [max(p["seconds"], 1e-3) for p in pts]
+        y = [max(p["relmse"], 1e-8) for p in pts]
+        ax.plot(x, y, marker=markers[method], label=method)
+        for p, xi, yi in zip(pts, x, y):
+            ax.annotate(knob_label(method, p["knob"]), (xi, yi), textcoords="offset points", xytext=(4, 3), fontsize=7)
+        any_point = True
+    floor = notes[scene]["floor"]
+    if floor > 0:
+        ax.axhline(floor, color="grey", ls=":", lw=1, label="reference noise")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("bake time (s)")
+    ax.set_ylabel("relMSE vs photon reference")
+    ax.set_title(f"{scene}: error against time")
+    ax.grid(True, which="both", alpha=0.3)
+    if any_point:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def knob_label(method, knob):
+    if method == "photon":
+        return f"{knob / 1e6:g}M" if knob >= 1e6 else f"{knob / 1e3:g}k"
+    if method == "sms":
+        return f"{knob} seeds"
+    return f"{knob} spp"
+
+
+def section(rows, notes, args):
+    import numba
+
+    lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores ({numba.config.NUMBA_NUM_THREADS} Numba threads, shared "
+             f"with other jobs: timings are noisy), Python {platform.python_version()}; {args.res}² textures, one light "
+             f"sample, date {time.strftime('%Y-%m-%d')}; {'`--quick`' if args.quick else 'full'} sweep.",
+             "",
+             "Knobs: supersamples per texel (spoly, newton, curve), random seeds per tuple at 4 supersamples (sms), photons "
+             "(photon). Error: relMSE (tests/test_bake_caustics.py's definition, all receivers and channels) against a "
+             f"{args.ref_photons:,}-photon reference of every chain the scene has (bounces 2 for the glass scenes: TT); "
+             "'floor' is the reference's own noise (relMSE of its two halves / 4), under which no error can be measured. "
+             f"Bakes over {args.limit:.0f} s are cancelled and marked too slow.", ""]
+    for scene in notes:
+        n = notes[scene]
+        lines.append(f"**{scene}** (bounces {n['bounces']}; reference floor relMSE {n['floor']:.1e}) "
+                     f"![{scene}](bench/results/chart_{scene}.png)")
+        lines.append("")
+        lines.append("| method | knob | seconds | relMSE | note |")
+        lines.append("|---|---|---|---|---|")
+        for r in rows:
+            if r["scene"] != scene:
+                continue
+            sec = "" if r["seconds"] is None else f"{r['seconds']:.2f}"
+            err = "" if r["relmse"] is None else f"{r['relmse']:.2e}"
+            lines.append(f"| {r['method']} | {knob_label(r['method'], r['knob'])} | {sec} | {err} | {r['note']} |")
+        for method, sk in n["skipped"].items():
+            lines.append(f"\n{method}: " + "; ".join(sorted(set(sk))))
+        lines.append("")
+    lines.append("Reading the chart: the tuple methods are deterministic, so their error is the supersample (aliasing) "
+                 "error of the texel average plus whatever paths they miss (newton, sms) or chains they skip (newton/sms: "
+                 "R and T only; curve: T only), which no knob recovers; photon's error is noise, falling as 1/photons. "
+                 "A chain or method shown as too slow was cut at the limit, not hung.")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="reduced sweep in a few minutes")
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--res", type=int, default=None, help="texels per side (default 48 quick, 128 full)")
+    ap.add_argument("--ref-photons", type=int, default=None, help="reference photons (default 5M quick, 64M full)")
+    ap.add_argument("--limit", type=float, default=None, help="seconds before a bake counts as too slow (15 quick, 120 full)")
+    ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
+    args = ap.parse_args(argv)
+    args.res = args.res or (48 if args.quick else 128)
+    args.ref_photons = args.ref_photons or (5_000_000 if args.quick else 64_000_000)
+    args.limit = args.limit or (15.0 if args.quick else 120.0)
+    args.methods = args.methods.split(",")
+    rows, notes = [], {}
+    os.makedirs(RESULTS, exist_ok=True)
+    for name in args.scenes.split(","):
+        run_scene(name, args, rows, notes)
+    write_csv(rows, os.path.join(RESULTS, "chart.csv"))
+    for scene in notes:
+        plot(rows, notes, scene, os.path.join(RESULTS, f"chart_{scene}.png"), knob_label)
+    body = section(rows, notes, args)
+    print(body)
+    if not args.no_write:
+        from solver import write_section
+
+        write_section(os.path.join(ROOT, "BENCHMARKS.md"), "chart", "Speed against accuracy (`bench/chart.py`)", body)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

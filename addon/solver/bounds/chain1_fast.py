@@ -44,7 +44,15 @@ def _size(e):
 
 @kernel
 def pmul(a, ea, b, eb, out):
-    """out = a·b (scaled Bernstein: convolution); returns the extents of the product."""
+    """out = a·b (scaled Bernstein: convolution); returns the extents of the product.  The
+    operand with the longer last axis runs in the innermost loop."""
+    if eb[3] >= ea[3]:
+        return _pmul(a, ea, b, eb, out)
+    return _pmul(b, eb, a, ea, out)
+
+
+@kernel
+def _pmul(a, ea, b, eb, out):
     eo = (ea[0] + eb[0] - 1, ea[1] + eb[1] - 1, ea[2] + eb[2] - 1, ea[3] + eb[3] - 1)
     n = eo[0] * eo[1] * eo[2] * eo[3]
     for k in range(n):
@@ -804,7 +812,64 @@ def _irradiance(W, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos):
 
 
 @kernel
-def tuple_pieces_fast(W, work, scr, stack, refract, x0, P, N, Q, UV, eta, max_depth, sigma, alpha, irradiance, out, stats):
+def refine_irradiance(W, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, hi, levels, stats):
+    """Ē, E̲ of a piece whose own Ē is infinite, as the max / min over a quadtree of sub-boxes
+    of its (u1, v1) box (at most ``levels`` deep, splitting only sub-boxes that are still
+    unbounded).  Each sub-box uses its own position bound as the (uk, vk) box of the implicit
+    bound (eq 17–19) and is skipped when that bound misses the receiver (no path there), so
+    the result bounds every path of the piece (eq 21 over a finer partition); it stays
+    infinite when a sub-box at the last level is still unbounded (a focal point, or the
+    0/0 of the implicit form at normal incidence).  The piece itself is unchanged."""
+    slo = scr[36:38]
+    shi = scr[38:40]
+    spos = scr[40:48]
+    res = scr[48:56]
+    top = 0
+    ehi = 0.0
+    elo = np.inf
+    found = False
+    um = 0.5 * (lo[0] + hi[0])
+    vm = 0.5 * (lo[1] + hi[1])
+    for k in range(4):
+        a0 = lo[0] if k & 1 == 0 else um
+        b0 = lo[1] if k & 2 == 0 else vm
+        if a0 + b0 < 1.0:
+            rstack[top, 0], rstack[top, 1] = a0, um if k & 1 == 0 else hi[0]
+            rstack[top, 2], rstack[top, 3], rstack[top, 4] = b0, vm if k & 2 == 0 else hi[1], 1.0
+            top += 1
+    while top > 0:
+        top -= 1
+        slo[0], shi[0], slo[1], shi[1] = rstack[top, 0], rstack[top, 1], rstack[top, 2], rstack[top, 3]
+        level = int(rstack[top, 4])
+        stats[0] += 1
+        if not box_position(W, work, refract, x0, P, N, UV, eta, slo, shi, spos, res):
+            continue
+        stats[1] += 1
+        h, l = _irradiance(W, work, scr, refract, x0, P, N, Q, eta, slo, shi, spos)
+        if not h < np.inf:
+            if level >= levels:
+                return np.inf, 0.0
+            um = 0.5 * (slo[0] + shi[0])
+            vm = 0.5 * (slo[1] + shi[1])
+            for k in range(4):
+                a0 = slo[0] if k & 1 == 0 else um
+                b0 = slo[1] if k & 2 == 0 else vm
+                if a0 + b0 < 1.0:
+                    rstack[top, 0], rstack[top, 1] = a0, um if k & 1 == 0 else shi[0]
+                    rstack[top, 2], rstack[top, 3], rstack[top, 4] = b0, vm if k & 2 == 0 else shi[1], level + 1.0
+                    top += 1
+            continue
+        found = True
+        ehi = max(ehi, h)
+        elo = min(elo, l)
+    if not found:
+        return 0.0, 0.0
+    return ehi, elo
+
+
+@kernel
+def tuple_pieces_fast(W, work, scr, stack, rstack, refract, x0, P, N, Q, UV, eta, max_depth, sigma, alpha, irradiance,
+                      irr_refine, out, stats):
     """chain1.tuple_pieces with the fast engine: same stopping rules (§6.1), same piece rows.
 
     The root's position bound is computed before the per-tuple polynomials of the irradiance
@@ -858,6 +923,8 @@ def tuple_pieces_fast(W, work, scr, stack, refract, x0, P, N, Q, UV, eta, max_de
             continue
         if depth < max_depth and area >= sigma and not can_split:
             stats[3] += 1
+        if irradiance and not ehi < np.inf and irr_refine > 0:
+            ehi, elo = refine_irradiance(W, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, hi, irr_refine, stats)
         if irradiance and not ehi < np.inf:
             stats[2] += 1
         row = out[count]
@@ -877,17 +944,18 @@ def workspace():
 
 
 @kernel(parallel=True)
-def batch_fast(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, out, counts, stats, chunk):
+def batch_fast(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, irr_refine, out, counts, stats, chunk):
     n = pairs.shape[0]
     nchunks = (n + chunk - 1) // chunk
     for ci in prange(nchunks):
         W, work, scr = workspace()
         stack = np.empty((4 * (max_depth + 2), 5))
+        rstack = np.empty((4 * (irr_refine + 2), 5))
         for t in range(ci * chunk, min(n, (ci + 1) * chunk)):
             c = pairs[t, 0]
             r = pairs[t, 1]
-            counts[t] = tuple_pieces_fast(W, work, scr, stack, refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma, alpha,
-                                          irradiance, out[t], stats[t])
+            counts[t] = tuple_pieces_fast(W, work, scr, stack, rstack, refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma,
+                                          alpha, irradiance, irr_refine, out[t], stats[t])
 
 
 @kernel

@@ -33,6 +33,7 @@ SETTINGS = {
     "plane7k": dict(max_depth=3, sigma=1e-4, alpha=2.0),
     "pool4k": dict(max_depth=1, sigma=1e-4, alpha=2.0),
     "pool20k": dict(max_depth=1, sigma=1e-4, alpha=2.0),
+    "pool20k_refine2": dict(max_depth=1, sigma=1e-4, alpha=2.0, irr_refine=2),  # Ē = ∞ leaves refined (chain1_fast)
 }
 PAPER = {"plane7k": "0.4 s (paper, 32 threads) / 1.7 s (authors' C++, this machine)",
          "pool4k": "≈1 s (paper)", "pool20k": "0.61 s, 8.2 s with remainder variables (authors' C++, this machine)"}
@@ -43,14 +44,14 @@ def run_row(name, check=True, samples=4):
     import bounds_scenes as S
     from addon.solver.bounds.chain1 import bound_one_bounce
 
-    sc = S.scene(name)
+    sc = S.scene(name.split("_")[0])
     t0 = time.perf_counter()
     res = bound_one_bounce(sc["chain"], sc["light"], sc["caster_P"], sc["caster_N"], sc["receiver_P"], sc["receiver_UV"],
                            eta=sc["eta"], **SETTINGS[name])
     seconds = time.perf_counter() - t0
     row = {"mesh": name, "chain": sc["chain"], "precompute_s": round(seconds, 3), "tuples": res.report["tuples"],
            "pieces_per_tuple": round(res.report["pieces_per_tuple"], 3), "memory_mb": round(res.report["memory_mb"], 3),
-           "light": list(map(float, sc["light"])), "receiver": "plane y=%g, x in [%g,%g], z in [%g,%g]" % S.SCENES[name][3],
+           "light": list(map(float, sc["light"])), "receiver": "plane y=%g, x in [%g,%g], z in [%g,%g]" % S.SCENES[name.split("_")[0]][3],
            "eta": sc["eta"], "settings": SETTINGS[name], "unbounded_pieces": res.report["unbounded_pieces"],
            "pieces": res.report["pieces"]}
     if check:
@@ -92,7 +93,7 @@ def main():
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--no-cold", action="store_true")
     ap.add_argument("--write", action="store_true")
-    ap.add_argument("--rows", default="plane7k,pool4k,pool20k")
+    ap.add_argument("--rows", default="plane7k,pool4k,pool20k,pool20k_refine2")
     ap.add_argument("--child")
     args = ap.parse_args()
     if args.child:

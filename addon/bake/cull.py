@@ -429,3 +429,185 @@ class OneBounceCull(TupleCull):
         if not use_cone:
             e.without_cone()
         super().__init__(e, band_pos, band_geo_normal, band_texel, width)
+
+
+# ---------------------------------------------------------------------------------------
+# Bounds-driven cull (Fan et al. 2025): per (light point, caster triangle, receiver triangle)
+# the Bernstein position bound (addon.solver.bounds.chain1) says which receiver points any
+# admissible path can reach; only samples inside a piece's box are kept.  The cone test of
+# the sample (``_sample_ok``) is applied as well, so this cull keeps a subset of the cone
+# cull's tuples, and every (caster, sample) pair holding a path survives both (both are
+# conservative: no path is lost).  Optional γ-sampling (§5, eq 24, 28): each kept pair is
+# solved with probability P = min(γ Ẽ, 1), Ẽ the largest Ē of the pieces covering the sample
+# (eq 21, m = 1) times the light sample's largest RGB intensity, and weighted 1/P.
+
+BOUNDS_MARGIN = 1e-7  # barycentric margin around the pieces' boxes (solver tolerance is 1e-9)
+BOUNDS_SETTINGS = dict(max_depth=3, sigma=1e-4, alpha=2.0)
+
+
+def one_bounce_bounds(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv, irradiance=False, irr_refine=2):
+    """Bounds of every (caster, receiver triangle) pair for the point x0 (one call per IOR).
+
+    Returns (tuples (m, 2) local (caster, receiver) indices, piece_start (m+1,), pieces
+    (p, PIECE_FIELDS), report)."""
+    from ..solver.bounds.chain1 import PIECE_FIELDS, bound_one_bounce
+
+    tuples, pieces, counts, reports = [], [], [], []
+    for e in np.unique(eta):
+        idx = np.flatnonzero(eta == e)
+        res = bound_one_bounce(chain, x0, tri_p[idx], tri_n[idx], rec_p, rec_uv, eta=float(e), irradiance=irradiance,
+                               irr_refine=irr_refine, **BOUNDS_SETTINGS)
+        t = res.tuples.copy()
+        t[:, 0] = idx[t[:, 0]]
+        tuples.append(t)
+        pieces.append(res.pieces)
+        counts.append(np.bincount(res.piece_tuple, minlength=t.shape[0]))
+        reports.append(res.report)
+    tuples = np.concatenate(tuples) if tuples else np.zeros((0, 2), dtype=np.int64)
+    pieces = np.ascontiguousarray(np.concatenate(pieces)) if pieces else np.zeros((0, PIECE_FIELDS))
+    counts = np.concatenate(counts) if counts else np.zeros(0, dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return np.ascontiguousarray(tuples, dtype=np.int64), start, pieces, reports
+
+
+@kernel(parallel=True)
+def _bounds_pairs(fill, tup_e, tup_r, piece_start, pieces, tex_start, tex_order, band_rec, bary, W, H, row0, row1, margin,
+                  tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng, offset, count, out_e, out_s, out_E):
+    for t in prange(tup_e.shape[0]):
+        e = tup_e[t]
+        r = tup_r[t]
+        k0 = piece_start[t]
+        k1 = piece_start[t + 1]
+        xlo = np.inf
+        xhi = -np.inf
+        ylo = np.inf
+        yhi = -np.inf
+        for k in range(k0, k1):
+            xlo = min(xlo, pieces[k, 8])
+            xhi = max(xhi, pieces[k, 9])
+            ylo = min(ylo, pieces[k, 10])
+            yhi = max(yhi, pieces[k, 11])
+        c = 0
+        o = offset[t] if fill else 0
+        if k1 > k0:
+            i0 = max(0, int(math.floor(xlo * W)) - 1)
+            i1 = min(W - 1, int(math.floor(xhi * W)) + 1)
+            j0 = max(row0, int(math.floor(ylo * H)) - 1)
+            j1 = min(row1 - 1, int(math.floor(yhi * H)) + 1)
+            for j in range(j0, j1 + 1):
+                for i in range(i0, i1 + 1):
+                    tex = (j - row0) * W + i
+                    for z in range(tex_start[tex], tex_start[tex + 1]):
+                        s = tex_order[z]
+                        if band_rec[s] != r:
+                            continue
+                        u = bary[s, 0]
+                        v = bary[s, 1]
+                        best = -1.0
+                        for k in range(k0, k1):
+                            if (u >= pieces[k, 4] - margin and u <= pieces[k, 5] + margin and v >= pieces[k, 6] - margin
+                                    and v <= pieces[k, 7] + margin):
+                                best = max(best, pieces[k, 12])
+                        if best < 0.0:
+                            continue
+                        if not _sample_ok(e, s, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng):
+                            continue
+                        if fill:
+                            out_e[o] = e
+                            out_s[o] = s
+                            out_E[o] = best
+                            o += 1
+                        c += 1
+        count[t] = c
+
+
+class BoundsCull:
+    """Candidate (caster, sample) tuples of a one-bounce chain from the Bernstein position
+    bounds (see above).  ``emitters``: the chain's :class:`Emitters` (one per caster, its cone
+    used as an extra test); ``x0``: the light point (one for all casters); ``tri_p, tri_n,
+    eta``: the casters in emitter order; ``rec_tri`` (r,) global receiver triangle ids and
+    ``rec_uv`` (r,3,2) their UVs; the band as for :class:`TupleCull`.  ``gamma``: inf
+    enumerates, else each tuple is kept with P = min(γ Ẽ, 1) (eq 28); :meth:`batches` yields
+    (emitter index, sample index, 1/P).  ``cache``: a dict to keep the bounds in between bands.
+    """
+
+    def __init__(self, chain, emitters, x0, tri_p, tri_n, eta, rec_p, rec_tri, rec_uv, band, width, height, gamma=math.inf,
+                 intensity=1.0, rng=None, cache=None):
+        import time
+
+        t0 = time.perf_counter()
+        key = "bounds"
+        if cache is not None and key in cache:
+            tuples, start, pieces = cache[key]
+        else:
+            tuples, start, pieces, _ = one_bounce_bounds(chain, np.asarray(x0, dtype=np.float64), tri_p, tri_n, eta, rec_p,
+                                                         rec_uv, irradiance=not math.isinf(gamma))
+            if cache is not None:
+                cache[key] = (tuples, start, pieces)
+        self.bounds_seconds = time.perf_counter() - t0
+        self.n_bound_tuples = tuples.shape[0]
+        e = emitters
+        local = np.full(int(rec_tri.max()) + 1 if rec_tri.size else 1, -1, dtype=np.int64)
+        local[rec_tri] = np.arange(rec_tri.size)
+        band_rec = np.where(band.tri <= local.size - 1, local[np.minimum(band.tri, local.size - 1)], -1)
+        row0, row1 = band.row0, band.row1
+        tex = band.texel - row0 * width
+        order = np.argsort(tex, kind="stable").astype(np.int64)
+        tex_start = np.searchsorted(tex[order], np.arange((row1 - row0) * width + 1)).astype(np.int64)
+        self.gamma = gamma
+        self.intensity = intensity
+        self.rng = rng if rng is not None else np.random.default_rng(0)
+        self._args = (np.ascontiguousarray(tuples[:, 0]), np.ascontiguousarray(tuples[:, 1]), start, pieces, tex_start, order,
+                      np.ascontiguousarray(band_rec), np.ascontiguousarray(band.bary), int(width), int(height), int(row0),
+                      int(row1), BOUNDS_MARGIN, e.tri_c, e.tri_r, e.tri_ng, e.tri_p0, e.side_req, e.cap_d, e.cap_t,
+                      np.ascontiguousarray(band.position), np.ascontiguousarray(band.geo_normal))
+        n = tuples.shape[0]
+        self.count = np.zeros(n, dtype=np.int64)
+        z = np.zeros(0, dtype=np.int64)
+        if n:
+            _bounds_pairs(False, *self._args, z, self.count, z, z, np.zeros(0))
+
+    @property
+    def upper_bound(self):
+        return int(self.count.sum())
+
+    def batches(self, max_tuples):
+        from ..solver.bounds.sampling import selection_probability
+
+        n = self.count.shape[0]
+        csum = np.cumsum(self.count)
+        q = 0
+        while q < n:
+            base = csum[q - 1] if q else 0
+            q1 = max(q + 1, int(np.searchsorted(csum, base + max_tuples, side="right")))
+            cnt = np.zeros(n, dtype=np.int64)
+            sel = np.zeros(n, dtype=np.int64)
+            sel[q:q1] = self.count[q:q1]
+            offset = np.concatenate([[0], np.cumsum(sel)[:-1]]).astype(np.int64)
+            total = int(sel.sum())
+            out_e = np.empty(total, dtype=np.int64)
+            out_s = np.empty(total, dtype=np.int64)
+            out_E = np.empty(total)
+            if total:
+                a = self._args
+                ps, pc = self._restrict_starts(q, q1)  # tuples outside [q, q1) emit nothing
+                _bounds_pairs(True, a[0], a[1], ps, pc, *a[4:], offset, cnt, out_e, out_s, out_E)
+            q = q1
+            if not total:
+                continue
+            if math.isinf(self.gamma):
+                yield out_e, out_s, None
+                continue
+            p = selection_probability(out_E * self.intensity, self.gamma)
+            keep = self.rng.random(p.shape[0]) < p
+            if keep.any():
+                yield out_e[keep], out_s[keep], 1.0 / p[keep]
+
+    def _restrict_starts(self, q, q1):
+        """piece_start / pieces with the tuples outside [q, q1) emptied (so they emit nothing)."""
+        start = self._args[2].copy()
+        ps = start.copy()
+        ps[:q] = start[q]
+        ps[q1 + 1:] = start[q1]
+        # tuple t has pieces [ps[t], ps[t+1]): empty for t < q and t >= q1
+        return ps, self._args[3]

@@ -124,7 +124,9 @@ class BakeSettings:
     jitter: bool = True  # jittered (True) or centred (False) supersamples
     light_samples: int = 1  # > 1: sample light radius / area / sun angle (soft caustics)
     margin: int = 16  # texels of padding over UV seams
-    cull: bool = True  # cone cull (the side tests always run)
+    cull: object = True  # True / "cone": cone cull; "bounds": Bernstein position bounds for R/T from point-like lights
+    #                       (cone elsewhere); False: side tests only
+    gamma: float = math.inf  # bounds cull: solve a tuple with P = min(gamma Ẽ, 1) (Ẽ in W/m²), weight 1/P; inf: all
     batch_tuples: int = 1 << 18
     band_samples: int = 1 << 20
     sun_distance: float = 1e5  # x scene size
@@ -352,7 +354,7 @@ def _bake_gen(scene, settings):
                             emitter_cache[key] = _emitters(scene, extent, settings, item, ls, m)
                             timer.add("cull", time.perf_counter() - t0)
                         st = yield from _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer,
-                                                    emitter_cache[key], solve)
+                                                    emitter_cache[key], solve, rec=rec)
                         for k in st:
                             counts[k] += st[k]
                         cc = chain_counts[item["chain"]]
@@ -459,7 +461,7 @@ def _emitters(scene, extent, settings, item, ls, m):
     return em, tri_of, x0_all[em.index[:, 0]]
 
 
-def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer, emitters, solve=None):
+def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer, emitters, solve=None, rec=None):
     """One chain, one light sample, one band: cull, solve in batches, weigh, test, accumulate.
     ``solve``: the method's solver (:func:`method_solver`; None: ``solve_tuples``).
     A generator: yields ``(None, message)`` after every batch, returns the counts."""
@@ -470,11 +472,15 @@ def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, t
         return st
     em, tri_of, x0_of = emitters
     t0 = time.perf_counter()
-    cull = TupleCull(em, band.position, band.geo_normal, band.texel, W)
+    cull = _bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec, emitters)
+    if cull is None:
+        cull = TupleCull(em, band.position, band.geo_normal, band.texel, W)
     st["tuples_tile_cull"] = cull.upper_bound
     timer.add("cull", time.perf_counter() - t0)
     t0 = time.perf_counter()
-    for e, s in cull.batches(settings.batch_tuples):
+    for batch in cull.batches(settings.batch_tuples):
+        e, s = batch[0], batch[1]
+        inv_p = batch[2] if len(batch) > 2 else None  # bounds cull with gamma < inf: 1/P per tuple (eq 24)
         timer.add("cull", time.perf_counter() - t0)
         st["tuples"] += e.size
         t0 = time.perf_counter()
@@ -517,12 +523,33 @@ def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, t
                 t0 = time.perf_counter()
                 tex = band.texel[s[ti[vis]]]
                 w = weight[vis][:, None] * rgb[vis]
+                if inv_p is not None:
+                    w *= inv_p[ti[vis]][:, None]
                 for c in range(3):
                     sums[:, c] += np.bincount(tex, weights=w[:, c], minlength=sums.shape[0])
                 timer.add("accumulate", time.perf_counter() - t0)
         yield None, f"{chain}: {st['tuples']:,} tuples"
         t0 = time.perf_counter()
     return st
+
+
+def _bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec, emitters):
+    """A :class:`BoundsCull` when ``settings.cull == "bounds"`` applies (one-bounce chain, one
+    light point for every caster, i.e. not the sun), else None.  Bounds are cached per
+    receiver on the chain's emitters (shared by every band)."""
+    if settings.cull != "bounds" or len(chain) != 1 or ls.kind == "sun" or rec is None or em.size == 0:
+        return None
+    if not np.all(x0_of == x0_of[:1]):
+        return None
+    from .cull import BoundsCull
+
+    cache = em.extra.setdefault(("bounds", rec.name, rec.resolution), {})
+    tri = tri_of[:, 0]
+    seed = [int(settings.seed) & 0x7FFFFFFF, m, "RT".index(chain), band.row0]
+    H = rec.resolution[1]
+    return BoundsCull(chain, em, x0_of[0], scene.tri_p[tri], scene.tri_n[tri], scene.tri_ior[tri], scene.tri_p[rec.tri_index],
+                      rec.tri_index, rec.uv, band, W, H, gamma=settings.gamma, intensity=float(np.max(ls.rgb[m])),
+                      rng=np.random.default_rng(seed), cache=cache)
 
 
 def _fresnel_dielectric(cos_i, eta_i, eta_t):

@@ -498,7 +498,8 @@ class OneBounceBounds:
 
 
 def bound_one_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=4,
-                     sigma=1e-4, alpha=2.0, irradiance=True, capacity=64, solutions_per_tuple=1):
+                     sigma=1e-4, alpha=2.0, irradiance=True, capacity=64, solutions_per_tuple=1, engine="fast",
+                     irr_refine=0):
     """Position and irradiance bounds of every (caster triangle, receiver triangle) tuple for
     a point light (Fan et al. 2025 §4, eq 3–19; subdivision §6.1).
 
@@ -508,7 +509,12 @@ def bound_one_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     pairs: (t,2) candidate (caster, receiver) index pairs (default all n·r);
     max_depth, sigma, alpha: the stopping rules (α = 2 for single scattering);
     irradiance: also compute Ē (else Ē = inf); capacity: most pieces per tuple;
-    solutions_per_tuple: m of eq 21 (1 by default: one path per tuple).
+    solutions_per_tuple: m of eq 21 (1 by default: one path per tuple);
+    engine: "fast" (``chain1_fast``: per-tuple polynomials restricted by de Casteljau, no
+    allocation per piece) or "reference" (the piece functions of this module);
+    irr_refine: fast engine only: a leaf piece whose Ē is infinite gets Ē, E̲ as the max / min
+    over sub-boxes of its (u1, v1) box, up to this many quadtree levels deep (pieces and
+    position bounds unchanged; see ``chain1_fast.refine_irradiance``).
     """
     if chain not in ("R", "T"):
         raise ValueError(f"bound_one_bounce handles chains R and T, got {chain!r}")
@@ -527,7 +533,12 @@ def bound_one_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     counts = np.zeros(n, dtype=np.int64)
     stats = np.zeros((n, N_STATS), dtype=np.int64)
     t1 = time.perf_counter()
-    if n:
+    if n and engine == "fast":
+        from .chain1_fast import batch_fast
+
+        batch_fast(chain == "T", light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, int(max_depth),
+                   float(sigma), float(alpha), bool(irradiance), int(irr_refine), out, counts, stats, 32)
+    elif n:
         _batch(chain == "T", light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, int(max_depth),
                float(sigma), float(alpha), bool(irradiance), out, counts, stats)
     t2 = time.perf_counter()

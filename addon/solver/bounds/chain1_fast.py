@@ -1,0 +1,973 @@
+"""Fast engine of the one-bounce bounds (Fan et al. 2025 §4.2–4.5, §6.1): same maths as the
+reference piece functions in ``chain1.py``, without allocation in the per-tuple loop.
+
+Representation: a polynomial is a flat slice of a per-thread workspace plus its extents
+(e0, e1, e2, e3) = degree + 1 per variable.  Variable order here is (uk, vk, u1, v1) so that
+the long (u1, v1) axes are the innermost loops; 2-variable polynomials have e0 = e1 = 1.
+Products are formed in *scaled* Bernstein form c_i = b_i Π C(n_d, i_d), where the Bernstein
+product (Farouki 2012) is a plain convolution; affine polynomials (degree 1) have c = b.  For
+a rational bound p/q at one common degree the ratios c_i(p)/c_i(q) equal b_i(p)/b_i(q) (the
+binomial factors cancel), so eq 3 is applied to scaled coefficients directly.
+
+Per tuple, the polynomials whose coefficients do not depend on the box (everything of R; the
+position numerators of T, which are linear in the √β approximation's coefficients a, b and
+in ξ, eq 10–13) are built once on the unit box of (u1, v1) and restricted to each piece's box
+by de Casteljau splits (the Bernstein coefficients of a polynomial on a sub-box, exact up to
+rounding).  The implicit refraction irradiance bound (eq 17–19) depends on the piece's
+(uk, vk) box, so it is built per piece in the 4-D box.
+
+The final degrees equal the reference's generic degrees (R: position 4, irradiance 10;
+T: position 6 per ξ slice, irradiance (10, 10, 3, 3) in (u1, v1, uk, vk)); where the reference
+drops a degree because a gradient component happens to be 0, the bound here is the same
+polynomial's coefficients at a higher degree, which lie in the hull of the lower-degree ones
+(degree elevation is a convex combination), so it is at least as tight and still conservative.
+"""
+
+import math
+
+import numpy as np
+
+from ..jit import kernel, prange
+from .bernstein import BINOM, abs_lower, abs_upper, clip_hull, sqrt_linearisation
+from .chain1 import IRR_PAD, MIN_WIDTH, N_STATS, P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD
+
+# ---------------------------------------------------------------------------------------
+# flat 4-D polynomial kernels (scaled Bernstein unless said otherwise)
+
+MAXC = 2048  # coefficients per workspace slot (largest: (4, 4, 11, 11) = 1936)
+
+
+@kernel
+def _size(e):
+    return e[0] * e[1] * e[2] * e[3]
+
+
+@kernel
+def pmul(a, ea, b, eb, out):
+    """out = a·b (scaled Bernstein: convolution); returns the extents of the product.  The
+    operand with the longer last axis runs in the innermost loop."""
+    if eb[3] >= ea[3]:
+        return _pmul(a, ea, b, eb, out)
+    return _pmul(b, eb, a, ea, out)
+
+
+@kernel
+def _pmul(a, ea, b, eb, out):
+    eo = (ea[0] + eb[0] - 1, ea[1] + eb[1] - 1, ea[2] + eb[2] - 1, ea[3] + eb[3] - 1)
+    n = eo[0] * eo[1] * eo[2] * eo[3]
+    for k in range(n):
+        out[k] = 0.0
+    for i0 in range(ea[0]):
+        for i1 in range(ea[1]):
+            for i2 in range(ea[2]):
+                for i3 in range(ea[3]):
+                    av = a[((i0 * ea[1] + i1) * ea[2] + i2) * ea[3] + i3]
+                    if av == 0.0:
+                        continue
+                    for j0 in range(eb[0]):
+                        for j1 in range(eb[1]):
+                            for j2 in range(eb[2]):
+                                ob = (((i0 + j0) * eo[1] + i1 + j1) * eo[2] + i2 + j2) * eo[3] + i3
+                                bb = ((j0 * eb[1] + j1) * eb[2] + j2) * eb[3]
+                                for j3 in range(eb[3]):
+                                    out[ob + j3] += av * b[bb + j3]
+    return eo
+
+
+@kernel
+def pelevate(a, ea, eo, out, tmp):
+    """Degree elevation of scaled coefficients to extents eo (each >= ea): the product with
+    the constant 1 of degree eo - ea, whose scaled coefficients are binomials; one variable at
+    a time.  ``tmp`` is scratch.  Returns eo."""
+    cur = (ea[0], ea[1], ea[2], ea[3])
+    n = _size(ea)
+    for k in range(n):
+        tmp[k] = a[k]
+    for dim in range(4):
+        k = eo[dim] - cur[dim]
+        if k == 0:
+            continue
+        pre = 1
+        for d in range(dim):
+            pre *= cur[d]
+        post = 1
+        for d in range(dim + 1, 4):
+            post *= cur[d]
+        m = cur[dim]
+        mo = m + k
+        for t in range(pre * mo * post):
+            out[t] = 0.0
+        for p in range(pre):
+            for i in range(m):
+                for j in range(k + 1):
+                    w = BINOM[k, j]
+                    src = (p * m + i) * post
+                    dst = (p * mo + i + j) * post
+                    for q in range(post):
+                        out[dst + q] += w * tmp[src + q]
+        cur = (mo if dim == 0 else cur[0], mo if dim == 1 else cur[1], mo if dim == 2 else cur[2], mo if dim == 3 else cur[3])
+        for t in range(pre * mo * post):
+            tmp[t] = out[t]
+    n = _size(cur)
+    for t in range(n):
+        out[t] = tmp[t]
+    return cur
+
+
+@kernel
+def pderiv(a, ea, dim, width, out):
+    """∂/∂x_dim of scaled coefficients: c'_i = ((i+1) c_{i+1} - (n-i) c_i) / width, degree n-1."""
+    m = ea[dim]
+    if m == 1:
+        for k in range(_size(ea)):
+            out[k] = 0.0
+        return ea
+    n = m - 1
+    pre = 1
+    for d in range(dim):
+        pre *= ea[d]
+    post = 1
+    for d in range(dim + 1, 4):
+        post *= ea[d]
+    f = 1.0 / width
+    for p in range(pre):
+        for i in range(n):
+            src0 = (p * m + i) * post
+            src1 = src0 + post
+            dst = (p * n + i) * post
+            for q in range(post):
+                out[dst + q] = f * ((i + 1) * a[src1 + q] - (n - i) * a[src0 + q])
+    return (n if dim == 0 else ea[0], n if dim == 1 else ea[1], n if dim == 2 else ea[2], n if dim == 3 else ea[3])
+
+
+@kernel
+def to_bernstein(a, ea):
+    """Scaled -> plain Bernstein coefficients, in place."""
+    for i0 in range(ea[0]):
+        for i1 in range(ea[1]):
+            for i2 in range(ea[2]):
+                w = BINOM[ea[0] - 1, i0] * BINOM[ea[1] - 1, i1] * BINOM[ea[2] - 1, i2]
+                base = ((i0 * ea[1] + i1) * ea[2] + i2) * ea[3]
+                for i3 in range(ea[3]):
+                    a[base + i3] /= w * BINOM[ea[3] - 1, i3]
+
+
+@kernel
+def restrict(a, ea, dim, lo, hi, out, work):
+    """Plain Bernstein coefficients of a (on the unit interval of variable ``dim``) restricted to
+    [lo, hi] ⊆ [0, 1]: de Casteljau split at hi (left part), then at lo/hi (right part)."""
+    m = ea[dim]
+    pre = 1
+    for d in range(dim):
+        pre *= ea[d]
+    post = 1
+    for d in range(dim + 1, 4):
+        post *= ea[d]
+    n = pre * m * post
+    if m == 1 or (lo == 0.0 and hi == 1.0):
+        for k in range(n):
+            out[k] = a[k]
+        return
+    t2 = lo / hi if hi > 0.0 else 0.0
+    for p in range(pre):
+        for q in range(post):
+            base = p * m * post + q
+            for i in range(m):
+                work[i] = a[base + i * post]
+            if hi < 1.0:  # left part of the split at hi: b'_r = first point of level r
+                for r in range(1, m):
+                    for i in range(m - 1, r - 1, -1):
+                        work[i] = (1.0 - hi) * work[i - 1] + hi * work[i]
+            if t2 > 0.0:  # right part of the split at t2: last point of level r
+                for r in range(1, m):
+                    for i in range(m - r):
+                        work[i] = (1.0 - t2) * work[i] + t2 * work[i + 1]
+            for i in range(m):
+                out[base + i * post] = work[i]
+
+
+@kernel
+def restrict2(a, ea, lo, hi, out, tmp, work):
+    """Restriction of a polynomial in (u1, v1) = variables 2, 3 to the box lo <= (u1, v1) <= hi."""
+    restrict(a, ea, 2, lo[0], hi[0], tmp, work)
+    restrict(tmp, ea, 3, lo[1], hi[1], out, work)
+
+
+@kernel
+def coef_minmax(a, n):
+    lo = np.inf
+    hi = -np.inf
+    for k in range(n):
+        lo = min(lo, a[k])
+        hi = max(hi, a[k])
+    return lo, hi
+
+
+@kernel
+def ratio_bound(p, q, n):
+    """Fan et al. 2025 eq 3 and the two fallbacks of §4.1 on n coefficient pairs at one
+    degree (the same cases as ``bernstein.rational_bound``): (lo1, hi1, lo2, hi2)."""
+    pos = True
+    neg = True
+    for k in range(n):
+        v = q[k]
+        if not v > 0.0:
+            pos = False
+        if not v < 0.0:
+            neg = False
+    if pos or neg:
+        lo = np.inf
+        hi = -np.inf
+        for k in range(n):
+            r = p[k] / q[k]
+            lo = min(lo, r)
+            hi = max(hi, r)
+        return lo, hi, np.inf, -np.inf
+    pos = True
+    neg = True
+    for k in range(n):
+        v = p[k]
+        if not v > 0.0:
+            pos = False
+        if not v < 0.0:
+            neg = False
+    if not (pos or neg):
+        return -np.inf, np.inf, np.inf, -np.inf
+    rlo = np.inf
+    rhi = -np.inf
+    for k in range(n):
+        r = q[k] / p[k]
+        rlo = min(rlo, r)
+        rhi = max(rhi, r)
+    if rlo > 0.0 or rhi < 0.0:
+        return 1.0 / rhi, 1.0 / rlo, np.inf, -np.inf
+    a = 1.0 / rlo if rlo < 0.0 else -np.inf
+    b = 1.0 / rhi if rhi > 0.0 else np.inf
+    if rlo == 0.0:
+        return b, np.inf, np.inf, -np.inf
+    if rhi == 0.0:
+        return -np.inf, a, np.inf, -np.inf
+    return -np.inf, a, b, np.inf
+
+
+# ---------------------------------------------------------------------------------------
+# building blocks
+
+E2 = (1, 1, 2, 2)  # affine in (u1, v1)
+
+
+@kernel
+def _affine2(c, gu, gv, lo, hi, out):
+    """c + gu u1 + gv v1 on the box: degree 1, coefficients = corner values (variables 2, 3)."""
+    out[0] = c + gu * lo[0] + gv * lo[1]
+    out[1] = c + gu * lo[0] + gv * hi[1]
+    out[2] = c + gu * hi[0] + gv * lo[1]
+    out[3] = c + gu * hi[0] + gv * hi[1]
+
+
+@kernel
+def _axpy(n, s, x, out):
+    for k in range(n):
+        out[k] += s * x[k]
+
+
+@kernel
+def _scal(n, s, x, out):
+    for k in range(n):
+        out[k] = s * x[k]
+
+
+@kernel
+def _dotv(W, a0, ea, b0, eb, out, tmp):
+    """out = Σ_c W[a0+c]·W[b0+c] (3-vectors of polynomials in slots); returns the extents."""
+    eo = pmul(W[a0], ea, W[b0], eb, out)
+    n = _size(eo)
+    for c in range(1, 3):
+        pmul(W[a0 + c], ea, W[b0 + c], eb, tmp)
+        for k in range(n):
+            out[k] += tmp[k]
+    return eo
+
+
+@kernel
+def _dotc(W, a0, ea, c, out):
+    """out = Σ_c W[a0+c] · c[c] for a constant 3-vector c."""
+    n = _size(ea)
+    for k in range(n):
+        out[k] = c[0] * W[a0, k] + c[1] * W[a0 + 1, k] + c[2] * W[a0 + 2, k]
+
+
+@kernel
+def _cross_pp(W, a0, ea, b0, eb, o0, tmp):
+    """W[o0..o0+2] = W[a0..] × W[b0..]; returns the extents."""
+    eo = ea
+    for c in range(3):
+        i = (c + 1) % 3
+        j = (c + 2) % 3
+        eo = pmul(W[a0 + i], ea, W[b0 + j], eb, W[o0 + c])
+        pmul(W[a0 + j], ea, W[b0 + i], eb, tmp)
+        n = _size(eo)
+        for k in range(n):
+            W[o0 + c, k] -= tmp[k]
+    return eo
+
+
+# workspace slots
+S_X, S_N, S_D, S_R = 0, 3, 6, 9          # x1, n1, d0 = x1 - x0, r = x1 - Q0 (3 each)
+S_NN, S_DN, S_DD, S_T0, S_T1 = 12, 13, 14, 15, 16
+S_V = 17                                  # a direction field (3)
+S_E2R, S_RE1 = 20, 23                     # ek2 × r, r × ek1 (3 each)
+S_TMP = 26                                # scratch (4)
+S_PU, S_PV, S_Q = 30, 31, 32              # R: position numerators / denominator (plain Bernstein, unit box)
+S_DET, S_NUM, S_DDB = 33, 34, 35          # R: irradiance det, numerator, |d0|² (plain Bernstein, unit box)
+S_TB = 36                                 # T: 4 fields x (pu, pv, q) = 12 slots, then nndd, dn2
+S_NNDD, S_DN2 = 48, 49
+S_BOX = 50                                # restricted copies (12 + 2)
+S_REST = 64                               # per-box combined numerators (2 slices x 3 + w, tx, ty)
+S_IRR = 76                                # T irradiance per piece (many)
+NSLOTS = 110
+
+
+@kernel
+def _cross_const_affine(W, r0, ek, o0, left):
+    """o = ek × r (left True) or r × ek for affine r (4 coefficients)."""
+    for k in range(4):
+        a0, a1, a2 = W[r0, k], W[r0 + 1, k], W[r0 + 2, k]
+        if left:
+            W[o0, k] = ek[1] * a2 - ek[2] * a1
+            W[o0 + 1, k] = ek[2] * a0 - ek[0] * a2
+            W[o0 + 2, k] = ek[0] * a1 - ek[1] * a0
+        else:
+            W[o0, k] = a1 * ek[2] - a2 * ek[1]
+            W[o0 + 1, k] = a2 * ek[0] - a0 * ek[2]
+            W[o0 + 2, k] = a0 * ek[1] - a1 * ek[0]
+
+
+@kernel
+def _caster_unit(W, x0, P, N, Q, lo, hi):
+    """x1, n1, d0, r = x1 - Q0 (eq 6–8) as affine polynomials on the box (slots S_X.., E2)."""
+    for c in range(3):
+        e1 = P[1, c] - P[0, c]
+        e2 = P[2, c] - P[0, c]
+        _affine2(P[0, c], e1, e2, lo, hi, W[S_X + c])
+        _affine2(N[0, c], N[1, c] - N[0, c], N[2, c] - N[0, c], lo, hi, W[S_N + c])
+        _affine2(P[0, c] - x0[c], e1, e2, lo, hi, W[S_D + c])
+        _affine2(P[0, c] - Q[0, c], e1, e2, lo, hi, W[S_R + c])
+
+
+@kernel
+def _numerators(W, v0, ev, out_pu, out_pv, out_q, eo):
+    """pu = V·(ek2 × r), pv = V·(r × ek1), q = V·(ek2 × ek1) for the direction field in slots
+    v0.. (eq 9 with (a×b)·c = a·(b×c)), elevated to extents eo, converted to plain Bernstein."""
+    tmp = W[S_TMP]
+    t2 = W[S_TMP + 1]
+    t3 = W[S_TMP + 2]
+    e = _dotv(W, v0, ev, S_E2R, E2, t3, tmp)
+    pelevate(t3, e, eo, out_pu, tmp)
+    to_bernstein(out_pu, eo)
+    e = _dotv(W, v0, ev, S_RE1, E2, t3, tmp)
+    pelevate(t3, e, eo, out_pv, tmp)
+    to_bernstein(out_pv, eo)
+    # q: the constant vector ek2 × ek1 is in slot S_TMP+3 (first 3 entries)
+    c = W[S_TMP + 3]
+    n = _size(ev)
+    for k in range(n):
+        t2[k] = c[0] * W[v0, k] + c[1] * W[v0 + 1, k] + c[2] * W[v0 + 2, k]
+    pelevate(t2, ev, eo, out_q, tmp)
+    to_bernstein(out_q, eo)
+
+
+@kernel
+def _setup(W, refract, irradiance, x0, P, N, Q):
+    """Per-tuple polynomials on the unit box of (u1, v1) (slots S_PU.., S_TB..)."""
+    lo = (0.0, 0.0)
+    hi = (1.0, 1.0)
+    _caster_unit(W, x0, P, N, Q, lo, hi)
+    ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
+    ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
+    _cross_const_affine(W, S_R, ek2, S_E2R, True)
+    _cross_const_affine(W, S_R, ek1, S_RE1, False)
+    c = W[S_TMP + 3]
+    c[0] = ek2[1] * ek1[2] - ek2[2] * ek1[1]
+    c[1] = ek2[2] * ek1[0] - ek2[0] * ek1[2]
+    c[2] = ek2[0] * ek1[1] - ek2[1] * ek1[0]
+    tmp = W[S_TMP]
+    e3 = _dotv(W, S_N, E2, S_N, E2, W[S_NN], tmp)  # n·n
+    _dotv(W, S_D, E2, S_N, E2, W[S_DN], tmp)       # d·n
+    ev = (1, 1, 4, 4)
+    if not refract:
+        # d̃ = (n·n) d - 2 (d·n) n (eq 10), extents (1,1,4,4)
+        for cc in range(3):
+            ev = pmul(W[S_NN], e3, W[S_D + cc], E2, W[S_V + cc])
+            pmul(W[S_DN], e3, W[S_N + cc], E2, tmp)
+            _axpy(_size(ev), -2.0, tmp, W[S_V + cc])
+        ep = (1, 1, 5, 5)
+        _numerators(W, S_V, ev, W[S_PU], W[S_PV], W[S_Q], ep)
+        if irradiance:
+            _setup_reflect_irradiance(W)
+        return
+    # refraction: fields P1 = (n·n) d - (d·n) n, nndd n, dn² n, n (eq 10 with √β -> aβ + b + ξ δ)
+    ev = (1, 1, 4, 4)
+    for cc in range(3):
+        pmul(W[S_NN], e3, W[S_D + cc], E2, W[S_V + cc])
+        pmul(W[S_DN], e3, W[S_N + cc], E2, tmp)
+        _axpy(_size(ev), -1.0, tmp, W[S_V + cc])
+    ev6 = (1, 1, 6, 6)
+    ep = (1, 1, 7, 7)
+    _numerators(W, S_V, ev, W[S_TB + 0], W[S_TB + 1], W[S_TB + 2], ep)
+    _dotv(W, S_D, E2, S_D, E2, W[S_DD], tmp)
+    e5 = pmul(W[S_NN], e3, W[S_DD], e3, W[S_NNDD])
+    pmul(W[S_DN], e3, W[S_DN], e3, W[S_DN2])
+    for f in range(2):
+        src = S_NNDD if f == 0 else S_DN2
+        for cc in range(3):
+            ev6 = pmul(W[src], e5, W[S_N + cc], E2, W[S_V + cc])
+        _numerators(W, S_V, ev6, W[S_TB + 3 + 3 * f], W[S_TB + 4 + 3 * f], W[S_TB + 5 + 3 * f], ep)
+    _numerators(W, S_N, E2, W[S_TB + 9], W[S_TB + 10], W[S_TB + 11], ep)
+    to_bernstein(W[S_NNDD], e5)
+    to_bernstein(W[S_DN2], e5)
+
+
+@kernel
+def _setup_reflect_irradiance(W):
+    """R: det ∂(pu,pv,q) (eq 16 via det[[pu, pu_u, pu_v], [pv, ...], [q, ...]]) and
+    num = (d0·ng) q³ on the unit box, plain Bernstein at degree 10; |d0|² at degree 2.
+    Rebuilt from the scaled numerators (slots S_V.. hold d̃)."""
+    tmp = W[S_TMP]
+    # scaled pu (1,1,5,5), pv (1,1,5,5), q (1,1,4,4) in S_IRR..
+    pu, pv, q = S_IRR, S_IRR + 1, S_IRR + 2
+    ev = (1, 1, 4, 4)
+    _dotv(W, S_V, ev, S_E2R, E2, W[pu], tmp)
+    _dotv(W, S_V, ev, S_RE1, E2, W[pv], tmp)
+    c = W[S_TMP + 3]
+    _dotc(W, S_V, ev, c, W[q])
+    e5 = (1, 1, 5, 5)
+    e4 = ev
+    a = S_IRR + 3
+    eu5 = pderiv(W[pu], e5, 2, 1.0, W[a])      # pu_u (1,1,4,5)
+    ev5 = pderiv(W[pu], e5, 3, 1.0, W[a + 1])  # pu_v (1,1,5,4)
+    pderiv(W[pv], e5, 2, 1.0, W[a + 2])        # pv_u
+    pderiv(W[pv], e5, 3, 1.0, W[a + 3])        # pv_v
+    eu4 = pderiv(W[q], e4, 2, 1.0, W[a + 4])   # q_u (1,1,3,4)
+    ev4 = pderiv(W[q], e4, 3, 1.0, W[a + 5])   # q_v (1,1,4,3)
+    m1, m2, m3 = a + 6, a + 7, a + 8
+    # pv_u q_v - pv_v q_u -> (1,1,7,7)
+    e77 = pmul(W[a + 2], eu5, W[a + 5], ev4, W[m1])
+    pmul(W[a + 3], ev5, W[a + 4], eu4, tmp)
+    _axpy(_size(e77), -1.0, tmp, W[m1])
+    ed = pmul(W[pu], e5, W[m1], e77, W[S_DET])       # (1,1,11,11)
+    # pu_u q_v - pu_v q_u
+    pmul(W[a], eu5, W[a + 5], ev4, W[m2])
+    pmul(W[a + 1], ev5, W[a + 4], eu4, tmp)
+    _axpy(_size(e77), -1.0, tmp, W[m2])
+    pmul(W[pv], e5, W[m2], e77, tmp)
+    _axpy(_size(ed), -1.0, tmp, W[S_DET])
+    # pu_u pv_v - pu_v pv_u -> (1,1,8,8)
+    e88 = pmul(W[a], eu5, W[a + 3], ev5, W[m3])
+    pmul(W[a + 1], ev5, W[a + 2], eu5, tmp)
+    _axpy(_size(e88), -1.0, tmp, W[m3])
+    pmul(W[q], e4, W[m3], e88, tmp)
+    _axpy(_size(ed), 1.0, tmp, W[S_DET])
+    to_bernstein(W[S_DET], ed)
+    # num = (d0·ng) q³
+    ng = W[S_TMP + 2]
+    # ng = e1 x e2 from the affine x: e1 = x(1,0) - x(0,0), e2 = x(0,1) - x(0,0)
+    e1 = (W[S_X, 2] - W[S_X, 0], W[S_X + 1, 2] - W[S_X + 1, 0], W[S_X + 2, 2] - W[S_X + 2, 0])
+    e2 = (W[S_X, 1] - W[S_X, 0], W[S_X + 1, 1] - W[S_X + 1, 0], W[S_X + 2, 1] - W[S_X + 2, 0])
+    ng[0] = e1[1] * e2[2] - e1[2] * e2[1]
+    ng[1] = e1[2] * e2[0] - e1[0] * e2[2]
+    ng[2] = e1[0] * e2[1] - e1[1] * e2[0]
+    cosp = a + 9
+    _dotc(W, S_D, E2, ng, W[cosp])
+    q2 = a + 10
+    e7 = pmul(W[q], e4, W[q], e4, W[q2])
+    e10 = pmul(W[q2], e7, W[q], e4, W[m1])
+    pmul(W[cosp], E2, W[m1], e10, W[S_NUM])
+    to_bernstein(W[S_NUM], ed)
+    e3 = _dotv(W, S_D, E2, S_D, E2, W[S_DDB], tmp)
+    to_bernstein(W[S_DDB], e3)
+
+
+# ---------------------------------------------------------------------------------------
+# per piece
+
+
+@kernel
+def _orientation_mask(x0, P, N, lo, hi):
+    """As chain1._orientations: signs o of the shading normal turned to the light that occur on
+    the box (the affine n·ng takes its extremes at the box corners)."""
+    e1 = (P[1, 0] - P[0, 0], P[1, 1] - P[0, 1], P[1, 2] - P[0, 2])
+    e2 = (P[2, 0] - P[0, 0], P[2, 1] - P[0, 1], P[2, 2] - P[0, 2])
+    ng = (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
+    side = (x0[0] - P[0, 0]) * ng[0] + (x0[1] - P[0, 1]) * ng[1] + (x0[2] - P[0, 2]) * ng[2]
+    if side == 0.0:
+        return 0
+    vlo = np.inf
+    vhi = -np.inf
+    for k in range(4):
+        u = lo[0] if k < 2 else hi[0]
+        v = lo[1] if k % 2 == 0 else hi[1]
+        s = 0.0
+        for c in range(3):
+            s += (N[0, c] + u * (N[1, c] - N[0, c]) + v * (N[2, c] - N[0, c])) * ng[c]
+        vlo = min(vlo, s)
+        vhi = max(vhi, s)
+    mask = 0
+    sg = 1.0 if side > 0.0 else -1.0
+    if vhi > 0.0:
+        mask |= 1 if sg > 0.0 else 2
+    if vlo < 0.0:
+        mask |= 2 if sg > 0.0 else 1
+    return mask
+
+
+@kernel
+def _bounds_from(W, pu, pv, q, n, UV, res):
+    """uk, vk, w = 1 - uk - vk and UV bounds from coefficient arrays (one degree, n of them);
+    res[0:8] as chain1.piece_position before padding; returns False when the bound misses."""
+    a, b, c, e = ratio_bound(W[pu], W[q], n)
+    ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
+    if ulo > uhi:
+        return False
+    a, b, c, e = ratio_bound(W[pv], W[q], n)
+    vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
+    if vlo > vhi or ulo + vlo > 1.0:
+        return False
+    t = W[S_REST + 8]
+    for k in range(n):
+        t[k] = W[q, k] - W[pu, k] - W[pv, k]
+    a, b, c, e = ratio_bound(t, W[q], n)
+    wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
+    if wlo > whi:
+        return False
+    uhi = min(uhi, 1.0 - vlo - wlo)
+    vhi = min(vhi, 1.0 - ulo - wlo)
+    uvlo_x = min(UV[0, 0], UV[1, 0], UV[2, 0])
+    uvhi_x = max(UV[0, 0], UV[1, 0], UV[2, 0])
+    uvlo_y = min(UV[0, 1], UV[1, 1], UV[2, 1])
+    uvhi_y = max(UV[0, 1], UV[1, 1], UV[2, 1])
+    for k in range(n):
+        t[k] = W[q, k] * UV[0, 0] + W[pu, k] * (UV[1, 0] - UV[0, 0]) + W[pv, k] * (UV[2, 0] - UV[0, 0])
+    a, b, c, e = ratio_bound(t, W[q], n)
+    xlo, xhi = clip_hull(a, b, c, e, uvlo_x, uvhi_x)
+    for k in range(n):
+        t[k] = W[q, k] * UV[0, 1] + W[pu, k] * (UV[1, 1] - UV[0, 1]) + W[pv, k] * (UV[2, 1] - UV[0, 1])
+    a, b, c, e = ratio_bound(t, W[q], n)
+    ylo, yhi = clip_hull(a, b, c, e, uvlo_y, uvhi_y)
+    if xlo > xhi or ylo > yhi:
+        return False
+    res[0], res[1], res[2], res[3] = ulo, uhi, vlo, vhi
+    res[4], res[5], res[6], res[7] = xlo, xhi, ylo, yhi
+    return True
+
+
+@kernel
+def _eta_ratio(o, eta):
+    return 1.0 / eta if o > 0.0 else eta
+
+
+@kernel
+def box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, out, res):
+    """Position bound of the piece lo <= (u1, v1) <= hi (same result as chain1.piece_position)
+    from the per-tuple polynomials of :func:`_setup`."""
+    if lo[0] + lo[1] > 1.0:
+        return False
+    mask = _orientation_mask(x0, P, N, lo, hi)
+    if mask == 0:
+        return False
+    tmp = W[S_TMP]
+    bu0 = np.inf
+    bu1 = -np.inf
+    bv0 = np.inf
+    bv1 = -np.inf
+    X0 = np.inf
+    X1 = -np.inf
+    Y0 = np.inf
+    Y1 = -np.inf
+    if not refract:
+        ep = (1, 1, 5, 5)
+        n = 25
+        restrict2(W[S_PU], ep, lo, hi, W[S_BOX], tmp, work)
+        restrict2(W[S_PV], ep, lo, hi, W[S_BOX + 1], tmp, work)
+        restrict2(W[S_Q], ep, lo, hi, W[S_BOX + 2], tmp, work)
+        if not _bounds_from(W, S_BOX, S_BOX + 1, S_BOX + 2, n, UV, res):
+            return False
+        bu0, bu1, bv0, bv1 = res[0], res[1], res[2], res[3]
+        X0, X1, Y0, Y1 = res[4], res[5], res[6], res[7]
+    else:
+        ep = (1, 1, 7, 7)
+        n = 49
+        for k in range(12):
+            restrict2(W[S_TB + k], ep, lo, hi, W[S_BOX + k], tmp, work)
+        e5 = (1, 1, 5, 5)
+        restrict2(W[S_NNDD], e5, lo, hi, W[S_BOX + 12], tmp, work)
+        restrict2(W[S_DN2], e5, lo, hi, W[S_BOX + 13], tmp, work)
+        for variant in range(2):
+            if not (mask >> variant) & 1:
+                continue
+            o = 1.0 if variant == 0 else -1.0
+            er = _eta_ratio(o, eta)
+            e2 = er * er
+            blo = np.inf
+            bhi = -np.inf
+            for k in range(25):
+                bv = (1.0 - e2) * W[S_BOX + 12, k] + e2 * W[S_BOX + 13, k]
+                blo = min(blo, bv)
+                bhi = max(bhi, bv)
+            if bhi <= 0.0:
+                continue  # total internal reflection on the whole box
+            a, b, dlo, dhi = sqrt_linearisation(blo, bhi)
+            cc = b + dlo
+            wx = dhi - dlo
+            # slices ξ = 0 and ξ = 1 of pu, pv, q: 2n coefficients each (eq 10, 12)
+            for f in range(3):
+                dst = W[S_REST + f]
+                for k in range(n):
+                    s0 = (er * W[S_BOX + f, k]
+                          - o * (a * ((1.0 - e2) * W[S_BOX + 3 + f, k] + e2 * W[S_BOX + 6 + f, k]) + cc * W[S_BOX + 9 + f, k]))
+                    dst[k] = s0
+                    dst[n + k] = s0 - o * wx * W[S_BOX + 9 + f, k]
+            if not _bounds_from(W, S_REST, S_REST + 1, S_REST + 2, 2 * n, UV, res):
+                continue
+            bu0, bu1, bv0, bv1 = min(bu0, res[0]), max(bu1, res[1]), min(bv0, res[2]), max(bv1, res[3])
+            X0, X1, Y0, Y1 = min(X0, res[4]), max(X1, res[5]), min(Y0, res[6]), max(Y1, res[7])
+        if bu0 > bu1:
+            return False
+    out[0] = bu0 - POS_PAD
+    out[1] = bu1 + POS_PAD
+    out[2] = bv0 - POS_PAD
+    out[3] = bv1 + POS_PAD
+    out[4] = X0 - POS_PAD
+    out[5] = X1 + POS_PAD
+    out[6] = Y0 - POS_PAD
+    out[7] = Y1 + POS_PAD
+    return True
+
+
+@kernel
+def box_irradiance_reflect(W, work, Q, lo, hi):
+    """(Ē, E̲) for reflection on the box (eq 15–16), from the per-tuple det / num."""
+    tmp = W[S_TMP]
+    e = (1, 1, 11, 11)
+    restrict2(W[S_DET], e, lo, hi, W[S_BOX], tmp, work)
+    restrict2(W[S_NUM], e, lo, hi, W[S_BOX + 1], tmp, work)
+    e3 = (1, 1, 3, 3)
+    restrict2(W[S_DDB], e3, lo, hi, W[S_BOX + 2], tmp, work)
+    dlo, dhi = coef_minmax(W[S_BOX + 2], 9)
+    a, b, c, d = ratio_bound(W[S_BOX + 1], W[S_BOX], 121)
+    ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
+    ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
+    ak = math.sqrt((ek1[1] * ek2[2] - ek1[2] * ek2[1]) ** 2 + (ek1[2] * ek2[0] - ek1[0] * ek2[2]) ** 2
+                   + (ek1[0] * ek2[1] - ek1[1] * ek2[0]) ** 2)
+    upper = abs_upper(a, b, c, d)
+    lower = abs_lower(a, b, c, d)
+    if dlo <= 0.0:
+        return np.inf, 0.0
+    return upper * dlo ** -1.5 / ak * (1.0 + IRR_PAD), lower * dhi ** -1.5 / ak * (1.0 - IRR_PAD)
+
+
+@kernel
+def _aff4(c, g, lo4, hi4, out):
+    """Affine c + Σ g_j x_j in all four variables (order uk, vk, u1, v1): corner values."""
+    k = 0
+    for i0 in range(2):
+        for i1 in range(2):
+            for i2 in range(2):
+                for i3 in range(2):
+                    out[k] = (c + g[0] * (hi4[0] if i0 else lo4[0]) + g[1] * (hi4[1] if i1 else lo4[1])
+                              + g[2] * (hi4[2] if i2 else lo4[2]) + g[3] * (hi4[3] if i3 else lo4[3]))
+                    k += 1
+
+
+@kernel
+def box_irradiance_refract(W, scr, x0, P, N, Q, eta, lo, hi, pos):
+    """(Ē, E̲) for refraction (eq 17–19) on the 4-D box (uk, vk) × (u1, v1), as
+    chain1.piece_irradiance_refract (same polynomials, same final degree (3,3,10,10) in
+    (uk, vk, u1, v1) order, built in scaled Bernstein form with their true degrees)."""
+    lo4 = scr[20:24]
+    hi4 = scr[24:28]
+    g = scr[28:32]
+    hi_v = scr[32:34]
+    lo_v = scr[34:36]
+    lo4[2], hi4[2], lo4[3], hi4[3] = lo[0], hi[0], lo[1], hi[1]
+    for k in range(2):
+        a, b = pos[2 * k], pos[2 * k + 1]
+        if b - a < MIN_WIDTH:
+            a, b = 0.5 * (a + b) - 0.5 * MIN_WIDTH, 0.5 * (a + b) + 0.5 * MIN_WIDTH
+        lo4[k], hi4[k] = a, b
+    mask = _orientation_mask(x0, P, N, lo, hi)
+    if mask == 0:
+        return 0.0, 0.0
+    e1 = (P[1, 0] - P[0, 0], P[1, 1] - P[0, 1], P[1, 2] - P[0, 2])
+    e2 = (P[2, 0] - P[0, 0], P[2, 1] - P[0, 1], P[2, 2] - P[0, 2])
+    ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
+    ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
+    _caster_unit(W, x0, P, N, Q, lo, hi)  # x, n, d, r on the (u1, v1) box
+    tmp = W[S_TMP]
+    B0 = S_IRR
+    D1, D0N, D1N = B0, B0 + 3, B0 + 6
+    for c in range(3):  # d1 = xk - x1 (1 in every variable)
+        g[0], g[1], g[2], g[3] = ek1[c], ek2[c], -e1[c], -e2[c]
+        _aff4(Q[0, c] - P[0, c], g, lo4, hi4, W[D1 + c])
+    E4 = (2, 2, 2, 2)
+    ng = (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
+    COS, L0, L1, G, G1, G2, G3, G4 = B0 + 9, B0 + 10, B0 + 11, B0 + 12, B0 + 13, B0 + 14, B0 + 15, B0 + 16
+    _dotc(W, S_D, E2, ng, W[COS])
+    e3 = _dotv(W, S_D, E2, S_D, E2, W[L0], tmp)
+    # |d0|² range (plain Bernstein of the degree-2 polynomial)
+    for k in range(9):
+        W[S_TMP + 1, k] = W[L0, k]
+    to_bernstein(W[S_TMP + 1], e3)
+    dlo, dhi = coef_minmax(W[S_TMP + 1], 9)
+    if dlo <= 0.0:
+        return np.inf, 0.0
+    ed0n = _cross_pp(W, S_D, E2, S_N, E2, D0N, tmp)        # (1,1,3,3)
+    ed1n = _cross_pp(W, D1, E4, S_N, E2, D1N, tmp)         # (2,2,3,3)
+    el1 = _dotv(W, D1, E4, D1, E4, W[L1], tmp)             # (3,3,3,3)
+    eG = _dotv(W, D0N, ed0n, D1, E4, W[G], tmp)            # (2,2,4,4)
+    w = (hi4[0] - lo4[0], hi4[1] - lo4[1], hi4[2] - lo4[2], hi4[3] - lo4[3])
+    eG1 = pderiv(W[G], eG, 2, w[2], W[G1])
+    eG2 = pderiv(W[G], eG, 3, w[3], W[G2])
+    # ∂G/∂uk = (d0×n)·ek1, ∂G/∂vk = (d0×n)·ek2 (true degree)
+    _dotc(W, D0N, ed0n, ek1, W[G3])
+    _dotc(W, D0N, ed0n, ek2, W[G4])
+    eG3 = ed0n
+    # t1, t2: unit tangents of the caster (as chain1)
+    l = math.sqrt(e1[0] ** 2 + e1[1] ** 2 + e1[2] ** 2)
+    t1 = (e1[0] / l, e1[1] / l, e1[2] / l)
+    t2 = (ng[1] * t1[2] - ng[2] * t1[1], ng[2] * t1[0] - ng[0] * t1[2], ng[0] * t1[1] - ng[1] * t1[0])
+    l = math.sqrt(t2[0] ** 2 + t2[1] ** 2 + t2[2] ** 2)
+    t2 = (t2[0] / l, t2[1] / l, t2[2] / l)
+    A, A2, Bv, B2, FA, FB, F, F1 = B0 + 17, B0 + 18, B0 + 19, B0 + 20, B0 + 21, B0 + 22, B0 + 23, B0 + 24
+    F2, F3, F4, DET1, DETK, NUM, T1, T2 = B0 + 25, B0 + 26, B0 + 27, B0 + 28, B0 + 29, B0 + 30, B0 + 31, B0 + 32
+    ak = math.sqrt((ek1[1] * ek2[2] - ek1[2] * ek2[1]) ** 2 + (ek1[2] * ek2[0] - ek1[0] * ek2[2]) ** 2
+                   + (ek1[0] * ek2[1] - ek1[1] * ek2[0]) ** 2)
+    efin = (4, 4, 11, 11)
+    nfin = 4 * 4 * 11 * 11
+    best_hi = 0.0
+    best_lo = np.inf
+    for variant in range(2):
+        if not (mask >> variant) & 1:
+            continue
+        o = 1.0 if variant == 0 else -1.0
+        eta_f = 1.0 / _eta_ratio(o, eta)
+        hi_v[variant] = np.inf
+        lo_v[variant] = 0.0
+    for bi in range(2):
+        b = t1 if bi == 0 else t2
+        bb = b
+        _dotc(W, D0N, ed0n, bb, W[A])
+        eA2 = pmul(W[A], ed0n, W[A], ed0n, W[A2])
+        eFA = pmul(W[L1], el1, W[A2], eA2, W[FA])               # (3,3,7,7)
+        _dotc(W, D1N, ed1n, bb, W[Bv])
+        eB2 = pmul(W[Bv], ed1n, W[Bv], ed1n, W[B2])
+        pmul(W[L0], e3, W[B2], eB2, W[FB])
+        nF = _size(eFA)
+        for variant in range(2):
+            if not (mask >> variant) & 1:
+                continue
+            o = 1.0 if variant == 0 else -1.0
+            eta_f = 1.0 / _eta_ratio(o, eta)
+            s = -eta_f * eta_f
+            for k in range(nF):
+                W[F, k] = W[FA, k] + s * W[FB, k]
+            eF1 = pderiv(W[F], eFA, 2, w[2], W[F1])
+            eF2 = pderiv(W[F], eFA, 3, w[3], W[F2])
+            eF3 = pderiv(W[F], eFA, 0, w[0], W[F3])
+            eF4 = pderiv(W[F], eFA, 1, w[1], W[F4])
+            ed1 = pmul(W[F1], eF1, W[G2], eG2, W[T1])             # (4,4,9,9)
+            pmul(W[F2], eF2, W[G1], eG1, W[T2])
+            _axpy(_size(ed1), -1.0, W[T2], W[T1])
+            pelevate(W[T1], ed1, efin, W[DET1], tmp)
+            edk = pmul(W[F3], eF3, W[G4], eG3, W[T1])             # (2,3,9,9)
+            edk2 = pmul(W[F4], eF4, W[G3], eG3, W[T2])            # (3,2,9,9)
+            ec = (3, 3, edk[2], edk[3])
+            pelevate(W[T1], edk, ec, W[DETK], tmp)
+            pelevate(W[T2], edk2, ec, W[T1], tmp)
+            _axpy(_size(ec), -1.0, W[T1], W[DETK])
+            en = pmul(W[COS], E2, W[DETK], ec, W[T2])             # (3,3,10,10)
+            pelevate(W[T2], en, efin, W[NUM], tmp)
+            a, b2, c, d = ratio_bound(W[NUM], W[DET1], nfin)
+            hi_v[variant] = min(hi_v[variant], abs_upper(a, b2, c, d))
+            lo_v[variant] = max(lo_v[variant], abs_lower(a, b2, c, d))
+    for variant in range(2):
+        if not (mask >> variant) & 1:
+            continue
+        best_hi = max(best_hi, hi_v[variant])
+        best_lo = min(best_lo, lo_v[variant])
+    if best_lo == np.inf:
+        best_lo = 0.0
+    return best_hi * dlo ** -1.5 / ak * (1.0 + IRR_PAD), best_lo * dhi ** -1.5 / ak * (1.0 - IRR_PAD)
+
+
+# ---------------------------------------------------------------------------------------
+# the quadtree per tuple
+
+
+@kernel
+def _irradiance(W, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos):
+    if refract:
+        return box_irradiance_refract(W, scr, x0, P, N, Q, eta, lo, hi, pos)
+    return box_irradiance_reflect(W, work, Q, lo, hi)
+
+
+@kernel
+def refine_irradiance(W, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, hi, levels, stats):
+    """Ē, E̲ of a piece whose own Ē is infinite, as the max / min over a quadtree of sub-boxes
+    of its (u1, v1) box (at most ``levels`` deep, splitting only sub-boxes that are still
+    unbounded).  Each sub-box uses its own position bound as the (uk, vk) box of the implicit
+    bound (eq 17–19) and is skipped when that bound misses the receiver (no path there), so
+    the result bounds every path of the piece (eq 21 over a finer partition); it stays
+    infinite when a sub-box at the last level is still unbounded (a focal point, or the
+    0/0 of the implicit form at normal incidence).  The piece itself is unchanged."""
+    slo = scr[36:38]
+    shi = scr[38:40]
+    spos = scr[40:48]
+    res = scr[48:56]
+    top = 0
+    ehi = 0.0
+    elo = np.inf
+    found = False
+    um = 0.5 * (lo[0] + hi[0])
+    vm = 0.5 * (lo[1] + hi[1])
+    for k in range(4):
+        a0 = lo[0] if k & 1 == 0 else um
+        b0 = lo[1] if k & 2 == 0 else vm
+        if a0 + b0 < 1.0:
+            rstack[top, 0], rstack[top, 1] = a0, um if k & 1 == 0 else hi[0]
+            rstack[top, 2], rstack[top, 3], rstack[top, 4] = b0, vm if k & 2 == 0 else hi[1], 1.0
+            top += 1
+    while top > 0:
+        top -= 1
+        slo[0], shi[0], slo[1], shi[1] = rstack[top, 0], rstack[top, 1], rstack[top, 2], rstack[top, 3]
+        level = int(rstack[top, 4])
+        stats[0] += 1
+        if not box_position(W, work, refract, x0, P, N, UV, eta, slo, shi, spos, res):
+            continue
+        stats[1] += 1
+        h, l = _irradiance(W, work, scr, refract, x0, P, N, Q, eta, slo, shi, spos)
+        if not h < np.inf:
+            if level >= levels:
+                return np.inf, 0.0
+            um = 0.5 * (slo[0] + shi[0])
+            vm = 0.5 * (slo[1] + shi[1])
+            for k in range(4):
+                a0 = slo[0] if k & 1 == 0 else um
+                b0 = slo[1] if k & 2 == 0 else vm
+                if a0 + b0 < 1.0:
+                    rstack[top, 0], rstack[top, 1] = a0, um if k & 1 == 0 else shi[0]
+                    rstack[top, 2], rstack[top, 3], rstack[top, 4] = b0, vm if k & 2 == 0 else shi[1], level + 1.0
+                    top += 1
+            continue
+        found = True
+        ehi = max(ehi, h)
+        elo = min(elo, l)
+    if not found:
+        return 0.0, 0.0
+    return ehi, elo
+
+
+@kernel
+def tuple_pieces_fast(W, work, scr, stack, rstack, refract, x0, P, N, Q, UV, eta, max_depth, sigma, alpha, irradiance,
+                      irr_refine, out, stats):
+    """chain1.tuple_pieces with the fast engine: same stopping rules (§6.1), same piece rows.
+
+    The root's position bound is computed before the per-tuple polynomials of the irradiance
+    so that a tuple whose caustic misses the receiver triangle costs one position bound."""
+    cap = out.shape[0]
+    _setup(W, refract, False, x0, P, N, Q)
+    have_irr = False
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0.0, 1.0, 0.0, 1.0, 0.0
+    top = 1
+    count = 0
+    lo = scr[0:2]
+    hi = scr[2:4]
+    pos = scr[4:12]
+    res = scr[12:20]
+    while top > 0:
+        top -= 1
+        lo[0], hi[0], lo[1], hi[1] = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+        depth = int(stack[top, 4])
+        stats[0] += 1
+        if not box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, pos, res):
+            continue
+        if irradiance and not refract and not have_irr:
+            _setup_reflect_irradiance(W)
+            have_irr = True
+        can_split = depth < max_depth and count + top + 4 <= cap
+        area = (pos[1] - pos[0]) * (pos[3] - pos[2])
+        ehi = np.inf
+        elo = 0.0
+        split = False
+        if area >= sigma and can_split:
+            if irradiance:
+                stats[1] += 1
+                ehi, elo = _irradiance(W, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
+                split = not (elo > 0.0 and ehi < alpha * elo)
+            else:
+                split = True
+        elif irradiance:
+            stats[1] += 1
+            ehi, elo = _irradiance(W, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
+        if split:
+            um = 0.5 * (lo[0] + hi[0])
+            vm = 0.5 * (lo[1] + hi[1])
+            for k in range(4):
+                a0 = lo[0] if k & 1 == 0 else um
+                a1 = um if k & 1 == 0 else hi[0]
+                b0 = lo[1] if k & 2 == 0 else vm
+                b1 = vm if k & 2 == 0 else hi[1]
+                if a0 + b0 < 1.0:
+                    stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], stack[top, 4] = a0, a1, b0, b1, depth + 1
+                    top += 1
+            continue
+        if depth < max_depth and area >= sigma and not can_split:
+            stats[3] += 1
+        if irradiance and not ehi < np.inf and irr_refine > 0:
+            ehi, elo = refine_irradiance(W, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, hi, irr_refine, stats)
+        if irradiance and not ehi < np.inf:
+            stats[2] += 1
+        row = out[count]
+        row[P_U0], row[P_U1], row[P_V0], row[P_V1] = lo[0], hi[0], lo[1], hi[1]
+        for k in range(8):
+            row[P_BU0 + k] = pos[k]
+        row[P_EHI] = ehi
+        row[P_ELO] = elo
+        row[P_DEPTH] = depth
+        count += 1
+    return count
+
+
+@kernel
+def workspace():
+    return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(64)
+
+
+@kernel(parallel=True)
+def batch_fast(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, irr_refine, out, counts, stats, chunk):
+    n = pairs.shape[0]
+    nchunks = (n + chunk - 1) // chunk
+    for ci in prange(nchunks):
+        W, work, scr = workspace()
+        stack = np.empty((4 * (max_depth + 2), 5))
+        rstack = np.empty((4 * (irr_refine + 2), 5))
+        for t in range(ci * chunk, min(n, (ci + 1) * chunk)):
+            c = pairs[t, 0]
+            r = pairs[t, 1]
+            counts[t] = tuple_pieces_fast(W, work, scr, stack, rstack, refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma,
+                                          alpha, irradiance, irr_refine, out[t], stats[t])
+
+
+@kernel
+def eval_box(refract, x0, P, N, Q, UV, eta, lo, hi, pos):
+    """One box of one tuple, for tests: writes the position bound into pos[0:8] and returns
+    (inside, Ē, E̲) as chain1.piece_position / piece_irradiance_* would."""
+    W, work, scr = workspace()
+    _setup(W, refract, False, x0, P, N, Q)
+    res = np.zeros(8)
+    if not box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, pos, res):
+        return False, 0.0, 0.0
+    if not refract:
+        _setup_reflect_irradiance(W)
+    ehi, elo = _irradiance(W, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
+    return True, ehi, elo

@@ -55,6 +55,7 @@ from ..solver.jit import kernel, prange
 ANGLE_MARGIN = 1e-6
 NO_CONE = 4.0  # > pi: "keep every direction"
 TILE = 8
+SUBDIVIDE = 4  # two bounces: t1 is cut into SUBDIVIDE² sub-triangles for the pair parts
 
 
 def _unit(v):
@@ -77,15 +78,18 @@ def vertex_cap(x0, tri_p):
 
 
 def normal_cap(tri_n):
+    """Cap (axis, radius) of the normalised convex combinations of the normals ``tri_n`` (T, m, 3)
+    (a triangle's corners, or the corners of any region the normal field is linear over)."""
     m, _ = _unit(tri_n)
     c, lc = _unit(m.sum(axis=1))
-    gamma = np.max(np.stack([_angle(c, m[:, j]) for j in range(3)], 1), axis=1)
+    gamma = np.max(np.stack([_angle(c, m[:, j]) for j in range(m.shape[1])], 1), axis=1)
     gamma = np.where((gamma < 0.5 * math.pi - 1e-9) & (lc > 0), gamma, NO_CONE)
     return c, gamma
 
 
 def propagate_cap(kind, a, alpha, tri_n, ng, side, eta):
-    """Cap (d, theta) of the directions scattered by triangles with corner normals ``tri_n``.
+    """Cap (d, theta) of the directions scattered by triangles with corner normals ``tri_n``
+    ((T, m, 3): the normal field over the region is linear in the m corners).
 
     ``kind`` "R" or "T"; (a, alpha) the cap of incoming directions; ``ng`` unit geometric
     normals (any orientation); ``side`` the sign of (x_prev - p0) . ng for every incoming
@@ -117,8 +121,46 @@ def propagate_cap(kind, a, alpha, tri_n, ng, side, eta):
     k = 1.0 - r * r * (1.0 - cos_a * cos_a)
     d = r[:, None] * a + (r * cos_a - np.sqrt(np.maximum(k, 0.0)))[:, None] * no
     d, _ = _unit(d)
-    theta = np.where(ok, gamma + lip * (alpha + gamma), NO_CONE)
+    # Tangential bound, valid up to and beyond the critical angle: a transmitted direction is
+    # w(t) = t - sqrt(1 - |t|²) n_o with t = r x (tangential part of wi); over the cap of
+    # radius beta = alpha + gamma the tangential parts lie within r 2 sin(beta / 2) of r t_a,
+    # and those beyond |t| = 1 are totally reflected.  With t0 the centre clamped to the unit
+    # disc and delta the disc's radius around it, two directions differ by at most
+    # delta / sqrt(1 - rho²) (rho = |t0| + delta < 1: the arc length of the segment's image) and
+    # always by at most the chord sqrt(delta² + 2 delta) (since (√x - √y)² <= |x - y|).
+    beta = np.minimum(alpha + gamma, math.pi)
+    t_vec = r[:, None] * (a + cos_a[:, None] * no)
+    t_len = np.linalg.norm(t_vec, axis=1)
+    t0 = t_vec * np.minimum(1.0, 1.0 / np.maximum(t_len, 1e-300))[:, None]
+    t0_len = np.minimum(t_len, 1.0)
+    axis_t, _ = _unit(t0 - np.sqrt(np.maximum(0.0, 1.0 - t0_len ** 2))[:, None] * no)
+    delta = r * 2.0 * np.sin(0.5 * beta) + np.maximum(0.0, t_len - 1.0)
+    rho = t0_len + delta
+    arc = np.where(rho < 1.0, delta / np.sqrt(np.maximum(1e-300, 1.0 - rho ** 2)), np.inf)
+    chord = 2.0 * np.arcsin(np.minimum(1.0, 0.5 * np.sqrt(delta ** 2 + 2.0 * delta)))
+    tangential = gamma + np.minimum(arc, chord) + ANGLE_MARGIN
+    ok_t = consistent & (side != 0) & (alpha < NO_CONE) & (gamma < NO_CONE) & (tangential < math.pi)
+    theta = np.where(ok, np.minimum(gamma + lip * (alpha + gamma), tangential), np.where(ok_t, tangential, NO_CONE))
+    d = np.where(ok[:, None], d, axis_t)
     return d, theta
+
+
+def all_tir(a, alpha, tri_n, ng, side, eta):
+    """Where no incoming direction of the cap (a, alpha) refracts anywhere on the region with
+    corner normals ``tri_n``: the smallest possible angle of incidence,
+    angle(-a, n_o) - alpha - gamma (spherical triangle inequality over both caps), is beyond the
+    critical angle, so every ray is totally reflected (or arrives from behind): no T path.
+    ``side`` as in :func:`propagate_cap` (the light's side of the plane, ng oriented)."""
+    c, gamma = normal_cap(tri_n)
+    m, _ = _unit(tri_n)
+    mg = np.einsum("tjk,tk->tj", m, ng)
+    consistent = np.all(mg > 0, axis=1) | np.all(mg < 0, axis=1)
+    s = side * np.where(np.sum(ng * c, axis=1) >= 0, 1.0, -1.0)
+    r = np.where(s > 0, 1.0 / eta, eta)
+    theta_a = np.arccos(np.clip(-np.sum(a * s[:, None] * c, axis=1), -1.0, 1.0))
+    theta_min = theta_a - alpha - gamma - 2.0 * ANGLE_MARGIN
+    return (consistent & (side != 0) & (alpha < NO_CONE) & (gamma < NO_CONE) & (r > 1.0) & (theta_min > 0.0)
+            & (r * np.sin(np.minimum(theta_min, 0.5 * math.pi)) > 1.0 + 1e-9))
 
 
 def geometric_normals(tri_p):
@@ -149,9 +191,15 @@ class Emitters:
     ``side_req``: +1 / -1 the side of the last triangle's plane (ng = e1 x e2) the receiver
     point must be on, 0 no path at all, 2 unknown (no side test).  ``index`` (m, k) the
     caster indices (into the arrays the emitters were built from) of each emitter.
+
+    Parts: an emitter may be split into parts (sub-regions of its first triangle), each with a
+    smaller sphere that holds the last vertex and a narrower cap; a receiver point passes when
+    one part accepts it.  By default an emitter is one part: its last triangle's bounding
+    sphere and ``cap_d``/``cap_t``.  ``parts``: (start (n+1,), centre (p,3), radius (p,),
+    cap axis (p,3), cap radius (p,)) in emitter order.
     """
 
-    def __init__(self, index, tri_p_last, side_req, cap_d, cap_t, extra=None):
+    def __init__(self, index, tri_p_last, side_req, cap_d, cap_t, extra=None, parts=None):
         self.index = np.ascontiguousarray(index, dtype=np.int64).reshape(len(side_req), -1)
         self.tri_c, self.tri_r = tri_spheres(tri_p_last) if len(side_req) else (np.zeros((0, 3)), np.zeros(0))
         self.tri_ng = np.ascontiguousarray(geometric_normals(tri_p_last)[0]) if len(side_req) else np.zeros((0, 3))
@@ -160,13 +208,20 @@ class Emitters:
         self.cap_d = np.ascontiguousarray(cap_d, dtype=np.float64)
         self.cap_t = np.ascontiguousarray(cap_t, dtype=np.float64)
         self.extra = extra or {}
+        if parts is None:
+            parts = (np.arange(self.size + 1, dtype=np.int64), self.tri_c, self.tri_r, self.cap_d, self.cap_t)
+        self.part_start, self.part_c, self.part_r, self.part_d, self.part_t = (np.ascontiguousarray(a) for a in parts)
+        self.part_start = self.part_start.astype(np.int64)
 
     @property
     def size(self):
         return self.side_req.shape[0]
 
     def without_cone(self):
+        """Keep only the side tests: one part per emitter, its last triangle's sphere, no cap."""
         self.cap_t = np.full_like(self.cap_t, NO_CONE)
+        self.part_start = np.arange(self.size + 1, dtype=np.int64)
+        self.part_c, self.part_r, self.part_d, self.part_t = self.tri_c, self.tri_r, self.cap_d, self.cap_t
         return self
 
 
@@ -176,7 +231,8 @@ def one_bounce_emitters(chain, x0, tri_p, tri_n, eta):
     return Emitters(np.arange(tri_p.shape[0]), tri_p, side if chain == "R" else -side, d, theta)
 
 
-def two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, ids1=None, ids2=None, same_ior=True, chunk=256):
+def two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, ids1=None, ids2=None, same_ior=True, chunk=256,
+                        subdivide=SUBDIVIDE):
     """Emitters of a two-bounce chain ("RR", "RT", "TR", "TT"): the (t1, t2) caster pairs that
     can carry light x0 -> t1 -> t2, with the cap of directions leaving t2.
 
@@ -187,6 +243,10 @@ def two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, i
     not tested).  ``ids1`` / ``ids2``: global triangle ids; pairs of a triangle with itself are
     skipped (a flat triangle cannot scatter light back onto itself).  ``same_ior``: keep only
     pairs with eta1 == eta2 (solve_tuples takes one IOR per tuple).
+
+    ``subdivide`` > 1 splits every surviving pair into parts (:func:`pair_parts`): t1 is cut
+    into subdivide² sub-triangles whose light is followed to t2 separately; a pair whose light
+    misses t2 from every sub-triangle is dropped.
     """
     k1, k2 = chain[0], chain[1]
     side1, d1, th1 = scatter_caps(k1, x0, tri_p1, tri_n1, eta1)
@@ -195,7 +255,7 @@ def two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, i
     c2, r2 = tri_spheres(tri_p2)
     ng1 = geometric_normals(tri_p1)[0]
     ng2, lg2 = geometric_normals(tri_p2)
-    idx1, idx2, caps_d, caps_t, reqs = [], [], [], [], []
+    idx1, idx2, caps_d, caps_t, reqs, sides2 = [], [], [], [], [], []
     T1, T2 = tri_p1.shape[0], tri_p2.shape[0]
     for a0 in range(0, T1, chunk):
         a1 = min(T1, a0 + chunk)
@@ -223,7 +283,11 @@ def two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, i
         al_in = np.where(use1, theta1, beta)
         # Side of t2 the light comes from: all of t1 on one side of t2's plane.
         sv = np.einsum("tjk,tk->tj", tri_p1[i1] - tri_p2[i2, 0][:, None, :], ng2[i2])
-        s2 = np.where(np.all(sv > 0, axis=1), 1.0, np.where(np.all(sv < 0, axis=1), -1.0, 0.0))
+        # (a vertex shared with t2 lies in its plane: the rest of t1 decides; points of t1 in
+        # t2's plane carry no path through t2's interior)
+        tol = 1e-12 * (r1[i1] + r2[i2])[:, None]
+        s2 = np.where(np.all(sv >= -tol, axis=1) & np.any(sv > tol, axis=1), 1.0,
+                      np.where(np.all(sv <= tol, axis=1) & np.any(sv < -tol, axis=1), -1.0, 0.0))
         d2, th2 = propagate_cap(k2, a_in, al_in, tri_n2[i2], ng2[i2], s2, eta2[i2])
         req2 = np.where(s2 == 0, 2.0, s2 if k2 == "R" else -s2)
         idx1.append(i1)
@@ -231,9 +295,157 @@ def two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, i
         caps_d.append(d2)
         caps_t.append(th2)
         reqs.append(req2)
+        sides2.append(s2)
     cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape))  # noqa: E731
     i1, i2 = cat(idx1, (0,)).astype(np.int64), cat(idx2, (0,)).astype(np.int64)
-    return Emitters(np.column_stack([i1, i2]), tri_p2[i2], cat(reqs, (0,)), cat(caps_d, (0, 3)), cat(caps_t, (0,)))
+    req2, d2, th2, s2 = cat(reqs, (0,)), cat(caps_d, (0, 3)), cat(caps_t, (0,)), cat(sides2, (0,))
+    if subdivide <= 1 or i1.size == 0:
+        return Emitters(np.column_stack([i1, i2]), tri_p2[i2], req2, d2, th2)
+    keep, parts = pair_parts(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, i1, i2, d2, th2, s2, subdivide, chunk)
+    return Emitters(np.column_stack([i1[keep], i2[keep]]), tri_p2[i2[keep]], req2[keep], d2[keep], th2[keep], parts=parts)
+
+
+def sub_triangles(s):
+    """Barycentric corners (s², 3, 2) of the s² congruent sub-triangles of the unit triangle."""
+    out = []
+    for i in range(s):
+        for j in range(s - i):
+            out.append([(i, j), (i + 1, j), (i, j + 1)])
+            if i + j < s - 1:
+                out.append([(i + 1, j), (i + 1, j + 1), (i, j + 1)])
+    return np.array(out, dtype=np.float64) / s
+
+
+def pair_parts(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, i1, i2, d2, th2, s2, subdivide, chunk=256):
+    """Split two-bounce pairs (t1 = tri_p1[i1], t2 = tri_p2[i2]) into parts; returns (keep (n,) bool,
+    parts in the layout of :class:`Emitters`) for the kept pairs.
+
+    For each sub-triangle of t1 (its corners and interpolated corner normals; the normal field is
+    linear over it, so the cap bounds hold for it as for a triangle):
+    1. the cap (a, alpha) of directions it scatters light from x0 into (:func:`scatter_caps`);
+    2. the footprint of those rays on t2's plane (unit normal n2): for a ray origin o = c + δ in
+       the sub-triangle's sphere (c, r) and a direction d in the cap, the hit is
+       x2 = [c + (h_c / (d.n2)) d] + [δ - ((δ.n2) / (d.n2)) d] with h_c = (p2 - c).n2; the second
+       term is an oblique projection of δ, at most r / |d.n2| long.  When d.n2 keeps one sign over
+       the cap (d.n2 in [cos(phi + alpha), cos(phi - alpha)], phi = angle(a, n2)), the distance
+       t = |h_c| / |d.n2| is in [t_lo, t_hi] and x2 lies within
+       r / min|d.n2| + t_hi 2 sin(alpha / 2) + (t_hi - t_lo) / 2 of c ± a (t_lo + t_hi) / 2
+       (the sign of h_c d.n2: hits behind the origin are included, which only loosens the bound);
+    3. the footprint must reach t2: with the barycentric gradients g_u, g_v on t2's plane, the
+       barycentrics of the footprint lie within R |g| of the centre's; a footprint wholly outside
+       the triangle (beyond 1e-6) carries no path, and the part is dropped;
+    4. t2's normals over that barycentric box (the four box corners of the linear normal field)
+       and the incoming cap (the smaller of the scattered cap and the cap of directions from the
+       sub-triangle's sphere to the footprint) give the cap of directions leaving t2
+       (:func:`propagate_cap`); a refraction at t2 that is total everywhere (:func:`all_tir`)
+       drops the part.
+    The part is (footprint sphere, that cap).  Where a footprint is not bounded (no cap at t1,
+    a ray that may run parallel to t2's plane) the pair keeps one part: t2's sphere and the
+    pair's own cap (d2, th2), as without subdivision.  A pair with no part left is dropped.
+    """
+    k1, k2 = chain[0], chain[1]
+    sub = sub_triangles(subdivide)  # (K, 3, 2)
+    K = sub.shape[0]
+    c2, r2 = tri_spheres(tri_p2)
+    ng2, lg2 = geometric_normals(tri_p2)
+    e21 = tri_p2[:, 1] - tri_p2[:, 0]
+    e22 = tri_p2[:, 2] - tri_p2[:, 0]
+    twice_area = np.maximum(lg2, 1e-300)[:, None]
+    g_u = np.cross(e22, ng2) / twice_area  # u(x) = g_u . (x - p0): barycentric gradients on the plane
+    g_v = np.cross(ng2, e21) / twice_area
+    n = i1.size
+    keep = np.zeros(n, dtype=bool)
+    count = np.zeros(n, dtype=np.int64)
+    pc, pr, pd, pt = [], [], [], []
+    for q0 in range(0, n, chunk):
+        q1 = min(n, q0 + chunk)
+        a1, a2 = i1[q0:q1], i2[q0:q1]
+        m = q1 - q0
+        # sub-triangle corners and normals: (m, K, 3, 3)
+        bu = sub[None, :, :, 0, None]
+        bv = sub[None, :, :, 1, None]
+        P1 = tri_p1[a1][:, None, None, :, :]
+        N1 = tri_n1[a1][:, None, None, :, :]
+        sp = P1[..., 0, :] + bu * (P1[..., 1, :] - P1[..., 0, :]) + bv * (P1[..., 2, :] - P1[..., 0, :])
+        sn = N1[..., 0, :] + bu * (N1[..., 1, :] - N1[..., 0, :]) + bv * (N1[..., 2, :] - N1[..., 0, :])
+        sp = sp.reshape(m * K, 3, 3)
+        sn = sn.reshape(m * K, 3, 3)
+        rep = np.repeat(np.arange(q0, q1), K)  # pair index per row
+        t1r, t2r = i1[rep], i2[rep]
+        _, a, alpha = scatter_caps(k1, x0[t1r], sp, sn, eta1[t1r])
+        cs, rs = tri_spheres(sp)
+        nrm = ng2[t2r]
+        hc = np.abs(np.sum((tri_p2[t2r, 0] - cs) * nrm, axis=1))
+        phi = np.arccos(np.clip(np.sum(a * nrm, axis=1), -1.0, 1.0))
+        al = np.minimum(alpha, math.pi)
+        dn_hi = np.cos(np.maximum(phi - al, 0.0))
+        dn_lo = np.cos(np.minimum(phi + al, math.pi))
+        pos = dn_lo > 1e-6
+        neg = dn_hi < -1e-6
+        bounded = (alpha < NO_CONE) & (pos | neg)
+        dn_min = np.where(pos, dn_lo, -dn_hi)
+        dn_max = np.where(pos, dn_hi, -dn_lo)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_lo = np.where(bounded, hc / dn_max, 0.0)
+            t_hi = np.where(bounded, hc / dn_min, 0.0)
+            shift = np.where(bounded, rs / dn_min, 0.0)
+        cf = cs + np.sign(np.sum(a * nrm, axis=1) * np.sum((tri_p2[t2r, 0] - cs) * nrm, axis=1))[:, None] * 0.5 * (t_lo + t_hi)[:, None] * a
+        rad = (shift + t_hi * 2.0 * np.sin(0.5 * al) + 0.5 * (t_hi - t_lo)) * (1.0 + 1e-9) + 1e-12 * (rs + r2[t2r])
+        # barycentric box of the footprint on t2
+        rel = cf - tri_p2[t2r, 0]
+        uc = np.sum(g_u[t2r] * rel, axis=1)
+        vc = np.sum(g_v[t2r] * rel, axis=1)
+        du = rad * np.linalg.norm(g_u[t2r], axis=1)
+        dv = rad * np.linalg.norm(g_v[t2r], axis=1)
+        dw = rad * np.linalg.norm(g_u[t2r] + g_v[t2r], axis=1)
+        tol = 1e-6
+        reaches = (uc + du >= -tol) & (vc + dv >= -tol) & (1.0 - uc - vc + dw >= -tol)
+        # pairs with an unbounded sub-triangle keep their pair-level part only
+        fallback = np.zeros(m, dtype=bool)
+        np.logical_or.at(fallback, rep - q0, ~bounded)
+        use = bounded & reaches & ~fallback[rep - q0]
+        ulo = np.clip(uc - du, -tol, 1.0 + tol)[use]
+        uhi = np.clip(uc + du, -tol, 1.0 + tol)[use]
+        vlo = np.clip(vc - dv, -tol, 1.0 + tol)[use]
+        vhi = np.clip(vc + dv, -tol, 1.0 + tol)[use]
+        tu = t2r[use]
+        N2 = tri_n2[tu]
+        corners = []
+        for uu, vv in ((ulo, vlo), (uhi, vlo), (ulo, vhi), (uhi, vhi)):
+            corners.append(N2[:, 0] + uu[:, None] * (N2[:, 1] - N2[:, 0]) + vv[:, None] * (N2[:, 2] - N2[:, 0]))
+        n4 = np.stack(corners, axis=1)
+        # incoming cap at t2: the scattered cap or the directions sub-triangle -> footprint
+        dvec = cf[use] - cs[use]
+        dist = np.linalg.norm(dvec, axis=1)
+        reach = rs[use] + rad[use]
+        u_dir = dvec / np.maximum(dist, 1e-300)[:, None]
+        beta = np.where(dist > reach, np.arcsin(np.minimum(1.0, reach / np.maximum(dist, 1e-300))) + ANGLE_MARGIN, NO_CONE)
+        take_dir = beta < alpha[use]
+        a_in = np.where(take_dir[:, None], u_dir, a[use])
+        al_in = np.where(take_dir, beta, alpha[use])
+        d_out, t_out = propagate_cap(k2, a_in, al_in, n4, ng2[tu], s2[rep[use]], eta2[tu])
+        owner = rep[use]
+        if k2 == "T":  # light that is totally reflected at t2 everywhere carries no path
+            live = ~all_tir(a_in, al_in, n4, ng2[tu], s2[owner], eta2[tu])
+            owner, d_out, t_out = owner[live], d_out[live], t_out[live]
+            use[np.flatnonzero(use)[~live]] = False
+        fb = np.flatnonzero(fallback) + q0
+        # parts in pair order: the refined ones, then one fallback part per fallback pair
+        o_all = np.concatenate([owner, fb])
+        c_all = np.concatenate([cf[use], c2[i2[fb]]])
+        r_all = np.concatenate([rad[use], r2[i2[fb]]])
+        d_all = np.concatenate([d_out, d2[fb]])
+        t_all = np.concatenate([t_out, th2[fb]])
+        order = np.argsort(o_all, kind="stable")
+        pc.append(c_all[order])
+        pr.append(r_all[order])
+        pd.append(d_all[order])
+        pt.append(t_all[order])
+        np.add.at(count, o_all, 1)
+    keep = count > 0
+    start = np.concatenate([[0], np.cumsum(count[keep])]).astype(np.int64)
+    cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape))  # noqa: E731
+    return keep, (start, cat(pc, (0, 3)), cat(pr, (0,)), cat(pd, (0, 3)), cat(pt, (0,)))
 
 
 def tri_spheres(tri_p):
@@ -286,28 +498,32 @@ def _cap_meets(dx, dy, dz, cx, cy, cz, theta, reach):
     return ang <= theta + beta
 
 
+# The emitter arrays every kernel below takes, in this order (``E`` in the signatures):
+# part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req.
+
+
 @kernel(parallel=True)
-def _pairs_count(tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r, count):
-    for t in prange(tri_c.shape[0]):
+def _pairs_count(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, count):
+    for t in prange(side_req.shape[0]):
         c = 0
         for k in range(tile_c.shape[0]):
-            if _tile_ok(t, k, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r):
+            if _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r):
                 c += 1
         count[t] = c
 
 
 @kernel(parallel=True)
-def _pairs_fill(tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r, offset, out_tile):
-    for t in prange(tri_c.shape[0]):
+def _pairs_fill(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, offset, out_tile):
+    for t in prange(side_req.shape[0]):
         o = offset[t]
         for k in range(tile_c.shape[0]):
-            if _tile_ok(t, k, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r):
+            if _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r):
                 out_tile[o] = k
                 o += 1
 
 
 @kernel(inline="always")
-def _tile_ok(t, k, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c, tile_r):
+def _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r):
     req = side_req[t]
     if req == 0.0:
         return False
@@ -316,48 +532,55 @@ def _tile_ok(t, k, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, tile_c,
           + (tile_c[k, 2] - tri_p0[t, 2]) * tri_ng[t, 2])
     if req != 2.0 and req * sd <= -tile_r[k]:
         return False
-    return _cap_meets(cap_d[t, 0], cap_d[t, 1], cap_d[t, 2], tile_c[k, 0] - tri_c[t, 0], tile_c[k, 1] - tri_c[t, 1],
-                      tile_c[k, 2] - tri_c[t, 2], cap_t[t], tri_r[t] + tile_r[k])
+    for p in range(part_start[t], part_start[t + 1]):
+        if _cap_meets(part_d[p, 0], part_d[p, 1], part_d[p, 2], tile_c[k, 0] - part_c[p, 0], tile_c[k, 1] - part_c[p, 1],
+                      tile_c[k, 2] - part_c[p, 2], part_t[p], part_r[p] + tile_r[k]):
+            return True
+    return False
 
 
 @kernel(inline="always")
-def _sample_ok(t, s, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng):
+def _sample_ok(t, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng):
     req = side_req[t]
     sd = ((pos[s, 0] - tri_p0[t, 0]) * tri_ng[t, 0] + (pos[s, 1] - tri_p0[t, 1]) * tri_ng[t, 1]
           + (pos[s, 2] - tri_p0[t, 2]) * tri_ng[t, 2])
     if req == 0.0 or (req != 2.0 and not req * sd > 0.0):
         return False
-    # Receiver front side: some point of the caster's sphere must be in front of the sample.
-    cx = tri_c[t, 0] - pos[s, 0]
-    cy = tri_c[t, 1] - pos[s, 1]
-    cz = tri_c[t, 2] - pos[s, 2]
-    if cx * rec_ng[s, 0] + cy * rec_ng[s, 1] + cz * rec_ng[s, 2] <= -tri_r[t]:
-        return False
-    return _cap_meets(cap_d[t, 0], cap_d[t, 1], cap_d[t, 2], -cx, -cy, -cz, cap_t[t], tri_r[t])
+    for p in range(part_start[t], part_start[t + 1]):
+        # Receiver front side: some point of the part's sphere must be in front of the sample.
+        cx = part_c[p, 0] - pos[s, 0]
+        cy = part_c[p, 1] - pos[s, 1]
+        cz = part_c[p, 2] - pos[s, 2]
+        if cx * rec_ng[s, 0] + cy * rec_ng[s, 1] + cz * rec_ng[s, 2] <= -part_r[p]:
+            continue
+        if _cap_meets(part_d[p, 0], part_d[p, 1], part_d[p, 2], -cx, -cy, -cz, part_t[p], part_r[p]):
+            return True
+    return False
 
 
 @kernel(parallel=True)
-def _emit_count(pair_tri, pair_tile, tile_start, order, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng, count):
+def _emit_count(pair_tri, pair_tile, tile_start, order, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req,
+                pos, rec_ng, count):
     for q in prange(pair_tri.shape[0]):
         t = pair_tri[q]
         k = pair_tile[q]
         c = 0
         for z in range(tile_start[k], tile_start[k + 1]):
-            if _sample_ok(t, order[z], tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng):
+            if _sample_ok(t, order[z], part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng):
                 c += 1
         count[q] = c
 
 
 @kernel(parallel=True)
-def _emit_fill(pair_tri, pair_tile, tile_start, order, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng,
-               offset, out_tri, out_sample):
+def _emit_fill(pair_tri, pair_tile, tile_start, order, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req,
+               pos, rec_ng, offset, out_tri, out_sample):
     for q in prange(pair_tri.shape[0]):
         t = pair_tri[q]
         k = pair_tile[q]
         o = offset[q]
         for z in range(tile_start[k], tile_start[k + 1]):
             s = order[z]
-            if _sample_ok(t, s, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng):
+            if _sample_ok(t, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng):
                 out_tri[o] = t
                 out_sample[o] = s
                 o += 1
@@ -374,14 +597,13 @@ class TupleCull:
     def __init__(self, emitters, band_pos, band_geo_normal, band_texel, width):
         e = emitters
         self.emitters = e
-        self.tri_c, self.tri_r, self.tri_ng, self.tri_p0 = e.tri_c, e.tri_r, e.tri_ng, e.tri_p0
-        self.side_req, self.cap_d, self.cap_t = e.side_req, e.cap_d, e.cap_t
+        self.arrays = (e.part_start, e.part_c, e.part_r, e.part_d, e.part_t, e.tri_ng, e.tri_p0, e.side_req)
         self.pos = np.ascontiguousarray(band_pos)
         self.rec_ng = np.ascontiguousarray(band_geo_normal)
         self.order, self.tile_start, self.tile_c, self.tile_r = tile_spheres(band_texel, width, band_pos)
         T = e.size
         count = np.zeros(T, dtype=np.int64)
-        args = (self.tri_c, self.tri_r, self.tri_ng, self.tri_p0, self.side_req, self.cap_d, self.cap_t, self.tile_c, self.tile_r)
+        args = self.arrays + (self.tile_c, self.tile_r)
         if T and self.tile_c.shape[0]:
             _pairs_count(*args, count)
         offset = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
@@ -407,8 +629,7 @@ class TupleCull:
             pt = self.pair_tri[q:q1]
             pk = self.pair_tile[q:q1]
             cnt = np.zeros(pt.shape[0], dtype=np.int64)
-            common = (self.tile_start, self.order, self.tri_c, self.tri_r, self.tri_ng, self.tri_p0, self.side_req, self.cap_d,
-                      self.cap_t, self.pos, self.rec_ng)
+            common = (self.tile_start, self.order) + self.arrays + (self.pos, self.rec_ng)
             _emit_count(pt, pk, *common, cnt)
             off = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
             out_t = np.empty(off[-1], dtype=np.int64)

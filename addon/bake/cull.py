@@ -693,7 +693,8 @@ def one_bounce_bounds(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv, irradiance=Fa
 
 @kernel(parallel=True)
 def _bounds_pairs(fill, tup_e, tup_r, piece_start, pieces, tex_start, tex_order, band_rec, bary, W, H, row0, row1, margin,
-                  tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng, offset, count, out_e, out_s, out_E):
+                  part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng, offset, count, out_e,
+                  out_s, out_E):
     for t in prange(tup_e.shape[0]):
         e = tup_e[t]
         r = tup_r[t]
@@ -731,7 +732,8 @@ def _bounds_pairs(fill, tup_e, tup_r, piece_start, pieces, tex_start, tex_order,
                                 best = max(best, pieces[k, 12])
                         if best < 0.0:
                             continue
-                        if not _sample_ok(e, s, tri_c, tri_r, tri_ng, tri_p0, side_req, cap_d, cap_t, pos, rec_ng):
+                        if not _sample_ok(e, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos,
+                                          rec_ng):
                             continue
                         if fill:
                             out_e[o] = e
@@ -780,7 +782,8 @@ class BoundsCull:
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self._args = (np.ascontiguousarray(tuples[:, 0]), np.ascontiguousarray(tuples[:, 1]), start, pieces, tex_start, order,
                       np.ascontiguousarray(band_rec), np.ascontiguousarray(band.bary), int(width), int(height), int(row0),
-                      int(row1), BOUNDS_MARGIN, e.tri_c, e.tri_r, e.tri_ng, e.tri_p0, e.side_req, e.cap_d, e.cap_t,
+                      int(row1), BOUNDS_MARGIN, e.part_start, e.part_c, e.part_r, e.part_d, e.part_t, e.tri_ng, e.tri_p0,
+                      e.side_req,
                       np.ascontiguousarray(band.position), np.ascontiguousarray(band.geo_normal))
         n = tuples.shape[0]
         self.count = np.zeros(n, dtype=np.int64)

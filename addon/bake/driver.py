@@ -63,7 +63,7 @@ class BakeSettings:
     direct: bool = False  # also the direct light (chain of length 0; for the units test)
     chains: tuple = ()  # restrict to these chains (empty: all planned)
     threads: int = 0  # 0: Numba's default
-    device: str = "numba"  # solver device: "numba", "opencl" or "opencl:N" (R and T; others run on Numba)
+    device: str = "numba"  # solver device: "numba", "opencl" or "opencl:N" (every chain; see solver.api)
 
     def as_dict(self):
         d = asdict(self)

@@ -29,6 +29,13 @@ candidates of different systems of one tuple are tried differs (all scan roots o
 before its refined roots), which can change which of two copies of one path is kept
 (both polished to ~1e-15) but not the set of paths.  A stage-B/D "device" written in Numba
 (:class:`NumbaDeterminants`) runs the same staging without OpenCL, for the tests.
+
+Stage A repeats ``_solve_oriented``'s set-up (side tests, frame, √ pieces, orientations) so
+that the one-kernel path stays exactly as it is; the two must change together
+(tests/test_opencl_two_bounce.py compares the staging on Numba with the one-kernel solver).
+Limits: one projection (``TWO_PROJECTIONS`` False) and ``REFINE_LEVELS`` ≤ 1, the settings
+of two_bounce.py; a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel
+path in stage E.
 """
 
 import math

@@ -28,8 +28,8 @@ def add_arguments(parser):
     parser.add_argument("--threads", type=int, default=0, help="worker threads (default: all cores)")
     parser.add_argument("--device", default="numba", metavar="DEVICE",
                         help="solver device: numba (CPU, default), opencl (first OpenCL device) or opencl:N; OpenCL "
-                        "solves the one-bounce chains R and T, everything else (and a missing pyopencl / device) "
-                        "runs on Numba with a warning")
+                        "solves every chain (two bounces: the resultant's determinants on the device, the rest on "
+                        "the CPU); a missing pyopencl / device runs on Numba with a warning")
     parser.add_argument("--method", default="spoly", choices=("spoly", "newton", "sms", "curve", "photon"),
                         help="spoly (Specular Polynomials, default), newton (MNEE from Path Cuts seeds: R, T), sms "
                         "(Specular Manifold Sampling: R, T), curve (dimension-reduction MNEE: T) or photon (light "

@@ -134,7 +134,7 @@ class BakeSettings:
     direct: bool = False  # also the direct light (chain of length 0; for the units test)
     chains: tuple = ()  # restrict to these chains (empty: all planned)
     threads: int = 0  # 0: Numba's default
-    device: str = "numba"  # solver device: "numba", "opencl" or "opencl:N" (R and T; others run on Numba)
+    device: str = "numba"  # solver device: "numba", "opencl" or "opencl:N" (every chain; see solver.api)
     method: str = "spoly"  # see METHODS: the per-tuple solver, or "photon" (light tracing instead of the tuple loop)
     sms_seeds: int = 16  # method "sms": random Newton seeds per tuple
     photons: int = 1_000_000  # method "photon": photons traced (over all lights and light samples)

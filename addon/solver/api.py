@@ -92,7 +92,7 @@ class SpecularPolynomialSolver:
         report = SolveReport(solver=self.name, chain=chain, tuples=x_start.shape[0])
         device_index = self._opencl_device(device, chain, report)
         if chain in TWO_BOUNCE_CHAINS:
-            return self._solve_two_bounce(chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0)
+            return self._solve_two_bounce(chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0, device_index)
         if chain not in ONE_BOUNCE_CHAINS:
             raise ValueError(f"chain {chain!r} is not supported yet by the {self.name} solver")
         from .one_bounce import MAX_PATHS_ONE_BOUNCE, N_STATS, solve_one_bounce_batch
@@ -121,25 +121,22 @@ class SpecularPolynomialSolver:
     @staticmethod
     def _opencl_device(device, chain, report):
         """The OpenCL device index to use, or None for Numba (with a warning saying why)."""
-        from .opencl_backend import OpenCLUnavailable, device_name, parse_device
+        from .opencl_backend import OpenCLUnavailable, device_name, parse_device, two_bounce_device_name
 
         index = parse_device(device)
         if index is None:
             report.device = "numba"
             return None
-        if chain not in ONE_BOUNCE_CHAINS:
-            warnings.warn(f"the OpenCL back end solves R and T so far; chain {chain} runs on Numba", RuntimeWarning, stacklevel=4)
-            report.device = "numba"
-            return None
         try:
-            report.device = "opencl: " + device_name(index)  # builds the program; OpenCLNoDoublePrecision propagates
+            # builds the program; OpenCLNoDoublePrecision propagates
+            report.device = "opencl: " + (two_bounce_device_name(index) if chain in TWO_BOUNCE_CHAINS else device_name(index))
         except OpenCLUnavailable as ex:
             warnings.warn(f"OpenCL unavailable ({ex}); solving on Numba instead", RuntimeWarning, stacklevel=4)
             report.device = "numba"
             return None
         return index
 
-    def _solve_two_bounce(self, chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0):
+    def _solve_two_bounce(self, chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0, device_index=None):
         from .two_bounce import DEFAULT_PIECES, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, N_STATS, solve_two_bounce_batch
 
         pieces = DEFAULT_PIECES if pieces is None else int(pieces)
@@ -150,7 +147,15 @@ class SpecularPolynomialSolver:
         out_count = np.zeros(n, dtype=np.int64)
         stats = np.zeros((n, N_STATS), dtype=np.int64)
         t1 = time.perf_counter()
-        if n:
+        if device_index is not None and not stop_after:
+            # the staged pipeline: Bézout determinants and brackets on the device, systems and
+            # path-space polish on Numba (two_bounce_staged.py); the same paths
+            from .opencl_backend import solve_two_bounce_opencl
+
+            if n:
+                solve_two_bounce_opencl(device_index, chain[0] == "T", chain[1] == "T", x_start, x_end, P, N, eta, pieces,
+                                        out_uv, out_count, stats)
+        elif n:
             solve_two_bounce_batch(chain[0] == "T", chain[1] == "T", x_start, x_end, P, N, eta, pieces, int(stop_after),
                                    out_uv, out_count, stats)
         t2 = time.perf_counter()

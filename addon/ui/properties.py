@@ -22,8 +22,9 @@ SOLVER_ITEMS = (
 DEVICE_ITEMS = (
     ("numba", "CPU", "Solve on the CPU with Numba"),
     ("opencl", "OpenCL",
-     "Solve one-bounce chains (R, T) on the first OpenCL device with double precision; two-bounce chains, "
-     "or no OpenCL device / pyopencl, fall back to the CPU with a warning"),
+     "Solve on the first OpenCL device with double precision (one-bounce chains entirely; two-bounce chains: "
+     "the resultant's determinants on the device, the rest on the CPU); no OpenCL device / pyopencl falls "
+     "back to the CPU with a warning"),
 )
 QUALITY_ITEMS = (
     ("PREVIEW", "Preview", "Fast look: 1 sample per texel, 1 light sample, 1 bounce (the fields below are ignored)"),

@@ -1,0 +1,190 @@
+// Two-bounce Specular Polynomials (RR, RT, TR, TT) in OpenCL C: the determinant work of
+// addon/solver/two_bounce.py (Fan et al. 2024, §4.2, eq 28-31), written step for step as
+// det_bezout, _det_checked and _illinois there, so that both back ends see the same signs
+// and pin the same roots.
+//
+// The bivariate systems {a(u1, v1) = 0, b(u1, v1) = 0} are built and normalised by Numba
+// (addon/solver/two_bounce_staged.py, stage A) and packed row by row: row i of a
+// polynomial of total degree d holds the coefficients of u^i v^j, j = 0 .. d - i.  One
+// system is `stride` doubles: a at offset 0, b at offset `b_offset`.  sysint holds, per
+// system, (da, db, n) with n the u-degree of the Bézout matrix (eq 29).
+//
+// Two kernels, each one work-item per job, jobs of one system next to each other:
+//   det_batch      sign and log|det R(v)| at given v (the piecewise sign scan of
+//                  find_v_roots and the sub-samples of _refine_interval);
+//   illinois_batch a sign change [lo, hi] pinned to ROOT_TOL by the Illinois variant of
+//                  regula falsi on the signed log-magnitude (bisection safeguard).
+// The bookkeeping between them (which pieces change sign, the kink rule, deflation) is
+// cheap and stays on the host.  Double precision (cl_khr_fp64) is required.
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL FP_CONTRACT OFF
+
+#define MAXN 46            // u-degree of b at most (TT: 46); n < MAXD = 47 in two_bounce.py
+#define ROOT_TOL 1e-7
+#define LN2 0.6931471805599453
+
+// p_i(v) for i <= n (row i of the packed polynomial p of total degree d), scaled to unit
+// max-norm (as _coeffs_at); returns the scale.
+static double coeffs_at(__global const double *p, int d, int n, double v, double *out) {
+    double m = 0.0;
+    int off = 0;
+    for (int i = 0; i <= n; ++i) {
+        double acc = 0.0;
+        for (int j = d - i; j >= 0; --j) acc = acc * v + p[off + j];
+        out[i] = acc;
+        m = fmax(m, fabs(acc));
+        off += d - i + 1;
+    }
+    if (m > 0.0 && isfinite(m)) {
+        double inv = 1.0 / m;
+        for (int i = 0; i <= n; ++i) out[i] *= inv;
+    }
+    return m;
+}
+
+// Sign and log|det| of the n x n Bézout matrix of (a(., v), b(., v)) (eq 29): the O(n^2)
+// recurrence R[i, j] = R[i-1, j+1] + a_i b_{j+1} - b_i a_{j+1}, then Gaussian elimination
+// with partial pivoting carrying the sign and the log-magnitude (as det_bezout).  Sign 0
+// when a column is exactly zero or a coefficient vector vanishes.
+static int det_bezout(__global const double *a, int da, __global const double *b, int db, int n, double v,
+                      double *logdet) {
+    double A[MAXN + 2], B[MAXN + 2];
+    double mat[MAXN * MAXN];
+    int na = min(n, da);
+    double ma = coeffs_at(a, da, na, v, A);
+    double mb = coeffs_at(b, db, n, v, B);
+    for (int i = na + 1; i <= n; ++i) A[i] = 0.0;
+    *logdet = -INFINITY;
+    if (!(ma > 0.0 && mb > 0.0) || !(isfinite(ma) && isfinite(mb))) return 0;
+    if (n == 0) { *logdet = 0.0; return 1; }
+    for (int j = 0; j < n; ++j) mat[j] = A[0] * B[j + 1] - B[0] * A[j + 1];
+    for (int i = 1; i < n; ++i)
+        for (int j = 0; j < n; ++j) {
+            double t = A[i] * B[j + 1] - B[i] * A[j + 1];
+            if (j + 1 < n) t += mat[(i - 1) * n + j + 1];
+            mat[i * n + j] = t;
+        }
+    int sign = 1;
+    double logm = 0.0;
+    for (int k = 0; k < n; ++k) {
+        int p = k;
+        double big = fabs(mat[k * n + k]);
+        for (int i = k + 1; i < n; ++i) {
+            double x = fabs(mat[i * n + k]);
+            if (x > big) { big = x; p = i; }
+        }
+        if (big == 0.0 || !isfinite(big)) return 0;
+        if (p != k) {
+            sign = -sign;
+            for (int j = k; j < n; ++j) {
+                double t = mat[k * n + j];
+                mat[k * n + j] = mat[p * n + j];
+                mat[p * n + j] = t;
+            }
+        }
+        double piv = mat[k * n + k];
+        if (piv < 0.0) sign = -sign;
+        logm += log(fabs(piv));
+        double inv = 1.0 / piv;
+        for (int i = k + 1; i < n; ++i) {
+            double f = mat[i * n + k] * inv;
+            if (f != 0.0)
+                for (int j = k + 1; j < n; ++j) mat[i * n + j] -= f * mat[k * n + j];
+        }
+    }
+    *logdet = logm;
+    return sign;
+}
+
+typedef struct {
+    __global const double *a, *b;
+    int da, db, n;
+} System;
+
+static System load_system(__global const double *coef, __global const int *sysint, int stride, int b_offset, int s) {
+    System S;
+    S.a = coef + (long)s * stride;
+    S.b = S.a + b_offset;
+    S.da = sysint[3 * s];
+    S.db = sysint[3 * s + 1];
+    S.n = sysint[3 * s + 2];
+    return S;
+}
+
+// det_bezout, with an exact zero re-checked a hair away (as _det_checked).
+static int det_checked(const System *S, double v, double *lg, int *dets) {
+    *dets += 1;
+    int s = det_bezout(S->a, S->da, S->b, S->db, S->n, v, lg);
+    if (s != 0) return s;
+    const double tens[3] = {10.0, 100.0, 1000.0};  // 10.0 ** k, exactly
+    for (int k = 1; k < 4; ++k) {
+        double h = 1e-13 * tens[k - 1];
+        *dets += 1;
+        s = det_bezout(S->a, S->da, S->b, S->db, S->n, v + h, lg);
+        if (s != 0) return s;
+    }
+    *lg = -INFINITY;
+    return 0;
+}
+
+__kernel void det_batch(__global const double *coef, __global const int *sysint, const int stride, const int b_offset,
+                        __global const int *job_sys, __global const double *job_v, const int n_jobs,
+                        __global int *out_sign, __global double *out_log, __global int *out_dets) {
+    int t = get_global_id(0);
+    if (t >= n_jobs) return;
+    System S = load_system(coef, sysint, stride, b_offset, job_sys[t]);
+    double lg;
+    int dets = 0;
+    out_sign[t] = det_checked(&S, job_v[t], &lg, &dets);
+    out_log[t] = lg;
+    out_dets[t] = dets;
+}
+
+// Root of det in [lo, hi] (opposite signs slo, shi at the ends) pinned to ROOT_TOL: the
+// Illinois variant of regula falsi on the signed log-magnitude, a bisection step every
+// fourth iteration unless the bracket shrank well (as _illinois).
+__kernel void illinois_batch(__global const double *coef, __global const int *sysint, const int stride, const int b_offset,
+                             __global const int *job_sys, __global const double *job_f, __global const int *job_s,
+                             const int n_jobs, __global double *out_root, __global int *out_dets) {
+    int t = get_global_id(0);
+    if (t >= n_jobs) return;
+    System S = load_system(coef, sysint, stride, b_offset, job_sys[t]);
+    double lo = job_f[4 * t], hi = job_f[4 * t + 1], llo = job_f[4 * t + 2], lhi = job_f[4 * t + 3];
+    int slo = job_s[2 * t];
+    int side = 0, dets = 0;
+    double width_before = hi - lo;
+    double root = NAN;
+    for (int it = 0; it < 200; ++it) {
+        double w = hi - lo;
+        if (w <= ROOT_TOL) break;
+        double dl = lhi - llo, tt;
+        if (dl > 700.0) tt = 0.0;
+        else if (dl < -700.0) tt = 1.0;
+        else tt = 1.0 / (1.0 + exp(dl));
+        if (it % 4 == 3) {
+            if (w > 0.25 * width_before) tt = 0.5;
+            width_before = w;
+        }
+        double x = lo + tt * w;
+        if (!(x > lo && x < hi)) {
+            x = lo + 0.5 * w;
+            if (!(x > lo && x < hi)) break;
+        }
+        double lg;
+        int s = det_checked(&S, x, &lg, &dets);
+        if (s == 0) { root = x; break; }
+        if (s == slo) {
+            lo = x;
+            llo = lg;
+            if (side == -1) lhi -= LN2;
+            side = -1;
+        } else {
+            hi = x;
+            lhi = lg;
+            if (side == 1) llo -= LN2;
+            side = 1;
+        }
+    }
+    out_root[t] = isnan(root) ? 0.5 * (lo + hi) : root;
+    out_dets[t] = dets;
+}

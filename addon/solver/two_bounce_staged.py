@@ -1,0 +1,756 @@
+"""The two-bounce pipeline of ``two_bounce.py`` cut into batch stages, for the OpenCL back end.
+
+``solve_two_bounce_batch`` runs every tuple start to end in one Numba kernel.  Here the same
+algorithm (Fan et al. 2024, §4.2-4.3: the Bézout resultant of eq 28-29 scanned in v1, its
+sign changes pinned, the candidates back-substituted and polished in path space) runs in
+stages over a whole batch of tuples, so that the expensive part — the determinant of the
+Bézout matrix R(v1) (eq 29), evaluated some 10³-10⁵ times per tuple — can run on an OpenCL
+device (``opencl/two_bounce.cl``), many systems at once:
+
+A (Numba)   per tuple and orientation (forward, reversed): the side tests, then every
+            bivariate system {a = 0, b = 0} (eq 6 with 10 or 13; √ pieces of eq 23, the
+            refraction's two normal orientations) built by ``_build_system``, normalised
+            and rejected early (Bernstein test) exactly as ``_solve_system`` does, and
+            packed (row i of a total-degree-d polynomial: the coefficients of u^i v^j).
+B (device)  the piecewise sign scan of ``find_v_roots``: det R(v) at the pieces' ends,
+            then every sign change pinned to ROOT_TOL by the Illinois iteration.
+C (Numba)   ``_candidates_at`` at each scan root (u1 from a(·, v1), exact map to triangle
+            2, Gauss-Newton polish in path space): the paths, and which roots were
+            productive.
+D (device)  ``refine_v_roots``: the pieces around productive roots and next to convex
+            kinks of the deflated log|det| are sub-sampled (``SUB_SAMPLES``) on the device,
+            new sign changes pinned on the device; the bookkeeping (kink rule, deflation,
+            noisy pieces, one-signed dips) runs here, in the same order as there.
+E (Numba)   candidates at the refined roots, the seeded polish of degenerate systems,
+            the straight-line candidate, the statistics.
+
+Every stage reuses the inner functions of ``two_bounce.py``; only the order in which
+candidates of different systems of one tuple are tried differs (all scan roots of a tuple
+before its refined roots), which can change which of two copies of one path is kept
+(both polished to ~1e-15) but not the set of paths.  A stage-B/D "device" written in Numba
+(:class:`NumbaDeterminants`) runs the same staging without OpenCL, for the tests.
+
+Stage A repeats ``_solve_oriented``'s set-up (side tests, frame, √ pieces, orientations) so
+that the one-kernel path stays exactly as it is; the two must change together
+(tests/test_opencl_two_bounce.py compares the staging on Numba with the one-kernel solver).
+Limits: one projection (``TWO_PROJECTIONS`` False) and ``REFINE_LEVELS`` ≤ 1, the settings
+of two_bounce.py; a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel
+path in stage E.
+"""
+
+import math
+
+import numpy as np
+
+from .jit import kernel, prange
+from .path_space2 import pack_geometry
+from .two_bounce import (
+    BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
+    SQRT_ALL_PIECES, SQRT_PIECES, STAT_ACCEPTED, STAT_DETS, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
+    TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, _bernstein_has_zero, _bmax, _build_system, _candidates_at,
+    _deflate, _det_checked, _illinois, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
+    solve_two_bounce_tuple,
+)
+
+SYS_CAP = 24  # systems per tuple held by stage A; a tuple with more is solved by the one-kernel path
+MAX_ROOTS = 4096  # roots per system (the capacity of the one-kernel path's root list)
+DEGREES = {(False, False): (8, 15), (False, True): (8, 22), (True, False): (16, 31), (True, True): (16, 46)}
+
+
+def _tri(d):
+    return (d + 1) * (d + 2) // 2
+
+
+def layout(refract1, refract2):
+    """(stride, b_offset) of one packed system for a chain: both orientations fit."""
+    da = max(DEGREES[(refract1, refract2)][0], DEGREES[(refract2, refract1)][0])
+    db = max(DEGREES[(refract1, refract2)][1], DEGREES[(refract2, refract1)][1])
+    return _tri(da) + _tri(db), _tri(da)
+
+
+# --- stage A ---------------------------------------------------------------------------------
+
+
+@kernel
+def _pack(p, d, out, off):
+    k = off
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            out[k] = p[i, j]
+            k += 1
+
+
+@kernel
+def _unpack(src, off, d, p):
+    k = off
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            p[i, j] = src[k]
+            k += 1
+
+
+@kernel
+def _prepare_system(biv, da, db, refract1, stats):
+    """The part of ``_solve_system`` and ``_eliminate`` before the scan: normalise a and b,
+    the Bernstein early exit, the u-degrees.  Returns (status, na, nb, n): status 1 to
+    solve, 0 rejected early, -1 degenerate (seeded polish)."""
+    a = biv[0]
+    b = biv[1]
+    ma = _bmax(a, da)
+    mb = _bmax(b, db)
+    if not (ma > 0.0 and mb > 0.0) or not (np.isfinite(ma) and np.isfinite(mb)):
+        return -1, 0, 0, 0
+    for i in range(da + 1):
+        for j in range(da + 1 - i):
+            a[i, j] /= ma
+            if abs(a[i, j]) <= 1e-14:
+                a[i, j] = 0.0
+    for i in range(db + 1):
+        for j in range(db + 1 - i):
+            b[i, j] /= mb
+            if abs(b[i, j]) <= 1e-15:
+                b[i, j] = 0.0
+    if da <= 20 and not _bernstein_has_zero(a, da, 1e-2 if refract1 else 1e-9, biv[2, 0]):
+        stats[STAT_SKIPPED] = 1
+        return 0, 0, 0, 0
+    na = _u_degree(a, da, 1e-14)
+    nb = _u_degree(b, db, 1e-15)
+    n = max(na, nb)
+    if n == 0 or n >= MAXD:
+        return -1, na, nb, n
+    return 1, na, nb, n
+
+
+@kernel
+def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv, geo, geo_l, b_offset, coef, sysint,
+                      nsys, stats):
+    """``_solve_oriented`` up to the systems: the same side tests and system loop, each
+    system stored instead of solved (sysint has room for sysint.shape[0]).  Returns the new
+    system count (more than there is room for: the tuple goes to the one-kernel path)."""
+    if not pack_geometry(x0, x3, PA, NA, PB, NB, geo):
+        return nsys
+    ng1 = (geo[13, 0], geo[13, 1], geo[13, 2])
+    ng2 = (geo[14, 0], geo[14, 1], geo[14, 2])
+    e11 = (geo[2, 0], geo[2, 1], geo[2, 2])
+    e12 = (geo[3, 0], geo[3, 1], geo[3, 2])
+    p20 = (geo[7, 0], geo[7, 1], geo[7, 2])
+    e21 = (geo[8, 0], geo[8, 1], geo[8, 2])
+    e22 = (geo[9, 0], geo[9, 1], geo[9, 2])
+    L1 = max(math.sqrt(e11[0] ** 2 + e11[1] ** 2 + e11[2] ** 2), math.sqrt(e12[0] ** 2 + e12[1] ** 2 + e12[2] ** 2))
+    L2 = max(math.sqrt(e21[0] ** 2 + e21[1] ** 2 + e21[2] ** 2), math.sqrt(e22[0] ** 2 + e22[1] ** 2 + e22[2] ** 2))
+    side0 = geo[0, 0] * ng1[0] + geo[0, 1] * ng1[1] + geo[0, 2] * ng1[2]
+    if abs(side0) <= 1e-12 * L1:
+        stats[STAT_SKIPPED] += 1
+        return nsys
+    lo2 = math.inf
+    hi2 = -math.inf
+    for c in range(3):
+        q = p20
+        if c == 1:
+            q = (p20[0] + e21[0], p20[1] + e21[1], p20[2] + e21[2])
+        elif c == 2:
+            q = (p20[0] + e22[0], p20[1] + e22[1], p20[2] + e22[2])
+        sd = q[0] * ng1[0] + q[1] * ng1[1] + q[2] * ng1[2]
+        lo2 = min(lo2, sd * side0)
+        hi2 = max(hi2, sd * side0)
+    tol1 = 1e-9 * (L1 + L2) * abs(side0)
+    if (not refract1 and hi2 <= tol1) or (refract1 and lo2 >= -tol1):
+        stats[STAT_SKIPPED] += 1
+        return nsys
+    side3 = (geo[1, 0] - p20[0]) * ng2[0] + (geo[1, 1] - p20[1]) * ng2[1] + (geo[1, 2] - p20[2]) * ng2[2]
+    if abs(side3) <= 1e-12 * L2:
+        stats[STAT_SKIPPED] += 1
+        return nsys
+    lo1 = math.inf
+    hi1 = -math.inf
+    for c in range(3):
+        q = (0.0, 0.0, 0.0)
+        if c == 1:
+            q = e11
+        elif c == 2:
+            q = e12
+        sd = (q[0] - p20[0]) * ng2[0] + (q[1] - p20[1]) * ng2[1] + (q[2] - p20[2]) * ng2[2]
+        lo1 = min(lo1, sd * side3)
+        hi1 = max(hi1, sd * side3)
+    tol2 = 1e-9 * (L1 + L2) * abs(side3)
+    if (not refract2 and hi1 <= tol2) or (refract2 and lo1 >= -tol2):
+        stats[STAT_SKIPPED] += 1
+        return nsys
+
+    inv = 1.0 / L1
+    for r in range(13):
+        f = inv if (r <= 3 or (r >= 7 and r <= 9)) else 1.0
+        for c in range(3):
+            geo_l[r, c] = geo[r, c] * f
+    any_front1 = False
+    any_back1 = False
+    any_front2 = False
+    any_back2 = False
+    nmax1 = 0.0
+    flat2 = True
+    nscale2 = 0.0
+    for c in range(3):
+        n1c = (geo[4, 0], geo[4, 1], geo[4, 2])
+        n2c = (geo[10, 0], geo[10, 1], geo[10, 2])
+        if c > 0:
+            n1c = (n1c[0] + geo[4 + c, 0], n1c[1] + geo[4 + c, 1], n1c[2] + geo[4 + c, 2])
+            n2c = (n2c[0] + geo[10 + c, 0], n2c[1] + geo[10 + c, 1], n2c[2] + geo[10 + c, 2])
+        s_1 = n1c[0] * ng1[0] + n1c[1] * ng1[1] + n1c[2] * ng1[2]
+        s_2 = n2c[0] * ng2[0] + n2c[1] * ng2[1] + n2c[2] * ng2[2]
+        any_front1 = any_front1 or s_1 > 0.0
+        any_back1 = any_back1 or s_1 < 0.0
+        any_front2 = any_front2 or s_2 > 0.0
+        any_back2 = any_back2 or s_2 < 0.0
+        nmax1 = max(nmax1, n1c[0] ** 2 + n1c[1] ** 2 + n1c[2] ** 2)
+        nscale2 = max(nscale2, math.sqrt(n2c[0] ** 2 + n2c[1] ** 2 + n2c[2] ** 2))
+    for r in (11, 12):
+        if abs(geo[r, 0]) + abs(geo[r, 1]) + abs(geo[r, 2]) > 1e-12 * nscale2:
+            flat2 = False
+    if not (nmax1 > 0.0 and nscale2 > 0.0):
+        stats[STAT_SKIPPED] += 1
+        return nsys
+    cx = ((e11[0] + e12[0]) / 3.0, (e11[1] + e12[1]) / 3.0, (e11[2] + e12[2]) / 3.0)
+    w = (geo[1, 0] - cx[0], geo[1, 1] - cx[1], geo[1, 2] - cx[2])
+    nb = (3.0 * geo[10, 0] + geo[11, 0] + geo[12, 0], 3.0 * geo[10, 1] + geo[11, 1] + geo[12, 1], 3.0 * geo[10, 2] + geo[11, 2] + geo[12, 2])
+    c2 = (w[1] * nb[2] - w[2] * nb[1], w[2] * nb[0] - w[0] * nb[2], w[0] * nb[1] - w[1] * nb[0])
+    lc = math.sqrt(c2[0] ** 2 + c2[1] ** 2 + c2[2] ** 2)
+    lw = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
+    lnb = math.sqrt(nb[0] ** 2 + nb[1] ** 2 + nb[2] ** 2)
+    if not lc > 1e-6 * lw * lnb:
+        c2 = (e21[1] * nb[2] - e21[2] * nb[1], e21[2] * nb[0] - e21[0] * nb[2], e21[0] * nb[1] - e21[1] * nb[0])
+        lc = math.sqrt(c2[0] ** 2 + c2[1] ** 2 + c2[2] ** 2)
+        if not lc > 0.0:
+            stats[STAT_SKIPPED] += 1
+            return nsys
+    c2 = (c2[0] / lc, c2[1] / lc, c2[2] / lc)
+    dmax = 0.0
+    for c in range(3):
+        q = (0.0, 0.0, 0.0)
+        if c == 1:
+            q = e11
+        elif c == 2:
+            q = e12
+        dv = (q[0] - geo[0, 0], q[1] - geo[0, 1], q[2] - geo[0, 2])
+        dmax = max(dmax, (dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2) * inv * inv)
+    S = math.sqrt(nmax1 * dmax)
+
+    n_orient1 = 2 if refract1 else 1
+    n_side2 = 2 if refract2 else 1
+    n_pieces_sqrt = SQRT_PIECES.shape[0] if refract1 else 1
+    for o1 in range(n_orient1):
+        sigma1 = 1.0 if o1 == 0 else -1.0
+        if refract1 and ((sigma1 > 0.0 and not any_front1) or (sigma1 < 0.0 and not any_back1)):
+            continue
+        s_in1 = sigma1 * (1.0 if side0 > 0.0 else -1.0)
+        r1 = (1.0 / eta) if s_in1 > 0.0 else eta
+        xlo = math.inf
+        xhi = -math.inf
+        mask = 0
+        if refract1:
+            for iu in range(4):
+                for iv in range(4 - iu):
+                    uu = iu / 3.0
+                    vv = iv / 3.0
+                    nn = (geo[4, 0] + uu * geo[5, 0] + vv * geo[6, 0], geo[4, 1] + uu * geo[5, 1] + vv * geo[6, 1], geo[4, 2] + uu * geo[5, 2] + vv * geo[6, 2])
+                    dv = ((uu * e11[0] + vv * e12[0] - geo[0, 0]) * inv, (uu * e11[1] + vv * e12[1] - geo[0, 1]) * inv, (uu * e11[2] + vv * e12[2] - geo[0, 2]) * inv)
+                    n2_ = nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2
+                    d2_ = dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2
+                    dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2]
+                    beta = n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn
+                    x = beta / (S * S)
+                    xlo = min(xlo, x)
+                    xhi = max(xhi, x)
+                    if x >= 0.0:
+                        mask |= 1 << _sqrt_piece(x)
+            nn = (geo[4, 0] + (geo[5, 0] + geo[6, 0]) / 3.0, geo[4, 1] + (geo[5, 1] + geo[6, 1]) / 3.0, geo[4, 2] + (geo[5, 2] + geo[6, 2]) / 3.0)
+            dv = ((cx[0] - geo[0, 0]) * inv, (cx[1] - geo[0, 1]) * inv, (cx[2] - geo[0, 2]) * inv)
+            n2_ = nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2
+            d2_ = dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2
+            dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2]
+            xc = min(1.0, max(0.0, (n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn) / (S * S)))
+            if xhi <= 0.0:
+                continue
+            if SQRT_ALL_PIECES:
+                xlo = max(0.0, xlo * 0.8)
+                xhi = min(1.0, xhi * 1.25)
+            else:
+                mask |= 1 << _sqrt_piece(xc)
+        for piece in range(n_pieces_sqrt):
+            if refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
+                continue
+            if refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
+                continue
+            for o2 in range(n_side2):
+                eta_in2 = 1.0
+                eta_out2 = 1.0
+                if refract2:
+                    sigma2 = 1.0 if o2 == 0 else -1.0
+                    if (sigma2 > 0.0 and not any_front2) or (sigma2 < 0.0 and not any_back2):
+                        continue
+                    s_in2 = -sigma2 * (1.0 if side3 > 0.0 else -1.0)
+                    eta_in2 = 1.0 if s_in2 > 0.0 else eta
+                    eta_out2 = eta if s_in2 > 0.0 else 1.0
+                da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, eta_in2, eta_out2, flat2, c2, geo_l, biv)
+                status, na, nb, n = _prepare_system(biv, da, db, refract1, stats)
+                if status == 0:
+                    continue
+                if nsys < sysint.shape[0]:
+                    sysint[nsys, 0] = rev
+                    sysint[nsys, 1] = status
+                    sysint[nsys, 2] = da
+                    sysint[nsys, 3] = db
+                    sysint[nsys, 4] = na
+                    sysint[nsys, 5] = nb
+                    sysint[nsys, 6] = n
+                    if status == 1:
+                        _pack(biv[0], da, coef[nsys], 0)
+                        _pack(biv[1], db, coef[nsys], b_offset)
+                nsys += 1
+    return nsys
+
+
+@kernel(parallel=True)
+def stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats):
+    """Stage A over a batch: systems per tuple into coef (n, cap, stride) and sysint
+    (n, cap, 7) = (rev, status, da, db, na, nb, n), their count nsys (n,), and state (n,):
+    0 nothing to solve, 1 staged, 2 more than cap systems (solved by the one-kernel path in
+    stage E)."""
+    n = x_start.shape[0]
+    for ch in prange((n + CHUNK - 1) // CHUNK):
+        biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
+        geo = np.zeros((3, 15, 3))
+        for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+            _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, t,
+                           biv, geo)
+
+
+@kernel
+def _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, t, biv, geo):
+    for k in range(N_STATS):
+        stats[t, k] = 0
+    x0 = (x_start[t, 0], x_start[t, 1], x_start[t, 2])
+    x3 = (x_end[t, 0], x_end[t, 1], x_end[t, 2])
+    nsys[t] = 0
+    if not pack_geometry(x0, x3, P[t, 0], N[t, 0], P[t, 1], N[t, 1], geo[0]) or not (eta[t] > 0.0):
+        stats[t, STAT_SKIPPED] = 1
+        state[t] = 0
+        return
+    m = _stage_a_oriented(refract1, refract2, x0, x3, P[t, 0], N[t, 0], P[t, 1], N[t, 1], eta[t], 0, biv, geo[0],
+                          geo[1], b_offset, coef[t], sysint[t], 0, stats[t])
+    if BOTH_DIRECTIONS:
+        m = _stage_a_oriented(refract2, refract1, x3, x0, P[t, 1], N[t, 1], P[t, 0], N[t, 0], eta[t], 1, biv,
+                              geo[2], geo[1], b_offset, coef[t], sysint[t], m, stats[t])
+    nsys[t] = m
+    state[t] = 2 if m > sysint.shape[1] else 1
+
+
+# --- stages C and E: candidates ---------------------------------------------------------------
+
+
+@kernel
+def _oriented(refract1, refract2, rev):
+    if rev:
+        return refract2, refract1
+    return refract1, refract2
+
+
+@kernel(parallel=True)
+def stage_c(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state, roots, nv,
+            productive, out_uv, meta, out_count, stats):
+    """Candidates at the scan roots of every system, in system order, per tuple; productive
+    (S, pieces) says which roots polished into a path (``_eliminate``'s flag)."""
+    n = x_start.shape[0]
+    for ch in prange((n + CHUNK - 1) // CHUNK):
+        biv, cf, mat, scan, geo, work, sroots, chain, lists = make_scratch2()
+        for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+            _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state,
+                           roots, nv, productive, out_uv, meta, out_count, stats, t, biv, geo, work, sroots, chain, lists)
+
+
+@kernel
+def _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state, roots, nv,
+                   productive, out_uv, meta, out_count, stats, t, biv, geo, work, sroots, chain, lists):
+    out_count[t] = 0
+    if state[t] != 1:
+        return
+    x0 = (x_start[t, 0], x_start[t, 1], x_start[t, 2])
+    x3 = (x_end[t, 0], x_end[t, 1], x_end[t, 2])
+    pack_geometry(x0, x3, P[t, 0], N[t, 0], P[t, 1], N[t, 1], geo[0])
+    pack_geometry(x3, x0, P[t, 1], N[t, 1], P[t, 0], N[t, 0], geo[2])
+    th = sroots[0, 0:4]
+    u_roots = sroots[1]
+    coeffs = sroots[2]
+    count = 0
+    for s in range(sys_first[t], sys_first[t + 1]):
+        if sysint[s, 1] != 1:
+            continue
+        rev = sysint[s, 0] == 1
+        r1, r2 = _oriented(refract1, refract2, rev)
+        da = sysint[s, 2]
+        db = sysint[s, 3]
+        _unpack(coef[s], 0, da, biv[0])
+        _unpack(coef[s], b_offset, db, biv[1])
+        margin = V_MARGIN_APPROX if r1 else V_MARGIN_EXACT
+        g = geo[2] if rev else geo[0]
+        for iv in range(nv[s]):
+            accepted = stats[t, STAT_ACCEPTED]
+            count = _candidates_at(roots[s, iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], False, r1, r2,
+                                   margin, g, eta[t], work, th, u_roots, coeffs, chain, lists, rev, geo[0], out_uv[t],
+                                   meta[t], count, stats[t])
+            productive[s, iv] = 1.0 if stats[t, STAT_ACCEPTED] > accepted else 0.0
+    out_count[t] = count
+
+
+@kernel(parallel=True)
+def stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
+            ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats):
+    """Candidates at the refined roots, the seeded polish of degenerate systems (sysint
+    status -1), the straight-line candidate after the forward systems, the statistics;
+    tuples with more than SYS_CAP systems are solved here by the one-kernel path."""
+    n = x_start.shape[0]
+    for ch in prange((n + CHUNK - 1) // CHUNK):
+        biv, cf, mat, scan, geo, work, sroots, chain, lists = make_scratch2()
+        for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+            _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state,
+                           nv, ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats, t, biv, cf, mat, scan, geo,
+                           work, sroots, chain, lists)
+
+
+@kernel
+def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
+                   ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats, t, biv, cf, mat, scan, geo, work, sroots,
+                   chain, lists):
+    if state[t] == 0:
+        out_count[t] = 0
+        return
+    x0 = (x_start[t, 0], x_start[t, 1], x_start[t, 2])
+    x3 = (x_end[t, 0], x_end[t, 1], x_end[t, 2])
+    if state[t] == 2:
+        out_count[t] = solve_two_bounce_tuple(refract1, refract2, x0, x3, P[t], N[t], eta[t], pieces, 0, biv, cf,
+                                              mat, scan, geo, work, sroots, chain, lists, out_uv[t], stats[t])
+        return
+    pack_geometry(x0, x3, P[t, 0], N[t, 0], P[t, 1], N[t, 1], geo[0])
+    pack_geometry(x3, x0, P[t, 1], N[t, 1], P[t, 0], N[t, 0], geo[2])
+    th = sroots[0, 0:4]
+    u_roots = sroots[1]
+    coeffs = sroots[2]
+    count = out_count[t]
+    straight = False
+    for s in range(sys_first[t], sys_first[t + 1]):
+        rev = sysint[s, 0] == 1
+        if rev and not straight:
+            count = _straight_candidate(geo[0], refract1, refract2, eta[t], work, th, out_uv[t], meta[t], count,
+                                        stats[t])
+            straight = True
+        r1, r2 = _oriented(refract1, refract2, rev)
+        g = geo[2] if rev else geo[0]
+        if sysint[s, 1] == -1:
+            count = _seeded(g, r1, r2, eta[t], rev, geo[0], work, th, out_uv[t], meta[t], count, stats[t])
+            continue
+        da = sysint[s, 2]
+        db = sysint[s, 3]
+        if ref_count[s] > 0:
+            _unpack(coef[s], 0, da, biv[0])
+            _unpack(coef[s], b_offset, db, biv[1])
+            margin = V_MARGIN_APPROX if r1 else V_MARGIN_EXACT
+            for iv in range(ref_first[s], ref_first[s] + ref_count[s]):
+                count = _candidates_at(ref_roots[iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], False, r1,
+                                       r2, margin, g, eta[t], work, th, u_roots, coeffs, chain, lists, rev, geo[0],
+                                       out_uv[t], meta[t], count, stats[t])
+        stats[t, STAT_ROOTS] += nv[s] + ref_count[s]
+    if not straight:
+        count = _straight_candidate(geo[0], refract1, refract2, eta[t], work, th, out_uv[t], meta[t], count, stats[t])
+    stats[t, STAT_SKIPPED] = 1 if stats[t, STAT_SKIPPED] >= (2 if BOTH_DIRECTIONS else 1) else 0
+    stats[t, STAT_PATHS] = count
+    out_count[t] = count
+
+
+# --- stage D bookkeeping (the determinants themselves run on the device) -----------------------
+
+
+@kernel(parallel=True)
+def refine_flags(vs, lgs, roots, nv, piece_of, productive, pieces, flags):
+    """``refine_v_roots``'s choice of pieces: lgs (S, pieces + 1) is deflated in place by the
+    scan roots; flags[s, k] = 1 for a piece next to a convex kink or around a productive root."""
+    for s in prange(vs.shape[0]):
+        for k in range(pieces + 1):
+            lgs[s, k] = _deflate(vs[s, k], lgs[s, k], roots[s], nv[s])
+        for k in range(pieces):
+            flagged = (k > 0 and lgs[s, k - 1] + lgs[s, k + 1] - 2.0 * lgs[s, k] > KINK) or \
+                      (k + 1 < pieces and lgs[s, k] + lgs[s, k + 2] - 2.0 * lgs[s, k + 1] > KINK)
+            if not flagged:
+                for i in range(nv[s]):
+                    if productive[s, i] and abs(int(piece_of[s, i]) - k) <= 1:
+                        flagged = True
+                        break
+            flags[s, k] = 1 if flagged else 0
+
+
+@kernel(parallel=True)
+def refine_brackets(job_sys, sv, ss, roots, nv, bracket):
+    """Per flagged piece f (sub-samples sv[f], their signs ss[f]): bracket[f, k] = 1 for a
+    new sign change in sub-piece k to pin (``_refine_interval``: none in a noisy piece, none
+    in a sub-piece holding a scan root)."""
+    M = ss.shape[1] - 1
+    for f in prange(ss.shape[0]):
+        s = job_sys[f]
+        changes = 0
+        for k in range(M):
+            bracket[f, k] = 0
+            if ss[f, k] != ss[f, k + 1]:
+                changes += 1
+        if changes > NOISY_CHANGES:
+            continue
+        for k in range(M):
+            if ss[f, k] != ss[f, k + 1] and ss[f, k] != 0 and ss[f, k + 1] != 0:
+                known = False
+                for i in range(nv[s]):
+                    if roots[s, i] >= sv[f, k] and roots[s, i] <= sv[f, k + 1]:
+                        known = True
+                if not known:
+                    bracket[f, k] = 1
+
+
+@kernel(parallel=True)
+def refine_assemble(flag_first, sv, ss, sl, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots):
+    """The refined roots of each system in ``_refine_interval``'s order (pieces ascending;
+    per piece its pinned sign changes, then the one-signed dips of the log|det| deflated by
+    every root found so far), into ref_roots[ref_first[s]:] (ref_count[s] of them)."""
+    M = ss.shape[1] - 1
+    for s in prange(nv.shape[0]):
+        nf = flag_first[s + 1] - flag_first[s]
+        buf = np.empty(nv[s] + (2 * M - 1) * nf)
+        cap = min(buf.shape[0], MAX_ROOTS)
+        lg = np.empty(M + 1)
+        for i in range(nv[s]):
+            buf[i] = roots[s, i]
+        count = nv[s]
+        for f in range(flag_first[s], flag_first[s + 1]):
+            changes = 0
+            for k in range(M):
+                if ss[f, k] != ss[f, k + 1]:
+                    changes += 1
+            if changes > NOISY_CHANGES:
+                continue
+            for k in range(M):
+                if bracket[f, k] and count < cap:
+                    buf[count] = pinned[f, k]
+                    count += 1
+            for k in range(M + 1):
+                lg[k] = _deflate(sv[f, k], sl[f, k], buf, count)
+            for k in range(M):
+                kink_l = k > 0 and lg[k - 1] + lg[k + 1] - 2.0 * lg[k] > KINK
+                if kink_l and count < cap and ss[f, k] == ss[f, k - 1] and ss[f, k] == ss[f, k + 1] \
+                        and lg[k] < lg[k - 1] and lg[k] < lg[k + 1]:
+                    buf[count] = sv[f, k]  # a one-signed dip: (near-)double root candidate
+                    count += 1
+        ref_count[s] = count - nv[s]
+        for i in range(nv[s], count):
+            ref_roots[ref_first[s] + i - nv[s]] = buf[i]
+
+
+# --- a Numba "device" for stages B and D (reference and tests) ---------------------------------
+
+
+@kernel(parallel=True)
+def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, out_dets):
+    """det jobs with ``_det_checked`` (the one-kernel path's own function)."""
+    n_jobs = job_sys.shape[0]
+    chunk = 32
+    for c in prange((n_jobs + chunk - 1) // chunk):
+        a = np.zeros((MAXD + 1, MAXD + 1))
+        b = np.zeros((MAXD + 1, MAXD + 1))
+        cf = np.zeros((2, MAXD + 2))
+        mat = np.zeros((MAXD + 1, MAXD + 1))
+        st = np.zeros(N_STATS, dtype=np.int64)
+        loaded = -1
+        for t in range(c * chunk, min(n_jobs, (c + 1) * chunk)):
+            s = job_sys[t]
+            if s != loaded:
+                _unpack(coef[s], 0, sysint3[s, 0], a)
+                _unpack(coef[s], b_offset, sysint3[s, 1], b)
+                loaded = s
+            before = st[STAT_DETS]
+            sg, lg = _det_checked(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_v[t], cf, mat, st)
+            out_sign[t] = sg
+            out_log[t] = lg
+            out_dets[t] = st[STAT_DETS] - before
+
+
+@kernel(parallel=True)
+def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_root, out_dets):
+    """Illinois jobs (lo, hi, log lo, log hi; sign lo, sign hi) with ``_illinois``."""
+    n_jobs = job_sys.shape[0]
+    chunk = 8
+    for c in prange((n_jobs + chunk - 1) // chunk):
+        a = np.zeros((MAXD + 1, MAXD + 1))
+        b = np.zeros((MAXD + 1, MAXD + 1))
+        cf = np.zeros((2, MAXD + 2))
+        mat = np.zeros((MAXD + 1, MAXD + 1))
+        st = np.zeros(N_STATS, dtype=np.int64)
+        loaded = -1
+        for t in range(c * chunk, min(n_jobs, (c + 1) * chunk)):
+            s = job_sys[t]
+            if s != loaded:
+                _unpack(coef[s], 0, sysint3[s, 0], a)
+                _unpack(coef[s], b_offset, sysint3[s, 1], b)
+                loaded = s
+            before = st[STAT_DETS]
+            out_root[t] = _illinois(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_f[t, 0], job_f[t, 1],
+                                    job_s[t, 0], job_f[t, 2], job_s[t, 1], job_f[t, 3], cf, mat, st)
+            out_dets[t] = st[STAT_DETS] - before
+
+
+class NumbaDeterminants:
+    """Stages B and D on Numba (the same functions as the one-kernel path): the staged
+    pipeline without OpenCL, to test the staging itself."""
+
+    name = "numba"
+
+    def load(self, coef, sysint3, b_offset):
+        self.coef, self.sysint3, self.b_offset = coef, sysint3, b_offset
+
+    def dets(self, job_sys, job_v):
+        n = job_sys.shape[0]
+        sign = np.zeros(n, dtype=np.int32)
+        log = np.zeros(n)
+        dets = np.zeros(n, dtype=np.int32)
+        if n:
+            numba_det_batch(self.coef, self.sysint3, self.b_offset, job_sys, job_v, sign, log, dets)
+        return sign, log, dets
+
+    def illinois(self, job_sys, job_f, job_s):
+        n = job_sys.shape[0]
+        root = np.zeros(n)
+        dets = np.zeros(n, dtype=np.int32)
+        if n:
+            numba_illinois_batch(self.coef, self.sysint3, self.b_offset, job_sys, job_f, job_s, root, dets)
+        return root, dets
+
+
+# --- the driver ---------------------------------------------------------------------------------
+
+BATCH_BYTES = 64 << 20  # stage A's per-batch system store
+
+
+def solve_staged(det_device, refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats,
+                 batch=None, sys_cap=SYS_CAP):
+    """All paths of a batch of two-bounce tuples, stages A-E (module docstring); fills
+    out_uv (n, MAX_PATHS_TWO_BOUNCE, 4), out_count (n,), stats (n, N_STATS) like
+    ``solve_two_bounce_batch``.  ``det_device``: an object with load / dets / illinois
+    (:class:`NumbaDeterminants`, ``opencl_backend.OpenCLDeterminants``).  ``batch``: tuples
+    per pass (default: stage A's store within BATCH_BYTES); ``sys_cap``: systems per tuple
+    held by stage A (a tuple with more is solved by the one-kernel path)."""
+    if TWO_PROJECTIONS or REFINE_LEVELS not in (0, 1):
+        raise NotImplementedError("the staged two-bounce path implements one projection and REFINE_LEVELS <= 1")
+    stride, b_offset = layout(refract1, refract2)
+    n = x_start.shape[0]
+    if batch is None:
+        batch = max(16, BATCH_BYTES // (sys_cap * stride * 8))
+    for t0 in range(0, n, batch):
+        t1 = min(n, t0 + batch)
+        _solve_batch(det_device, refract1, refract2, x_start[t0:t1], x_end[t0:t1], P[t0:t1], N[t0:t1], eta[t0:t1], pieces,
+                     stride, b_offset, sys_cap, out_uv[t0:t1], out_count[t0:t1], stats[t0:t1])
+
+
+def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, stride, b_offset, sys_cap, out_uv, out_count,
+                 stats):
+    nb = x_start.shape[0]
+    coef = np.zeros((nb, sys_cap, stride))
+    sysint = np.zeros((nb, sys_cap, 7), dtype=np.int64)
+    nsys = np.zeros(nb, dtype=np.int64)
+    state = np.zeros(nb, dtype=np.int64)
+    stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats)
+    # compact: the systems of staged tuples, tuple by tuple in stage A's order
+    m = np.where(state == 1, nsys, 0)
+    sys_first = np.concatenate([[0], np.cumsum(m)]).astype(np.int64)
+    S = int(sys_first[-1])
+    owner = np.repeat(np.arange(nb), m)
+    slot = np.arange(S) - np.repeat(sys_first[:-1], m)
+    coef = np.ascontiguousarray(coef[owner, slot])
+    sysint = np.ascontiguousarray(sysint[owner, slot])
+    sysint3 = np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32)
+    dets_per_sys = np.zeros(S, dtype=np.int64)
+    dev.load(coef, sysint3, b_offset)
+
+    # stage B: the sign scan (find_v_roots) ...
+    r1_oriented = np.where(sysint[:, 0] == 1, refract2, refract1) if S else np.zeros(0, dtype=bool)
+    margin = np.where(r1_oriented, V_MARGIN_APPROX, V_MARGIN_EXACT)
+    lo = -margin
+    hi = 1.0 + margin
+    h = (hi - lo) / pieces
+    vs = lo[:, None] + np.arange(pieces + 1)[None, :] * h[:, None]
+    solve = np.flatnonzero(sysint[:, 1] == 1) if S else np.zeros(0, dtype=np.int64)
+    sg = np.zeros((S, pieces + 1), dtype=np.int32)
+    lg = np.full((S, pieces + 1), -np.inf)
+    job_sys = np.repeat(solve, pieces + 1).astype(np.int32)
+    sign, log, dets = dev.dets(job_sys, np.ascontiguousarray(vs[solve]).ravel())
+    sg[solve] = sign.reshape(-1, pieces + 1)
+    lg[solve] = log.reshape(-1, pieces + 1)
+    np.add.at(dets_per_sys, job_sys, dets)
+    degenerate = np.zeros(S, dtype=bool)
+    degenerate[solve] = 2 * np.count_nonzero(sg[solve] == 0, axis=1) > pieces
+    sysint[degenerate, 1] = -1
+    live = sysint[:, 1] == 1
+    change = (sg[:, :-1] != sg[:, 1:]) & (sg[:, :-1] != 0) & (sg[:, 1:] != 0) & live[:, None]
+    zero = (sg[:, :-1] == 0) & live[:, None]
+    picked = change | zero
+    nv = np.count_nonzero(picked, axis=1).astype(np.int64)
+    rank = np.cumsum(picked, axis=1) - 1
+    roots = np.zeros((S, max(pieces, 1)))
+    piece_of = np.zeros((S, max(pieces, 1)), dtype=np.int64)
+    ps, pk = np.nonzero(picked)
+    piece_of[ps, rank[ps, pk]] = pk
+    zs, zk = np.nonzero(zero)
+    roots[zs, rank[zs, zk]] = vs[zs, zk]
+    # ... and its sign changes pinned (Illinois)
+    cs, ck = np.nonzero(change)
+    root, dets = dev.illinois(cs.astype(np.int32), np.ascontiguousarray(np.column_stack([vs[cs, ck], vs[cs, ck + 1], lg[cs, ck], lg[cs, ck + 1]])),
+                              np.ascontiguousarray(np.column_stack([sg[cs, ck], sg[cs, ck + 1]]), dtype=np.int32))
+    roots[cs, rank[cs, ck]] = root
+    np.add.at(dets_per_sys, cs, dets)
+
+    # stage C: candidates at the scan roots
+    productive = np.zeros((S, max(pieces, 1)))
+    meta = np.zeros((nb, MAX_PATHS_TWO_BOUNCE + 1, 2))
+    stage_c(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state, roots, nv,
+            productive, out_uv, meta, out_count, stats)
+
+    # stage D: refinement (refine_v_roots / _refine_interval at REFINE_LEVELS = 1)
+    M = SUB_SAMPLES
+    flags = np.zeros((S, max(pieces, 1)), dtype=np.int64)
+    if REFINE_LEVELS and S:
+        refine_flags(vs, lg, roots, nv, piece_of, productive, pieces, flags)
+        flags[~live] = 0
+    fs, fk = np.nonzero(flags)
+    flag_first = np.concatenate([[0], np.cumsum(np.count_nonzero(flags, axis=1))]).astype(np.int64)
+    a_ = vs[fs, fk]
+    b_ = vs[fs, fk + 1]
+    hsub = (b_ - a_) / M
+    sv = a_[:, None] + np.arange(M + 1)[None, :] * hsub[:, None]
+    sv[:, M] = b_
+    sign, log, dets = dev.dets(np.repeat(fs, M + 1).astype(np.int32), np.ascontiguousarray(sv).ravel())
+    ss = sign.reshape(-1, M + 1).astype(np.int64)
+    sl = log.reshape(-1, M + 1)
+    np.add.at(dets_per_sys, np.repeat(fs, M + 1), dets)
+    bracket = np.zeros((fs.shape[0], M), dtype=np.int64)
+    if fs.shape[0]:
+        refine_brackets(fs.astype(np.int64), sv, ss, roots, nv, bracket)
+    bf, bk = np.nonzero(bracket)
+    pinned = np.zeros((fs.shape[0], M))
+    root, dets = dev.illinois(fs[bf].astype(np.int32), np.ascontiguousarray(np.column_stack([sv[bf, bk], sv[bf, bk + 1], sl[bf, bk], sl[bf, bk + 1]])),
+                              np.ascontiguousarray(np.column_stack([ss[bf, bk], ss[bf, bk + 1]]), dtype=np.int32))
+    pinned[bf, bk] = root
+    np.add.at(dets_per_sys, fs[bf], dets)
+    ref_first = (flag_first * (2 * M - 1)).astype(np.int64)
+    ref_roots = np.zeros(max(int(ref_first[-1]), 1))
+    ref_count = np.zeros(S, dtype=np.int64)
+    if S:
+        refine_assemble(flag_first, sv, ss, sl, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots)
+
+    # stage E: candidates at the refined roots, seeded polish, straight line, statistics
+    stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
+            ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats)
+    per_tuple = np.zeros(nb, dtype=np.int64)
+    np.add.at(per_tuple, owner, dets_per_sys)
+    stats[:, STAT_DETS] += np.where(state == 1, per_tuple, 0)

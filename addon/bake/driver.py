@@ -296,7 +296,10 @@ def bake_steps(scene, settings=None):
     return _bake_gen(scene, settings)
 
 
-def _bake_gen(scene, settings):
+def bake_setup(scene, settings, method_error=None):
+    """What every bake generator starts with: threads, timer, the scene's warnings, the BVH over
+    all triangles, the scene extent and visibility offset, and the chain plan (its skipped
+    chains added to the warnings).  Returns (timer, t_start, warnings, bvh, extent, eps, plan)."""
     if settings.threads:
         from ..solver.jit import set_num_threads
 
@@ -309,13 +312,18 @@ def _bake_gen(scene, settings):
     timer.add("bvh", time.perf_counter() - t0)
     extent = scene.extent()
     eps = VISIBILITY_OFFSET * extent
-    solve, method_error = method_solver(settings)
     plan = plan_chains(scene, settings.bounces, settings.chains, settings.method, method_error) if settings.caustics else []
     for item in plan:
         if item["status"] != "baked":
             warnings.append(f"chain {item['chain']} {item['status']}")
     if settings.caustics and not plan:
         warnings.append("no casters: the scene has no reflecting or refracting surfaces (only the direct light is baked if asked)")
+    return timer, t_start, warnings, bvh, extent, eps, plan
+
+
+def _bake_gen(scene, settings):
+    solve, method_error = method_solver(settings)
+    timer, t_start, warnings, bvh, extent, eps, plan = bake_setup(scene, settings, method_error)
     yield 0.0, "preparing"
     lsamples = [sample_light(light, settings.light_samples, settings.seed) for light in scene.lights]
     counts = {"tuples_naive": 0, "tuples_tile_cull": 0, "tuples": 0, "paths": 0, "paths_front": 0, "paths_lit": 0, "paths_visible": 0}

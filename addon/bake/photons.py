@@ -25,7 +25,6 @@ import time
 
 import numpy as np
 
-from ..solver.bvh import build_bvh
 from ..solver.photon import make_emitters, photon_steps
 from .lights import sample_light
 from .raster import bands, grid_side, pad, rasterise
@@ -69,26 +68,9 @@ def photon_bake_gen(scene, settings):
     """The generator behind ``bake_steps`` for ``settings.method == "photon"``: yields
     ``(fraction, message)`` after every batch of photons and returns a BakeResult whose report
     has the driver's layout (counts: photons, photons_deposited; chains: deposited per chain)."""
-    from .driver import VISIBILITY_OFFSET, BakeResult, _direct, _Timer, _with_resolution, plan_chains
+    from .driver import BakeResult, _direct, _with_resolution, bake_setup
 
-    if settings.threads:
-        from ..solver.jit import set_num_threads
-
-        set_num_threads(settings.threads)
-    timer = _Timer()
-    t_start = time.perf_counter()
-    warnings = list(scene.warnings)
-    t0 = time.perf_counter()
-    bvh = build_bvh(scene.tri_p)
-    timer.add("bvh", time.perf_counter() - t0)
-    extent = scene.extent()
-    eps = VISIBILITY_OFFSET * extent
-    plan = plan_chains(scene, settings.bounces, settings.chains, "photon") if settings.caustics else []
-    for item in plan:
-        if item["status"] != "baked":
-            warnings.append(f"chain {item['chain']} {item['status']}")
-    if settings.caustics and not plan:
-        warnings.append("no casters: the scene has no reflecting or refracting surfaces (only the direct light is baked if asked)")
+    timer, t_start, warnings, bvh, extent, eps, plan = bake_setup(scene, settings)
     baked = [it for it in plan if it["status"] == "baked"]
     chains = [it["chain"] for it in baked]
     yield 0.0, "preparing"

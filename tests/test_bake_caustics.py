@@ -6,12 +6,10 @@ that texels at the caustic's edge do not divide by ~0.  The photon histogram is 
 texel average plus noise; the bake's texel is the mean of 8 x 8 stratified supersamples.
 """
 
-import os
-
 import numpy as np
 import pytest
 
-from addon.bake.driver import BakeSettings, bake, chain_supported
+from addon.bake.driver import BakeSettings, bake
 from addon.bake.scene import Light, build_scene
 from addon.demo import wavy_water
 
@@ -75,20 +73,36 @@ def test_water_surface_refraction_matches_photon_tracing():
     assert lit.max() > 1.3 * lit.mean() and lit.min() < 0.8 * lit.mean()
 
 
-@pytest.mark.skipif(not os.environ.get("CAUSTIC_BAKE_TT") or not chain_supported("TT"),
-                    reason="TT bake: opt in with CAUSTIC_BAKE_TT=1 (too slow for the default run until the "
-                           "Bernstein-bounded tuple selection lands: ~250 us per TT tuple, loose pair cull)")
-def test_glass_sphere_focus_matches_photon_tracing():
-    """TT through a smooth glass sphere (Fresnel at both interfaces) onto the floor."""
+@pytest.mark.parametrize("mode", ["flux", "seeded"])
+def test_glass_sphere_focus_matches_photon_tracing(mode):
+    """TT through a smooth glass sphere (Fresnel at both interfaces) onto the floor, with the
+    two-bounce forward-image modes.  "flux" (the default) spreads each sub-triangle's flux
+    over its image: texel averages, finite at the focus.  "seeded" takes exact paths at the
+    supersamples: away from the focus the same texture; the focal texel's point samples are
+    heavy-tailed (irradiance ~ 1/r near the axial caustic: infinite variance), so its energy
+    is checked without the focus.  ("exact", the Specular Polynomials per tuple, is too slow
+    for this scene: minutes per texel row.)"""
     res_, half = 32, 1.6
     sc = glass_sphere_scene(resolution=res_, half=half, light=(0.3, 0.2, 3.5), intensity=40.0, segments=24, rings=12)
     light = sc.lights[0]
-    out = bake(sc, BakeSettings(samples=64, seed=3, margin=0, bounces=2, chains=("TT",)))
+    out = bake(sc, BakeSettings(samples=16, seed=3, margin=0, bounces=2, chains=("TT",), two_bounce=mode))
     assert out.report["chains"][0]["status"] == "baked"
     ref = trace_caustic(light.position, light.intensity, sc.tri_p, sc.tri_n, _kinds(sc, KIND_GLASS), sc.tri_ior,
                         (-half, -half), (2 * half, 2 * half), (res_, res_), 3_000_000, seed=11,
                         target_centre=(0.0, 0.0, 1.0), target_radius=0.52, chain="TT")
     b = out.raw["floor"][:, :, 0]
-    assert rel_mse(b, ref) <= 1e-2
-    assert abs(b.sum() / ref.sum() - 1) <= 0.02
     assert b.max() > 10 * ref[ref > 0].mean()  # a real focus
+    if mode == "flux":
+        # measured: relMSE 4.1e-3 (the reference's own noise), energy 1.0003, focal texel 152.4 vs 153.1
+        assert rel_mse(b, ref) <= 1e-2
+        assert abs(b.sum() / ref.sum() - 1) <= 0.02
+        j, i = np.unravel_index(np.argmax(ref), ref.shape)
+        assert abs(b[j, i] / ref[j, i] - 1) <= 0.05
+    else:
+        focus = np.zeros_like(b, dtype=bool)
+        j, i = np.unravel_index(np.argmax(ref), ref.shape)
+        focus[max(0, j - 1):j + 2, max(0, i - 1):i + 2] = True
+        assert rel_mse(np.where(focus, ref, b), ref) <= 1e-2
+        assert abs(b[~focus].sum() / ref[~focus].sum() - 1) <= 0.02
+        c = out.report["two_bounce_image"]["counts"]
+        assert c["paths"] > 1000 and c["seeds"] < 30 * c["paths"]

@@ -58,6 +58,9 @@ METHOD_CHAINS = {
 }
 """The chains each method can bake; any other planned chain is skipped with a status."""
 
+TWO_BOUNCE_MODES = ("flux", "seeded", "exact")
+"""How method "spoly" bakes two-bounce chains (see BakeSettings.two_bounce and addon.bake.image)."""
+
 
 def check_method(settings):
     """Raise ValueError for an unknown method or an out-of-range method knob."""
@@ -67,6 +70,10 @@ def check_method(settings):
         raise ValueError(f"sms_seeds must be in [1, 4096], got {settings.sms_seeds}")
     if int(settings.photons) < 1:
         raise ValueError(f"photons must be at least 1, got {settings.photons}")
+    if settings.two_bounce not in TWO_BOUNCE_MODES:
+        raise ValueError(f"two_bounce must be one of {', '.join(TWO_BOUNCE_MODES)}, got {settings.two_bounce!r}")
+    if not 0 <= int(settings.image_depth) <= 10:
+        raise ValueError(f"image_depth must be in [0, 10], got {settings.image_depth}")
     if settings.pieces and not 1 <= int(settings.pieces) <= 1024:
         raise ValueError(f"pieces must be 0 (the solver's default) or in [1, 1024], got {settings.pieces}")
 
@@ -139,6 +146,10 @@ class BakeSettings:
     sms_seeds: int = 16  # method "sms": random Newton seeds per tuple
     photons: int = 1_000_000  # method "photon": photons traced (over all lights and light samples)
     pieces: int = 0  # method "spoly", two bounces: pieces of the resultant's sign scan (0: the solver's default)
+    two_bounce: str = "flux"  # method "spoly", two-bounce chains (addon.bake.image): "flux" (forward-image sub-triangles,
+    #                           their flux spread over their images: texel averages), "seeded" (exact paths at the samples
+    #                           by Newton from forward-image seeds) or "exact" (cone cull + two-bounce Specular Polynomials)
+    image_depth: int = 6  # two_bounce "image": subdivision levels of the caster triangles (4 x 4 first)
 
     def as_dict(self):
         d = asdict(self)
@@ -331,11 +342,11 @@ def _bake_gen(scene, settings):
     images, coverage, raw, rec_report = {}, {}, {}, {}
     S = grid_side(settings.samples) ** 2
     emitter_cache = {}  # (light, light sample, chain) -> emitters, shared by every band and receiver
+    image_reports, image_counts = [], {"seeds": 0, "newton": 0, "hops": 0, "converged": 0, "paths": 0}
     total_rows = sum((settings.resolution or r.resolution[1]) for r in scene.receivers)
     rows_done = 0
-    for rec in scene.receivers:
-        if settings.resolution:
-            rec = _with_resolution(rec, settings.resolution)
+    receivers = [_with_resolution(r, settings.resolution) if settings.resolution else r for r in scene.receivers]
+    for rec_index, rec in enumerate(receivers):
         W, H = rec.resolution
         sums = np.zeros((W * H, 3))
         cover = np.zeros(W * H, dtype=np.int64)
@@ -357,12 +368,26 @@ def _bake_gen(scene, settings):
                         if item["status"] != "baked":
                             continue
                         key = (li, m, item["chain"])
+                        image = _uses_image(settings, item["chain"])
                         if key not in emitter_cache:
                             t0 = time.perf_counter()
-                            emitter_cache[key] = _emitters(scene, extent, settings, item, ls, m)
-                            timer.add("cull", time.perf_counter() - t0)
-                        st = yield from _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, timer,
-                                                    emitter_cache[key], solve, rec=rec)
+                            if image:
+                                emitter_cache[key] = _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers)
+                                if emitter_cache[key] is not None:
+                                    image_reports.append({"light": li, "light_sample": m, "chain": item["chain"],
+                                                          **emitter_cache[key].report})
+                                timer.add("image", time.perf_counter() - t0)
+                            else:
+                                emitter_cache[key] = _emitters(scene, extent, settings, item, ls, m)
+                                timer.add("cull", time.perf_counter() - t0)
+                        if image == "flux":
+                            continue  # whole textures at once, after the bands (_flux_pass)
+                        if image:
+                            st = _image_pass(scene, bvh, eps, extent, item, ls, m, band, rec_index, sums, timer,
+                                             emitter_cache[key], image_counts)
+                        else:
+                            st = yield from _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums,
+                                                        timer, emitter_cache[key], solve, rec=rec)
                         for k in st:
                             counts[k] += st[k]
                         cc = chain_counts[item["chain"]]
@@ -376,6 +401,20 @@ def _bake_gen(scene, settings):
         covered = cover > 0
         img = np.zeros((W * H, 3))
         img[covered] = sums[covered] / cover[covered, None]
+        timer.add("pad", time.perf_counter() - t0)
+        flux = _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec_index, emitter_cache,
+                          image_reports, timer)
+        if flux is not None:
+            t0 = time.perf_counter()
+            from .photons import texel_areas
+
+            area = texel_areas(scene, rec, settings.samples, settings.band_samples)
+            ok = covered & (area > 0)
+            img[ok] += flux[ok] / area[ok, None]
+            timer.add("flux", time.perf_counter() - t0)
+            touched_flux = int(np.count_nonzero(np.any(flux[ok] > 0, axis=1)))
+            image_counts["flux_texels"] = image_counts.get("flux_texels", 0) + touched_flux
+        t0 = time.perf_counter()
         img = img.reshape(H, W, 3)
         cov2 = covered.reshape(H, W)
         padded, _ = pad(img, cov2, settings.margin)
@@ -413,7 +452,92 @@ def _bake_gen(scene, settings):
         "receivers": rec_report,
         "warnings": warnings,
     }
+    if image_reports:
+        dropped = sum(r["dropped"] for r in image_reports)
+        report["two_bounce_image"] = {"passes": image_reports, "counts": image_counts, "dropped_sub_triangles": dropped}
+        if dropped:
+            warnings.append(f"two-bounce image seeding: {dropped:,} sub-triangles partly lost (rays missing the receivers "
+                            "or total internal reflection at the deepest level) were not seeded")
     return BakeResult(images, coverage, raw, report)
+
+
+def _uses_image(settings, chain):
+    """"flux" or "seeded" when the chain goes through forward-image sub-triangles (addon.bake.image), else None."""
+    if len(chain) == 2 and settings.method == "spoly" and settings.two_bounce in ("flux", "seeded"):
+        return settings.two_bounce
+    return None
+
+
+def _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers):
+    """The refined sub-triangles (addon.bake.image.prepare) of one light sample and chain, or None."""
+    from .image import prepare
+
+    cast1 = item["vertices"][0]
+    x0_all = _light_points(ls, m, scene.tri_p[cast1], extent, settings)
+    keep = _emitting(ls, m, x0_all, scene.tri_p[cast1])
+    if not keep.any():
+        return None
+    return prepare(scene, bvh, eps, item["chain"], cast1[keep], x0_all[keep], item["vertices"][1], receivers,
+                   max_depth=int(settings.image_depth))
+
+
+def _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec_index, emitter_cache, image_reports, timer):
+    """Flux (W per texel, (H W, 3)) of every "flux" two-bounce chain onto receiver ``rec_index``,
+    or None when there is none (addon.bake.image.flux_textures; states cached per light sample
+    and chain, shared by every receiver)."""
+    from .image import flux_textures
+
+    total = None
+    for li, ls in enumerate(lsamples):
+        for m in range(ls.size):
+            for item in plan:
+                if item["status"] != "baked" or _uses_image(settings, item["chain"]) != "flux":
+                    continue
+                key = (li, m, item["chain"])
+                t0 = time.perf_counter()
+                if key not in emitter_cache:
+                    emitter_cache[key] = _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers)
+                    if emitter_cache[key] is not None:
+                        image_reports.append({"light": li, "light_sample": m, "chain": item["chain"], **emitter_cache[key].report})
+                timer.add("image", time.perf_counter() - t0)
+                state = emitter_cache[key]
+                if state is None:
+                    continue
+                t0 = time.perf_counter()
+                fkey = ("flux", li, m, item["chain"])
+                if fkey not in emitter_cache:
+                    emitter_cache[fkey] = flux_textures(state, scene, bvh, eps, extent, ls, m, receivers)
+                f = emitter_cache[fkey][rec_index]
+                total = f.copy() if total is None else total + f
+                timer.add("flux", time.perf_counter() - t0)
+    return total
+
+
+def _image_pass(scene, bvh, eps, extent, item, ls, m, band, rec_index, sums, timer, state, image_counts):
+    """One two-bounce chain, one light sample, one band by forward-image seeding: seeds, exact
+    Newton, merge, then the same weighting / visibility / accumulation as the tuple solver."""
+    from .image import band_paths
+
+    chain = item["chain"]
+    st = {"tuples_tile_cull": 0, "tuples": 0, "paths": 0, "paths_front": 0, "paths_lit": 0, "paths_visible": 0}
+    if state is None:
+        return st
+    t0 = time.perf_counter()
+    tri, x_start, s, uv, c = band_paths(state, rec_index, band)
+    timer.add("solve", time.perf_counter() - t0)
+    for key in c:
+        image_counts[key] = image_counts.get(key, 0) + c[key]
+    st["tuples_tile_cull"] = st["tuples"] = c["seeds"]
+    st["paths"] = c["paths"]
+    n = tri.shape[0]
+    if n:
+        ti = np.arange(n, dtype=np.int64)
+        x_end = band.position[s]
+        P = scene.tri_p[tri]
+        N = scene.tri_n[tri]
+        eta = scene.tri_ior[tri[:, 0]]
+        _accumulate(scene, bvh, extent, eps, chain, ls, m, band, sums, timer, tri, x_start, x_end, P, N, eta, ti, uv, s, None, st)
+    return st
 
 
 def _with_resolution(rec, res):
@@ -505,40 +629,47 @@ def _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums, t
             ti, uv = solve(chain, x_start, x_end, P, N, eta)
         timer.add("solve", time.perf_counter() - t0)
         st["paths"] += ti.size
-        if ti.size:
-            t0 = time.perf_counter()
-            weight, front, rgb, verts = _path_values(scene, chain, ls, m, x_start, x_end, P, N, eta, tri, ti, uv, band, s)
-            timer.add("irradiance", time.perf_counter() - t0)
-            st["paths_front"] += int(front.sum())
-            idx = np.flatnonzero(front & (weight > 0))
-            st["paths_lit"] += idx.size
-            if idx.size:
-                t0 = time.perf_counter()
-                tt = ti[idx]
-                first = x_start[tt] if ls.kind != "sun" else verts[0][idx] - 2.0 * extent * ls.direction[m]
-                points = [first] + [v[idx] for v in verts] + [x_end[tt]]
-                blocked = np.zeros(idx.size, dtype=bool)
-                for j in range(k + 1):
-                    ig = np.column_stack([tri[tt, j - 1] if j > 0 else np.full(idx.size, -1),
-                                          tri[tt, j] if j < k else band.tri[s[tt]]])
-                    if j == 0:
-                        ig = ig[:, ::-1].copy()
-                    live = np.flatnonzero(~blocked)
-                    blocked[live] = segments_occluded(bvh, points[j][live], points[j + 1][live], ig[live], eps)
-                vis = idx[~blocked]
-                timer.add("visibility", time.perf_counter() - t0)
-                st["paths_visible"] += vis.size
-                t0 = time.perf_counter()
-                tex = band.texel[s[ti[vis]]]
-                w = weight[vis][:, None] * rgb[vis]
-                if inv_p is not None:
-                    w *= inv_p[ti[vis]][:, None]
-                for c in range(3):
-                    sums[:, c] += np.bincount(tex, weights=w[:, c], minlength=sums.shape[0])
-                timer.add("accumulate", time.perf_counter() - t0)
+        _accumulate(scene, bvh, extent, eps, chain, ls, m, band, sums, timer, tri, x_start, x_end, P, N, eta, ti, uv, s, inv_p, st)
         yield None, f"{chain}: {st['tuples']:,} tuples"
         t0 = time.perf_counter()
     return st
+
+
+def _accumulate(scene, bvh, extent, eps, chain, ls, m, band, sums, timer, tri, x_start, x_end, P, N, eta, ti, uv, s, inv_p, st):
+    """Weigh solved paths (row r: tuple ti[r] with barycentrics uv[r]), test their visibility
+    and add their irradiance to their samples' texels; counts into ``st``."""
+    k = len(chain)
+    if ti.size:
+        t0 = time.perf_counter()
+        weight, front, rgb, verts = _path_values(scene, chain, ls, m, x_start, x_end, P, N, eta, tri, ti, uv, band, s)
+        timer.add("irradiance", time.perf_counter() - t0)
+        st["paths_front"] += int(front.sum())
+        idx = np.flatnonzero(front & (weight > 0))
+        st["paths_lit"] += idx.size
+        if idx.size:
+            t0 = time.perf_counter()
+            tt = ti[idx]
+            first = x_start[tt] if ls.kind != "sun" else verts[0][idx] - 2.0 * extent * ls.direction[m]
+            points = [first] + [v[idx] for v in verts] + [x_end[tt]]
+            blocked = np.zeros(idx.size, dtype=bool)
+            for j in range(k + 1):
+                ig = np.column_stack([tri[tt, j - 1] if j > 0 else np.full(idx.size, -1),
+                                      tri[tt, j] if j < k else band.tri[s[tt]]])
+                if j == 0:
+                    ig = ig[:, ::-1].copy()
+                live = np.flatnonzero(~blocked)
+                blocked[live] = segments_occluded(bvh, points[j][live], points[j + 1][live], ig[live], eps)
+            vis = idx[~blocked]
+            timer.add("visibility", time.perf_counter() - t0)
+            st["paths_visible"] += vis.size
+            t0 = time.perf_counter()
+            tex = band.texel[s[ti[vis]]]
+            w = weight[vis][:, None] * rgb[vis]
+            if inv_p is not None:
+                w *= inv_p[ti[vis]][:, None]
+            for c in range(3):
+                sums[:, c] += np.bincount(tex, weights=w[:, c], minlength=sums.shape[0])
+            timer.add("accumulate", time.perf_counter() - t0)
 
 
 def _bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec, emitters):

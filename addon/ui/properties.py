@@ -38,6 +38,12 @@ ROLE_ITEMS = (
     ("both", "Reflect & Refract", "Glass: Fresnel-weighted reflection and refraction"),
     ("none", "None", "Casts no caustics (still blocks light)"),
 )
+TWO_BOUNCE_ITEMS = (
+    ("flux", "Flux", "Forward-traced sub-triangles spread their flux over their images: texel averages, "
+     "finite at focal points (default)"),
+    ("seeded", "Seeded Paths", "Exact paths at the supersamples, Newton from forward-image seeds"),
+    ("exact", "Exact (slow)", "Every path of every candidate tuple by the two-bounce Specular Polynomials"),
+)
 RECEIVER_ITEMS = (
     ("auto", "Auto", "A receiver if it has a UV map and casts no caustics"),
     ("yes", "Yes", "Always a receiver (needs a UV map)"),
@@ -60,6 +66,7 @@ class CausticBakeSceneSettings(bpy.types.PropertyGroup):
                            default=16, min=1, max=4096, soft_max=256)
     photons: IntProperty(name="Photons", description="Photon Tracing: photons traced over all lights",
                          default=1_000_000, min=1, soft_max=100_000_000)
+    two_bounce: EnumProperty(name="Two Bounces", items=TWO_BOUNCE_ITEMS, default="flux")
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="numba")
     seed: IntProperty(name="Seed", description="Seed of the supersample jitter and light samples", default=0, min=0)
     margin: IntProperty(name="Margin", description="Texels of padding over UV seams", default=16, min=0, max=256)
@@ -109,4 +116,5 @@ def bake_settings(props):
         method=str(props.solver),
         sms_seeds=int(props.sms_seeds),
         photons=int(props.photons),
+        two_bounce=str(getattr(props, "two_bounce", "flux")),
     )

@@ -1,0 +1,677 @@
+"""Forward-image seeding of two-bounce chains: where a tuple's light lands, and from where.
+
+The exact two-bounce solver (:mod:`two_bounce`, Fan et al. 2024 §3.4–4.2) costs 1–100 ms per
+(tuple, receiver point); a bake asks it for millions of pairs, almost all without a path.
+The Bernstein-bounds paper (Fan et al. 2025, §6–7, "Root-finding") does not use it for double
+scattering either: it bounds where each tuple's light can land, samples tuples by that bound,
+and runs Newton's method inside the bounded region ("Det" initialisation).  This module does
+the same with a *forward-traced image* instead of the Bernstein bound:
+
+1. :func:`trace_chain_points` — exact forward rays: a point (u1, v1) of the first caster
+   triangle, lit from x0, is scattered there (reflect / refract with the interpolated corner
+   normal and the side rules of CONTRACT.md), traced through the scene's BVH to the first hit
+   (it must be a caster of the chain's second vertex), scattered again, traced to a receiver:
+   its receiver triangle, texture coordinates and second triangle.
+2. :func:`refine_image_triangles` — the first triangle's barycentric domain is cut into a
+   G0 x G0 grid of sub-triangles; a sub-triangle whose edge midpoints land farther than
+   ``tolerance`` (in texels) from the straight image, or whose points do not all land on one
+   receiver, is split in four (up to ``max_depth``).  What remains is a set of small
+   sub-triangles whose image in the receiver's UV space is a straight triangle to within its
+   measured midpoint deviation.  Sub-triangles partly lost (rays missing the receiver, total
+   internal reflection) at the deepest level are dropped and counted: the only place where
+   this selection is not complete, reported, never hidden.
+3. :class:`ImageSeeds` — every receiver sample whose texture coordinates lie within the
+   image triangle grown by a margin (base texels + twice the deviation) gets a seed: the
+   point of the sub-triangle whose straight image is closest to the sample.
+4. :func:`solve_image_seeds` — the seed is traced to its second triangle, then the exact
+   two-vertex constraint is solved by the path-space Gauss-Newton of :mod:`path_space2`
+   (eq. 3 of Fan et al. 2024 at both vertices) and accepted by the same validation as the
+   exact solver (both vertices inside their triangles, sides, residual ≤ 1e-12 or settled
+   within 1e-7).  A Newton step that leaves the second triangle re-traces and tries the
+   neighbour the ray now hits (at most ``HOPS`` times).
+
+Every returned path is a validated exact path; completeness is measured, not assumed: the
+tests compare the paths with the exact solver's and the bake with a photon reference.
+No bpy here; the bake (``addon.bake.image``) orchestrates.
+"""
+
+import math
+
+import numpy as np
+
+from .bvh import _ray_closest
+from .jit import kernel, prange
+from .path_space2 import pack_geometry, polish_and_validate2
+from .photon import ROLE_BOTH, ROLE_REFLECT, _fresnel
+
+POLISH_STEPS = 40
+ACCEPT_RESIDUAL = 1e-12  # as the exact solver (two_bounce.ACCEPT_RESIDUAL)
+HOPS = 3  # re-traces to a neighbouring second triangle when Newton leaves the first one
+INSIDE_HOP = 1e-9
+CHUNK = 256
+
+
+@kernel(inline="always")
+def _bary_point(tri_p, tri_n, t, u, v):
+    """Point, unit shading normal and unit geometric normal (turned to the shading normal's
+    side) of triangle t at barycentrics (u, v); ok False for a zero-area triangle."""
+    p0x, p0y, p0z = tri_p[t, 0, 0], tri_p[t, 0, 1], tri_p[t, 0, 2]
+    e1x, e1y, e1z = tri_p[t, 1, 0] - p0x, tri_p[t, 1, 1] - p0y, tri_p[t, 1, 2] - p0z
+    e2x, e2y, e2z = tri_p[t, 2, 0] - p0x, tri_p[t, 2, 1] - p0y, tri_p[t, 2, 2] - p0z
+    x = p0x + u * e1x + v * e2x
+    y = p0y + u * e1y + v * e2y
+    z = p0z + u * e1z + v * e2z
+    nx = tri_n[t, 0, 0] + u * (tri_n[t, 1, 0] - tri_n[t, 0, 0]) + v * (tri_n[t, 2, 0] - tri_n[t, 0, 0])
+    ny = tri_n[t, 0, 1] + u * (tri_n[t, 1, 1] - tri_n[t, 0, 1]) + v * (tri_n[t, 2, 1] - tri_n[t, 0, 1])
+    nz = tri_n[t, 0, 2] + u * (tri_n[t, 1, 2] - tri_n[t, 0, 2]) + v * (tri_n[t, 2, 2] - tri_n[t, 0, 2])
+    gx = e1y * e2z - e1z * e2y
+    gy = e1z * e2x - e1x * e2z
+    gz = e1x * e2y - e1y * e2x
+    gl = math.sqrt(gx * gx + gy * gy + gz * gz)
+    nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if not (gl > 0.0 and nl > 0.0):
+        return False, x, y, z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    gx, gy, gz = gx / gl, gy / gl, gz / gl
+    nx, ny, nz = nx / nl, ny / nl, nz / nl
+    if gx * nx + gy * ny + gz * nz < 0.0:
+        gx, gy, gz = -gx, -gy, -gz
+    return True, x, y, z, nx, ny, nz, gx, gy, gz
+
+
+@kernel(inline="always")
+def _hit_bary(tri_p, t, ox, oy, oz, dx, dy, dz):
+    """Barycentrics of the ray's crossing of triangle t's plane (not clamped)."""
+    p0x, p0y, p0z = tri_p[t, 0, 0], tri_p[t, 0, 1], tri_p[t, 0, 2]
+    e1x, e1y, e1z = tri_p[t, 1, 0] - p0x, tri_p[t, 1, 1] - p0y, tri_p[t, 1, 2] - p0z
+    e2x, e2y, e2z = tri_p[t, 2, 0] - p0x, tri_p[t, 2, 1] - p0y, tri_p[t, 2, 2] - p0z
+    px = dy * e2z - dz * e2y
+    py = dz * e2x - dx * e2z
+    pz = dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    if det == 0.0:
+        return 0.0, 0.0
+    inv = 1.0 / det
+    sx, sy, sz = ox - p0x, oy - p0y, oz - p0z
+    u = (sx * px + sy * py + sz * pz) * inv
+    qx = sy * e1z - sz * e1y
+    qy = sz * e1x - sx * e1z
+    qz = sx * e1y - sy * e1x
+    v = (dx * qx + dy * qy + dz * qz) * inv
+    return u, v
+
+
+@kernel(inline="always")
+def _scatter(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract, eta):
+    """Scatter the unit direction d at a vertex with unit shading normal n and geometric normal
+    g (on n's side): mirror reflection, or refraction 1 -> eta entering (against g) and
+    eta -> 1 leaving; the side rules of CONTRACT.md (cos_i > 0 against the normal turned to
+    the incoming side; a reflection stays on that side, a refraction crosses).  Returns
+    (ok, unit direction)."""
+    outside = dx * gx + dy * gy + dz * gz < 0.0
+    sg = 1.0 if outside else -1.0
+    nox, noy, noz = sg * nx, sg * ny, sg * nz
+    ngx, ngy, ngz = sg * gx, sg * gy, sg * gz
+    ci = -(dx * nox + dy * noy + dz * noz)
+    if not ci > 0.0:
+        return False, 0.0, 0.0, 0.0
+    if refract:
+        rr = 1.0 / eta if outside else eta
+        kk = 1.0 - rr * rr * (1.0 - ci * ci)
+        if not kk > 0.0:
+            return False, 0.0, 0.0, 0.0
+        c2 = rr * ci - math.sqrt(kk)
+        ox, oy, oz = rr * dx + c2 * nox, rr * dy + c2 * noy, rr * dz + c2 * noz
+        ln = math.sqrt(ox * ox + oy * oy + oz * oz)
+        ox, oy, oz = ox / ln, oy / ln, oz / ln
+        if not ox * ngx + oy * ngy + oz * ngz < 0.0:
+            return False, 0.0, 0.0, 0.0
+        return True, ox, oy, oz
+    ox, oy, oz = dx + 2.0 * ci * nox, dy + 2.0 * ci * noy, dz + 2.0 * ci * noz
+    ln = math.sqrt(ox * ox + oy * oy + oz * oz)
+    ox, oy, oz = ox / ln, oy / ln, oz / ln
+    if not ox * ngx + oy * ngy + oz * ngz > 0.0:
+        return False, 0.0, 0.0, 0.0
+    return True, ox, oy, oz
+
+
+@kernel(inline="always")
+def _weight(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract, eta, role):
+    """The bake's surface weight of one vertex (see :func:`_trace_one`)."""
+    if role == ROLE_REFLECT:
+        return 1.0
+    outside = dx * gx + dy * gy + dz * gz < 0.0
+    ci = abs(dx * nx + dy * ny + dz * nz)
+    F = _fresnel(ci, 1.0, eta) if outside else _fresnel(ci, eta, 1.0)
+    if refract:
+        return 1.0 - F
+    return F if role == ROLE_BOTH else 1.0
+
+
+@kernel(inline="always")
+def _trace_one(x0x, x0y, x0z, t1, u1, v1, refract1, refract2, second_ok, tri_rec, tri_p, tri_n, tri_ior, tri_role,
+               node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, stack):
+    """The forward chain from (u1, v1) on t1: (second triangle or -1, its barycentrics,
+    receiver triangle or -1, its barycentrics, transport factor).  The factor is the product
+    over both vertices of the bake's surface weights (reflect role: 1; 'both' (glass): F for
+    R, 1 - F for T; refract role: 1 - F; unpolarised dielectric F at the vertex's cos_i) times
+    cos_shading / cos_geometric at the receiver (the bake's irradiance convention)."""
+    ok, x, y, z, nx, ny, nz, gx, gy, gz = _bary_point(tri_p, tri_n, t1, u1, v1)
+    if not ok:
+        return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
+    dx, dy, dz = x - x0x, y - x0y, z - x0z
+    ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if not ln > 0.0:
+        return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
+    dx, dy, dz = dx / ln, dy / ln, dz / ln
+    fac = _weight(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract1, tri_ior[t1], tri_role[t1])
+    ok, dx, dy, dz = _scatter(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract1, tri_ior[t1])
+    if not ok:
+        return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
+    t2, th = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
+                          eps, np.inf, t1, stack)
+    if t2 < 0 or not second_ok[t2]:
+        return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
+    u2, v2 = _hit_bary(tri_p, t2, x, y, z, dx, dy, dz)
+    u2 = min(max(u2, 0.0), 1.0)
+    v2 = min(max(v2, 0.0), 1.0 - u2)
+    ok, x, y, z, nx, ny, nz, gx, gy, gz = _bary_point(tri_p, tri_n, t2, u2, v2)
+    if not ok:
+        return t2, u2, v2, -1, 0.0, 0.0, 0.0
+    fac *= _weight(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract2, tri_ior[t1], tri_role[t2])
+    ok, dx, dy, dz = _scatter(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract2, tri_ior[t1])
+    if not ok:
+        return t2, u2, v2, -1, 0.0, 0.0, 0.0
+    tr, th = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
+                          eps, np.inf, t2, stack)
+    if tr < 0 or tri_rec[tr] < 0:
+        return t2, u2, v2, -1, 0.0, 0.0, 0.0
+    ur, vr = _hit_bary(tri_p, tr, x, y, z, dx, dy, dz)
+    ok, hx, hy, hz, nx, ny, nz, gx, gy, gz = _bary_point(tri_p, tri_n, tr, ur, vr)
+    cg = -(dx * gx + dy * gy + dz * gz)
+    if not ok or cg <= 0.0:
+        return t2, u2, v2, -1, 0.0, 0.0, 0.0  # the back of the receiver (the bake's front rule)
+    fac *= max(0.0, -(dx * nx + dy * ny + dz * nz)) / cg
+    return t2, u2, v2, tr, ur, vr, fac
+
+
+@kernel(parallel=True)
+def trace_chain_points(emitter, u1, v1, x0, t1_of, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
+                       tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_t2,
+                       out_rec, out_uv, out_factor):
+    """Step 1 (see the module docstring) for points (emitter[i], u1[i], v1[i]): the second
+    triangle ``out_t2`` (-1: none), the receiver triangle ``out_rec`` (-1: lost), the
+    texture coordinates ``out_uv`` of the landing point and the transport factor
+    ``out_factor`` (:func:`_trace_one`)."""
+    n = emitter.shape[0]
+    for ch in prange((n + CHUNK - 1) // CHUNK):
+        stack = np.empty(256, dtype=np.int64)
+        for i in range(ch * CHUNK, min(n, ch * CHUNK + CHUNK)):
+            e = emitter[i]
+            t2, _u2, _v2, tr, ur, vr, fac = _trace_one(x0[e, 0], x0[e, 1], x0[e, 2], t1_of[e], u1[i], v1[i], refract1,
+                                                       refract2, second_ok, tri_rec, tri_p, tri_n, tri_ior, tri_role,
+                                                       node_min, node_max, node_child, node_start, node_count, order, v0,
+                                                       e1, e2, eps, stack)
+            out_t2[i] = t2
+            out_rec[i] = tr
+            out_factor[i] = fac
+            if tr >= 0:
+                out_uv[i, 0] = tri_uv[tr, 0, 0] + ur * (tri_uv[tr, 1, 0] - tri_uv[tr, 0, 0]) + vr * (tri_uv[tr, 2, 0] - tri_uv[tr, 0, 0])
+                out_uv[i, 1] = tri_uv[tr, 0, 1] + ur * (tri_uv[tr, 1, 1] - tri_uv[tr, 0, 1]) + vr * (tri_uv[tr, 2, 1] - tri_uv[tr, 0, 1])
+            else:
+                out_uv[i, 0] = np.nan
+                out_uv[i, 1] = np.nan
+
+
+def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=4, max_depth=6, tolerance=0.5,
+                           keep_lost_depth=2, partial_depth=None, relative=0.01):
+    """Step 2: adaptive sub-triangles of every emitter's first triangle.
+
+    ``trace(emitter, u1, v1) -> (t2, rec_tri, uv)`` traces points (:func:`trace_chain_points`);
+    ``receiver_of_tri`` (n_triangles,) receiver index per scene triangle (-1: not a receiver);
+    ``texel_size`` (receivers,) the UV size of one texel (1 / max(W, H)).  A sub-triangle is
+    final when its 3 corners and 3 edge midpoints land on one receiver and every midpoint's
+    UV lies within ``tolerance`` texels of its edge's straight midpoint and (images larger
+    than a texel) within ``relative`` x its longest edge.  Partly landed sub-triangles are
+    split down to ``partial_depth`` (default: ``max_depth``) and then seeded / splatted over
+    the hull of their landed points.
+
+    Returns dict: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
+    uv (m, 3, 2) their landing UVs, receiver (m,), deviation (m,) UV units, landed (m,) the
+    fraction of the 6 traced points that landed (1 but for partly landed ones), bary_full
+    (m, 3, 2) the sub-triangle itself (``bary`` of a partly landed one is shrunk to landed
+    points), and counts
+    (traced points, dropped sub-triangles at the deepest level, partly landed ones seeded
+    over their landed points' hull, final per depth)."""
+    g = int(grid)
+    partial_depth = int(max_depth) if partial_depth is None else int(partial_depth)
+    corners = []
+    for i in range(g):
+        for j in range(g - i):
+            a, b, c = (i, j), (i + 1, j), (i, j + 1)
+            corners.append((a, b, c))
+            if i + j + 1 < g:
+                corners.append(((i + 1, j), (i + 1, j + 1), (i, j + 1)))
+    base = np.array(corners, dtype=np.float64) / g  # (g², 3, 2)
+    ne = int(n_emitters)
+    emitter = np.repeat(np.arange(ne, dtype=np.int64), base.shape[0])
+    bary = np.tile(base, (ne, 1, 1))
+    # corner records: trace every corner (shared corners traced again: simpler, and cheap)
+    t2, rec, uv = trace(np.repeat(emitter, 3), bary[:, :, 0].reshape(-1), bary[:, :, 1].reshape(-1))
+    rec = rec.reshape(-1, 3)
+    uv = uv.reshape(-1, 3, 2)
+    traced = emitter.size * 3
+    out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full")}
+    dropped = 0
+    partial_count = 0
+    final_per_depth = []
+    for depth in range(int(max_depth) + 1):
+        m = emitter.size
+        if m == 0:
+            final_per_depth.append(0)
+            continue
+        mid = 0.5 * (bary + bary[:, [1, 2, 0]])  # midpoints of edges (0,1), (1,2), (2,0)
+        mt2, mrec, muv = trace(np.repeat(emitter, 3), mid[:, :, 0].reshape(-1), mid[:, :, 1].reshape(-1))
+        traced += 3 * m
+        mrec = mrec.reshape(-1, 3)
+        muv = muv.reshape(-1, 3, 2)
+        rall = np.concatenate([rec, mrec], axis=1)
+        robj = np.where(rall >= 0, receiver_of_tri[np.maximum(rall, 0)], -1)
+        landed = (robj[:, 0] >= 0) & np.all(robj == robj[:, :1], axis=1)
+        lost = np.all(robj < 0, axis=1)
+        straight = 0.5 * (uv + uv[:, [1, 2, 0]])
+        dev = np.where(landed, np.nan_to_num(np.abs(muv - straight).max(axis=(1, 2)), nan=np.inf), np.inf)
+        tex = texel_size[np.maximum(robj[:, 0], 0)]
+        # Straight to within `tolerance` texels, and (for images larger than a texel) a flux
+        # density nearly uniform over the image: the midpoint shift, relative to the edge,
+        # measures the density's variation (zero for an affine map).
+        edge = np.nan_to_num(np.abs(uv - uv[:, [1, 2, 0]]).max(axis=(1, 2)), nan=np.inf)
+        final = landed & (dev <= tolerance * tex) & ((dev <= relative * edge) | (edge <= tex))
+        last = depth == int(max_depth)
+        if last:
+            final = landed & (dev <= 8.0 * tolerance * tex)
+        # Partly landed (an edge of the receiver, a silhouette, total internal reflection):
+        # splitting further only follows the border; from ``partial_depth`` on, such a
+        # sub-triangle is seeded over the hull of its landed points instead (see _partial).
+        partial = ~landed & ~lost & (depth >= partial_depth)
+        drop = (~final & ~partial & last) | (lost & (depth >= keep_lost_depth))
+        dropped += int(np.count_nonzero(~final & ~partial & last & ~lost))
+        fi = np.flatnonzero(final)
+        pi = np.flatnonzero(partial)
+        final_per_depth.append(int(fi.size + pi.size))
+        p_bary, p_uv, p_rec, p_dev = _partial(bary[pi], mid[pi], uv[pi], muv[pi], robj[pi])
+        out["emitter"].append(np.concatenate([emitter[fi], emitter[pi]]))
+        out["bary"].append(np.concatenate([bary[fi], p_bary]))
+        out["uv"].append(np.concatenate([uv[fi], p_uv]))
+        out["receiver"].append(np.concatenate([robj[fi, 0], p_rec]))
+        out["deviation"].append(np.concatenate([dev[fi], p_dev]))
+        out["bary_full"].append(np.concatenate([bary[fi], bary[pi]]))
+        out["landed"].append(np.concatenate([np.ones(fi.size), (robj[pi] == p_rec[:, None]).mean(axis=1)]))
+        partial_count += int(pi.size)
+        final = final | partial
+        split = np.flatnonzero(~final & ~drop)
+        if split.size == 0:
+            emitter = emitter[:0]
+            continue
+        b, mb = bary[split], mid[split]
+        r, mr = rec[split], mrec[split]
+        u, mu = uv[split], muv[split]
+        # children: (a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)
+        def kids(c, mc):
+            a_, b_, c_ = c[:, 0], c[:, 1], c[:, 2]
+            ab, bc, ca = mc[:, 0], mc[:, 1], mc[:, 2]
+            return np.concatenate([np.stack(s, axis=1) for s in ((a_, ab, ca), (ab, b_, bc), (ca, bc, c_), (ab, bc, ca))])
+        bary = kids(b, mb)
+        rec = kids(r[:, :, None], mr[:, :, None])[:, :, 0]
+        uv = kids(u, mu)
+        emitter = np.tile(emitter[split], 4)
+    cat = {k: (np.concatenate(v) if v else None) for k, v in out.items()}
+    if cat["emitter"] is None or cat["emitter"].size == 0:
+        cat = dict(emitter=np.zeros(0, dtype=np.int64), bary=np.zeros((0, 3, 2)), uv=np.zeros((0, 3, 2)),
+                   receiver=np.zeros(0, dtype=np.int64), deviation=np.zeros(0), landed=np.zeros(0),
+                   bary_full=np.zeros((0, 3, 2)))
+    cat["traced"] = traced
+    cat["dropped"] = dropped
+    cat["partial"] = partial_count
+    cat["final_per_depth"] = final_per_depth
+    return cat
+
+
+def solid_angle(x0, corners):
+    """Solid angle (sr) of the triangles ``corners`` (n, 3, 3) seen from ``x0`` (n, 3)
+    (Van Oosterom & Strackee 1983)."""
+    a = corners[:, 0] - x0
+    b = corners[:, 1] - x0
+    c = corners[:, 2] - x0
+    la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+    num = np.abs(np.sum(a * np.cross(b, c), axis=1))
+    den = la * lb * lc + np.sum(a * b, axis=1) * lc + np.sum(a * c, axis=1) * lb + np.sum(b * c, axis=1) * la
+    return 2.0 * np.arctan2(num, den)
+
+
+def _partial(bary, mid, uv, muv, robj):
+    """Partly landed sub-triangles as seeding triangles: the receiver of the most landed points;
+    lost corners replaced by the landed point (corner or midpoint) nearest in (u1, v1); the
+    deviation (margin) grown to the largest UV distance between the landed points, so the
+    grown image covers the landed part."""
+    m = bary.shape[0]
+    if m == 0:
+        return np.zeros((0, 3, 2)), np.zeros((0, 3, 2)), np.zeros(0, dtype=np.int64), np.zeros(0)
+    pts_b = np.concatenate([bary, mid], axis=1)  # (m, 6, 2)
+    pts_uv = np.concatenate([uv, muv], axis=1)
+    rec = np.empty(m, dtype=np.int64)
+    for i in range(m):  # few: the border of the image only
+        vals, cnt = np.unique(robj[i][robj[i] >= 0], return_counts=True)
+        rec[i] = vals[np.argmax(cnt)]
+    ok = robj == rec[:, None]  # (m, 6) landed on the chosen receiver
+    d = np.linalg.norm(pts_b[:, :3, None, :] - pts_b[:, None, :, :], axis=-1)  # (m, 3, 6)
+    d = np.where(ok[:, None, :], d, np.inf)
+    nearest = np.argmin(d, axis=2)  # (m, 3)
+    rows = np.arange(m)[:, None]
+    nb = pts_b[rows, nearest]
+    nuv = pts_uv[rows, nearest]
+    q = np.where(ok[:, :, None], pts_uv, np.nan)
+    span = np.nanmax(q, axis=1) - np.nanmin(q, axis=1)  # (m, 2)
+    dev = np.sqrt((span ** 2).sum(axis=1))
+    return nb, nuv, rec, dev
+
+
+@kernel(inline="always")
+def _closest_on_triangle(px, py, ax, ay, bx, by, cx, cy):
+    """Closest point of triangle abc (2-D) to p as barycentric weights (wa, wb, wc) and the
+    squared distance (Ericson, Real-Time Collision Detection §5.1.5); robust for slivers."""
+    abx, aby = bx - ax, by - ay
+    acx, acy = cx - ax, cy - ay
+    apx, apy = px - ax, py - ay
+    d1 = abx * apx + aby * apy
+    d2 = acx * apx + acy * apy
+    if d1 <= 0.0 and d2 <= 0.0:
+        wa, wb, wc = 1.0, 0.0, 0.0
+    else:
+        bpx, bpy = px - bx, py - by
+        d3 = abx * bpx + aby * bpy
+        d4 = acx * bpx + acy * bpy
+        cpx, cpy = px - cx, py - cy
+        d5 = abx * cpx + aby * cpy
+        d6 = acx * cpx + acy * cpy
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        if d3 >= 0.0 and d4 <= d3:
+            wa, wb, wc = 0.0, 1.0, 0.0
+        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+            t = d1 / (d1 - d3)
+            wa, wb, wc = 1.0 - t, t, 0.0
+        elif d6 >= 0.0 and d5 <= d6:
+            wa, wb, wc = 0.0, 0.0, 1.0
+        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+            t = d2 / (d2 - d6)
+            wa, wb, wc = 1.0 - t, 0.0, t
+        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+            t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+            wa, wb, wc = 0.0, 1.0 - t, t
+        else:
+            den = va + vb + vc
+            if den > 0.0:
+                wb = vb / den
+                wc = vc / den
+                wa = 1.0 - wb - wc
+            else:
+                wa, wb, wc = 1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0
+    qx = wa * ax + wb * bx + wc * cx
+    qy = wa * ay + wb * by + wc * cy
+    return wa, wb, wc, (qx - px) * (qx - px) + (qy - py) * (qy - py)
+
+
+@kernel(parallel=True)
+def _emit(fill, tri_uv, tri_bary, tri_emitter, margin, W, H, row0, row1, tex_start, tex_order, sample_uv, offset, count,
+          out_e, out_seed, out_s):
+    n = tri_uv.shape[0]
+    for t in prange(n):
+        c = 0
+        o = offset[t] if fill else 0
+        ax, ay = tri_uv[t, 0, 0], tri_uv[t, 0, 1]
+        bx, by = tri_uv[t, 1, 0], tri_uv[t, 1, 1]
+        cx, cy = tri_uv[t, 2, 0], tri_uv[t, 2, 1]
+        mg = margin[t]
+        i0 = max(0, int(math.floor((min(ax, bx, cx) - mg) * W)))
+        i1 = min(W - 1, int(math.floor((max(ax, bx, cx) + mg) * W)))
+        j0 = max(row0, int(math.floor((min(ay, by, cy) - mg) * H)))
+        j1 = min(row1 - 1, int(math.floor((max(ay, by, cy) + mg) * H)))
+        m2 = mg * mg
+        for j in range(j0, j1 + 1):
+            for i in range(i0, i1 + 1):
+                tex = (j - row0) * W + i
+                for z in range(tex_start[tex], tex_start[tex + 1]):
+                    s = tex_order[z]
+                    wa, wb, wc, d2 = _closest_on_triangle(sample_uv[s, 0], sample_uv[s, 1], ax, ay, bx, by, cx, cy)
+                    if d2 > m2:
+                        continue
+                    if fill:
+                        out_e[o] = tri_emitter[t]
+                        out_seed[o, 0] = wa * tri_bary[t, 0, 0] + wb * tri_bary[t, 1, 0] + wc * tri_bary[t, 2, 0]
+                        out_seed[o, 1] = wa * tri_bary[t, 0, 1] + wb * tri_bary[t, 1, 1] + wc * tri_bary[t, 2, 1]
+                        out_s[o] = s
+                        o += 1
+                    c += 1
+        count[t] = c
+
+
+class ImageSeeds:
+    """Step 3 for one receiver band: (emitter, seed (u1, v1), sample) for every sample within
+    ``margin`` (UV units, per sub-triangle) of a sub-triangle's straight image; the seed is the
+    point of the sub-triangle whose straight image is closest to the sample.  ``sample_texel``:
+    flat texel index j W + i of each band sample, ``sample_uv`` its texture coordinates.
+    :meth:`batches` yields the seeds in batches of about ``max_seeds`` (whole sub-triangles)."""
+
+    def __init__(self, tri_uv, tri_bary, tri_emitter, margin, width, height, row0, row1, sample_texel, sample_uv):
+        W, H = int(width), int(height)
+        tex = np.asarray(sample_texel, dtype=np.int64) - int(row0) * W
+        order = np.argsort(tex, kind="stable").astype(np.int64)
+        tex_start = np.searchsorted(tex[order], np.arange((int(row1) - int(row0)) * W + 1)).astype(np.int64)
+        self.n = tri_uv.shape[0]
+        self.count = np.zeros(self.n, dtype=np.int64)
+        self._args = (np.ascontiguousarray(tri_uv, dtype=np.float64), np.ascontiguousarray(tri_bary, dtype=np.float64),
+                      np.ascontiguousarray(tri_emitter, dtype=np.int64), np.ascontiguousarray(margin, dtype=np.float64), W,
+                      H, int(row0), int(row1), tex_start, order, np.ascontiguousarray(sample_uv, dtype=np.float64))
+        z = np.zeros(0, dtype=np.int64)
+        if self.n:
+            _emit(False, *self._args, z, self.count, z, np.zeros((0, 2)), z)
+
+    @property
+    def total(self):
+        return int(self.count.sum())
+
+    def batches(self, max_seeds=1 << 20):
+        csum = np.cumsum(self.count)
+        q = 0
+        while q < self.n:
+            base = csum[q - 1] if q else 0
+            q1 = max(q + 1, int(np.searchsorted(csum, base + max_seeds, side="right")))
+            a = self._args
+            cnt = np.zeros(q1 - q, dtype=np.int64)
+            offset = np.concatenate([[0], np.cumsum(self.count[q:q1])[:-1]]).astype(np.int64)
+            total = int(self.count[q:q1].sum())
+            out_e = np.empty(total, dtype=np.int64)
+            out_seed = np.empty((total, 2))
+            out_s = np.empty(total, dtype=np.int64)
+            if total:
+                _emit(True, a[0][q:q1], a[1][q:q1], a[2][q:q1], a[3][q:q1], *a[4:], offset, cnt, out_e, out_seed, out_s)
+                yield out_e, out_seed, out_s
+            q = q1
+
+
+@kernel(parallel=True)
+def solve_image_seeds(emitter, seed, sample, x0, t1_of, x_end, refract1, refract2, second_ok, tri_rec, tri_p, tri_n,
+                      tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_ok,
+                      out_t2, out_uv, stats):
+    """Step 4: per seed, the exact path through (t1, t2) to the sample point, t2 found by
+    tracing the seed (and re-traced after a Newton step that leaves it).  ``stats`` (chunks,
+    3): polish calls, hops, accepted."""
+    n = emitter.shape[0]
+    for ch in prange((n + CHUNK - 1) // CHUNK):
+        stack = np.empty(256, dtype=np.int64)
+        geo = np.empty((15, 3))
+        work = np.zeros((25, 6))
+        th = np.empty(4)
+        p1 = np.empty((3, 3))
+        n1 = np.empty((3, 3))
+        p2 = np.empty((3, 3))
+        n2 = np.empty((3, 3))
+        xs = np.empty(3)
+        xe = np.empty(3)
+        for i in range(ch * CHUNK, min(n, ch * CHUNK + CHUNK)):
+            out_ok[i] = False
+            out_t2[i] = -1
+            e = emitter[i]
+            t1 = t1_of[e]
+            u1 = seed[i, 0]
+            v1 = seed[i, 1]
+            s = sample[i]
+            for a in range(3):
+                xs[a] = x0[e, a]
+                xe[a] = x_end[s, a]
+                for b in range(3):
+                    p1[a, b] = tri_p[t1, a, b]
+                    n1[a, b] = tri_n[t1, a, b]
+            eta = tri_ior[t1]
+            last = -1
+            for hop in range(HOPS + 1):
+                t2, u2, v2, _tr, _ur, _vr, _f = _trace_one(xs[0], xs[1], xs[2], t1, u1, v1, refract1, refract2, second_ok,
+                                                          tri_rec, tri_p, tri_n, tri_ior, tri_role, node_min, node_max,
+                                                          node_child, node_start, node_count, order, v0, e1, e2, eps, stack)
+                if t2 < 0 or t2 == last:
+                    break
+                if hop > 0:
+                    stats[ch, 1] += 1
+                last = t2
+                for a in range(3):
+                    for b in range(3):
+                        p2[a, b] = tri_p[t2, a, b]
+                        n2[a, b] = tri_n[t2, a, b]
+                if not pack_geometry(xs, xe, p1, n1, p2, n2, geo):
+                    break
+                th[0] = u1
+                th[1] = v1
+                th[2] = u2
+                th[3] = v2
+                stats[ch, 0] += 1
+                acc, err, sig = polish_and_validate2(th, geo, refract1, refract2, eta, POLISH_STEPS, ACCEPT_RESIDUAL, work)
+                if acc:
+                    out_ok[i] = True
+                    out_t2[i] = t2
+                    for a in range(4):
+                        out_uv[i, a] = th[a]
+                    stats[ch, 2] += 1
+                    break
+                # Left triangle 2 (or failed): re-trace from where Newton went, if still on t1.
+                if not (th[0] >= -INSIDE_HOP and th[1] >= -INSIDE_HOP and th[0] + th[1] <= 1.0 + INSIDE_HOP
+                        and np.isfinite(th[0]) and np.isfinite(th[1])):
+                    break
+                u1 = min(max(th[0], 0.0), 1.0)
+                v1 = min(max(th[1], 0.0), 1.0 - u1)
+
+
+def dedupe_paths(sample, t1, t2, uv, tolerance=1e-7):
+    """Indices of the distinct paths among (sample, t1, t2, uv) rows: rows of one (sample, t1,
+    t2) whose (u1, v1, u2, v2) agree within ``tolerance`` are one path (several seeds of
+    overlapping images converge to it); the first of each is kept, in a stable order."""
+    n = sample.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.lexsort((uv[:, 1], uv[:, 0], t2, t1, sample))
+    keep = np.ones(n, dtype=bool)
+    _dedupe_sorted(order, sample, t1, t2, uv, tolerance, keep)
+    return np.sort(order[keep])
+
+
+@kernel
+def _dedupe_sorted(order, sample, t1, t2, uv, tol, keep):
+    n = order.shape[0]
+    g0 = 0
+    for a in range(n):
+        i = order[a]
+        if a > 0:
+            j = order[a - 1]
+            if sample[i] != sample[j] or t1[i] != t1[j] or t2[i] != t2[j]:
+                g0 = a
+        # compare with the kept rows of the same key (few: one per distinct path)
+        for b in range(g0, a):
+            k = order[b]
+            if not keep[b]:
+                continue
+            if (abs(uv[i, 0] - uv[k, 0]) <= tol and abs(uv[i, 1] - uv[k, 1]) <= tol and abs(uv[i, 2] - uv[k, 2]) <= tol
+                    and abs(uv[i, 3] - uv[k, 3]) <= tol):
+                keep[a] = False
+                break
+
+
+@kernel(inline="always")
+def _clip_half(xs, ys, n, axis, bound, keep_greater, ox, oy):
+    """Sutherland-Hodgman: clip polygon (xs, ys)[:n] to x_axis >= bound (or <=); returns count."""
+    m = 0
+    for i in range(n):
+        j = (i + 1) % n
+        ai = xs[i] if axis == 0 else ys[i]
+        aj = xs[j] if axis == 0 else ys[j]
+        ini = ai >= bound if keep_greater else ai <= bound
+        inj = aj >= bound if keep_greater else aj <= bound
+        if ini:
+            ox[m] = xs[i]
+            oy[m] = ys[i]
+            m += 1
+        if ini != inj:
+            t = (bound - ai) / (aj - ai)
+            ox[m] = xs[i] + t * (xs[j] - xs[i])
+            oy[m] = ys[i] + t * (ys[j] - ys[i])
+            m += 1
+    return m
+
+
+@kernel
+def splat_triangles(tri_uv, flux, W, H, out):
+    """Deposit each triangle's flux (m, 3) over the texels of a W x H texture in proportion to
+    the exact area of the triangle (UV) inside each texel (polygon clipping); a triangle
+    smaller than 1e-6 texel² deposits into the texel of its centroid.  ``out`` (H W, 3)."""
+    xs = np.empty(16)
+    ys = np.empty(16)
+    bx = np.empty(16)
+    by = np.empty(16)
+    for t in range(tri_uv.shape[0]):
+        f0, f1, f2 = flux[t, 0], flux[t, 1], flux[t, 2]
+        if not (f0 > 0.0 or f1 > 0.0 or f2 > 0.0):
+            continue
+        ax, ay = tri_uv[t, 0, 0] * W, tri_uv[t, 0, 1] * H
+        bx_, by_ = tri_uv[t, 1, 0] * W, tri_uv[t, 1, 1] * H
+        cx, cy = tri_uv[t, 2, 0] * W, tri_uv[t, 2, 1] * H
+        area = 0.5 * abs((bx_ - ax) * (cy - ay) - (cx - ax) * (by_ - ay))
+        if not area > 1e-6:
+            i = int(math.floor((ax + bx_ + cx) / 3.0))
+            j = int(math.floor((ay + by_ + cy) / 3.0))
+            if 0 <= i < W and 0 <= j < H:
+                k = j * W + i
+                out[k, 0] += f0
+                out[k, 1] += f1
+                out[k, 2] += f2
+            continue
+        i0 = max(0, int(math.floor(min(ax, bx_, cx))))
+        i1 = min(W - 1, int(math.floor(max(ax, bx_, cx))))
+        j0 = max(0, int(math.floor(min(ay, by_, cy))))
+        j1 = min(H - 1, int(math.floor(max(ay, by_, cy))))
+        for j in range(j0, j1 + 1):
+            for i in range(i0, i1 + 1):
+                xs[0], ys[0], xs[1], ys[1], xs[2], ys[2] = ax, ay, bx_, by_, cx, cy
+                n = _clip_half(xs, ys, 3, 0, float(i), True, bx, by)
+                n = _clip_half(bx, by, n, 0, float(i + 1), False, xs, ys)
+                n = _clip_half(xs, ys, n, 1, float(j), True, bx, by)
+                n = _clip_half(bx, by, n, 1, float(j + 1), False, xs, ys)
+                if n < 3:
+                    continue
+                a = 0.0
+                for q in range(n):
+                    r = (q + 1) % n
+                    a += xs[q] * ys[r] - xs[r] * ys[q]
+                w = 0.5 * abs(a) / area
+                k = j * W + i
+                out[k, 0] += f0 * w
+                out[k, 1] += f1 * w
+                out[k, 2] += f2 * w

@@ -1,0 +1,136 @@
+"""Building blocks of the forward-image two-bounce modes (addon/solver/forward_image.py)
+against independent answers: exact texel overlap vs dense point sampling, solid angle vs
+quadrature, closest point vs brute force, the adaptive refinement on analytic maps, and the
+merging of duplicate paths.  The whole bake is checked in test_bake_two_bounce.py (double
+image source) and test_bake_caustics.py (photon reference)."""
+
+import numpy as np
+
+from addon.solver.forward_image import _closest_on_triangle, dedupe_paths, refine_image_triangles, solid_angle, splat_triangles
+
+
+def test_splat_matches_dense_sampling_and_conserves_flux():
+    rng = np.random.default_rng(1)
+    W, H = 12, 9
+    tri = rng.uniform(0.05, 0.95, (40, 3, 2))
+    tri[:10] = tri[:10] * 0.1 + 0.4  # small ones (inside a texel or two)
+    tri[10:12, 2] = tri[10:12, 0] + 1e-3 * (tri[10:12, 1] - tri[10:12, 0])  # slivers
+    flux = rng.uniform(0.5, 2.0, (40, 3))
+    out = np.zeros((W * H, 3))
+    splat_triangles(tri, flux, W, H, out)
+    assert abs(out.sum() - flux.sum()) <= 1e-9 * flux.sum()  # every triangle inside [0, 1]²
+    # per triangle: the fractions of its area in each texel against dense point sampling
+    n = 1500
+    g = (np.arange(n) + 0.5) / n
+    X, Y = np.meshgrid(g, g)
+    pts = np.column_stack([X.ravel(), Y.ravel()])
+    tex = (np.floor(pts[:, 1] * H) * W + np.floor(pts[:, 0] * W)).astype(int)
+    checked = 0
+    for t in range(40):
+        a, b, c = tri[t]
+        d = (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])
+        l1 = ((b[0] - pts[:, 0]) * (c[1] - pts[:, 1]) - (c[0] - pts[:, 0]) * (b[1] - pts[:, 1])) / d
+        l2 = ((c[0] - pts[:, 0]) * (a[1] - pts[:, 1]) - (a[0] - pts[:, 0]) * (c[1] - pts[:, 1])) / d
+        inside = (l1 >= 0) & (l2 >= 0) & (1 - l1 - l2 >= 0)
+        cnt = np.bincount(tex[inside], minlength=W * H)
+        if cnt.sum() < 5000:
+            continue
+        one = np.zeros((W * H, 3))
+        splat_triangles(tri[t:t + 1], np.ones((1, 3)), W, H, one)
+        assert np.abs(one[:, 0] - cnt / cnt.sum()).sum() <= 30.0 / np.sqrt(cnt.sum())
+        checked += 1
+    assert checked >= 20
+
+
+def test_solid_angle_matches_quadrature():
+    rng = np.random.default_rng(2)
+    x0 = rng.normal(size=(20, 3)) * 0.3
+    corners = rng.normal(size=(20, 3, 3)) + np.array([0.0, 0.0, 2.0])
+    omega = solid_angle(x0, corners)
+    # midpoint quadrature of omega = ∫ |n . (x - x0)| / |x - x0|³ dA over the m² sub-triangles
+    m = 300
+    i, j = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+    up = i + j < m
+    down = i + j < m - 1
+    u = np.concatenate([(i[up] + 1 / 3) / m, (i[down] + 2 / 3) / m])
+    v = np.concatenate([(j[up] + 1 / 3) / m, (j[down] + 2 / 3) / m])
+    for k in range(20):
+        a, b, c = corners[k]
+        nrm = np.cross(b - a, c - a)
+        area = 0.5 * np.linalg.norm(nrm)
+        nrm /= 2 * area
+        p = a + u[:, None] * (b - a) + v[:, None] * (c - a) - x0[k]
+        r = np.linalg.norm(p, axis=1)
+        tot = np.sum(np.abs(p @ nrm) / r ** 3) * area / (m * m)
+        assert abs(tot / omega[k] - 1) <= 2e-3, (k, tot, omega[k])
+
+
+def test_closest_point_on_triangle_matches_brute_force():
+    rng = np.random.default_rng(3)
+    s = np.linspace(0, 1, 401)
+    for k in range(200):
+        t = rng.uniform(-1, 1, (3, 2))
+        if k % 5 == 0:
+            t[2] = t[0] + rng.uniform(0, 1) * (t[1] - t[0]) + 1e-9 * rng.normal(size=2)  # sliver
+        p = rng.uniform(-1.5, 1.5, 2)
+        wa, wb, wc, d2 = _closest_on_triangle(p[0], p[1], *t[0], *t[1], *t[2])
+        assert min(wa, wb, wc) >= -1e-12 and abs(wa + wb + wc - 1) <= 1e-12
+        q = wa * t[0] + wb * t[1] + wc * t[2]
+        assert abs(np.sum((q - p) ** 2) - d2) <= 1e-12
+        # brute force over the triangle (edges and interior grid)
+        U, V = np.meshgrid(s, s)
+        ok = U + V <= 1
+        pts = t[0] + U[ok][:, None] * (t[1] - t[0]) + V[ok][:, None] * (t[2] - t[0])
+        best = np.min(np.sum((pts - p) ** 2, axis=1))
+        assert d2 <= best + 1e-12
+        # and no farther than the grid's best by more than the grid's resolution
+        h = 1.5 * max(np.linalg.norm(t[1] - t[0]), np.linalg.norm(t[2] - t[0])) / 400
+        assert np.sqrt(d2) >= np.sqrt(best) - h
+
+
+def _analytic_trace(kind):
+    """A trace function for refine_image_triangles: emitter e maps (u, v) -> UV analytically."""
+
+    def trace(e, u, v):
+        if kind == "affine":
+            uv = np.column_stack([0.1 + 0.5 * u + 0.1 * v, 0.2 + 0.3 * v])
+        else:  # a lens-like quadratic map
+            uv = np.column_stack([0.5 + 0.4 * (u - 0.3) * (1 + 0.8 * (u + v)), 0.5 + 0.4 * (v - 0.3) * (1 + 0.8 * (u + v))])
+        rec = np.where((u >= 0) & (v >= 0) & (u + v <= 1 + 1e-12), 0, -1)
+        if kind == "half":  # points with u > 0.6 are lost (a receiver edge)
+            uv = np.column_stack([0.1 + 0.5 * u, 0.2 + 0.3 * v])
+            rec = np.where(u > 0.6, -1, rec)
+        return np.zeros(e.size, dtype=np.int64), rec, uv
+
+    return trace
+
+
+def test_refinement_on_analytic_maps():
+    texel = np.array([1.0 / 256])
+    rot = np.zeros(10, dtype=np.int64)  # one receiver: scene triangle 0 is receiver 0
+    aff = refine_image_triangles(_analytic_trace("affine"), 3, rot, texel, grid=4, max_depth=6)
+    assert aff["final_per_depth"][0] == 3 * 16 and aff["uv"].shape[0] == 3 * 16  # straight at once
+    quad = refine_image_triangles(_analytic_trace("quad"), 2, rot, texel, grid=4, max_depth=6)
+    area = 0.5 * np.abs(np.cross(quad["bary_full"][:, 1] - quad["bary_full"][:, 0], quad["bary_full"][:, 2] - quad["bary_full"][:, 0]))
+    assert abs(area.sum() - 2 * 0.5) <= 1e-12  # the final sub-triangles tile both domains
+    assert quad["deviation"].max() <= 0.5 * texel[0] and quad["dropped"] == 0
+    assert sum(quad["final_per_depth"][1:]) > 0  # it had to split
+    # the midpoint shift test is real: the true image of each final triangle's centroid lies
+    # within half a texel of the straight image's centroid
+    _, _, cuv = _analytic_trace("quad")(np.zeros(len(area), dtype=np.int64), quad["bary"].mean(1)[:, 0], quad["bary"].mean(1)[:, 1])
+    assert np.abs(cuv - quad["uv"].mean(1)).max() <= 0.5 * texel[0]
+    half = refine_image_triangles(_analytic_trace("half"), 1, rot, texel, grid=4, max_depth=5)
+    area = 0.5 * np.abs(np.cross(half["bary_full"][:, 1] - half["bary_full"][:, 0], half["bary_full"][:, 2] - half["bary_full"][:, 0]))
+    landed_area = np.sum(area * half["landed"])
+    # the landed part of the domain {u <= 0.6} has area 0.5 - 0.5 * 0.4² = 0.42
+    assert abs(landed_area - 0.42) <= 0.01 and half["partial"] > 0
+
+
+def test_dedupe_paths():
+    sample = np.array([3, 3, 3, 1, 1, 3])
+    t1 = np.array([5, 5, 5, 5, 5, 5])
+    t2 = np.array([7, 7, 8, 7, 7, 7])
+    uv = np.array([[0.1, 0.2, 0.3, 0.4], [0.1, 0.2 + 1e-9, 0.3, 0.4], [0.1, 0.2, 0.3, 0.4], [0.1, 0.2, 0.3, 0.4],
+                   [0.5, 0.2, 0.3, 0.4], [0.1 + 1e-3, 0.2, 0.3, 0.4]])
+    keep = dedupe_paths(sample, t1, t2, uv)
+    assert keep.tolist() == [0, 2, 3, 4, 5]

@@ -6,6 +6,9 @@ Each sample scene (sample_blends/*.blend, read with addon/bake/extract.py) is ba
 method over a sweep of its speed knob:
 
 - spoly, newton, curve: supersamples per texel (the tuple loop's cost is linear in them);
+  spoly's two-bounce chains use its default two_bounce="flux" (the samples only set coverage);
+- spoly-flux: spoly with the forward-image flux estimator for every chain (one_bounce and
+  two_bounce "flux"), knob = the sub-triangles' deepest subdivision level (image_depth);
 - sms: random Newton seeds per tuple (at 4 supersamples);
 - photon: photons traced.
 
@@ -47,7 +50,7 @@ sys.path[:0] = [ROOT, HERE]
 RESULTS = os.path.join(HERE, "results")
 SCENES = ("mirror_plane", "metal_ring", "water_pool", "glass_sphere", "glass_slab")
 TWO_BOUNCE_SCENES = ("glass_sphere", "glass_slab")  # their main caustic is TT
-METHODS = ("spoly", "newton", "sms", "curve", "photon")
+METHODS = ("spoly", "spoly-flux", "newton", "sms", "curve", "photon")
 
 
 def rel_mse(b, r):
@@ -100,7 +103,9 @@ def settings_for(method, knob, res, bounces):
     from addon.bake.driver import BakeSettings
 
     kw = dict(resolution=res, bounces=bounces, margin=0, method=method, seed=1, batch_tuples=1 << 14)
-    if method == "sms":
+    if method == "spoly-flux":
+        kw.update(method="spoly", samples=1, one_bounce="flux", two_bounce="flux", image_depth=knob)
+    elif method == "sms":
         kw.update(samples=4, sms_seeds=knob)
     elif method == "photon":
         kw.update(photons=knob)
@@ -131,9 +136,10 @@ def timed_bake(scene, settings, limit):
 
 def sweep(quick):
     if quick:
-        return {"spoly": [1, 4, 16], "newton": [1, 4, 16], "curve": [1, 4, 16], "sms": [1, 4, 16],
+        return {"spoly": [1, 4, 16], "spoly-flux": [2, 4, 6], "newton": [1, 4, 16], "curve": [1, 4, 16], "sms": [1, 4, 16],
                 "photon": [100_000, 400_000, 1_600_000]}
-    return {"spoly": [1, 4, 16, 64], "newton": [1, 4, 16, 64], "curve": [1, 4, 16, 64], "sms": [1, 4, 16, 64],
+    return {"spoly": [1, 4, 16, 64], "spoly-flux": [2, 3, 4, 5, 6, 7], "newton": [1, 4, 16, 64], "curve": [1, 4, 16, 64],
+            "sms": [1, 4, 16, 64],
             "photon": [100_000, 1_000_000, 4_000_000, 16_000_000]}
 
 
@@ -150,8 +156,10 @@ def run_scene(name, args, rows, notes):
         # Warm-up: load / compile the method's kernels on a tiny bake (not timed).
         from addon.bake.driver import BakeSettings, bake
 
-        warm = bake(scene, BakeSettings(resolution=8, samples=1, bounces=bounces, margin=0, method=method, photons=1000,
-                                        sms_seeds=1, batch_tuples=1 << 14), progress=None) if method != "spoly" or bounces == 1 else None
+        base = method.split("-")[0]
+        warm = bake(scene, BakeSettings(resolution=8, samples=1, bounces=bounces, margin=0, method=base, photons=1000,
+                                        sms_seeds=1, batch_tuples=1 << 14,
+                                        one_bounce="flux" if method == "spoly-flux" else "points"), progress=None)
         slow = False
         for knob in knobs:
             if slow:
@@ -199,7 +207,7 @@ def plot(rows, notes, scene, path, knob_label):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=100)
-    markers = dict(spoly="o", newton="s", sms="^", curve="D", photon="v", cycles="x")
+    markers = dict(spoly="o", newton="s", **{"spoly-flux": "P"}, sms="^", curve="D", photon="v", cycles="x")
     any_point = False
     for method in METHODS:
         pts = [r for r in rows if r["scene"] == scene and r["method"] == method and r["relmse"] is not None]
@@ -232,6 +240,8 @@ def knob_label(method, knob):
         return f"{knob / 1e6:g}M" if knob >= 1e6 else f"{knob / 1e3:g}k"
     if method == "sms":
         return f"{knob} seeds"
+    if method == "spoly-flux":
+        return f"depth {knob}"
     return f"{knob} spp"
 
 
@@ -242,8 +252,9 @@ def section(rows, notes, args):
              f"with other jobs: timings are noisy), Python {platform.python_version()}; {args.res}² textures, one light "
              f"sample, date {time.strftime('%Y-%m-%d')}; {'`--quick`' if args.quick else 'full'} sweep.",
              "",
-             "Knobs: supersamples per texel (spoly, newton, curve), random seeds per tuple at 4 supersamples (sms), photons "
-             "(photon). Error: relMSE (tests/test_bake_caustics.py's definition, all receivers and channels) against a "
+             "Knobs: supersamples per texel (spoly, newton, curve; spoly's two-bounce chains use its default flux "
+             "estimator), subdivision depth of the forward-image sub-triangles (spoly-flux: one_bounce and two_bounce "
+             "'flux'), random seeds per tuple at 4 supersamples (sms), photons (photon). Error: relMSE (tests/test_bake_caustics.py's definition, all receivers and channels) against a "
              f"{args.ref_photons:,}-photon reference of every chain the scene has (bounces 2 for the glass scenes: TT); "
              "'floor' is the reference's own noise (relMSE of its two halves / 4), under which no error can be measured. "
              f"Bakes over {args.limit:.0f} s are cancelled and marked too slow.", ""]
@@ -264,6 +275,7 @@ def section(rows, notes, args):
             lines.append(f"\n{method}: " + "; ".join(sorted(set(sk))))
         lines.append("")
     lines.append("Reading the chart: the tuple methods are deterministic, so their error is the supersample (aliasing) "
+                 "error of the texel average (spoly-flux: the density of each sub-triangle's image taken uniform) "
                  "error of the texel average plus whatever paths they miss (newton, sms) or chains they skip (newton/sms: "
                  "R and T only; curve: T only), which no knob recovers; photon's error is noise, falling as 1/photons. "
                  "A chain or method shown as too slow was cut at the limit, not hung.")

@@ -31,11 +31,14 @@ def _kinds(sc, caster_kind):
     return k
 
 
-def test_metal_ring_cardioid_matches_photon_tracing():
+@pytest.mark.parametrize("estimator", ["points", "flux"])
+def test_metal_ring_cardioid_matches_photon_tracing(estimator):
+    """Measured (3M-photon reference): points (64 supersamples) relMSE 4.7e-3, energy 0.998;
+    flux (forward-image sub-triangles) relMSE 1.6e-3, energy 1.000."""
     res_, half = 32, 1.6
     sc = ring_scene(resolution=res_, segments=48, half=half)
     light = sc.lights[0]
-    out = bake(sc, BakeSettings(samples=64, seed=3, margin=0))
+    out = bake(sc, BakeSettings(samples=64 if estimator == "points" else 1, seed=3, margin=0, one_bounce=estimator))
     ref = trace_caustic(light.position, light.intensity, sc.tri_p, sc.tri_n, _kinds(sc, KIND_REFLECT), sc.tri_ior,
                         (-half, -half), (2 * half, 2 * half), (res_, res_), 3_000_000, seed=5,
                         target_centre=(0.0, 0.0, 0.25), target_radius=1.2)
@@ -50,7 +53,10 @@ def test_metal_ring_cardioid_matches_photon_tracing():
     b = out.raw["floor"][:, :, 0]
     assert b.max() > 5 * b[b > 0].mean() and np.count_nonzero(b) > 0.4 * b.size
     counts = out.report["counts"]
-    assert counts["paths_visible"] > 10_000 and counts["tuples"] < 0.2 * counts["tuples_naive"]
+    if estimator == "points":
+        assert counts["paths_visible"] > 10_000 and counts["tuples"] < 0.2 * counts["tuples_naive"]
+    else:
+        assert out.report["two_bounce_image"]["passes"][0]["sub_triangles"] > 10_000
 
 
 def test_water_surface_refraction_matches_photon_tracing():

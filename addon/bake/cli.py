@@ -39,6 +39,9 @@ def add_arguments(parser):
                         "their images: texel averages, finite at focal points; default), seeded (exact paths at the "
                         "supersamples, Newton from forward-image seeds) or exact (every path of every candidate tuple "
                         "by the two-bounce Specular Polynomials: complete but very slow)")
+    parser.add_argument("--one-bounce", default="points", choices=("points", "flux"),
+                        help="method spoly, chains R and T: points (every path at every supersample, default) or flux "
+                        "(forward-image sub-triangles as --two-bounce flux: texel averages)")
     parser.add_argument("--sms-seeds", type=int, default=16, help="method sms: random Newton seeds per tuple (default 16)")
     parser.add_argument("--photons", type=int, default=1_000_000, help="method photon: photons traced (default 1,000,000)")
     parser.add_argument("--preview", default=None, metavar="PNG",
@@ -107,7 +110,7 @@ def _run(args):
     settings = BakeSettings(resolution=args.resolution or 0, samples=args.samples, bounces=args.bounces, seed=args.seed,
                             light_samples=args.light_samples, margin=args.margin, threads=args.threads,
                             device=args.device, method=args.method, sms_seeds=args.sms_seeds, photons=args.photons,
-                            two_bounce=args.two_bounce)
+                            two_bounce=args.two_bounce, one_bounce=args.one_bounce)
     default_res = args.resolution or 256
     for frame in frames or [None]:
         t0 = time.perf_counter()

@@ -72,6 +72,8 @@ def check_method(settings):
         raise ValueError(f"photons must be at least 1, got {settings.photons}")
     if settings.two_bounce not in TWO_BOUNCE_MODES:
         raise ValueError(f"two_bounce must be one of {', '.join(TWO_BOUNCE_MODES)}, got {settings.two_bounce!r}")
+    if settings.one_bounce not in ("points", "flux"):
+        raise ValueError(f"one_bounce must be 'points' or 'flux', got {settings.one_bounce!r}")
     if not 0 <= int(settings.image_depth) <= 10:
         raise ValueError(f"image_depth must be in [0, 10], got {settings.image_depth}")
     if settings.pieces and not 1 <= int(settings.pieces) <= 1024:
@@ -149,7 +151,9 @@ class BakeSettings:
     two_bounce: str = "flux"  # method "spoly", two-bounce chains (addon.bake.image): "flux" (forward-image sub-triangles,
     #                           their flux spread over their images: texel averages), "seeded" (exact paths at the samples
     #                           by Newton from forward-image seeds) or "exact" (cone cull + two-bounce Specular Polynomials)
-    image_depth: int = 6  # two_bounce "image": subdivision levels of the caster triangles (4 x 4 first)
+    image_depth: int = 6  # "flux" / "seeded": subdivision levels of the caster triangles (4 x 4 first)
+    one_bounce: str = "points"  # method "spoly", R and T: "points" (every path at every supersample, exact) or "flux"
+    #                             (forward-image sub-triangles as two_bounce="flux": texel averages)
 
     def as_dict(self):
         d = asdict(self)
@@ -463,8 +467,12 @@ def _bake_gen(scene, settings):
 
 def _uses_image(settings, chain):
     """"flux" or "seeded" when the chain goes through forward-image sub-triangles (addon.bake.image), else None."""
-    if len(chain) == 2 and settings.method == "spoly" and settings.two_bounce in ("flux", "seeded"):
+    if settings.method != "spoly":
+        return None
+    if len(chain) == 2 and settings.two_bounce in ("flux", "seeded"):
         return settings.two_bounce
+    if len(chain) == 1 and settings.one_bounce == "flux":
+        return "flux"
     return None
 
 
@@ -477,8 +485,9 @@ def _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers):
     keep = _emitting(ls, m, x0_all, scene.tri_p[cast1])
     if not keep.any():
         return None
-    return prepare(scene, bvh, eps, item["chain"], cast1[keep], x0_all[keep], item["vertices"][1], receivers,
-                   max_depth=int(settings.image_depth))
+    second = item["vertices"][1] if len(item["vertices"]) > 1 else np.zeros(0, dtype=np.int64)
+    return prepare(scene, bvh, eps, item["chain"], cast1[keep], x0_all[keep], second, receivers,
+                   max_depth=int(settings.image_depth), mode=_uses_image(settings, item["chain"]))
 
 
 def _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec_index, emitter_cache, image_reports, timer):

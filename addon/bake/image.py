@@ -17,8 +17,8 @@ import time
 import numpy as np
 
 from ..solver.bvh import segments_occluded
-from ..solver.forward_image import (ImageSeeds, dedupe_paths, refine_image_triangles, solid_angle, solve_image_seeds,
-                                    splat_triangles, trace_chain_points)
+from ..solver.forward_image import (ImageSeeds, corner_densities, dedupe_paths, refine_image_triangles, solid_angle,
+                                    solve_image_seeds, splat_triangles, trace_chain_points)
 from .lights import emission_factor
 
 IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
@@ -55,13 +55,16 @@ def _bvh_args(bvh):
     return (bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_start, bvh.node_count, bvh.order, bvh.v0, bvh.e1, bvh.e2)
 
 
-def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6):
+def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux"):
     """Refine the sub-triangles of the emitters (first triangles ``emit_tri`` lit from ``x0``)
-    for the two-bounce ``chain``; ``second`` the global ids of the chain's second-vertex
-    casters; ``receivers`` the receivers at the bake's resolution.  Returns an ImageState."""
+    for ``chain`` (one or two vertices; "seeded" needs two); ``second`` the global ids of
+    the chain's second-vertex casters (ignored for one vertex); ``receivers`` the receivers at
+    the bake's resolution; ``mode`` "flux" or "seeded" (how finely to refine).  Returns an
+    ImageState."""
     t0 = time.perf_counter()
     tri_rec, tri_uv, second_ok = scene_arrays(scene, receivers, second)
-    refract1, refract2 = chain[0] == "T", chain[1] == "T"
+    refract1, refract2 = chain[0] == "T", chain[-1] == "T"
+    bounces = len(chain)
     emit_tri = np.ascontiguousarray(emit_tri, dtype=np.int64)
     x0 = np.ascontiguousarray(x0, dtype=np.float64)
     tri_p = np.ascontiguousarray(scene.tri_p, dtype=np.float64)
@@ -78,13 +81,16 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
         fac = np.empty(m)
         if m:
             trace_chain_points(np.ascontiguousarray(e), np.ascontiguousarray(u), np.ascontiguousarray(v), x0, emit_tri,
-                               refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *bvh_args,
+                               bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *bvh_args,
                                float(eps), t2, rec, uv, fac)
         return (t2, rec, uv, fac) if factor else (t2, rec, uv)
 
     texel = np.array([1.0 / max(r.resolution) for r in receivers]) if receivers else np.ones(1)
+    # "seeded" needs images straight to the margin only (Newton does the rest); "flux" also a
+    # near-uniform density and a finely resolved border of what lands.
+    extra = {} if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
-                                  tolerance=IMAGE_TOLERANCE)
+                                  tolerance=IMAGE_TOLERANCE, **extra)
     r = tris["receiver"]
     tris["margin"] = IMAGE_MARGIN * texel[r] + 2.0 * tris["deviation"] if r.size else np.zeros(0)
     arrays = dict(tri_rec=tri_rec, second_ok=second_ok, refract1=refract1, refract2=refract2, tri_p=tri_p, tri_n=tri_n,
@@ -144,7 +150,8 @@ def flux_textures(state, scene, bvh, eps, extent, ls, m, receivers):
     across the beam), times the transport factor of the path through its centroid (Fresnel,
     the receiver's cos_shading / cos_geometric), the tints of both vertices, the fraction of
     its points that landed, and the visibility of the light from its centroid; the flux is
-    spread over its straight image in UV space by exact texel overlap (the other two path
+    spread over its straight image in UV space by exact texel overlap with a density linear
+    over the image (forward_image.corner_densities) (the other two path
     segments are unoccluded by construction: they are closest hits).  Returns one (H W, 3)
     array of W per texel per receiver; divided by the texels' world areas it is the
     texel-averaged irradiance, finite at focal points where point samples are not."""
@@ -178,11 +185,17 @@ def flux_textures(state, scene, bvh, eps, extent, ls, m, receivers):
         ig = np.column_stack([t1[live], np.full(live.size, -1)])
         blocked = segments_occluded(bvh, first[live], x1[live], ig, eps)
         power[live[blocked]] = 0.0
-    t2c = np.where(t2 >= 0, t2, t1)
-    flux = power[:, None] * ls.rgb[m][None, :] * scene.tri_tint[t1] * scene.tri_tint[t2c]
+    tint2 = np.where((t2 >= 0)[:, None], scene.tri_tint[np.maximum(t2, 0)], 1.0)  # one-vertex chains: no second tint
+    flux = power[:, None] * ls.rgb[m][None, :] * scene.tri_tint[t1] * tint2
+    if ls.kind == "sun":  # parallel light: the same solid angle per area everywhere
+        far = corners.mean(axis=1, keepdims=True) - 1e6 * extent * d
+        density = corner_densities(tris["uv"], tris["mid_uv"], far[:, 0], corners)
+    else:
+        density = corner_densities(tris["uv"], tris["mid_uv"], x0, corners)
     for r, recv in enumerate(receivers):
         sel = np.flatnonzero(tris["receiver"] == r)
         if sel.size:
             W, H = recv.resolution
-            splat_triangles(np.ascontiguousarray(tris["uv"][sel]), np.ascontiguousarray(flux[sel]), int(W), int(H), out[r])
+            splat_triangles(np.ascontiguousarray(tris["uv"][sel]), np.ascontiguousarray(flux[sel]), int(W), int(H), out[r],
+                            np.ascontiguousarray(density[sel]))
     return out

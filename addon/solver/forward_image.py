@@ -148,13 +148,31 @@ def _weight(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract, eta, role):
 
 
 @kernel(inline="always")
-def _trace_one(x0x, x0y, x0z, t1, u1, v1, refract1, refract2, second_ok, tri_rec, tri_p, tri_n, tri_ior, tri_role,
-               node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, stack):
-    """The forward chain from (u1, v1) on t1: (second triangle or -1, its barycentrics,
-    receiver triangle or -1, its barycentrics, transport factor).  The factor is the product
-    over both vertices of the bake's surface weights (reflect role: 1; 'both' (glass): F for
-    R, 1 - F for T; refract role: 1 - F; unpolarised dielectric F at the vertex's cos_i) times
-    cos_shading / cos_geometric at the receiver (the bake's irradiance convention)."""
+def _land(x, y, z, dx, dy, dz, prev, tri_rec, tri_p, tri_n, node_min, node_max, node_child, node_start, node_count, order,
+          v0, e1, e2, eps, stack):
+    """The last segment: the closest hit must be the front of a receiver.  Returns (receiver
+    triangle or -1, barycentrics, cos_shading / cos_geometric there)."""
+    tr, th = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
+                          eps, np.inf, prev, stack)
+    if tr < 0 or tri_rec[tr] < 0:
+        return -1, 0.0, 0.0, 0.0
+    ur, vr = _hit_bary(tri_p, tr, x, y, z, dx, dy, dz)
+    ok, hx, hy, hz, nx, ny, nz, gx, gy, gz = _bary_point(tri_p, tri_n, tr, ur, vr)
+    cg = -(dx * gx + dy * gy + dz * gz)
+    if not ok or cg <= 0.0:
+        return -1, 0.0, 0.0, 0.0  # the back of the receiver (the bake's front rule)
+    return tr, ur, vr, max(0.0, -(dx * nx + dy * ny + dz * nz)) / cg
+
+
+@kernel(inline="always")
+def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok, tri_rec, tri_p, tri_n, tri_ior,
+               tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, stack):
+    """The forward chain of ``bounces`` (1 or 2) vertices from (u1, v1) on t1: (second
+    triangle or -1, its barycentrics, receiver triangle or -1, its barycentrics, transport
+    factor).  The factor is the product over the vertices of the bake's surface weights
+    (reflect role: 1; 'both' (glass): F for R, 1 - F for T; refract role: 1 - F; unpolarised
+    dielectric F at the vertex's cos_i) times cos_shading / cos_geometric at the receiver
+    (the bake's irradiance convention)."""
     ok, x, y, z, nx, ny, nz, gx, gy, gz = _bary_point(tri_p, tri_n, t1, u1, v1)
     if not ok:
         return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
@@ -167,6 +185,10 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, refract1, refract2, second_ok, tri_rec
     ok, dx, dy, dz = _scatter(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract1, tri_ior[t1])
     if not ok:
         return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
+    if bounces == 1:
+        tr, ur, vr, c = _land(x, y, z, dx, dy, dz, t1, tri_rec, tri_p, tri_n, node_min, node_max, node_child, node_start,
+                              node_count, order, v0, e1, e2, eps, stack)
+        return -1, 0.0, 0.0, tr, ur, vr, fac * c
     t2, th = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
                           eps, np.inf, t1, stack)
     if t2 < 0 or not second_ok[t2]:
@@ -181,24 +203,17 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, refract1, refract2, second_ok, tri_rec
     ok, dx, dy, dz = _scatter(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract2, tri_ior[t1])
     if not ok:
         return t2, u2, v2, -1, 0.0, 0.0, 0.0
-    tr, th = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
-                          eps, np.inf, t2, stack)
-    if tr < 0 or tri_rec[tr] < 0:
-        return t2, u2, v2, -1, 0.0, 0.0, 0.0
-    ur, vr = _hit_bary(tri_p, tr, x, y, z, dx, dy, dz)
-    ok, hx, hy, hz, nx, ny, nz, gx, gy, gz = _bary_point(tri_p, tri_n, tr, ur, vr)
-    cg = -(dx * gx + dy * gy + dz * gz)
-    if not ok or cg <= 0.0:
-        return t2, u2, v2, -1, 0.0, 0.0, 0.0  # the back of the receiver (the bake's front rule)
-    fac *= max(0.0, -(dx * nx + dy * ny + dz * nz)) / cg
-    return t2, u2, v2, tr, ur, vr, fac
+    tr, ur, vr, c = _land(x, y, z, dx, dy, dz, t2, tri_rec, tri_p, tri_n, node_min, node_max, node_child, node_start,
+                          node_count, order, v0, e1, e2, eps, stack)
+    return t2, u2, v2, tr, ur, vr, fac * c
 
 
 @kernel(parallel=True)
-def trace_chain_points(emitter, u1, v1, x0, t1_of, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
+def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
                        tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_t2,
                        out_rec, out_uv, out_factor):
-    """Step 1 (see the module docstring) for points (emitter[i], u1[i], v1[i]): the second
+    """Step 1 (see the module docstring) for points (emitter[i], u1[i], v1[i]) of a chain of
+    ``bounces`` (1 or 2) vertices: the second
     triangle ``out_t2`` (-1: none), the receiver triangle ``out_rec`` (-1: lost), the
     texture coordinates ``out_uv`` of the landing point and the transport factor
     ``out_factor`` (:func:`_trace_one`)."""
@@ -207,7 +222,7 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, refract1, refract2, second_ok
         stack = np.empty(256, dtype=np.int64)
         for i in range(ch * CHUNK, min(n, ch * CHUNK + CHUNK)):
             e = emitter[i]
-            t2, _u2, _v2, tr, ur, vr, fac = _trace_one(x0[e, 0], x0[e, 1], x0[e, 2], t1_of[e], u1[i], v1[i], refract1,
+            t2, _u2, _v2, tr, ur, vr, fac = _trace_one(x0[e, 0], x0[e, 1], x0[e, 2], t1_of[e], u1[i], v1[i], bounces, refract1,
                                                        refract2, second_ok, tri_rec, tri_p, tri_n, tri_ior, tri_role,
                                                        node_min, node_max, node_child, node_start, node_count, order, v0,
                                                        e1, e2, eps, stack)
@@ -223,7 +238,7 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, refract1, refract2, second_ok
 
 
 def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=4, max_depth=6, tolerance=0.5,
-                           keep_lost_depth=2, partial_depth=None, relative=0.01):
+                           keep_lost_depth=1, partial_depth=None, relative=0.01):
     """Step 2: adaptive sub-triangles of every emitter's first triangle.
 
     ``trace(emitter, u1, v1) -> (t2, rec_tri, uv)`` traces points (:func:`trace_chain_points`);
@@ -231,19 +246,21 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     ``texel_size`` (receivers,) the UV size of one texel (1 / max(W, H)).  A sub-triangle is
     final when its 3 corners and 3 edge midpoints land on one receiver and every midpoint's
     UV lies within ``tolerance`` texels of its edge's straight midpoint and (images larger
-    than a texel) within ``relative`` x its longest edge.  Partly landed sub-triangles are
-    split down to ``partial_depth`` (default: ``max_depth``) and then seeded / splatted over
-    the hull of their landed points.
+    than a texel) within ``relative`` x its longest edge, or at ``max_depth``.  Partly landed
+    sub-triangles (on the border of what lands: their flux is approximated) are split down to
+    ``partial_depth`` (default: ``max_depth`` + 2; the border's share of the flux halves per
+    level) and then seeded / splatted over the hull of their landed points.
 
     Returns dict: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
     uv (m, 3, 2) their landing UVs, receiver (m,), deviation (m,) UV units, landed (m,) the
     fraction of the 6 traced points that landed (1 but for partly landed ones), bary_full
     (m, 3, 2) the sub-triangle itself (``bary`` of a partly landed one is shrunk to landed
-    points), and counts
+    points), mid_uv (m, 3, 2) the landing UVs of the edge midpoints (01, 12, 20; NaN for partly
+    landed ones), and counts
     (traced points, dropped sub-triangles at the deepest level, partly landed ones seeded
     over their landed points' hull, final per depth)."""
     g = int(grid)
-    partial_depth = int(max_depth) if partial_depth is None else int(partial_depth)
+    partial_depth = int(max_depth) + 2 if partial_depth is None else max(int(partial_depth), int(max_depth))
     corners = []
     for i in range(g):
         for j in range(g - i):
@@ -260,11 +277,11 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     rec = rec.reshape(-1, 3)
     uv = uv.reshape(-1, 3, 2)
     traced = emitter.size * 3
-    out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full")}
+    out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full", "mid_uv")}
     dropped = 0
     partial_count = 0
     final_per_depth = []
-    for depth in range(int(max_depth) + 1):
+    for depth in range(partial_depth + 1):
         m = emitter.size
         if m == 0:
             final_per_depth.append(0)
@@ -286,9 +303,9 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         # measures the density's variation (zero for an affine map).
         edge = np.nan_to_num(np.abs(uv - uv[:, [1, 2, 0]]).max(axis=(1, 2)), nan=np.inf)
         final = landed & (dev <= tolerance * tex) & ((dev <= relative * edge) | (edge <= tex))
-        last = depth == int(max_depth)
-        if last:
-            final = landed & (dev <= 8.0 * tolerance * tex)
+        if depth >= int(max_depth):
+            final = landed  # as straight as the depth allows: its deviation widens its margin
+        last = depth == partial_depth
         # Partly landed (an edge of the receiver, a silhouette, total internal reflection):
         # splitting further only follows the border; from ``partial_depth`` on, such a
         # sub-triangle is seeded over the hull of its landed points instead (see _partial).
@@ -305,6 +322,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         out["receiver"].append(np.concatenate([robj[fi, 0], p_rec]))
         out["deviation"].append(np.concatenate([dev[fi], p_dev]))
         out["bary_full"].append(np.concatenate([bary[fi], bary[pi]]))
+        out["mid_uv"].append(np.concatenate([muv[fi], np.full((pi.size, 3, 2), np.nan)]))
         out["landed"].append(np.concatenate([np.ones(fi.size), (robj[pi] == p_rec[:, None]).mean(axis=1)]))
         partial_count += int(pi.size)
         final = final | partial
@@ -328,12 +346,36 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     if cat["emitter"] is None or cat["emitter"].size == 0:
         cat = dict(emitter=np.zeros(0, dtype=np.int64), bary=np.zeros((0, 3, 2)), uv=np.zeros((0, 3, 2)),
                    receiver=np.zeros(0, dtype=np.int64), deviation=np.zeros(0), landed=np.zeros(0),
-                   bary_full=np.zeros((0, 3, 2)))
+                   bary_full=np.zeros((0, 3, 2)), mid_uv=np.zeros((0, 3, 2)))
     cat["traced"] = traced
     cat["dropped"] = dropped
     cat["partial"] = partial_count
     cat["final_per_depth"] = final_per_depth
     return cat
+
+
+def corner_densities(uv, mid_uv, x0, corners):
+    """Relative flux density (per UV area) at the three corners of each sub-triangle's image,
+    for a splat whose density varies linearly over the image instead of being uniform (second
+    order in the sub-triangle's size instead of first).  The image is the quadratic triangle
+    through the corner and edge-midpoint images: at corner i its Jacobian J_i (2x2, from the
+    quadratic shape functions' derivatives), and the light's solid angle per barycentric area
+    there w_i = |n . (p_i - x0)| / |p_i - x0|³; density_i = w_i / |det J_i|.  Rows where the
+    Jacobians change sign or differ by more than 4x (near a fold), or without midpoints, get
+    (1, 1, 1): the uniform splat."""
+    c0, c1, c2 = uv[:, 0], uv[:, 1], uv[:, 2]
+    m01, m12, m20 = mid_uv[:, 0], mid_uv[:, 1], mid_uv[:, 2]
+    ds = (-3 * c0 - c1 + 4 * m01, c0 + 3 * c1 - 4 * m01, c0 - c1 + 4 * m12 - 4 * m20)
+    dt = (-3 * c0 - c2 + 4 * m20, c0 - c2 - 4 * m01 + 4 * m12, c0 + 3 * c2 - 4 * m20)
+    det = np.stack([a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0] for a, b in zip(ds, dt)], axis=1)
+    nrm = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    d = corners - x0[:, None, :]
+    w = np.abs(np.einsum("nj,nij->ni", nrm, d)) / np.linalg.norm(d, axis=2) ** 3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = w / np.abs(det)
+        ratio = rho.max(axis=1) / rho.min(axis=1)
+    same = (np.all(det > 0, axis=1) | np.all(det < 0, axis=1)) & np.isfinite(ratio) & (ratio <= 4.0)
+    return np.where(same[:, None], rho / np.where(same, rho.mean(axis=1), 1.0)[:, None], 1.0)
 
 
 def solid_angle(x0, corners):
@@ -358,8 +400,8 @@ def _partial(bary, mid, uv, muv, robj):
         return np.zeros((0, 3, 2)), np.zeros((0, 3, 2)), np.zeros(0, dtype=np.int64), np.zeros(0)
     pts_b = np.concatenate([bary, mid], axis=1)  # (m, 6, 2)
     pts_uv = np.concatenate([uv, muv], axis=1)
-    rec = np.empty(m, dtype=np.int64)
-    for i in range(m):  # few: the border of the image only
+    rec = robj[np.arange(m), np.argmax(robj >= 0, axis=1)]  # the first landed point's receiver
+    for i in np.flatnonzero(np.any((robj >= 0) & (robj != rec[:, None]), axis=1)):  # rare: two receivers
         vals, cnt = np.unique(robj[i][robj[i] >= 0], return_counts=True)
         rec[i] = vals[np.argmax(cnt)]
     ok = robj == rec[:, None]  # (m, 6) landed on the chosen receiver
@@ -536,7 +578,7 @@ def solve_image_seeds(emitter, seed, sample, x0, t1_of, x_end, refract1, refract
             eta = tri_ior[t1]
             last = -1
             for hop in range(HOPS + 1):
-                t2, u2, v2, _tr, _ur, _vr, _f = _trace_one(xs[0], xs[1], xs[2], t1, u1, v1, refract1, refract2, second_ok,
+                t2, u2, v2, _tr, _ur, _vr, _f = _trace_one(xs[0], xs[1], xs[2], t1, u1, v1, 2, refract1, refract2, second_ok,
                                                           tri_rec, tri_p, tri_n, tri_ior, tri_role, node_min, node_max,
                                                           node_child, node_start, node_count, order, v0, e1, e2, eps, stack)
                 if t2 < 0 or t2 == last:
@@ -628,9 +670,12 @@ def _clip_half(xs, ys, n, axis, bound, keep_greater, ox, oy):
 
 
 @kernel
-def splat_triangles(tri_uv, flux, W, H, out):
-    """Deposit each triangle's flux (m, 3) over the texels of a W x H texture in proportion to
-    the exact area of the triangle (UV) inside each texel (polygon clipping); a triangle
+def splat_triangles(tri_uv, flux, W, H, out, density=None):
+    """Deposit each triangle's flux (m, 3) over the texels of a W x H texture by the exact
+    overlap of the triangle (UV) with each texel (polygon clipping).  ``density`` (m, 3):
+    relative flux density at the corners (linear over the triangle; None: uniform); a texel
+    gets flux x ∫ density over the overlap / ∫ density over the triangle (the integral of a
+    linear function over a polygon is its area times the value at its centroid).  A triangle
     smaller than 1e-6 texel² deposits into the texel of its centroid.  ``out`` (H W, 3)."""
     xs = np.empty(16)
     ys = np.empty(16)
@@ -643,7 +688,8 @@ def splat_triangles(tri_uv, flux, W, H, out):
         ax, ay = tri_uv[t, 0, 0] * W, tri_uv[t, 0, 1] * H
         bx_, by_ = tri_uv[t, 1, 0] * W, tri_uv[t, 1, 1] * H
         cx, cy = tri_uv[t, 2, 0] * W, tri_uv[t, 2, 1] * H
-        area = 0.5 * abs((bx_ - ax) * (cy - ay) - (cx - ax) * (by_ - ay))
+        det = (bx_ - ax) * (cy - ay) - (cx - ax) * (by_ - ay)
+        area = 0.5 * abs(det)
         if not area > 1e-6:
             i = int(math.floor((ax + bx_ + cx) / 3.0))
             j = int(math.floor((ay + by_ + cy) / 3.0))
@@ -653,6 +699,10 @@ def splat_triangles(tri_uv, flux, W, H, out):
                 out[k, 1] += f1
                 out[k, 2] += f2
             continue
+        r0, r1, r2 = 1.0, 1.0, 1.0
+        if density is not None:
+            r0, r1, r2 = density[t, 0], density[t, 1], density[t, 2]
+        total = area * (r0 + r1 + r2) / 3.0
         i0 = max(0, int(math.floor(min(ax, bx_, cx))))
         i1 = min(W - 1, int(math.floor(max(ax, bx_, cx))))
         j0 = max(0, int(math.floor(min(ay, by_, cy))))
@@ -667,10 +717,23 @@ def splat_triangles(tri_uv, flux, W, H, out):
                 if n < 3:
                     continue
                 a = 0.0
+                gx = 0.0
+                gy = 0.0
                 for q in range(n):
                     r = (q + 1) % n
-                    a += xs[q] * ys[r] - xs[r] * ys[q]
-                w = 0.5 * abs(a) / area
+                    cr = xs[q] * ys[r] - xs[r] * ys[q]
+                    a += cr
+                    gx += (xs[q] + xs[r]) * cr
+                    gy += (ys[q] + ys[r]) * cr
+                if a == 0.0:
+                    continue
+                gx /= 3.0 * a
+                gy /= 3.0 * a
+                # the density at the overlap's centroid (barycentric in the triangle)
+                l1 = ((gx - ax) * (cy - ay) - (cx - ax) * (gy - ay)) / det
+                l2 = ((bx_ - ax) * (gy - ay) - (gx - ax) * (by_ - ay)) / det
+                rho = r0 + l1 * (r1 - r0) + l2 * (r2 - r0)
+                w = 0.5 * abs(a) * rho / total
                 k = j * W + i
                 out[k, 0] += f0 * w
                 out[k, 1] += f1 * w

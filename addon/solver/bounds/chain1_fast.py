@@ -35,7 +35,10 @@ from .chain1 import IRR_PAD, MIN_WIDTH, N_STATS, P_BU0, P_DEPTH, P_EHI, P_ELO, P
 # ---------------------------------------------------------------------------------------
 # flat 4-D polynomial kernels (scaled Bernstein unless said otherwise)
 
-MAXC = 2048  # coefficients per workspace slot (largest: (4, 4, 11, 11) = 1936)
+MAXC = 128  # coefficients per workspace slot (largest: (1, 1, 11, 11) = 121); 128 keeps the slots
+# of one workspace close together in cache (a 4-D polynomial of the T irradiance lives in scr)
+N4 = 4 * 4 * 11 * 11  # coefficients of the final T irradiance polynomials (uk, vk, u1, v1)
+SCR4 = 64  # offset of those two in scr
 
 
 @kernel
@@ -694,7 +697,16 @@ NU = 88
 @kernel
 def _mac2(a, p0, p1, b, q0, q1, out, s):
     """out += s·a·b for polynomials in (u1, v1) only (scaled Bernstein: a 2-D convolution);
-    a has extents (p0, p1), b (q0, q1), out (p0 + q0 - 1, p1 + q1 - 1)."""
+    a has extents (p0, p1), b (q0, q1), out (p0 + q0 - 1, p1 + q1 - 1).  The operand with the
+    longer rows runs in the innermost loop (the product is symmetric)."""
+    if p1 > q1:
+        _mac2_rows(b, q0, q1, a, p0, p1, out, s)
+    else:
+        _mac2_rows(a, p0, p1, b, q0, q1, out, s)
+
+
+@kernel
+def _mac2_rows(a, p0, p1, b, q0, q1, out, s):
     n1 = p1 + q1 - 1
     for i in range(p0):
         for j in range(q0):
@@ -820,9 +832,9 @@ def box_irradiance_refract(W, U, scr, x0, P, N, Q, eta, lo, hi, pos):
     t2 = (t2[0] / l, t2[1] / l, t2[2] / l)
     ak = math.sqrt((ek1[1] * ek2[2] - ek1[2] * ek2[1]) ** 2 + (ek1[2] * ek2[0] - ek1[0] * ek2[2]) ** 2
                    + (ek1[0] * ek2[1] - ek1[1] * ek2[0]) ** 2)
-    DET1 = W[S_IRR]
-    NUM = W[S_IRR + 1]
-    nfin = 4 * 4 * 11 * 11
+    DET1 = scr[SCR4:SCR4 + N4]
+    NUM = scr[SCR4 + N4:SCR4 + 2 * N4]
+    nfin = N4
     kscale = 1.0 / (ws * wt)  # detk in (uk, vk) units: ∂/∂uk = (1/ws) ∂/∂σ, ∂/∂vk = (1/wt) ∂/∂τ
     best_hi = 0.0
     best_lo = np.inf
@@ -1072,7 +1084,7 @@ def tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P, N, Q, UV, 
 
 @kernel
 def workspace():
-    return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(64), np.zeros((NU, UW))
+    return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(SCR4 + 2 * N4), np.zeros((NU, UW))
 
 
 @kernel(parallel=True)

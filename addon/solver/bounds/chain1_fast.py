@@ -734,11 +734,37 @@ def _pow_to_bernstein3(i, a):
 
 
 @kernel
+def _elevate2_11(a, n, out, tmp):
+    """Degree elevation of scaled coefficients in (u1, v1), extents (n, n) -> (11, 11): the
+    product with the constant 1 of degree 11 - n (binomial weights), one axis at a time with
+    the long rows innermost (pelevate's generic loops run rows of length 1 on the last axis)."""
+    k = 11 - n
+    for t in range(n * 11):
+        tmp[t] = 0.0
+    for i in range(n):
+        for c in range(k + 1):
+            w = BINOM[k, c]
+            src = i * n
+            dst = i * 11 + c
+            for j in range(n):
+                tmp[dst + j] += w * a[src + j]
+    for t in range(121):
+        out[t] = 0.0
+    for i in range(n):
+        for c in range(k + 1):
+            w = BINOM[k, c]
+            src = i * 11
+            dst = (i + c) * 11
+            for j in range(11):
+                out[dst + j] += w * tmp[src + j]
+
+
+@kernel
 def _accumulate4(U, src, n, a, b, scale, out, tmp):
     """out (extents (4, 4, 11, 11), order (uk, vk, u1, v1)) += scale · σ^a τ^b · U[src], where
     U[src] (extents (1, 1, n, n), scaled Bernstein in (u1, v1)) is elevated to (11, 11) and the
     monomial σ^a τ^b is written in the degree-(3, 3) Bernstein basis of the (uk, vk) box."""
-    e = pelevate(U[src], (1, 1, n, n), (1, 1, 11, 11), U[U_E], tmp)
+    _elevate2_11(U[src], n, U[U_E], tmp)
     ev = U[U_E]
     for i in range(a, 4):
         wi = scale * _pow_to_bernstein3(i, a)
@@ -747,7 +773,6 @@ def _accumulate4(U, src, n, a, b, scale, out, tmp):
             base = (i * 4 + j) * 121
             for k in range(121):
                 out[base + k] += w * ev[k]
-    return e
 
 
 @kernel

@@ -66,3 +66,38 @@ def test_total_paths_at_least_100k():
         pytest.skip("needs the three scenes above in the same session")
     print(f"\ntotal paths checked: {sum(TOTAL.values())}")
     assert sum(TOTAL.values()) >= 100_000
+
+
+def test_fast_refraction_irradiance_matches_reference_engine():
+    """chain1_fast builds the implicit refraction bound (eq 17–19) from 2-D products per monomial
+    of the (uk, vk) box coordinates; chain1 builds the same polynomials as tensor 4-D products.
+    Same polynomials: the same Ē, E̲ up to rounding, except where the reference drops a degree
+    (a gradient component that is exactly 0: this caster's grid-aligned edges) and the fast
+    engine bounds the same polynomial at the generic, higher degree, which is at least as tight
+    (degree elevation averages coefficients)."""
+    from addon.solver.bounds.chain1 import piece_irradiance_refract, piece_position
+    from addon.solver.bounds.chain1_fast import eval_box
+
+    P, N = S.curved_plane(3, 0.3)  # water-like caster facing +z, light above, receiver plane z = -2 below
+    RP = np.array([[[-4, -4, -2.0], [4, -4, -2.0], [4, 4, -2.0]], [[-4, -4, -2.0], [4, 4, -2.0], [-4, 4, -2.0]]])
+    RUV = np.array([[[0, 0], [1, 0], [1, 1.0]], [[0, 0], [1, 1], [0, 1.0]]])
+    x0 = np.array([0.3, 0.2, 1.5])
+    lo, hi = np.zeros(2), np.zeros(2)
+    pos_ref, pos_fast = np.zeros(8), np.zeros(8)
+    compared = same = 0
+    for c in range(P.shape[0]):
+        for r in range(RP.shape[0]):
+            for lo[0], hi[0], lo[1], hi[1] in ((0.0, 1.0, 0.0, 1.0), (0.0, 0.5, 0.0, 0.5), (0.25, 0.5, 0.5, 0.75)):
+                if not piece_position(True, x0, P[c], N[c], RP[r], RUV[r], 1.33, lo, hi, pos_ref):
+                    continue
+                inside, ehi, elo = eval_box(True, x0, P[c], N[c], RP[r], RUV[r], 1.33, lo, hi, pos_fast)
+                assert inside
+                assert np.allclose(pos_fast, pos_ref, rtol=0, atol=1e-11)
+                ref_hi, ref_lo = piece_irradiance_refract(x0, P[c], N[c], RP[r], 1.33, lo, hi, pos_ref)
+                assert np.isfinite(ehi) == np.isfinite(ref_hi)
+                if np.isfinite(ref_hi):
+                    assert ref_hi * 0.99 <= ehi <= ref_hi * (1 + 1e-8)
+                    assert elo >= ref_lo * (1 - 1e-8)
+                    compared += 1
+                    same += ehi == pytest.approx(ref_hi, rel=1e-8) and elo == pytest.approx(ref_lo, rel=1e-8, abs=1e-300)
+    assert compared >= 6 and same >= compared - 2

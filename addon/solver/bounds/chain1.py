@@ -537,7 +537,8 @@ def bound_one_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
         from .chain1_fast import batch_fast
 
         batch_fast(chain == "T", light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, int(max_depth),
-                   float(sigma), float(alpha), bool(irradiance), int(irr_refine), out, counts, stats, 32)
+                   float(sigma), float(alpha), bool(irradiance), int(irr_refine), out, counts, stats,
+                   max(32, n // 128))  # one workspace per chunk: about 128 chunks, not n / 32 allocations
     elif n:
         _batch(chain == "T", light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, int(max_depth),
                float(sigma), float(alpha), bool(irradiance), out, counts, stats)

@@ -14,7 +14,8 @@ position numerators of T, which are linear in the √β approximation's coeffici
 in ξ, eq 10–13) are built once on the unit box of (u1, v1) and restricted to each piece's box
 by de Casteljau splits (the Bernstein coefficients of a polynomial on a sub-box, exact up to
 rounding).  The implicit refraction irradiance bound (eq 17–19) depends on the piece's
-(uk, vk) box, so it is built per piece in the 4-D box.
+(uk, vk) box, so it is built per piece in the 4-D box, as sums over monomials in the box's
+(uk, vk) coordinates of 2-D products in (u1, v1) (``box_irradiance_refract``).
 
 The final degrees equal the reference's generic degrees (R: position 4, irradiance 10;
 T: position 6 per ξ slice, irradiance (10, 10, 3, 3) in (u1, v1, uk, vk)); where the reference
@@ -34,7 +35,10 @@ from .chain1 import IRR_PAD, MIN_WIDTH, N_STATS, P_BU0, P_DEPTH, P_EHI, P_ELO, P
 # ---------------------------------------------------------------------------------------
 # flat 4-D polynomial kernels (scaled Bernstein unless said otherwise)
 
-MAXC = 2048  # coefficients per workspace slot (largest: (4, 4, 11, 11) = 1936)
+MAXC = 128  # coefficients per workspace slot (largest: (1, 1, 11, 11) = 121); 128 keeps the slots
+# of one workspace close together in cache (a 4-D polynomial of the T irradiance lives in scr)
+N4 = 4 * 4 * 11 * 11  # coefficients of the final T irradiance polynomials (uk, vk, u1, v1)
+SCR4 = 64  # offset of those two in scr
 
 
 @kernel
@@ -666,27 +670,130 @@ def box_irradiance_reflect(W, work, Q, lo, hi):
     return upper * dlo ** -1.5 / ak * (1.0 + IRR_PAD), lower * dhi ** -1.5 / ak * (1.0 - IRR_PAD)
 
 
-@kernel
-def _aff4(c, g, lo4, hi4, out):
-    """Affine c + Σ g_j x_j in all four variables (order uk, vk, u1, v1): corner values."""
-    k = 0
-    for i0 in range(2):
-        for i1 in range(2):
-            for i2 in range(2):
-                for i3 in range(2):
-                    out[k] = (c + g[0] * (hi4[0] if i0 else lo4[0]) + g[1] * (hi4[1] if i1 else lo4[1])
-                              + g[2] * (hi4[2] if i2 else lo4[2]) + g[3] * (hi4[3] if i3 else lo4[3]))
-                    k += 1
+# slots of the refraction irradiance workspace U (rows of UW coefficients: polynomials in
+# (u1, v1) only, extents (1, 1, p, q) with p, q <= 11); 0..11 as S_X.. (for _caster_unit)
+UW = 128
+U_RR = 12                   # r = xc - x1, xc the receiver point at the (uk, vk) box corner (3)
+U_C = 15                    # c = d0 × n (3)
+U_COS, U_L0, U_G0, U_G3, U_G4 = 18, 19, 20, 21, 22
+U_GU = 23                   # ∂G_β/∂u1, β = 0 (g0), 1 (g3), 2 (g4)
+U_GV = 26                   # ∂G_β/∂v1
+U_L00, U_L10, U_L01 = 29, 30, 31
+U_A, U_A2, U_M = 32, 33, 34  # A = c·b, A², m = n × b (3)
+U_B00, U_B10, U_B01 = 37, 38, 39
+U_P = 40                    # l_α A² for |α| <= 1 (3)
+U_R = 43                    # L0 × (the α coefficient of B²) (6)
+U_T, U_TMP, U_TMP2 = 49, 50, 51
+U_F = 52                    # f_α (6), α in the order 00, 10, 01, 20, 11, 02
+U_FU = 58                   # ∂f_α/∂u1 (6)
+U_FV = 64                   # ∂f_α/∂v1 (6)
+U_DET = 70                  # det1 coefficient of σ^a τ^b, |(a, b)| <= 3 (10), order 00, 10, 01, 20, 11, 02, 30, 21, 12, 03
+U_NK = 80                   # detk coefficient of 1, σ, τ (3)
+U_NC = 83                   # cos × detk (3)
+U_E = 86                    # an elevated copy
+NU = 88
 
 
 @kernel
-def box_irradiance_refract(W, scr, x0, P, N, Q, eta, lo, hi, pos):
+def _mac2(a, p0, p1, b, q0, q1, out, s):
+    """out += s·a·b for polynomials in (u1, v1) only (scaled Bernstein: a 2-D convolution);
+    a has extents (p0, p1), b (q0, q1), out (p0 + q0 - 1, p1 + q1 - 1).  The operand with the
+    longer rows runs in the innermost loop (the product is symmetric)."""
+    if p1 > q1:
+        _mac2_rows(b, q0, q1, a, p0, p1, out, s)
+    else:
+        _mac2_rows(a, p0, p1, b, q0, q1, out, s)
+
+
+@kernel
+def _mac2_rows(a, p0, p1, b, q0, q1, out, s):
+    n1 = p1 + q1 - 1
+    for i in range(p0):
+        for j in range(q0):
+            ob = (i + j) * n1
+            bb = j * q1
+            for k in range(p1):
+                av = s * a[i * p1 + k]
+                o = ob + k
+                for m in range(q1):
+                    out[o + m] += av * b[bb + m]
+
+
+@kernel
+def _zero(n, x):
+    for k in range(n):
+        x[k] = 0.0
+
+
+@kernel
+def _pow_to_bernstein3(i, a):
+    """Coefficient of B_i^3 in the Bernstein form of t^a on [0, 1]: C(i, a) / C(3, a)."""
+    if a > i:
+        return 0.0
+    return BINOM[i, a] / BINOM[3, a]
+
+
+@kernel
+def _elevate2_11(a, n, out, tmp):
+    """Degree elevation of scaled coefficients in (u1, v1), extents (n, n) -> (11, 11): the
+    product with the constant 1 of degree 11 - n (binomial weights), one axis at a time with
+    the long rows innermost (pelevate's generic loops run rows of length 1 on the last axis)."""
+    k = 11 - n
+    for t in range(n * 11):
+        tmp[t] = 0.0
+    for i in range(n):
+        for c in range(k + 1):
+            w = BINOM[k, c]
+            src = i * n
+            dst = i * 11 + c
+            for j in range(n):
+                tmp[dst + j] += w * a[src + j]
+    for t in range(121):
+        out[t] = 0.0
+    for i in range(n):
+        for c in range(k + 1):
+            w = BINOM[k, c]
+            src = i * 11
+            dst = (i + c) * 11
+            for j in range(11):
+                out[dst + j] += w * tmp[src + j]
+
+
+@kernel
+def _accumulate4(U, src, n, a, b, scale, out, tmp):
+    """out (extents (4, 4, 11, 11), order (uk, vk, u1, v1)) += scale · σ^a τ^b · U[src], where
+    U[src] (extents (1, 1, n, n), scaled Bernstein in (u1, v1)) is elevated to (11, 11) and the
+    monomial σ^a τ^b is written in the degree-(3, 3) Bernstein basis of the (uk, vk) box."""
+    _elevate2_11(U[src], n, U[U_E], tmp)
+    ev = U[U_E]
+    for i in range(a, 4):
+        wi = scale * _pow_to_bernstein3(i, a)
+        for j in range(b, 4):
+            w = wi * _pow_to_bernstein3(j, b)
+            base = (i * 4 + j) * 121
+            for k in range(121):
+                out[base + k] += w * ev[k]
+
+
+@kernel
+def box_irradiance_refract(W, U, scr, x0, P, N, Q, eta, lo, hi, pos):
     """(Ē, E̲) for refraction (eq 17–19) on the 4-D box (uk, vk) × (u1, v1), as
-    chain1.piece_irradiance_refract (same polynomials, same final degree (3,3,10,10) in
-    (uk, vk, u1, v1) order, built in scaled Bernstein form with their true degrees)."""
+    chain1.piece_irradiance_refract: the same polynomials det ∂(F, G)/∂(u1, v1) and
+    (d0·ng) det ∂(F, G)/∂(uk, vk), bounded by eq 3 at the same final degree (3, 3, 10, 10) in
+    (uk, vk, u1, v1), so the same bound up to rounding.
+
+    Built without 4-D products: with σ, τ in [0, 1] the coordinates of the (uk, vk) box,
+    d1 = xk - x1 = r + σ E1 + τ E2 (r = xc - x1 affine in (u1, v1), E1, E2 the box's edge
+    vectors), so G = (d0×n)·d1 = g0 + σ g3 + τ g4 is affine and F = |d1|² A² - η² |d0|² B²
+    (A = (d0×n)·b, B = d1·(n×b)) is quadratic in (σ, τ), with (u1, v1)-polynomial
+    coefficients f_α.  The determinants are then sums over σ^a τ^b (total degree <= 3 for
+    det1, <= 1 for detk) of 2-D products (about 5x fewer operations than the tensor 4-D
+    products, whose (uk, vk) extents (3, 3) ignore the total degree), converted to the 4-D
+    Bernstein basis at the end (σ^a = Σ_i C(i, a)/C(3, a) B_i^3(σ)).  Coefficients stay in
+    scaled form: eq 3 takes coefficient ratios at one degree, where the binomial factors
+    cancel."""
     lo4 = scr[20:24]
     hi4 = scr[24:28]
-    g = scr[28:32]
     hi_v = scr[32:34]
     lo_v = scr[34:36]
     lo4[2], hi4[2], lo4[3], hi4[3] = lo[0], hi[0], lo[1], hi[1]
@@ -702,92 +809,154 @@ def box_irradiance_refract(W, scr, x0, P, N, Q, eta, lo, hi, pos):
     e2 = (P[2, 0] - P[0, 0], P[2, 1] - P[0, 1], P[2, 2] - P[0, 2])
     ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
     ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
-    _caster_unit(W, x0, P, N, Q, lo, hi)  # x, n, d, r on the (u1, v1) box
-    tmp = W[S_TMP]
-    B0 = S_IRR
-    D1, D0N, D1N = B0, B0 + 3, B0 + 6
-    for c in range(3):  # d1 = xk - x1 (1 in every variable)
-        g[0], g[1], g[2], g[3] = ek1[c], ek2[c], -e1[c], -e2[c]
-        _aff4(Q[0, c] - P[0, c], g, lo4, hi4, W[D1 + c])
-    E4 = (2, 2, 2, 2)
+    ws = hi4[0] - lo4[0]
+    wt = hi4[1] - lo4[1]
+    w2 = hi[0] - lo[0]
+    w3 = hi[1] - lo[1]
+    E1 = (ws * ek1[0], ws * ek1[1], ws * ek1[2])
+    E2v = (wt * ek2[0], wt * ek2[1], wt * ek2[2])
+    xc = (Q[0, 0] + lo4[0] * ek1[0] + lo4[1] * ek2[0], Q[0, 1] + lo4[0] * ek1[1] + lo4[1] * ek2[1],
+          Q[0, 2] + lo4[0] * ek1[2] + lo4[1] * ek2[2])
+    _caster_unit(U, x0, P, N, Q, lo, hi)  # x, n, d on the (u1, v1) box (affine)
+    tmp = U[U_TMP]
+    for c in range(3):
+        for k in range(4):
+            U[U_RR + c, k] = xc[c] - U[S_X + c, k]
     ng = (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
-    COS, L0, L1, G, G1, G2, G3, G4 = B0 + 9, B0 + 10, B0 + 11, B0 + 12, B0 + 13, B0 + 14, B0 + 15, B0 + 16
-    _dotc(W, S_D, E2, ng, W[COS])
-    e3 = _dotv(W, S_D, E2, S_D, E2, W[L0], tmp)
-    # |d0|² range (plain Bernstein of the degree-2 polynomial)
+    _dotc(U, S_D, E2, ng, U[U_COS])                        # d0·ng (2,2)
+    e3 = _dotv(U, S_D, E2, S_D, E2, U[U_L0], tmp)           # |d0|² (3,3)
     for k in range(9):
-        W[S_TMP + 1, k] = W[L0, k]
-    to_bernstein(W[S_TMP + 1], e3)
-    dlo, dhi = coef_minmax(W[S_TMP + 1], 9)
+        U[U_TMP2, k] = U[U_L0, k]
+    to_bernstein(U[U_TMP2], e3)
+    dlo, dhi = coef_minmax(U[U_TMP2], 9)
     if dlo <= 0.0:
         return np.inf, 0.0
-    ed0n = _cross_pp(W, S_D, E2, S_N, E2, D0N, tmp)        # (1,1,3,3)
-    ed1n = _cross_pp(W, D1, E4, S_N, E2, D1N, tmp)         # (2,2,3,3)
-    el1 = _dotv(W, D1, E4, D1, E4, W[L1], tmp)             # (3,3,3,3)
-    eG = _dotv(W, D0N, ed0n, D1, E4, W[G], tmp)            # (2,2,4,4)
-    w = (hi4[0] - lo4[0], hi4[1] - lo4[1], hi4[2] - lo4[2], hi4[3] - lo4[3])
-    eG1 = pderiv(W[G], eG, 2, w[2], W[G1])
-    eG2 = pderiv(W[G], eG, 3, w[3], W[G2])
-    # ∂G/∂uk = (d0×n)·ek1, ∂G/∂vk = (d0×n)·ek2 (true degree)
-    _dotc(W, D0N, ed0n, ek1, W[G3])
-    _dotc(W, D0N, ed0n, ek2, W[G4])
-    eG3 = ed0n
+    ec = _cross_pp(U, S_D, E2, S_N, E2, U_C, tmp)           # c = d0 × n (3,3)
+    _dotv(U, U_C, ec, U_RR, E2, U[U_G0], tmp)              # g0 = c·r (4,4)
+    _dotc(U, U_C, ec, E1, U[U_G3])                         # g3 = c·E1 (3,3)
+    _dotc(U, U_C, ec, E2v, U[U_G4])                        # g4 = c·E2
+    e44 = (1, 1, 4, 4)
+    pderiv(U[U_G0], e44, 2, w2, U[U_GU])
+    pderiv(U[U_G0], e44, 3, w3, U[U_GV])
+    pderiv(U[U_G3], ec, 2, w2, U[U_GU + 1])
+    pderiv(U[U_G3], ec, 3, w3, U[U_GV + 1])
+    pderiv(U[U_G4], ec, 2, w2, U[U_GU + 2])
+    pderiv(U[U_G4], ec, 3, w3, U[U_GV + 2])
+    # |d1|² = l00 + σ l10 + τ l01 + σ² |E1|² + στ 2 E1·E2 + τ² |E2|²
+    _dotv(U, U_RR, E2, U_RR, E2, U[U_L00], tmp)
+    _dotc(U, U_RR, E2, (2.0 * E1[0], 2.0 * E1[1], 2.0 * E1[2]), U[U_L10])
+    _dotc(U, U_RR, E2, (2.0 * E2v[0], 2.0 * E2v[1], 2.0 * E2v[2]), U[U_L01])
+    l20 = E1[0] * E1[0] + E1[1] * E1[1] + E1[2] * E1[2]
+    l11 = 2.0 * (E1[0] * E2v[0] + E1[1] * E2v[1] + E1[2] * E2v[2])
+    l02 = E2v[0] * E2v[0] + E2v[1] * E2v[1] + E2v[2] * E2v[2]
     # t1, t2: unit tangents of the caster (as chain1)
     l = math.sqrt(e1[0] ** 2 + e1[1] ** 2 + e1[2] ** 2)
     t1 = (e1[0] / l, e1[1] / l, e1[2] / l)
     t2 = (ng[1] * t1[2] - ng[2] * t1[1], ng[2] * t1[0] - ng[0] * t1[2], ng[0] * t1[1] - ng[1] * t1[0])
     l = math.sqrt(t2[0] ** 2 + t2[1] ** 2 + t2[2] ** 2)
     t2 = (t2[0] / l, t2[1] / l, t2[2] / l)
-    A, A2, Bv, B2, FA, FB, F, F1 = B0 + 17, B0 + 18, B0 + 19, B0 + 20, B0 + 21, B0 + 22, B0 + 23, B0 + 24
-    F2, F3, F4, DET1, DETK, NUM, T1, T2 = B0 + 25, B0 + 26, B0 + 27, B0 + 28, B0 + 29, B0 + 30, B0 + 31, B0 + 32
     ak = math.sqrt((ek1[1] * ek2[2] - ek1[2] * ek2[1]) ** 2 + (ek1[2] * ek2[0] - ek1[0] * ek2[2]) ** 2
                    + (ek1[0] * ek2[1] - ek1[1] * ek2[0]) ** 2)
-    efin = (4, 4, 11, 11)
-    nfin = 4 * 4 * 11 * 11
+    DET1 = scr[SCR4:SCR4 + N4]
+    NUM = scr[SCR4 + N4:SCR4 + 2 * N4]
+    nfin = N4
+    kscale = 1.0 / (ws * wt)  # detk in (uk, vk) units: ∂/∂uk = (1/ws) ∂/∂σ, ∂/∂vk = (1/wt) ∂/∂τ
     best_hi = 0.0
     best_lo = np.inf
     for variant in range(2):
-        if not (mask >> variant) & 1:
-            continue
-        o = 1.0 if variant == 0 else -1.0
-        eta_f = 1.0 / _eta_ratio(o, eta)
         hi_v[variant] = np.inf
         lo_v[variant] = 0.0
     for bi in range(2):
-        b = t1 if bi == 0 else t2
-        bb = b
-        _dotc(W, D0N, ed0n, bb, W[A])
-        eA2 = pmul(W[A], ed0n, W[A], ed0n, W[A2])
-        eFA = pmul(W[L1], el1, W[A2], eA2, W[FA])               # (3,3,7,7)
-        _dotc(W, D1N, ed1n, bb, W[Bv])
-        eB2 = pmul(W[Bv], ed1n, W[Bv], ed1n, W[B2])
-        pmul(W[L0], e3, W[B2], eB2, W[FB])
-        nF = _size(eFA)
+        bb = t1 if bi == 0 else t2
+        _dotc(U, U_C, ec, bb, U[U_A])                      # A (3,3)
+        _zero(25, U[U_A2])
+        _mac2(U[U_A], 3, 3, U[U_A], 3, 3, U[U_A2], 1.0)    # A² (5,5)
+        for k in range(4):                                 # m = n × b (affine)
+            n0, n1, n2 = U[S_N, k], U[S_N + 1, k], U[S_N + 2, k]
+            U[U_M, k] = n1 * bb[2] - n2 * bb[1]
+            U[U_M + 1, k] = n2 * bb[0] - n0 * bb[2]
+            U[U_M + 2, k] = n0 * bb[1] - n1 * bb[0]
+        _dotv(U, U_RR, E2, U_M, E2, U[U_B00], tmp)         # B = b00 + σ b10 + τ b01
+        _dotc(U, U_M, E2, E1, U[U_B10])
+        _dotc(U, U_M, E2, E2v, U[U_B01])
+        # l_α A² (|α| <= 1)
+        _zero(49, U[U_P])
+        _mac2(U[U_L00], 3, 3, U[U_A2], 5, 5, U[U_P], 1.0)          # (7,7)
+        _zero(36, U[U_P + 1])
+        _mac2(U[U_L10], 2, 2, U[U_A2], 5, 5, U[U_P + 1], 1.0)      # (6,6)
+        _zero(36, U[U_P + 2])
+        _mac2(U[U_L01], 2, 2, U[U_A2], 5, 5, U[U_P + 2], 1.0)
+        # |d0|² × (coefficients of B²): b00², 2 b00 b10, 2 b00 b01, b10², 2 b10 b01, b01²
+        _zero(25, U[U_T])
+        _mac2(U[U_L0], 3, 3, U[U_B00], 3, 3, U[U_T], 1.0)          # L0 b00 (5,5)
+        _zero(49, U[U_R])
+        _mac2(U[U_T], 5, 5, U[U_B00], 3, 3, U[U_R], 1.0)           # (7,7)
+        _zero(36, U[U_R + 1])
+        _mac2(U[U_T], 5, 5, U[U_B10], 2, 2, U[U_R + 1], 2.0)       # (6,6)
+        _zero(36, U[U_R + 2])
+        _mac2(U[U_T], 5, 5, U[U_B01], 2, 2, U[U_R + 2], 2.0)
+        for t in range(3):
+            _zero(9, U[U_TMP2])
+            x = U_B10 if t < 2 else U_B01
+            y = U_B10 if t == 0 else U_B01
+            _mac2(U[x], 2, 2, U[y], 2, 2, U[U_TMP2], 1.0 if t != 1 else 2.0)   # (3,3)
+            _zero(25, U[U_R + 3 + t])
+            _mac2(U[U_L0], 3, 3, U[U_TMP2], 3, 3, U[U_R + 3 + t], 1.0)       # (5,5)
         for variant in range(2):
             if not (mask >> variant) & 1:
                 continue
             o = 1.0 if variant == 0 else -1.0
             eta_f = 1.0 / _eta_ratio(o, eta)
             s = -eta_f * eta_f
-            for k in range(nF):
-                W[F, k] = W[FA, k] + s * W[FB, k]
-            eF1 = pderiv(W[F], eFA, 2, w[2], W[F1])
-            eF2 = pderiv(W[F], eFA, 3, w[3], W[F2])
-            eF3 = pderiv(W[F], eFA, 0, w[0], W[F3])
-            eF4 = pderiv(W[F], eFA, 1, w[1], W[F4])
-            ed1 = pmul(W[F1], eF1, W[G2], eG2, W[T1])             # (4,4,9,9)
-            pmul(W[F2], eF2, W[G1], eG1, W[T2])
-            _axpy(_size(ed1), -1.0, W[T2], W[T1])
-            pelevate(W[T1], ed1, efin, W[DET1], tmp)
-            edk = pmul(W[F3], eF3, W[G4], eG3, W[T1])             # (2,3,9,9)
-            edk2 = pmul(W[F4], eF4, W[G3], eG3, W[T2])            # (3,2,9,9)
-            ec = (3, 3, edk[2], edk[3])
-            pelevate(W[T1], edk, ec, W[DETK], tmp)
-            pelevate(W[T2], edk2, ec, W[T1], tmp)
-            _axpy(_size(ec), -1.0, W[T1], W[DETK])
-            en = pmul(W[COS], E2, W[DETK], ec, W[T2])             # (3,3,10,10)
-            pelevate(W[T2], en, efin, W[NUM], tmp)
-            a, b2, c, d = ratio_bound(W[NUM], W[DET1], nfin)
+            # f_α = l_α A² - η² L0 (B²)_α, extents 7 - |α|; their u1 / v1 derivatives
+            for ia in range(6):
+                da = 0 if ia == 0 else (1 if ia < 3 else 2)
+                na = 7 - da
+                fa = U[U_F + ia]
+                ra = U[U_R + ia]
+                if ia < 3:
+                    pa = U[U_P + ia]
+                    for k in range(na * na):
+                        fa[k] = pa[k] + s * ra[k]
+                else:
+                    lc = l20 if ia == 3 else (l11 if ia == 4 else l02)
+                    a2 = U[U_A2]
+                    for k in range(25):
+                        fa[k] = lc * a2[k] + s * ra[k]
+                pderiv(fa, (1, 1, na, na), 2, w2, U[U_FU + ia])
+                pderiv(fa, (1, 1, na, na), 3, w3, U[U_FV + ia])
+            # det1 = F_u1 G_v1 - F_v1 G_u1 = Σ_γ σ^γa τ^γb Σ_{α+β=γ} (f_α,u1 g_β,v1 - f_α,v1 g_β,u1)
+            for ig in range(10):
+                dg = 0 if ig == 0 else (1 if ig < 3 else (2 if ig < 6 else 3))
+                _zero((9 - dg) * (9 - dg), U[U_DET + ig])
+            for da in range(3):
+                for ba in range(da + 1):
+                    ia = (0, 1, 3)[da] + ba
+                    for db in range(2):
+                        for bb2 in range(db + 1):
+                            ib = db + bb2
+                            ig = (0, 1, 3, 6)[da + db] + ba + bb2
+                            _mac2(U[U_FU + ia], 6 - da, 7 - da, U[U_GV + ib], 4 - db, 3 - db, U[U_DET + ig], 1.0)
+                            _mac2(U[U_FV + ia], 7 - da, 6 - da, U[U_GU + ib], 3 - db, 4 - db, U[U_DET + ig], -1.0)
+            # F_σ G_τ - F_τ G_σ with F_σ = f10 + 2σ f20 + τ f11, F_τ = f01 + σ f11 + 2τ f02, G_σ = g3, G_τ = g4
+            for t in range(3):
+                n = 8 if t == 0 else 7
+                _zero(n * n, U[U_NK + t])
+                fp = U_F + (1 if t == 0 else (3 if t == 1 else 4))
+                fm = U_F + (2 if t == 0 else (4 if t == 1 else 5))
+                _mac2(U[fp], n - 2, n - 2, U[U_G4], 3, 3, U[U_NK + t], 1.0 if t != 1 else 2.0)   # f (n-2, n-2)
+                _mac2(U[fm], n - 2, n - 2, U[U_G3], 3, 3, U[U_NK + t], -1.0 if t != 2 else -2.0)
+                _zero((n + 1) * (n + 1), U[U_NC + t])
+                _mac2(U[U_COS], 2, 2, U[U_NK + t], n, n, U[U_NC + t], 1.0)
+            _zero(nfin, DET1)
+            _zero(nfin, NUM)
+            for da in range(4):
+                for b in range(da + 1):
+                    _accumulate4(U, U_DET + (0, 1, 3, 6)[da] + b, 9 - da, da - b, b, 1.0, DET1, tmp)
+            _accumulate4(U, U_NC, 9, 0, 0, kscale, NUM, tmp)
+            _accumulate4(U, U_NC + 1, 8, 1, 0, kscale, NUM, tmp)
+            _accumulate4(U, U_NC + 2, 8, 0, 1, kscale, NUM, tmp)
+            a, b2, c, d = ratio_bound(NUM, DET1, nfin)
             hi_v[variant] = min(hi_v[variant], abs_upper(a, b2, c, d))
             lo_v[variant] = max(lo_v[variant], abs_lower(a, b2, c, d))
     for variant in range(2):
@@ -805,14 +974,14 @@ def box_irradiance_refract(W, scr, x0, P, N, Q, eta, lo, hi, pos):
 
 
 @kernel
-def _irradiance(W, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos):
+def _irradiance(W, U, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos):
     if refract:
-        return box_irradiance_refract(W, scr, x0, P, N, Q, eta, lo, hi, pos)
+        return box_irradiance_refract(W, U, scr, x0, P, N, Q, eta, lo, hi, pos)
     return box_irradiance_reflect(W, work, Q, lo, hi)
 
 
 @kernel
-def refine_irradiance(W, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, hi, levels, stats):
+def refine_irradiance(W, U, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, hi, levels, stats):
     """Ē, E̲ of a piece whose own Ē is infinite, as the max / min over a quadtree of sub-boxes
     of its (u1, v1) box (at most ``levels`` deep, splitting only sub-boxes that are still
     unbounded).  Each sub-box uses its own position bound as the (uk, vk) box of the implicit
@@ -845,7 +1014,7 @@ def refine_irradiance(W, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, h
         if not box_position(W, work, refract, x0, P, N, UV, eta, slo, shi, spos, res):
             continue
         stats[1] += 1
-        h, l = _irradiance(W, work, scr, refract, x0, P, N, Q, eta, slo, shi, spos)
+        h, l = _irradiance(W, U, work, scr, refract, x0, P, N, Q, eta, slo, shi, spos)
         if not h < np.inf:
             if level >= levels:
                 return np.inf, 0.0
@@ -868,7 +1037,7 @@ def refine_irradiance(W, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, h
 
 
 @kernel
-def tuple_pieces_fast(W, work, scr, stack, rstack, refract, x0, P, N, Q, UV, eta, max_depth, sigma, alpha, irradiance,
+def tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P, N, Q, UV, eta, max_depth, sigma, alpha, irradiance,
                       irr_refine, out, stats):
     """chain1.tuple_pieces with the fast engine: same stopping rules (§6.1), same piece rows.
 
@@ -902,13 +1071,13 @@ def tuple_pieces_fast(W, work, scr, stack, rstack, refract, x0, P, N, Q, UV, eta
         if area >= sigma and can_split:
             if irradiance:
                 stats[1] += 1
-                ehi, elo = _irradiance(W, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
+                ehi, elo = _irradiance(W, U, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
                 split = not (elo > 0.0 and ehi < alpha * elo)
             else:
                 split = True
         elif irradiance:
             stats[1] += 1
-            ehi, elo = _irradiance(W, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
+            ehi, elo = _irradiance(W, U, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
         if split:
             um = 0.5 * (lo[0] + hi[0])
             vm = 0.5 * (lo[1] + hi[1])
@@ -924,7 +1093,7 @@ def tuple_pieces_fast(W, work, scr, stack, rstack, refract, x0, P, N, Q, UV, eta
         if depth < max_depth and area >= sigma and not can_split:
             stats[3] += 1
         if irradiance and not ehi < np.inf and irr_refine > 0:
-            ehi, elo = refine_irradiance(W, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, hi, irr_refine, stats)
+            ehi, elo = refine_irradiance(W, U, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo, hi, irr_refine, stats)
         if irradiance and not ehi < np.inf:
             stats[2] += 1
         row = out[count]
@@ -940,7 +1109,7 @@ def tuple_pieces_fast(W, work, scr, stack, rstack, refract, x0, P, N, Q, UV, eta
 
 @kernel
 def workspace():
-    return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(64)
+    return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(SCR4 + 2 * N4), np.zeros((NU, UW))
 
 
 @kernel(parallel=True)
@@ -948,13 +1117,13 @@ def batch_fast(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, ir
     n = pairs.shape[0]
     nchunks = (n + chunk - 1) // chunk
     for ci in prange(nchunks):
-        W, work, scr = workspace()
+        W, work, scr, U = workspace()
         stack = np.empty((4 * (max_depth + 2), 5))
         rstack = np.empty((4 * (irr_refine + 2), 5))
         for t in range(ci * chunk, min(n, (ci + 1) * chunk)):
             c = pairs[t, 0]
             r = pairs[t, 1]
-            counts[t] = tuple_pieces_fast(W, work, scr, stack, rstack, refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma,
+            counts[t] = tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma,
                                           alpha, irradiance, irr_refine, out[t], stats[t])
 
 
@@ -962,12 +1131,12 @@ def batch_fast(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, ir
 def eval_box(refract, x0, P, N, Q, UV, eta, lo, hi, pos):
     """One box of one tuple, for tests: writes the position bound into pos[0:8] and returns
     (inside, Ē, E̲) as chain1.piece_position / piece_irradiance_* would."""
-    W, work, scr = workspace()
+    W, work, scr, U = workspace()
     _setup(W, refract, False, x0, P, N, Q)
     res = np.zeros(8)
     if not box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, pos, res):
         return False, 0.0, 0.0
     if not refract:
         _setup_reflect_irradiance(W)
-    ehi, elo = _irradiance(W, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
+    ehi, elo = _irradiance(W, U, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
     return True, ehi, elo

@@ -406,7 +406,7 @@ def _bake_gen(scene, settings):
         img = np.zeros((W * H, 3))
         img[covered] = sums[covered] / cover[covered, None]
         timer.add("pad", time.perf_counter() - t0)
-        flux = _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec_index, emitter_cache,
+        flux = yield from _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec_index, emitter_cache,
                           image_reports, timer)
         if flux is not None:
             t0 = time.perf_counter()
@@ -493,7 +493,8 @@ def _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers):
 def _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec_index, emitter_cache, image_reports, timer):
     """Flux (W per texel, (H W, 3)) of every "flux" two-bounce chain onto receiver ``rec_index``,
     or None when there is none (addon.bake.image.flux_textures; states cached per light sample
-    and chain, shared by every receiver)."""
+    and chain, shared by every receiver).  A generator: yields ``(None, message)`` before each
+    light sample and chain (a chance to cancel), returns the flux."""
     from .image import flux_textures
 
     total = None
@@ -503,6 +504,7 @@ def _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec
                 if item["status"] != "baked" or _uses_image(settings, item["chain"]) != "flux":
                     continue
                 key = (li, m, item["chain"])
+                yield None, f"{item['chain']}: forward images (light {li + 1}, sample {m + 1})"
                 t0 = time.perf_counter()
                 if key not in emitter_cache:
                     emitter_cache[key] = _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers)

@@ -85,7 +85,8 @@ def main(argv=None):
     img_rep = rep.get("two_bounce_image", {})
     text = (f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
             f"{args.resolution}² texels, chain TT only, date {time.strftime('%Y-%m-%d')}; load average "
-            f"{os.getloadavg()[0]:.1f} at the end.  Reference: mean of the two photon textures (its noise "
+            f"{os.getloadavg()[0]:.1f} at the end.  Cold: the first bake in this process (it includes Numba "
+            f"compiling any kernel not in the on-disk cache).  Reference: mean of the two photon textures (its noise "
             f"~{noise:.1e} relMSE, subtracted in the fifth column).\n\n" + "\n".join(lines) + "\n\n"
             f"Sub-triangles (first mode): {img_rep.get('passes', [{}])[0].get('sub_triangles', 0):,}, points traced "
             f"{img_rep.get('passes', [{}])[0].get('points_traced', 0):,}; timings of the warm bake (s): "

@@ -43,6 +43,8 @@ from .bvh import _ray_closest
 from .jit import kernel, prange
 from .path_space2 import pack_geometry, polish_and_validate2
 from .photon import ROLE_BOTH, ROLE_REFLECT, _fresnel
+from .surface import plane_barycentrics as _hit_bary
+from .surface import triangle_frame
 
 POLISH_STEPS = 40
 ACCEPT_RESIDUAL = 1e-12  # as the exact solver (two_bounce.ACCEPT_RESIDUAL)
@@ -53,51 +55,9 @@ CHUNK = 256
 
 @kernel(inline="always")
 def _bary_point(tri_p, tri_n, t, u, v):
-    """Point, unit shading normal and unit geometric normal (turned to the shading normal's
-    side) of triangle t at barycentrics (u, v); ok False for a zero-area triangle."""
-    p0x, p0y, p0z = tri_p[t, 0, 0], tri_p[t, 0, 1], tri_p[t, 0, 2]
-    e1x, e1y, e1z = tri_p[t, 1, 0] - p0x, tri_p[t, 1, 1] - p0y, tri_p[t, 1, 2] - p0z
-    e2x, e2y, e2z = tri_p[t, 2, 0] - p0x, tri_p[t, 2, 1] - p0y, tri_p[t, 2, 2] - p0z
-    x = p0x + u * e1x + v * e2x
-    y = p0y + u * e1y + v * e2y
-    z = p0z + u * e1z + v * e2z
-    nx = tri_n[t, 0, 0] + u * (tri_n[t, 1, 0] - tri_n[t, 0, 0]) + v * (tri_n[t, 2, 0] - tri_n[t, 0, 0])
-    ny = tri_n[t, 0, 1] + u * (tri_n[t, 1, 1] - tri_n[t, 0, 1]) + v * (tri_n[t, 2, 1] - tri_n[t, 0, 1])
-    nz = tri_n[t, 0, 2] + u * (tri_n[t, 1, 2] - tri_n[t, 0, 2]) + v * (tri_n[t, 2, 2] - tri_n[t, 0, 2])
-    gx = e1y * e2z - e1z * e2y
-    gy = e1z * e2x - e1x * e2z
-    gz = e1x * e2y - e1y * e2x
-    gl = math.sqrt(gx * gx + gy * gy + gz * gz)
-    nl = math.sqrt(nx * nx + ny * ny + nz * nz)
-    if not (gl > 0.0 and nl > 0.0):
-        return False, x, y, z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    gx, gy, gz = gx / gl, gy / gl, gz / gl
-    nx, ny, nz = nx / nl, ny / nl, nz / nl
-    if gx * nx + gy * ny + gz * nz < 0.0:
-        gx, gy, gz = -gx, -gy, -gz
-    return True, x, y, z, nx, ny, nz, gx, gy, gz
-
-
-@kernel(inline="always")
-def _hit_bary(tri_p, t, ox, oy, oz, dx, dy, dz):
-    """Barycentrics of the ray's crossing of triangle t's plane (not clamped)."""
-    p0x, p0y, p0z = tri_p[t, 0, 0], tri_p[t, 0, 1], tri_p[t, 0, 2]
-    e1x, e1y, e1z = tri_p[t, 1, 0] - p0x, tri_p[t, 1, 1] - p0y, tri_p[t, 1, 2] - p0z
-    e2x, e2y, e2z = tri_p[t, 2, 0] - p0x, tri_p[t, 2, 1] - p0y, tri_p[t, 2, 2] - p0z
-    px = dy * e2z - dz * e2y
-    py = dz * e2x - dx * e2z
-    pz = dx * e2y - dy * e2x
-    det = e1x * px + e1y * py + e1z * pz
-    if det == 0.0:
-        return 0.0, 0.0
-    inv = 1.0 / det
-    sx, sy, sz = ox - p0x, oy - p0y, oz - p0z
-    u = (sx * px + sy * py + sz * pz) * inv
-    qx = sy * e1z - sz * e1y
-    qy = sz * e1x - sx * e1z
-    qz = sx * e1y - sy * e1x
-    v = (dx * qx + dy * qy + dz * qz) * inv
-    return u, v
+    """triangle_frame with ok False also for a zero shading normal."""
+    ok, x, y, z, nx, ny, nz, gx, gy, gz, has_normal = triangle_frame(tri_p, tri_n, t, u, v)
+    return ok and has_normal, x, y, z, nx, ny, nz, gx, gy, gz
 
 
 @kernel(inline="always")

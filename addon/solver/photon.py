@@ -54,6 +54,7 @@ import numpy as np
 
 from .bvh import _ray_closest, build_bvh
 from .jit import kernel, prange
+from .surface import plane_barycentrics, triangle_frame
 
 CHAINS = ("R", "T", "RR", "RT", "TR", "TT")
 ROLE_REFLECT, ROLE_REFRACT, ROLE_BOTH = 1, 2, 3  # the codes of addon.bake.scene
@@ -211,41 +212,13 @@ def _frame(ax, ay, az):
 
 @kernel(inline="always")
 def _hit_frame(tri_p, tri_n, tid, ox, oy, oz, dx, dy, dz):
-    """Barycentrics (u, v) of the hit of ray o + t d on triangle tid, the unit shading normal and
-    the unit geometric normal turned to its side."""
-    p0x, p0y, p0z = tri_p[tid, 0, 0], tri_p[tid, 0, 1], tri_p[tid, 0, 2]
-    e1x, e1y, e1z = tri_p[tid, 1, 0] - p0x, tri_p[tid, 1, 1] - p0y, tri_p[tid, 1, 2] - p0z
-    e2x, e2y, e2z = tri_p[tid, 2, 0] - p0x, tri_p[tid, 2, 1] - p0y, tri_p[tid, 2, 2] - p0z
-    px = dy * e2z - dz * e2y
-    py = dz * e2x - dx * e2z
-    pz = dx * e2y - dy * e2x
-    det = e1x * px + e1y * py + e1z * pz
-    inv = 1.0 / det if det != 0.0 else 0.0
-    sx, sy, sz = ox - p0x, oy - p0y, oz - p0z
-    u = (sx * px + sy * py + sz * pz) * inv
-    qx = sy * e1z - sz * e1y
-    qy = sz * e1x - sx * e1z
-    qz = sx * e1y - sy * e1x
-    v = (dx * qx + dy * qy + dz * qz) * inv
+    """Barycentrics (u, v) of the hit of ray o + t d on triangle tid (clamped to it), the unit
+    shading normal and the unit geometric normal turned to its side."""
+    u, v = plane_barycentrics(tri_p, tid, ox, oy, oz, dx, dy, dz)
     u = min(max(u, 0.0), 1.0)
     v = min(max(v, 0.0), 1.0 - u)
-    nx = tri_n[tid, 0, 0] + u * (tri_n[tid, 1, 0] - tri_n[tid, 0, 0]) + v * (tri_n[tid, 2, 0] - tri_n[tid, 0, 0])
-    ny = tri_n[tid, 0, 1] + u * (tri_n[tid, 1, 1] - tri_n[tid, 0, 1]) + v * (tri_n[tid, 2, 1] - tri_n[tid, 0, 1])
-    nz = tri_n[tid, 0, 2] + u * (tri_n[tid, 1, 2] - tri_n[tid, 0, 2]) + v * (tri_n[tid, 2, 2] - tri_n[tid, 0, 2])
-    gx = e1y * e2z - e1z * e2y
-    gy = e1z * e2x - e1x * e2z
-    gz = e1x * e2y - e1y * e2x
-    gl = math.sqrt(gx * gx + gy * gy + gz * gz)
-    nl = math.sqrt(nx * nx + ny * ny + nz * nz)
-    if gl > 0.0:
-        gx, gy, gz = gx / gl, gy / gl, gz / gl
-    if nl > 0.0:
-        nx, ny, nz = nx / nl, ny / nl, nz / nl
-    else:
-        nx, ny, nz = gx, gy, gz
-    if gx * nx + gy * ny + gz * nz < 0.0:
-        gx, gy, gz = -gx, -gy, -gz
-    return u, v, nx, ny, nz, gx, gy, gz, gl > 0.0
+    ok, _x, _y, _z, nx, ny, nz, gx, gy, gz, _hn = triangle_frame(tri_p, tri_n, tid, u, v)
+    return u, v, nx, ny, nz, gx, gy, gz, ok
 
 
 @kernel(parallel=True)

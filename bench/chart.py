@@ -275,8 +275,8 @@ def section(rows, notes, args):
             lines.append(f"\n{method}: " + "; ".join(sorted(set(sk))))
         lines.append("")
     lines.append("Reading the chart: the tuple methods are deterministic, so their error is the supersample (aliasing) "
-                 "error of the texel average (spoly-flux: the density of each sub-triangle's image taken uniform) "
-                 "error of the texel average plus whatever paths they miss (newton, sms) or chains they skip (newton/sms: "
+                 "error of the texel average (spoly-flux: the density of each sub-triangle's image taken linear, its "
+                 "border approximated) plus whatever paths they miss (newton, sms) or chains they skip (newton/sms: "
                  "R and T only; curve: T only), which no knob recovers; photon's error is noise, falling as 1/photons. "
                  "A chain or method shown as too slow was cut at the limit, not hung.")
     return "\n".join(lines)

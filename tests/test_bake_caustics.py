@@ -3,7 +3,9 @@
 relMSE here is the mean over the texels lit in either image of (bake - ref)² / (ref² + eps),
 eps = 1e-2 x (mean lit reference)², the usual per-pixel relative MSE with a small floor so
 that texels at the caustic's edge do not divide by ~0.  The photon histogram is the exact
-texel average plus noise; the bake's texel is the mean of 8 x 8 stratified supersamples.
+texel average plus noise; the bake's texel is the mean of its stratified supersamples
+("points") or, with the forward-image "flux" estimator, the flux of the sub-triangles whose
+images overlap it divided by its area (a texel average too).
 """
 
 import numpy as np

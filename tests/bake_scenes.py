@@ -109,3 +109,30 @@ def glass_sphere_scene(resolution=32, half=1.6, light=(0.0, 0.0, 3.0), intensity
     P, N = uv_sphere(segments, rings)
     return build_scene([floor(half=half, resolution=resolution), dict(name="sphere", tri_p=P, tri_n=N, role="both", ior=1.5)],
                        [Light("Point", "point", (1.0, 1.0, 1.0), intensity, position=light)])
+
+
+def box(centre=(0.0, 0.0, 1.0), half=(0.6, 0.6, 0.06)):
+    """A closed box (12 triangles, outward winding, flat face normals)."""
+    c = np.asarray(centre, float)
+    h = np.asarray(half, float)
+    tris, norms = [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            n = np.zeros(3)
+            n[axis] = sign
+            a, b = [k for k in range(3) if k != axis]
+            quad = []
+            for s, t in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+                p = np.zeros(3)
+                p[axis] = sign * h[axis]
+                p[a] = s * h[a]
+                p[b] = t * h[b]
+                quad.append(c + p)
+            q = np.array(quad)
+            for tri in ((0, 1, 2), (0, 2, 3)):
+                T = q[list(tri)]
+                if np.dot(np.cross(T[1] - T[0], T[2] - T[0]), n) < 0:
+                    T = T[[0, 2, 1]]
+                tris.append(T)
+                norms.append(np.broadcast_to(n, (3, 3)))
+    return np.array(tris), np.array(norms)

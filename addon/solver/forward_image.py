@@ -44,6 +44,7 @@ from .jit import kernel, prange
 from .path_space2 import pack_geometry, polish_and_validate2
 from .photon import ROLE_BOTH, ROLE_REFLECT, _fresnel
 from .surface import plane_barycentrics as _hit_bary
+from .surface import scatter_direction as _scatter
 from .surface import triangle_frame
 
 POLISH_STEPS = 40
@@ -58,40 +59,6 @@ def _bary_point(tri_p, tri_n, t, u, v):
     """triangle_frame with ok False also for a zero shading normal."""
     ok, x, y, z, nx, ny, nz, gx, gy, gz, has_normal = triangle_frame(tri_p, tri_n, t, u, v)
     return ok and has_normal, x, y, z, nx, ny, nz, gx, gy, gz
-
-
-@kernel(inline="always")
-def _scatter(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract, eta):
-    """Scatter the unit direction d at a vertex with unit shading normal n and geometric normal
-    g (on n's side): mirror reflection, or refraction 1 -> eta entering (against g) and
-    eta -> 1 leaving; the side rules of CONTRACT.md (cos_i > 0 against the normal turned to
-    the incoming side; a reflection stays on that side, a refraction crosses).  Returns
-    (ok, unit direction)."""
-    outside = dx * gx + dy * gy + dz * gz < 0.0
-    sg = 1.0 if outside else -1.0
-    nox, noy, noz = sg * nx, sg * ny, sg * nz
-    ngx, ngy, ngz = sg * gx, sg * gy, sg * gz
-    ci = -(dx * nox + dy * noy + dz * noz)
-    if not ci > 0.0:
-        return False, 0.0, 0.0, 0.0
-    if refract:
-        rr = 1.0 / eta if outside else eta
-        kk = 1.0 - rr * rr * (1.0 - ci * ci)
-        if not kk > 0.0:
-            return False, 0.0, 0.0, 0.0
-        c2 = rr * ci - math.sqrt(kk)
-        ox, oy, oz = rr * dx + c2 * nox, rr * dy + c2 * noy, rr * dz + c2 * noz
-        ln = math.sqrt(ox * ox + oy * oy + oz * oz)
-        ox, oy, oz = ox / ln, oy / ln, oz / ln
-        if not ox * ngx + oy * ngy + oz * ngz < 0.0:
-            return False, 0.0, 0.0, 0.0
-        return True, ox, oy, oz
-    ox, oy, oz = dx + 2.0 * ci * nox, dy + 2.0 * ci * noy, dz + 2.0 * ci * noz
-    ln = math.sqrt(ox * ox + oy * oy + oz * oz)
-    ox, oy, oz = ox / ln, oy / ln, oz / ln
-    if not ox * ngx + oy * ngy + oz * ngz > 0.0:
-        return False, 0.0, 0.0, 0.0
-    return True, ox, oy, oz
 
 
 @kernel(inline="always")

@@ -54,7 +54,7 @@ import numpy as np
 
 from .bvh import _ray_closest, build_bvh
 from .jit import kernel, prange
-from .surface import plane_barycentrics, triangle_frame
+from .surface import plane_barycentrics, scatter_direction, triangle_frame
 
 CHAINS = ("R", "T", "RR", "RT", "TR", "TT")
 ROLE_REFLECT, ROLE_REFRACT, ROLE_BOTH = 1, 2, 3  # the codes of addon.bake.scene
@@ -320,7 +320,6 @@ def _trace_batch(g0, g1, seed, em_kind, em_pos, em_axis, em_cos, em_radius, em_r
                 outside = dx * gx + dy * gy + dz * gz < 0.0
                 sg = 1.0 if outside else -1.0
                 nox, noy, noz = sg * nx, sg * ny, sg * nz
-                ngx, ngy, ngz = sg * gx, sg * gy, sg * gz
                 ci = -(dx * nox + dy * noy + dz * noz)
                 if not ci > 0.0:
                     break
@@ -330,25 +329,13 @@ def _trace_batch(g0, g1, seed, em_kind, em_pos, em_axis, em_cos, em_radius, em_r
                 can_r = (role == ROLE_REFLECT or role == ROLE_BOTH) and prefix[2 * code]
                 can_t = (role == ROLE_REFRACT or role == ROLE_BOTH) and prefix[2 * code + 1]
                 F = 1.0 if role == ROLE_REFLECT else _fresnel(ci, n1, n2)
-                rx, ry, rz = dx + 2.0 * ci * nox, dy + 2.0 * ci * noy, dz + 2.0 * ci * noz
-                if can_r:
-                    ln = math.sqrt(rx * rx + ry * ry + rz * rz)
-                    rx, ry, rz = rx / ln, ry / ln, rz / ln
-                    if not rx * ngx + ry * ngy + rz * ngz > 0.0:
-                        can_r = False
+                rx, ry, rz = 0.0, 0.0, 0.0
                 tx, ty, tz = 0.0, 0.0, 0.0
+                if can_r:
+                    can_r, rx, ry, rz = scatter_direction(dx, dy, dz, nx, ny, nz, gx, gy, gz, False, eta)
                 if can_t:
-                    rr = n1 / n2
-                    kk = 1.0 - rr * rr * (1.0 - ci * ci)
-                    if not kk > 0.0 or F >= 1.0:
-                        can_t = False
-                    else:
-                        c2 = rr * ci - math.sqrt(kk)
-                        tx, ty, tz = rr * dx + c2 * nox, rr * dy + c2 * noy, rr * dz + c2 * noz
-                        ln = math.sqrt(tx * tx + ty * ty + tz * tz)
-                        tx, ty, tz = tx / ln, ty / ln, tz / ln
-                        if not tx * ngx + ty * ngy + tz * ngz < 0.0:
-                            can_t = False
+                    can_t, tx, ty, tz = scatter_direction(dx, dy, dz, nx, ny, nz, gx, gy, gz, True, eta)
+                    can_t = can_t and F < 1.0
                 if can_r and can_t:
                     take_r = _rand(seed, g, 2 + 2 * depth) < F
                     fac = 1.0

@@ -373,23 +373,18 @@ def _bake_gen(scene, settings):
                             continue
                         key = (li, m, item["chain"])
                         image = _uses_image(settings, item["chain"])
-                        if key not in emitter_cache:
-                            t0 = time.perf_counter()
-                            if image:
-                                emitter_cache[key] = _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers)
-                                if emitter_cache[key] is not None:
-                                    image_reports.append({"light": li, "light_sample": m, "chain": item["chain"],
-                                                          **emitter_cache[key].report})
-                                timer.add("image", time.perf_counter() - t0)
-                            else:
-                                emitter_cache[key] = _emitters(scene, extent, settings, item, ls, m)
-                                timer.add("cull", time.perf_counter() - t0)
                         if image == "flux":
                             continue  # whole textures at once, after the bands (_flux_pass)
                         if image:
-                            st = _image_pass(scene, bvh, eps, extent, item, ls, m, band, rec_index, sums, timer,
-                                             emitter_cache[key], image_counts)
+                            state = _cached_image_state(scene, bvh, eps, extent, settings, item, li, ls, m, receivers,
+                                                        emitter_cache, image_reports, timer)
+                            st = _image_pass(scene, bvh, eps, extent, item, ls, m, band, rec_index, sums, timer, state,
+                                             image_counts)
                         else:
+                            if key not in emitter_cache:
+                                t0 = time.perf_counter()
+                                emitter_cache[key] = _emitters(scene, extent, settings, item, ls, m)
+                                timer.add("cull", time.perf_counter() - t0)
                             st = yield from _chain_pass(scene, bvh, eps, extent, settings, item, ls, m, band, W, sums,
                                                         timer, emitter_cache[key], solve, rec=rec)
                         for k in st:
@@ -401,11 +396,9 @@ def _bake_gen(scene, settings):
                         rec_paths += st["paths_visible"]
             rows_done += j1 - j0
             yield rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}"
-        t0 = time.perf_counter()
         covered = cover > 0
         img = np.zeros((W * H, 3))
         img[covered] = sums[covered] / cover[covered, None]
-        timer.add("pad", time.perf_counter() - t0)
         flux = yield from _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec_index, emitter_cache,
                           image_reports, timer)
         if flux is not None:
@@ -490,6 +483,19 @@ def _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers):
                    max_depth=int(settings.image_depth), mode=_uses_image(settings, item["chain"]))
 
 
+def _cached_image_state(scene, bvh, eps, extent, settings, item, li, ls, m, receivers, emitter_cache, image_reports, timer):
+    """:func:`_image_state` once per (light, light sample, chain), kept in ``emitter_cache`` for
+    every band and receiver; its report joins ``image_reports``."""
+    key = (li, m, item["chain"])
+    if key not in emitter_cache:
+        t0 = time.perf_counter()
+        emitter_cache[key] = _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers)
+        if emitter_cache[key] is not None:
+            image_reports.append({"light": li, "light_sample": m, "chain": item["chain"], **emitter_cache[key].report})
+        timer.add("image", time.perf_counter() - t0)
+    return emitter_cache[key]
+
+
 def _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec_index, emitter_cache, image_reports, timer):
     """Flux (W per texel, (H W, 3)) of every "flux" two-bounce chain onto receiver ``rec_index``,
     or None when there is none (addon.bake.image.flux_textures; states cached per light sample
@@ -503,15 +509,9 @@ def _flux_pass(scene, bvh, eps, extent, settings, plan, lsamples, receivers, rec
             for item in plan:
                 if item["status"] != "baked" or _uses_image(settings, item["chain"]) != "flux":
                     continue
-                key = (li, m, item["chain"])
                 yield None, f"{item['chain']}: forward images (light {li + 1}, sample {m + 1})"
-                t0 = time.perf_counter()
-                if key not in emitter_cache:
-                    emitter_cache[key] = _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers)
-                    if emitter_cache[key] is not None:
-                        image_reports.append({"light": li, "light_sample": m, "chain": item["chain"], **emitter_cache[key].report})
-                timer.add("image", time.perf_counter() - t0)
-                state = emitter_cache[key]
+                state = _cached_image_state(scene, bvh, eps, extent, settings, item, li, ls, m, receivers, emitter_cache,
+                                            image_reports, timer)
                 if state is None:
                     continue
                 t0 = time.perf_counter()

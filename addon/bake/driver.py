@@ -480,7 +480,7 @@ def _image_state(scene, bvh, eps, extent, settings, item, ls, m, receivers):
         return None
     second = item["vertices"][1] if len(item["vertices"]) > 1 else np.zeros(0, dtype=np.int64)
     return prepare(scene, bvh, eps, item["chain"], cast1[keep], x0_all[keep], second, receivers,
-                   max_depth=int(settings.image_depth), mode=_uses_image(settings, item["chain"]))
+                   max_depth=int(settings.image_depth), mode=_uses_image(settings, item["chain"]), parallel=ls.kind == "sun")
 
 
 def _cached_image_state(scene, bvh, eps, extent, settings, item, li, ls, m, receivers, emitter_cache, image_reports, timer):

@@ -17,8 +17,8 @@ import time
 import numpy as np
 
 from ..solver.bvh import segments_occluded
-from ..solver.forward_image import (ImageSeeds, corner_densities, dedupe_paths, refine_image_triangles, solid_angle,
-                                    solve_image_seeds, splat_triangles, trace_chain_points)
+from ..solver.forward_image import (ImageSeeds, corner_densities, dedupe_paths, light_area_density, refine_image_triangles,
+                                    solid_angle, solve_image_seeds, splat_triangles, trace_chain_points)
 from .lights import emission_factor
 
 IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
@@ -55,12 +55,12 @@ def _bvh_args(bvh):
     return (bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_start, bvh.node_count, bvh.order, bvh.v0, bvh.e1, bvh.e2)
 
 
-def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux"):
+def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False):
     """Refine the sub-triangles of the emitters (first triangles ``emit_tri`` lit from ``x0``)
     for ``chain`` (one or two vertices; "seeded" needs two); ``second`` the global ids of
     the chain's second-vertex casters (ignored for one vertex); ``receivers`` the receivers at
-    the bake's resolution; ``mode`` "flux" or "seeded" (how finely to refine).  Returns an
-    ImageState."""
+    the bake's resolution; ``mode`` "flux" or "seeded" (how finely to refine); ``parallel``:
+    a sun (the same flux per area all over a first triangle).  Returns an ImageState."""
     t0 = time.perf_counter()
     tri_rec, tri_uv, second_ok = scene_arrays(scene, receivers, second)
     refract1, refract2 = chain[0] == "T", chain[-1] == "T"
@@ -73,7 +73,8 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     tri_role = np.ascontiguousarray(scene.tri_role, dtype=np.int64)
     bvh_args = _bvh_args(bvh)
 
-    def trace(e, u, v, factor=False):
+    def trace(e, u, v):
+        """(second triangle, receiver triangle, UV, transport factor) of the points."""
         m = e.shape[0]
         t2 = np.empty(m, dtype=np.int64)
         rec = np.empty(m, dtype=np.int64)
@@ -83,12 +84,17 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
             trace_chain_points(np.ascontiguousarray(e), np.ascontiguousarray(u), np.ascontiguousarray(v), x0, emit_tri,
                                bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *bvh_args,
                                float(eps), t2, rec, uv, fac)
-        return (t2, rec, uv, fac) if factor else (t2, rec, uv)
+        return t2, rec, uv, fac
+
+    def weight(e, bary):
+        if parallel:
+            return np.ones(bary.shape[:2])
+        return light_area_density(x0[e], tri_p[emit_tri[e]], bary)
 
     texel = np.array([1.0 / max(r.resolution) for r in receivers]) if receivers else np.ones(1)
     # "seeded" needs images straight to the margin only (Newton does the rest); "flux" also a
     # near-uniform density and a finely resolved border of what lands.
-    extra = {} if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
+    extra = dict(weight=weight) if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
                                   tolerance=IMAGE_TOLERANCE, **extra)
     r = tris["receiver"]
@@ -166,7 +172,7 @@ def flux_textures(state, scene, bvh, eps, extent, ls, m, receivers):
     b = tris["bary_full"]
     corners = P[:, None, 0] + b[:, :, :1] * (P[:, None, 1] - P[:, None, 0]) + b[:, :, 1:] * (P[:, None, 2] - P[:, None, 0])
     bc = tris["bary"].mean(axis=1)  # the landed part's centre (a partly landed sub-triangle's bary is shrunk to it)
-    t2, rec, _uv, fac = state.arrays["trace"](e, np.ascontiguousarray(bc[:, 0]), np.ascontiguousarray(bc[:, 1]), factor=True)
+    t2, rec, _uv, fac = state.arrays["trace"](e, np.ascontiguousarray(bc[:, 0]), np.ascontiguousarray(bc[:, 1]))
     x1 = corners.mean(axis=1)
     x0 = state.x0[e]
     if ls.kind == "sun":
@@ -187,11 +193,14 @@ def flux_textures(state, scene, bvh, eps, extent, ls, m, receivers):
         power[live[blocked]] = 0.0
     tint2 = np.where((t2 >= 0)[:, None], scene.tri_tint[np.maximum(t2, 0)], 1.0)  # one-vertex chains: no second tint
     flux = power[:, None] * ls.rgb[m][None, :] * scene.tri_tint[t1] * tint2
+    # the transport factor at the corners (Fresnel varies over large images); partly landed
+    # sub-triangles have no midpoints and get the uniform splat anyway
+    cf = np.nan_to_num(tris["factor"][:, :3], nan=1.0)
     if ls.kind == "sun":  # parallel light: the same solid angle per area everywhere
-        far = corners.mean(axis=1, keepdims=True) - 1e6 * extent * d
-        density = corner_densities(tris["uv"], tris["mid_uv"], far[:, 0], corners)
+        far = corners.mean(axis=1) - 1e6 * extent * d
+        density = corner_densities(tris["uv"], tris["mid_uv"], far, P, b, cf)
     else:
-        density = corner_densities(tris["uv"], tris["mid_uv"], x0, corners)
+        density = corner_densities(tris["uv"], tris["mid_uv"], x0, P, b, cf)
     for r, recv in enumerate(receivers):
         sel = np.flatnonzero(tris["receiver"] == r)
         if sel.size:

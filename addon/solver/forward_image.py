@@ -165,25 +165,34 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, 
 
 
 def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=4, max_depth=6, tolerance=0.5,
-                           keep_lost_depth=1, partial_depth=None, relative=0.01):
+                           keep_lost_depth=1, partial_depth=None, relative=0.01, weight=None):
     """Step 2: adaptive sub-triangles of every emitter's first triangle.
 
-    ``trace(emitter, u1, v1) -> (t2, rec_tri, uv)`` traces points (:func:`trace_chain_points`);
+    ``trace(emitter, u1, v1) -> (t2, rec_tri, uv[, factor])`` traces points
+    (:func:`trace_chain_points`; ``factor`` the transport factor, 1 when not given);
     ``receiver_of_tri`` (n_triangles,) receiver index per scene triangle (-1: not a receiver);
-    ``texel_size`` (receivers,) the UV size of one texel (1 / max(W, H)).  A sub-triangle is
-    final when its 3 corners and 3 edge midpoints land on one receiver and every midpoint's
-    UV lies within ``tolerance`` texels of its edge's straight midpoint and (images larger
-    than a texel) within ``relative`` x its longest edge, or at ``max_depth``.  Partly landed
-    sub-triangles (on the border of what lands: their flux is approximated) are split down to
-    ``partial_depth`` (default: ``max_depth`` + 2; the border's share of the flux halves per
-    level) and then seeded / splatted over the hull of their landed points.
+    ``texel_size`` (receivers,) the UV size of one texel (1 / max(W, H)); ``weight(emitter,
+    bary (m, k, 2)) -> (m, k)`` the light's flux per area of the first triangle at those
+    points (None: uniform).  A sub-triangle is final when its 3 corners and 3 edge midpoints
+    land on one receiver and every midpoint's UV lies within ``tolerance`` texels of its
+    edge's straight midpoint and (images larger than a texel) its flux density is linear over
+    the image to within ``relative``: the midpoint shift within ``relative`` x its longest
+    edge, and the density (weight x factor / |det J|, J the quadratic element's Jacobian) at
+    each edge midpoint within ``relative`` of the mean of its corners' (a fold, where det J
+    changes sign, is never linear) — or at ``max_depth``.  Partly landed sub-triangles (on
+    the border of what lands: their flux is approximated) are split down to ``partial_depth``
+    (default: ``max_depth`` + 2; the border's share of the flux halves per level) and then
+    seeded / splatted over the hull of their landed points.  A sub-triangle none of whose 6
+    points lands is dropped from depth ``keep_lost_depth`` on, unless one of 7 more probes
+    (edge quarter points, centroid) lands: the corner of a landed region can poke into it
+    between the 6 points (the corner of a slab's image did).
 
     Returns dict: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
     uv (m, 3, 2) their landing UVs, receiver (m,), deviation (m,) UV units, landed (m,) the
     fraction of the 6 traced points that landed (1 but for partly landed ones), bary_full
     (m, 3, 2) the sub-triangle itself (``bary`` of a partly landed one is shrunk to landed
     points), mid_uv (m, 3, 2) the landing UVs of the edge midpoints (01, 12, 20; NaN for partly
-    landed ones), and counts
+    landed ones), factor (m, 6) the transport factor at the corners and midpoints, and counts
     (traced points, dropped sub-triangles at the deepest level, partly landed ones seeded
     over their landed points' hull, final per depth)."""
     g = int(grid)
@@ -200,11 +209,12 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     emitter = np.repeat(np.arange(ne, dtype=np.int64), base.shape[0])
     bary = np.tile(base, (ne, 1, 1))
     # corner records: trace every corner (shared corners traced again: simpler, and cheap)
-    t2, rec, uv = trace(np.repeat(emitter, 3), bary[:, :, 0].reshape(-1), bary[:, :, 1].reshape(-1))
+    _t2, rec, uv, fac = _traced(trace, np.repeat(emitter, 3), bary[:, :, 0].reshape(-1), bary[:, :, 1].reshape(-1))
     rec = rec.reshape(-1, 3)
     uv = uv.reshape(-1, 3, 2)
+    fac = fac.reshape(-1, 3)
     traced = emitter.size * 3
-    out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full", "mid_uv")}
+    out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full", "mid_uv", "factor")}
     dropped = 0
     partial_count = 0
     final_per_depth = []
@@ -214,14 +224,19 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
             final_per_depth.append(0)
             continue
         mid = 0.5 * (bary + bary[:, [1, 2, 0]])  # midpoints of edges (0,1), (1,2), (2,0)
-        mt2, mrec, muv = trace(np.repeat(emitter, 3), mid[:, :, 0].reshape(-1), mid[:, :, 1].reshape(-1))
+        _mt2, mrec, muv, mfac = _traced(trace, np.repeat(emitter, 3), mid[:, :, 0].reshape(-1), mid[:, :, 1].reshape(-1))
         traced += 3 * m
         mrec = mrec.reshape(-1, 3)
         muv = muv.reshape(-1, 3, 2)
+        mfac = mfac.reshape(-1, 3)
         rall = np.concatenate([rec, mrec], axis=1)
         robj = np.where(rall >= 0, receiver_of_tri[np.maximum(rall, 0)], -1)
         landed = (robj[:, 0] >= 0) & np.all(robj == robj[:, :1], axis=1)
         lost = np.all(robj < 0, axis=1)
+        probe = np.flatnonzero(lost & (depth >= keep_lost_depth) & (depth < partial_depth))
+        if probe.size:
+            lost[probe[_probe_lands(trace, emitter[probe], bary[probe], receiver_of_tri)]] = False
+            traced += 7 * probe.size
         straight = 0.5 * (uv + uv[:, [1, 2, 0]])
         dev = np.where(landed, np.nan_to_num(np.abs(muv - straight).max(axis=(1, 2)), nan=np.inf), np.inf)
         tex = texel_size[np.maximum(robj[:, 0], 0)]
@@ -229,7 +244,14 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         # density nearly uniform over the image: the midpoint shift, relative to the edge,
         # measures the density's variation (zero for an affine map).
         edge = np.nan_to_num(np.abs(uv - uv[:, [1, 2, 0]]).max(axis=(1, 2)), nan=np.inf)
-        final = landed & (dev <= tolerance * tex) & ((dev <= relative * edge) | (edge <= tex))
+        linear = dev <= relative * edge
+        if weight is not None and landed.any():
+            li = np.flatnonzero(landed & linear)
+            if li.size:
+                w6 = weight(emitter[li], np.concatenate([bary[li], mid[li]], axis=1))
+                w6 = w6 * np.concatenate([fac[li], mfac[li]], axis=1)
+                linear[li] = density_nonlinearity(uv[li], muv[li], w6) <= relative
+        final = landed & (dev <= tolerance * tex) & (linear | (edge <= tex))
         if depth >= int(max_depth):
             final = landed  # as straight as the depth allows: its deviation widens its margin
         last = depth == partial_depth
@@ -251,6 +273,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         out["bary_full"].append(np.concatenate([bary[fi], bary[pi]]))
         out["mid_uv"].append(np.concatenate([muv[fi], np.full((pi.size, 3, 2), np.nan)]))
         out["landed"].append(np.concatenate([np.ones(fi.size), (robj[pi] == p_rec[:, None]).mean(axis=1)]))
+        out["factor"].append(np.concatenate([np.concatenate([fac[fi], mfac[fi]], axis=1), np.full((pi.size, 6), np.nan)]))
         partial_count += int(pi.size)
         final = final | partial
         split = np.flatnonzero(~final & ~drop)
@@ -260,6 +283,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         b, mb = bary[split], mid[split]
         r, mr = rec[split], mrec[split]
         u, mu = uv[split], muv[split]
+        f, mf = fac[split], mfac[split]
         # children: (a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)
         def kids(c, mc):
             a_, b_, c_ = c[:, 0], c[:, 1], c[:, 2]
@@ -268,12 +292,13 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         bary = kids(b, mb)
         rec = kids(r[:, :, None], mr[:, :, None])[:, :, 0]
         uv = kids(u, mu)
+        fac = kids(f[:, :, None], mf[:, :, None])[:, :, 0]
         emitter = np.tile(emitter[split], 4)
     cat = {k: (np.concatenate(v) if v else None) for k, v in out.items()}
     if cat["emitter"] is None or cat["emitter"].size == 0:
         cat = dict(emitter=np.zeros(0, dtype=np.int64), bary=np.zeros((0, 3, 2)), uv=np.zeros((0, 3, 2)),
                    receiver=np.zeros(0, dtype=np.int64), deviation=np.zeros(0), landed=np.zeros(0),
-                   bary_full=np.zeros((0, 3, 2)), mid_uv=np.zeros((0, 3, 2)))
+                   bary_full=np.zeros((0, 3, 2)), mid_uv=np.zeros((0, 3, 2)), factor=np.zeros((0, 6)))
     cat["traced"] = traced
     cat["dropped"] = dropped
     cat["partial"] = partial_count
@@ -281,23 +306,79 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     return cat
 
 
-def corner_densities(uv, mid_uv, x0, corners):
+def _traced(trace, e, u, v):
+    """(t2, rec, uv, factor) of a trace function that may leave out the factor."""
+    res = trace(e, u, v)
+    if len(res) > 3:
+        return res[0], res[1], res[2], np.asarray(res[3], dtype=np.float64)
+    return res[0], res[1], res[2], np.ones(e.shape[0])
+
+
+def _probe_lands(trace, emitter, bary, receiver_of_tri):
+    """(m,) whether any of 7 probes of each sub-triangle (the quarter points of its edges and
+    its centroid) lands on a receiver."""
+    pts = np.concatenate([0.75 * bary + 0.25 * bary[:, [1, 2, 0]], 0.25 * bary + 0.75 * bary[:, [1, 2, 0]],
+                          bary.mean(axis=1, keepdims=True)], axis=1)  # (m, 7, 2)
+    _t2, rec, _uv, _f = _traced(trace, np.repeat(emitter, 7), pts[:, :, 0].reshape(-1), pts[:, :, 1].reshape(-1))
+    robj = np.where(rec >= 0, receiver_of_tri[np.maximum(rec, 0)], -1).reshape(-1, 7)
+    return (robj >= 0).any(axis=1)
+
+
+def quadratic_jacobian_dets(uv, mid_uv):
+    """det of the Jacobian d(uv)/d(s, t) of the quadratic triangle through the corner images
+    ``uv`` (m, 3, 2) and edge-midpoint images ``mid_uv`` (m, 3, 2; edges 01, 12, 20), at the
+    3 corners and the 3 edge midpoints: (m, 6).  From the derivatives of the 6-node shape
+    functions N0 = (1-s-t)(1-2s-2t), N1 = s(2s-1), N2 = t(2t-1), N01 = 4s(1-s-t), N12 = 4st,
+    N20 = 4t(1-s-t)."""
+    c0, c1, c2 = uv[:, 0], uv[:, 1], uv[:, 2]
+    m01, m12, m20 = mid_uv[:, 0], mid_uv[:, 1], mid_uv[:, 2]
+    ds = (-3 * c0 - c1 + 4 * m01, c0 + 3 * c1 - 4 * m01, c0 - c1 + 4 * m12 - 4 * m20,  # corners 0, 1, 2
+          c1 - c0, c0 + c1 - 2 * m01 + 2 * m12 - 2 * m20, -c0 - c1 + 2 * m01 + 2 * m12 - 2 * m20)  # midpoints
+    dt = (-3 * c0 - c2 + 4 * m20, c0 - c2 - 4 * m01 + 4 * m12, c0 + 3 * c2 - 4 * m20,
+          -c0 - c2 - 2 * m01 + 2 * m12 + 2 * m20, c0 + c2 - 2 * m01 + 2 * m12 - 2 * m20, c2 - c0)
+    return np.stack([a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0] for a, b in zip(ds, dt)], axis=1)
+
+
+def density_nonlinearity(uv, mid_uv, w6):
+    """How far the flux density over each sub-triangle's image is from linear: with
+    rho = w6 / |det J| at the 3 corners and 3 edge midpoints (w6 (m, 6) the flux per
+    barycentric area there, J from :func:`quadratic_jacobian_dets`), the largest
+    |rho(midpoint) - mean(rho(its corners))| relative to the corners' mean rho; inf where
+    det J changes sign (a fold) or is not finite."""
+    det = quadratic_jacobian_dets(uv, mid_uv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.abs(w6) / np.abs(det)
+        lin = 0.5 * (rho[:, [0, 1, 2]] + rho[:, [1, 2, 0]])
+        out = np.abs(rho[:, 3:] - lin).max(axis=1) / rho[:, :3].mean(axis=1)
+    same = np.all(det > 0, axis=1) | np.all(det < 0, axis=1)
+    return np.where(same & np.isfinite(out), out, np.inf)
+
+
+def light_area_density(x0, tri, bary):
+    """The light's solid angle per barycentric area of the first triangles ``tri`` (m, 3, 3)
+    seen from ``x0`` (m, 3), at the points ``bary`` (m, k, 2): |n . (p - x0)| / |p - x0|³ with
+    n the (unnormalised) cross product of the triangle's edges.  (m, k)."""
+    p = tri[:, None, 0] + bary[..., :1] * (tri[:, None, 1] - tri[:, None, 0]) + bary[..., 1:] * (tri[:, None, 2] - tri[:, None, 0])
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    d = p - x0[:, None, :]
+    return np.abs(np.einsum("nj,nij->ni", nrm, d)) / np.linalg.norm(d, axis=2) ** 3
+
+
+def corner_densities(uv, mid_uv, x0, tri, bary, factor=None):
     """Relative flux density (per UV area) at the three corners of each sub-triangle's image,
     for a splat whose density varies linearly over the image instead of being uniform (second
     order in the sub-triangle's size instead of first).  The image is the quadratic triangle
     through the corner and edge-midpoint images: at corner i its Jacobian J_i (2x2, from the
-    quadratic shape functions' derivatives), and the light's solid angle per barycentric area
-    there w_i = |n . (p_i - x0)| / |p_i - x0|³; density_i = w_i / |det J_i|.  Rows where the
+    quadratic shape functions' derivatives, :func:`quadratic_jacobian_dets`), and the light's
+    solid angle per barycentric area there w_i (:func:`light_area_density`; ``bary`` (m, 3, 2)
+    the sub-triangle's corners in its first triangle ``tri`` (m, 3, 3)) times the transport
+    factor there (``factor`` (m, 3), optional); density_i = w_i / |det J_i|.  Rows where the
     Jacobians change sign or differ by more than 4x (near a fold), or without midpoints, get
     (1, 1, 1): the uniform splat."""
-    c0, c1, c2 = uv[:, 0], uv[:, 1], uv[:, 2]
-    m01, m12, m20 = mid_uv[:, 0], mid_uv[:, 1], mid_uv[:, 2]
-    ds = (-3 * c0 - c1 + 4 * m01, c0 + 3 * c1 - 4 * m01, c0 - c1 + 4 * m12 - 4 * m20)
-    dt = (-3 * c0 - c2 + 4 * m20, c0 - c2 - 4 * m01 + 4 * m12, c0 + 3 * c2 - 4 * m20)
-    det = np.stack([a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0] for a, b in zip(ds, dt)], axis=1)
-    nrm = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    d = corners - x0[:, None, :]
-    w = np.abs(np.einsum("nj,nij->ni", nrm, d)) / np.linalg.norm(d, axis=2) ** 3
+    det = quadratic_jacobian_dets(uv, mid_uv)[:, :3]
+    w = light_area_density(x0, tri, bary)
+    if factor is not None:
+        w = w * factor
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = w / np.abs(det)
         ratio = rho.max(axis=1) / rho.min(axis=1)

@@ -10,7 +10,12 @@ method over a sweep of its speed knob:
 - spoly-flux: spoly with the forward-image flux estimator for every chain (one_bounce and
   two_bounce "flux"), knob = the sub-triangles' deepest subdivision level (image_depth);
 - sms: random Newton seeds per tuple (at 4 supersamples);
-- photon: photons traced.
+- photon: photons traced;
+- cycles: Cycles' own shadow caustics (MNEE) baked by bpy (bench/cycles_bake.py: two Cycles
+  bakes per knob, casters on and off, the difference x pi in W/m²; x IOR² under an open water
+  surface), knob = Cycles samples.  MNEE refracts only: it renders the T / TT chains, the
+  reflection scenes get a row saying so and no numbers.  Its bake cannot be cancelled: one
+  that takes longer than the limit is measured to the end and marked too slow.
 
 Error: relMSE against a high-count photon reference of the same scene and settings (the
 texel-averaged irradiance, every chain the scene has), all receivers and RGB channels, with
@@ -20,7 +25,8 @@ different seeds; relMSE(half1, half2) / 4 estimates its own noise, the floor und
 error measured against it (given per scene).  References are cached under
 bench/results/ref_<scene>_<key>.npz, the key a hash of the .blend file and the settings.
 
-Time: wall seconds of ``bake()`` in this process after a warm-up bake (kernels loaded).
+Time: wall seconds of ``bake()`` in this process after a warm-up bake (kernels loaded);
+cycles: of all its ``bpy.ops.object.bake`` calls (scene sync included) after a 1-sample one.
 A bake longer than ``--limit`` seconds is cancelled (through the progress callback; tuple
 batches are kept small so that it is seen) and reported as too slow; the method's larger
 knobs are then skipped.  Chains a method cannot solve are skipped by the bake (newton / sms:
@@ -50,7 +56,7 @@ sys.path[:0] = [ROOT, HERE]
 RESULTS = os.path.join(HERE, "results")
 SCENES = ("mirror_plane", "metal_ring", "water_pool", "glass_sphere", "glass_slab")
 TWO_BOUNCE_SCENES = ("glass_sphere", "glass_slab")  # their main caustic is TT
-METHODS = ("spoly", "spoly-flux", "newton", "sms", "curve", "photon")
+METHODS = ("spoly", "spoly-flux", "newton", "sms", "curve", "photon", "cycles")
 
 
 def rel_mse(b, r):
@@ -137,10 +143,50 @@ def timed_bake(scene, settings, limit):
 def sweep(quick):
     if quick:
         return {"spoly": [1, 4, 16], "spoly-flux": [2, 4, 6], "newton": [1, 4, 16], "curve": [1, 4, 16], "sms": [1, 4, 16],
-                "photon": [100_000, 400_000, 1_600_000]}
+                "photon": [100_000, 400_000, 1_600_000], "cycles": [16, 64, 256]}
     return {"spoly": [1, 4, 16, 64], "spoly-flux": [2, 3, 4, 5, 6, 7], "newton": [1, 4, 16, 64], "curve": [1, 4, 16, 64],
             "sms": [1, 4, 16, 64],
-            "photon": [100_000, 1_000_000, 4_000_000, 16_000_000]}
+            "photon": [100_000, 1_000_000, 4_000_000, 16_000_000], "cycles": [16, 64, 256, 1024]}
+
+
+def run_cycles(name, scene, bounces, ref, args, rows, notes):
+    """The "cycles" rows of one scene (bench/cycles_bake.py); reopens the .blend afterwards,
+    since the Cycles set-up changes the bpy scene (the other methods bake the extracted model
+    and never see it)."""
+    from addon.bake.driver import plan_chains
+    from addon.bake.extract import open_blend
+    from cycles_bake import CyclesCaustics, CyclesUnavailable
+
+    knobs = sweep(args.quick)["cycles"]
+    chains = [it["chain"] for it in plan_chains(scene, bounces)]
+    rendered = [c for c in chains if set(c) == {"T"}]
+    missing = [c for c in chains if c not in rendered]
+    try:
+        try:
+            cc = CyclesCaustics(scene, args.res)
+        except CyclesUnavailable as ex:
+            rows.append(dict(scene=name, method="cycles", knob=knobs[0], seconds=None, relmse=None, note=str(ex)))
+            print(f"  cycles  {str(ex)}", flush=True)
+            return
+        notes[name]["skipped"]["cycles"] = ([",".join(missing) + " not rendered (MNEE refracts only)"] if missing else []) + cc.notes
+        cc.bake(1, seed=0)  # warm-up, not timed
+        slow = False
+        for knob in knobs:
+            if slow:
+                rows.append(dict(scene=name, method="cycles", knob=knob, seconds=None, relmse=None, note="skipped (smaller knob too slow)"))
+                continue
+            images, sec, _parts = cc.bake(knob, seed=1)
+            if sec > args.limit:
+                slow = True
+                rows.append(dict(scene=name, method="cycles", knob=knob, seconds=None, relmse=None,
+                                 note=f"too slow (> {args.limit:.0f} s; Cycles' bake cannot be cancelled: it took {sec:.1f} s)"))
+                print(f"  cycles  {knob:>10,}  too slow ({sec:.1f} s > {args.limit:.0f} s)", flush=True)
+                continue
+            err = rel_mse(np.concatenate([images[k].ravel() for k in sorted(images)]), ref)
+            rows.append(dict(scene=name, method="cycles", knob=knob, seconds=sec, relmse=err, note="chains " + ",".join(rendered)))
+            print(f"  cycles  {knob:>10,}  {sec:8.2f} s  relMSE {err:.3e}  [{','.join(rendered)}]", flush=True)
+    finally:
+        open_blend(os.path.join(ROOT, "sample_blends", name + ".blend"))
 
 
 def run_scene(name, args, rows, notes):
@@ -152,6 +198,9 @@ def run_scene(name, args, rows, notes):
     print(f"{name}: reference {args.ref_photons:,} photons ({'cached' if cached else f'{ref_s:.1f} s'}), noise floor "
           f"relMSE {floor:.2e}", flush=True)
     for method in args.methods:
+        if method == "cycles":
+            run_cycles(name, scene, bounces, ref, args, rows, notes)
+            continue
         knobs = sweep(args.quick)[method]
         # Warm-up: load / compile the method's kernels on a tiny bake (not timed).
         from addon.bake.driver import BakeSettings, bake
@@ -254,10 +303,13 @@ def section(rows, notes, args):
              "",
              "Knobs: supersamples per texel (spoly, newton, curve; spoly's two-bounce chains use its default flux "
              "estimator), subdivision depth of the forward-image sub-triangles (spoly-flux: one_bounce and two_bounce "
-             "'flux'), random seeds per tuple at 4 supersamples (sms), photons (photon). Error: relMSE (tests/test_bake_caustics.py's definition, all receivers and channels) against a "
+             "'flux'), random seeds per tuple at 4 supersamples (sms), photons (photon), Cycles samples (cycles: "
+             "Cycles' MNEE shadow caustics baked by bpy, two bakes per point, see bench/cycles_bake.py; refraction "
+             "chains only). Error: relMSE (tests/test_bake_caustics.py's definition, all receivers and channels) against a "
              f"{args.ref_photons:,}-photon reference of every chain the scene has (bounces 2 for the glass scenes: TT); "
              "'floor' is the reference's own noise (relMSE of its two halves / 4), under which no error can be measured. "
-             f"Bakes over {args.limit:.0f} s are cancelled and marked too slow.", ""]
+             f"Bakes over {args.limit:.0f} s are cancelled and marked too slow (cycles: cannot be cancelled, measured "
+             "to the end and marked).", ""]
     for scene in notes:
         n = notes[scene]
         lines.append(f"**{scene}** (bounces {n['bounces']}; reference floor relMSE {n['floor']:.1e}) "
@@ -278,6 +330,10 @@ def section(rows, notes, args):
                  "error of the texel average (spoly-flux: the density of each sub-triangle's image taken linear, its "
                  "border approximated) plus whatever paths they miss (newton, sms) or chains they skip (newton/sms: "
                  "R and T only; curve: T only), which no knob recovers; photon's error is noise, falling as 1/photons. "
+                 "cycles (Cycles' MNEE) is nearly noise-free here from 16 spp on and its error is bias: light its seeding "
+                 "misses (the caustic ends at the caster's straight-line silhouette, one path per sample, a failed "
+                 "Newton walk in a disc under the light through the glass slab), its clamp of the geometry term (the "
+                 "glass sphere's focus) and the reflection chains it cannot render; see bench/cycles_bake.py. "
                  "A chain or method shown as too slow was cut at the limit, not hung.")
     return "\n".join(lines)
 

@@ -102,7 +102,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     arrays = dict(tri_rec=tri_rec, second_ok=second_ok, refract1=refract1, refract2=refract2, tri_p=tri_p, tri_n=tri_n,
                   tri_ior=tri_ior, tri_role=tri_role, bvh=bvh_args, eps=float(eps), trace=trace)
     report = {"emitters": int(emit_tri.size), "points_traced": int(tris["traced"]), "sub_triangles": int(r.size),
-              "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "final_per_depth": tris["final_per_depth"],
+              "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "border": int(tris["border"]), "final_per_depth": tris["final_per_depth"],
               "seconds": time.perf_counter() - t0}
     return ImageState(chain, emit_tri, x0, tris, arrays, report)
 

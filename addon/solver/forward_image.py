@@ -18,8 +18,9 @@ the same with a *forward-traced image* instead of the Bernstein bound:
    receiver, is split in four (up to ``max_depth``).  What remains is a set of small
    sub-triangles whose image in the receiver's UV space is a straight triangle to within its
    measured midpoint deviation.  Sub-triangles partly lost (rays missing the receiver, total
-   internal reflection) at the deepest level are dropped and counted: the only place where
-   this selection is not complete, reported, never hidden.
+   internal reflection) are cut at the border (located by bisection on the crossed edges)
+   when it is straight at their size, else approximated by their landed points' hull at
+   the deepest level; what is dropped is counted: reported, never hidden.
 3. :class:`ImageSeeds` — every receiver sample whose texture coordinates lie within the
    image triangle grown by a margin (base texels + twice the deviation) gets a seed: the
    point of the sub-triangle whose straight image is closest to the sample.
@@ -52,6 +53,9 @@ ACCEPT_RESIDUAL = 1e-12  # as the exact solver (two_bounce.ACCEPT_RESIDUAL)
 HOPS = 3  # re-traces to a neighbouring second triangle when Newton leaves the first one
 INSIDE_HOP = 1e-9
 CHUNK = 256
+BORDER_STEPS = 5  # bisections locating a straight border on an edge: to 1/64 of the edge
+BORDER_TEXELS = 0.25  # a partly landed sub-triangle is cut at its border once its whole image is this small
+ROUGH_TEXELS = 0.25  # ... or approximated by its landed points once its whole image is this small (1/16: 4x the time on the metal ring, same error)
 
 
 @kernel(inline="always")
@@ -180,10 +184,14 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     edge, and the density (weight x factor / |det J|, J the quadratic element's Jacobian) at
     each edge midpoint within ``relative`` of the mean of its corners' (a fold, where det J
     changes sign, is never linear) — or at ``max_depth``.  Partly landed sub-triangles (on
-    the border of what lands: their flux is approximated) are split down to ``partial_depth``
-    (default: ``max_depth`` + 2; the border's share of the flux halves per level) and then
-    seeded / splatted over the hull of their landed points.  A sub-triangle none of whose 6
-    points lands is dropped from depth ``keep_lost_depth`` on, unless one of 7 more probes
+    the border of what lands) whose points fit one straight border are cut there once their
+    whole image is within ``BORDER_TEXELS`` of a texel (:func:`_image_size`; or at
+    ``max_depth``): the border is bisected on both crossed edges (``BORDER_STEPS``) and the
+    landed polygon's fan triangles are final (landed 1; a border curved at their size splits
+    them further).  Other partly landed ones are split down to ``partial_depth`` (default:
+    ``max_depth`` + 2), or until their whole image is within ``ROUGH_TEXELS`` of a texel, and
+    then seeded / splatted over the hull of their landed points with the landed fraction of
+    the 6 points as their share of the flux.  A sub-triangle none of whose 6 points lands is dropped from depth ``keep_lost_depth`` on, unless one of 7 more probes
     (edge quarter points, centroid) lands: the corner of a landed region can poke into it
     between the 6 points (the corner of a slab's image did).
 
@@ -194,7 +202,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     points), mid_uv (m, 3, 2) the landing UVs of the edge midpoints (01, 12, 20; NaN for partly
     landed ones), factor (m, 6) the transport factor at the corners and midpoints, and counts
     (traced points, dropped sub-triangles at the deepest level, partly landed ones seeded
-    over their landed points' hull, final per depth)."""
+    over their landed points' hull (``partial``), partly landed ones cut at a straight
+    border (``border``), final per depth)."""
     g = int(grid)
     partial_depth = int(max_depth) + 2 if partial_depth is None else max(int(partial_depth), int(max_depth))
     corners = []
@@ -214,9 +223,11 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     uv = uv.reshape(-1, 3, 2)
     fac = fac.reshape(-1, 3)
     traced = emitter.size * 3
+    inherited = np.full(emitter.size, np.inf)
     out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full", "mid_uv", "factor")}
     dropped = 0
     partial_count = 0
+    border_count = 0
     final_per_depth = []
     for depth in range(partial_depth + 1):
         m = emitter.size
@@ -256,26 +267,60 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
             final = landed  # as straight as the depth allows: its deviation widens its margin
         last = depth == partial_depth
         # Partly landed (an edge of the receiver, a silhouette, total internal reflection):
-        # splitting further only follows the border; from ``partial_depth`` on, such a
-        # sub-triangle is seeded over the hull of its landed points instead (see _partial).
-        partial = ~landed & ~lost & (depth >= partial_depth)
-        drop = (~final & ~partial & last) | (lost & (depth >= keep_lost_depth))
-        dropped += int(np.count_nonzero(~final & ~partial & last & ~lost))
+        # when its 6 points fit one straight border (one receiver, one or two corners landed,
+        # every midpoint agreeing with its edge's corners) and its whole image is within
+        # BORDER_TEXELS (or at ``max_depth``), the border is located on both crossed edges by
+        # bisection and the landed polygon becomes final (_straight_border: its flux then
+        # is exact but for the border's curvature inside the sub-triangle).  Any other is
+        # split further and, from ``partial_depth`` on, seeded / splatted over the hull of
+        # its landed points with their fraction of the flux (see _partial).
+        cand = ~landed & ~lost
+        # image size per item in texels, handed down to the children (halved)
+        scale = np.where(landed, edge / tex, inherited)
+        border = np.zeros(m, dtype=np.bool_)
+        small = np.zeros(m, dtype=np.bool_)
+        ci = np.flatnonzero(cand)
+        if ci.size:
+            rc = np.max(robj[ci], axis=1)
+            okc = (robj[ci] == rc[:, None]) & (robj[ci] >= 0)  # none for a probed 'lost' one
+            size = _image_size(okc, bary[ci], mid[ci], uv[ci], muv[ci]) / texel_size[np.maximum(rc, 0)]
+            # fewer than two landed points: half the parent's size (its image scale)
+            size = np.where(np.isfinite(size), size, inherited[ci])
+            scale[ci] = size
+            border[ci] = _single_border(robj[ci]) & ((size <= BORDER_TEXELS) | (depth >= int(max_depth)))
+            small[ci] = size <= ROUGH_TEXELS
+        bi = np.flatnonzero(border)
+        b_em, b_bary, b_uv, b_rec, b_dev, b_take, b_traced = _straight_border(
+            trace, emitter[bi], bary[bi], mid[bi], uv[bi], muv[bi], robj[bi], receiver_of_tri, BORDER_STEPS,
+            depth >= int(max_depth))
+        traced += b_traced
+        border[bi[~b_take]] = False  # a curved border: split further
+        bi = bi[b_take]
+        # a border that is not straight where the whole image is within ROUGH_TEXELS (a thin
+        # sliver landed or lost, a corner): splitting further would only follow it at
+        # sub-texel size (the metal ring's ragged self-shadow took millions of sub-triangles)
+        # (a probed 'lost' one has no landed point to approximate from: it is split, or
+        # dropped at the last level)
+        partial = cand & ~border & ((depth >= partial_depth) | small) & np.any(robj >= 0, axis=1)
+        drop = (~final & ~partial & ~border & last) | (lost & (depth >= keep_lost_depth))
+        dropped += int(np.count_nonzero(~final & ~partial & ~border & last & ~lost))
         fi = np.flatnonzero(final)
         pi = np.flatnonzero(partial)
-        final_per_depth.append(int(fi.size + pi.size))
         p_bary, p_uv, p_rec, p_dev = _partial(bary[pi], mid[pi], uv[pi], muv[pi], robj[pi])
-        out["emitter"].append(np.concatenate([emitter[fi], emitter[pi]]))
-        out["bary"].append(np.concatenate([bary[fi], p_bary]))
-        out["uv"].append(np.concatenate([uv[fi], p_uv]))
-        out["receiver"].append(np.concatenate([robj[fi, 0], p_rec]))
-        out["deviation"].append(np.concatenate([dev[fi], p_dev]))
-        out["bary_full"].append(np.concatenate([bary[fi], bary[pi]]))
-        out["mid_uv"].append(np.concatenate([muv[fi], np.full((pi.size, 3, 2), np.nan)]))
-        out["landed"].append(np.concatenate([np.ones(fi.size), (robj[pi] == p_rec[:, None]).mean(axis=1)]))
-        out["factor"].append(np.concatenate([np.concatenate([fac[fi], mfac[fi]], axis=1), np.full((pi.size, 6), np.nan)]))
+        final_per_depth.append(int(fi.size + pi.size + bi.size))
+        nb = b_em.size
+        out["emitter"].append(np.concatenate([emitter[fi], emitter[pi], b_em]))
+        out["bary"].append(np.concatenate([bary[fi], p_bary, b_bary]))
+        out["uv"].append(np.concatenate([uv[fi], p_uv, b_uv]))
+        out["receiver"].append(np.concatenate([robj[fi, 0], p_rec, b_rec]))
+        out["deviation"].append(np.concatenate([dev[fi], p_dev, b_dev]))
+        out["bary_full"].append(np.concatenate([bary[fi], bary[pi], b_bary]))
+        out["mid_uv"].append(np.concatenate([muv[fi], np.full((pi.size + nb, 3, 2), np.nan)]))
+        out["landed"].append(np.concatenate([np.ones(fi.size), (robj[pi] == p_rec[:, None]).mean(axis=1), np.ones(nb)]))
+        out["factor"].append(np.concatenate([np.concatenate([fac[fi], mfac[fi]], axis=1), np.full((pi.size + nb, 6), np.nan)]))
         partial_count += int(pi.size)
-        final = final | partial
+        border_count += int(bi.size)
+        final = final | partial | border
         split = np.flatnonzero(~final & ~drop)
         if split.size == 0:
             emitter = emitter[:0]
@@ -293,6 +338,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         rec = kids(r[:, :, None], mr[:, :, None])[:, :, 0]
         uv = kids(u, mu)
         fac = kids(f[:, :, None], mf[:, :, None])[:, :, 0]
+        inherited = np.tile(0.5 * scale[split], 4)
         emitter = np.tile(emitter[split], 4)
     cat = {k: (np.concatenate(v) if v else None) for k, v in out.items()}
     if cat["emitter"] is None or cat["emitter"].size == 0:
@@ -302,6 +348,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     cat["traced"] = traced
     cat["dropped"] = dropped
     cat["partial"] = partial_count
+    cat["border"] = border_count
     cat["final_per_depth"] = final_per_depth
     return cat
 
@@ -312,6 +359,158 @@ def _traced(trace, e, u, v):
     if len(res) > 3:
         return res[0], res[1], res[2], np.asarray(res[3], dtype=np.float64)
     return res[0], res[1], res[2], np.ones(e.shape[0])
+
+
+def _single_border(robj):
+    """For partly landed sub-triangles (robj (m, 6): receiver per corner then edge midpoint
+    01, 12, 20; -1 lost): whether the points fit one straight border (landed on one
+    receiver; one or two corners landed; each edge's midpoint landed when both its corners
+    did and lost when neither did)."""
+    rec = np.max(robj, axis=1)
+    ok = (robj == rec[:, None]) & (robj >= 0)
+    c = ok[:, :3]
+    mid = ok[:, 3:]
+    nc = c.sum(axis=1)
+    a, b = c, c[:, [1, 2, 0]]
+    agree = np.all(np.where(a == b, mid == a, True), axis=1)
+    one_receiver = np.all((robj < 0) | ok, axis=1)
+    return one_receiver & agree & (nc >= 1) & (nc <= 2)
+
+
+def _image_size(ok, bary, mid, uv, muv):
+    """(m,) an estimate of the size (UV) of whole partly landed sub-triangles' images: the
+    largest UV / barycentric distance ratio among pairs of landed points times the longest
+    edge (inf with fewer than two landed points)."""
+    pb = np.concatenate([bary, mid], axis=1)
+    pu = np.concatenate([uv, muv], axis=1)
+    i, j = np.triu_indices(6, 1)
+    db = np.linalg.norm(pb[:, i] - pb[:, j], axis=2)
+    du = np.linalg.norm(np.nan_to_num(pu[:, i] - pu[:, j]), axis=2)
+    ratio = np.where(ok[:, i] & ok[:, j], du / np.maximum(db, 1e-300), -1.0).max(axis=1)
+    edge = np.linalg.norm(bary - bary[:, [1, 2, 0]], axis=2).max(axis=1)
+    return np.where(ratio >= 0, ratio * edge, np.inf)
+
+
+def _landed_span(ok, uv, muv):
+    """(m, 2) the extent in u and v of the points flagged ``ok`` (m, 6) (inf where none)."""
+    q = np.concatenate([uv, muv], axis=1)
+    hi = np.where(ok[:, :, None], q, -np.inf).max(axis=1)
+    lo = np.where(ok[:, :, None], q, np.inf).min(axis=1)
+    return np.where(np.isfinite(hi - lo), hi - lo, np.inf)
+
+
+def _landed_point(trace, emitter, h, rec, receiver_of_tri):
+    """(landed on receiver ``rec``, uv) of the points ``h`` (n, 2)."""
+    _t2, r, huv, _f = _traced(trace, emitter, np.ascontiguousarray(h[:, 0]), np.ascontiguousarray(h[:, 1]))
+    return (r >= 0) & (np.where(r >= 0, receiver_of_tri[np.maximum(r, 0)], -1) == rec), huv
+
+
+def _bisect_border(trace, emitter, lb, luv, xb, rec, receiver_of_tri, steps):
+    """Bisect between landed points ``lb`` (uv ``luv``) and lost points ``xb``: (the border's
+    estimate, the uv of the last landed point)."""
+    for _ in range(steps):
+        h = 0.5 * (lb + xb)
+        hit, huv = _landed_point(trace, emitter, h, rec, receiver_of_tri)
+        lb = np.where(hit[:, None], h, lb)
+        luv = np.where(hit[:, None], huv, luv)
+        xb = np.where(hit[:, None], xb, h)
+    return 0.5 * (lb + xb), luv
+
+
+def _border_point(trace, emitter, a, b, landed_c, rec, receiver_of_tri, steps):
+    """The border point on the perpendicular to the chord a-b through its midpoint, bisected
+    ``steps`` times within a quarter of the chord either side: (bary, uv of the last landed
+    point, found (the landed side landed and the lost side did not), offset from the
+    midpoint in chord lengths)."""
+    mc = 0.5 * (a + b)
+    d = b - a
+    nrm = np.column_stack([-d[:, 1], d[:, 0]])
+    toward_lost = np.where((np.einsum("ij,ij->i", landed_c - mc, nrm) > 0)[:, None], -nrm, nrm)
+    a_b = mc - 0.25 * toward_lost
+    b_b = mc + 0.25 * toward_lost
+    m = a.shape[0]
+    hit, huv = _landed_point(trace, np.concatenate([emitter, emitter]), np.concatenate([a_b, b_b]),
+                             np.concatenate([rec, rec]), receiver_of_tri)
+    found = hit[:m] & ~hit[m:]
+    pb, puv = _bisect_border(trace, emitter, a_b, huv[:m], b_b, rec, receiver_of_tri, steps)
+    t = np.einsum("ij,ij->i", pb - mc, toward_lost) / np.maximum(np.einsum("ij,ij->i", toward_lost, toward_lost), 1e-300)
+    return pb, puv, found, t
+
+
+def _straight_border(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, steps, accept_all):
+    """The landed polygon of sub-triangles whose points fit one straight border
+    (:func:`_single_border`).  The border is bisected ``steps`` times on the edge where the
+    run of landed corners ends (X_exit) and where it starts (X_enter), starting from the half
+    the edge midpoint leaves; then on the perpendicular through the chord's midpoint to a
+    point P of the border itself, and likewise through the midpoints of the half-chords
+    X_exit-P and P-X_enter (P_a, P_c; :func:`_border_point`): the border is straight enough
+    when each is within 1/16 of its chord (one sample alone is fooled by a corner of the
+    border, as at the corner of a slab's image).  Polygon: the landed corners, X_exit, P_a,
+    P, P_c, X_enter (points left out where the perpendicular does not cross the border), cut
+    into a fan from the first landed corner.  Rows that are not straight enough are
+    returned for splitting unless ``accept_all``.
+
+    Returns (emitter, bary (k, 3, 2), uv (k, 3, 2), receiver (k,), deviation (k,) 1/16 of the
+    landed UV span (a seeding margin), rows (m,) taken, points traced)."""
+    m = emitter.shape[0]
+    empty = (np.zeros(0, dtype=np.int64), np.zeros((0, 3, 2)), np.zeros((0, 3, 2)), np.zeros(0, dtype=np.int64), np.zeros(0))
+    if m == 0:
+        return empty + (np.zeros(0, dtype=np.bool_), 0)
+    rows = np.arange(m)
+    rec = np.max(robj, axis=1)
+    ok = robj == rec[:, None]
+    c, cm = ok[:, :3], ok[:, 3:]
+    nc = c.sum(axis=1)
+    start = np.argmax(c & ~c[:, [2, 0, 1]], axis=1)  # the landed corner after a lost one
+    last = (start + nc - 1) % 3
+
+    def crossing(land, lost_, mid_index):
+        mid_ok = cm[rows, mid_index]
+        lb = np.where(mid_ok[:, None], mid[rows, mid_index], bary[rows, land])
+        luv = np.where(mid_ok[:, None], muv[rows, mid_index], uv[rows, land])
+        xb = np.where(mid_ok[:, None], bary[rows, lost_], mid[rows, mid_index])
+        return _bisect_border(trace, emitter, lb, luv, xb, rec, receiver_of_tri, steps)
+
+    x_exit, uv_exit = crossing(last, (last + 1) % 3, last)  # edge (last, last + 1): midpoint index last
+    x_enter, uv_enter = crossing(start, (start + 2) % 3, (start + 2) % 3)  # edge (start - 1, start)
+    traced = 2 * steps * m
+    landed_c = (bary * c[:, :, None]).sum(axis=1) / nc[:, None]
+    # the border between the crossings, sampled at the chord's midpoint and then at the two
+    # half-chords' (a single sample is fooled by a corner of the border: the slab image's)
+    pb, puv, ok0, t0 = _border_point(trace, emitter, x_exit, x_enter, landed_c, rec, receiver_of_tri, steps)
+    pa_b, pa_uv, ok1, t1 = _border_point(trace, emitter, x_exit, pb, landed_c, rec, receiver_of_tri, steps)
+    pc_b, pc_uv, ok2, t2 = _border_point(trace, emitter, pb, x_enter, landed_c, rec, receiver_of_tri, steps)
+    traced += 3 * (steps + 2) * m
+    straight = ok0 & ok1 & ok2 & (np.maximum(np.maximum(np.abs(t0), np.abs(t1)), np.abs(t2)) <= 1.0 / 16.0)
+    take = straight | accept_all
+    ok1 &= ok0
+    ok2 &= ok0
+    # polygon: landed corners from `start`, X_exit, [P_a, P, P_c], X_enter
+    poly_b = np.zeros((m, 7, 2))
+    poly_uv = np.zeros((m, 7, 2))
+    count = np.zeros(m, dtype=np.int64)
+    for k in range(2):
+        sel = nc > k
+        ck = (start + k) % 3
+        poly_b[rows[sel], count[sel]] = bary[rows[sel], ck[sel]]
+        poly_uv[rows[sel], count[sel]] = uv[rows[sel], ck[sel]]
+        count += sel
+    every = np.ones(m, dtype=np.bool_)
+    for pt_b, pt_uv, sel in ((x_exit, uv_exit, every), (pa_b, pa_uv, ok1), (pb, puv, ok0), (pc_b, pc_uv, ok2),
+                             (x_enter, uv_enter, every)):
+        poly_b[rows[sel], count[sel]] = pt_b[sel]
+        poly_uv[rows[sel], count[sel]] = pt_uv[sel]
+        count += sel
+    fan_b, fan_uv, fan_row = [], [], []
+    for k in range(1, 6):
+        sel = np.flatnonzero(take & (count >= k + 2))
+        fan_b.append(poly_b[sel][:, [0, k, k + 1]])
+        fan_uv.append(poly_uv[sel][:, [0, k, k + 1]])
+        fan_row.append(sel)
+    fr = np.concatenate(fan_row)
+    # seeding margin: the polygon's points are traced, its sides straight to ~1/16 of a chord
+    span = np.sqrt((_landed_span(ok, uv, muv) ** 2).sum(axis=1)) / 16.0
+    return emitter[fr], np.concatenate(fan_b), np.concatenate(fan_uv), rec[fr], span[fr], take, traced
 
 
 def _probe_lands(trace, emitter, bary, receiver_of_tri):

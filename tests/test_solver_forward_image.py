@@ -226,3 +226,23 @@ def test_ragged_landing_is_not_followed_below_a_texel():
     assert sum(out["final_per_depth"][7:]) < 1_000  # stopped near depth 6, not at partial_depth 8
     area = 0.5 * np.abs(np.cross(out["bary_full"][:, 1] - out["bary_full"][:, 0], out["bary_full"][:, 2] - out["bary_full"][:, 0]))
     assert 0.4 <= np.sum(area * out["landed"]) / 0.5 <= 0.7
+
+
+def test_sliver_images_take_the_uniform_splat():
+    """corner_densities: a well-shaped image of an affine map with a light close by gets the
+    light's solid-angle ramp; the same corners squeezed into a sliver (aspect above SLIVER,
+    where det J is a small difference of nearly parallel derivatives) get (1, 1, 1)."""
+    from addon.solver.forward_image import SLIVER, corner_densities
+
+    tri = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
+    bary = np.array([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]])
+    x0 = np.array([[0.0, 0.0, 0.5]])  # close: the solid angle per area falls 11x from corner 0
+    uv = np.array([[[0.0, 0.0], [0.5, 0.0], [0.0, 0.5]]])
+    mid = 0.5 * (uv + uv[:, [1, 2, 0]])
+    good = corner_densities(uv, mid, x0, tri, bary)
+    assert good[0, 0] > 1.5 and good[0, 1] < 0.7  # the ramp of |n.(p - x0)| / |p - x0|³
+    sliver = uv * np.array([1.0, 0.02])  # aspect (0.5² + 0.01²) / (0.5 * 0.01) ≈ 50
+    smid = 0.5 * (sliver + sliver[:, [1, 2, 0]])
+    e = sliver[0] - sliver[0][[1, 2, 0]]
+    assert (e ** 2).sum(axis=1).max() / abs(e[0, 0] * e[2, 1] - e[0, 1] * e[2, 0]) > SLIVER
+    np.testing.assert_array_equal(corner_densities(sliver, smid, x0, tri, bary), np.ones((1, 3)))

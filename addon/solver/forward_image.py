@@ -55,6 +55,7 @@ INSIDE_HOP = 1e-9
 CHUNK = 256
 BORDER_STEPS = 5  # bisections locating a straight border on an edge: to 1/64 of the edge
 BORDER_TEXELS = 0.25  # a partly landed sub-triangle is cut at its border once its whole image is this small
+SLIVER = 4.0  # images stretched beyond this (longest edge² / twice the area) are splatted uniformly
 ROUGH_TEXELS = 0.25  # ... or approximated by its landed points once its whole image is this small (1/16: 4x the time on the metal ring, same error)
 
 
@@ -98,9 +99,9 @@ def _land(x, y, z, dx, dy, dz, prev, tri_rec, tri_p, tri_n, node_min, node_max, 
 @kernel(inline="always")
 def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok, tri_rec, tri_p, tri_n, tri_ior,
                tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, stack):
-    """The forward chain of ``bounces`` (1 or 2) vertices from (u1, v1) on t1: (second
-    triangle or -1, its barycentrics, receiver triangle or -1, its barycentrics, transport
-    factor).  The factor is the product over the vertices of the bake's surface weights
+    """The forward chain of ``bounces`` (1 or 2) vertices from (u1, v1) on t1, lit from x0
+    (a point in shadow is lost): (second triangle or -1, its barycentrics, receiver triangle
+    or -1, its barycentrics, transport factor).  The factor is the product over the vertices of the bake's surface weights
     (reflect role: 1; 'both' (glass): F for R, 1 - F for T; refract role: 1 - F; unpolarised
     dielectric F at the vertex's cos_i) times cos_shading / cos_geometric at the receiver
     (the bake's irradiance convention)."""
@@ -112,6 +113,13 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok
     if not ln > 0.0:
         return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
     dx, dy, dz = dx / ln, dy / ln, dz / ln
+    # the light must reach the point: a shadowed point is lost like a missed receiver, so a
+    # shadow's edge across a first triangle is refined and cut as a border, not decided for
+    # a whole sub-triangle at its centre
+    sh, _sh_t = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x0x, x0y, x0z,
+                             dx, dy, dz, eps, ln * (1.0 - 1e-9) - eps, t1, stack)
+    if sh >= 0:
+        return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
     fac = _weight(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract1, tri_ior[t1], tri_role[t1])
     ok, dx, dy, dz = _scatter(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract1, tri_ior[t1])
     if not ok:
@@ -191,13 +199,14 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     them further).  Other partly landed ones are split down to ``partial_depth`` (default:
     ``max_depth`` + 2), or until their whole image is within ``ROUGH_TEXELS`` of a texel, and
     then seeded / splatted over the hull of their landed points with the landed fraction of
-    the 6 points as their share of the flux.  A sub-triangle none of whose 6 points lands is dropped from depth ``keep_lost_depth`` on, unless one of 7 more probes
+    the 6 points and 7 probes as their share of the flux.  A sub-triangle none of whose 6
+    points lands is dropped from depth ``keep_lost_depth`` on, unless one of the 7 probes
     (edge quarter points, centroid) lands: the corner of a landed region can poke into it
     between the 6 points (the corner of a slab's image did).
 
     Returns dict: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
     uv (m, 3, 2) their landing UVs, receiver (m,), deviation (m,) UV units, landed (m,) the
-    fraction of the 6 traced points that landed (1 but for partly landed ones), bary_full
+    share of the flux that lands (1 but for the approximated partly landed ones), bary_full
     (m, 3, 2) the sub-triangle itself (``bary`` of a partly landed one is shrunk to landed
     points), mid_uv (m, 3, 2) the landing UVs of the edge midpoints (01, 12, 20; NaN for partly
     landed ones), factor (m, 6) the transport factor at the corners and midpoints, and counts
@@ -316,7 +325,14 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         out["deviation"].append(np.concatenate([dev[fi], p_dev, b_dev]))
         out["bary_full"].append(np.concatenate([bary[fi], bary[pi], b_bary]))
         out["mid_uv"].append(np.concatenate([muv[fi], np.full((pi.size + nb, 3, 2), np.nan)]))
-        out["landed"].append(np.concatenate([np.ones(fi.size), (robj[pi] == p_rec[:, None]).mean(axis=1), np.ones(nb)]))
+        # the share of a partly landed one: of its 6 points and 7 probes (13 points halve the
+        # bias of 6 on thin slivers, which a fraction of 6 counts as 1/6 or 5/6)
+        p_share = np.zeros(pi.size)
+        if pi.size:
+            probes = _probe_receivers(trace, emitter[pi], bary[pi], receiver_of_tri)
+            traced += 7 * pi.size
+            p_share = ((robj[pi] == p_rec[:, None]).sum(axis=1) + (probes == p_rec[:, None]).sum(axis=1)) / 13.0
+        out["landed"].append(np.concatenate([np.ones(fi.size), p_share, np.ones(nb)]))
         out["factor"].append(np.concatenate([np.concatenate([fac[fi], mfac[fi]], axis=1), np.full((pi.size + nb, 6), np.nan)]))
         partial_count += int(pi.size)
         border_count += int(bi.size)
@@ -513,14 +529,18 @@ def _straight_border(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, 
     return emitter[fr], np.concatenate(fan_b), np.concatenate(fan_uv), rec[fr], span[fr], take, traced
 
 
-def _probe_lands(trace, emitter, bary, receiver_of_tri):
-    """(m,) whether any of 7 probes of each sub-triangle (the quarter points of its edges and
-    its centroid) lands on a receiver."""
+def _probe_receivers(trace, emitter, bary, receiver_of_tri):
+    """(m, 7) the receiver (-1: lost) of 7 probes of each sub-triangle: the quarter points of
+    its edges and its centroid."""
     pts = np.concatenate([0.75 * bary + 0.25 * bary[:, [1, 2, 0]], 0.25 * bary + 0.75 * bary[:, [1, 2, 0]],
                           bary.mean(axis=1, keepdims=True)], axis=1)  # (m, 7, 2)
     _t2, rec, _uv, _f = _traced(trace, np.repeat(emitter, 7), pts[:, :, 0].reshape(-1), pts[:, :, 1].reshape(-1))
-    robj = np.where(rec >= 0, receiver_of_tri[np.maximum(rec, 0)], -1).reshape(-1, 7)
-    return (robj >= 0).any(axis=1)
+    return np.where(rec >= 0, receiver_of_tri[np.maximum(rec, 0)], -1).reshape(-1, 7)
+
+
+def _probe_lands(trace, emitter, bary, receiver_of_tri):
+    """(m,) whether any of the 7 probes of each sub-triangle (:func:`_probe_receivers`) lands."""
+    return (_probe_receivers(trace, emitter, bary, receiver_of_tri) >= 0).any(axis=1)
 
 
 def quadratic_jacobian_dets(uv, mid_uv):
@@ -572,8 +592,8 @@ def corner_densities(uv, mid_uv, x0, tri, bary, factor=None):
     solid angle per barycentric area there w_i (:func:`light_area_density`; ``bary`` (m, 3, 2)
     the sub-triangle's corners in its first triangle ``tri`` (m, 3, 3)) times the transport
     factor there (``factor`` (m, 3), optional); density_i = w_i / |det J_i|.  Rows where the
-    Jacobians change sign or differ by more than 4x (near a fold), or without midpoints, get
-    (1, 1, 1): the uniform splat."""
+    Jacobians change sign or differ by more than 4x (near a fold), without midpoints, or whose
+    image is a sliver (``SLIVER``), get (1, 1, 1): the uniform splat."""
     det = quadratic_jacobian_dets(uv, mid_uv)[:, :3]
     w = light_area_density(x0, tri, bary)
     if factor is not None:
@@ -581,7 +601,15 @@ def corner_densities(uv, mid_uv, x0, tri, bary, factor=None):
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = w / np.abs(det)
         ratio = rho.max(axis=1) / rho.min(axis=1)
-    same = (np.all(det > 0, axis=1) | np.all(det < 0, axis=1)) & np.isfinite(ratio) & (ratio <= 4.0)
+        # a sliver image (longest edge² / twice its area above SLIVER) takes the uniform
+        # splat: its det J is a small difference of nearly parallel derivatives, whose
+        # second-order error the aspect ratio amplifies (the metal ring's outer reflections,
+        # aspect 5.7: a ±13 % ramp where the true density is flat, texels 6 % off)
+        e = uv - uv[:, [1, 2, 0]]
+        area2 = np.abs(e[:, 0, 0] * e[:, 2, 1] - e[:, 0, 1] * e[:, 2, 0])
+        aspect = (e ** 2).sum(axis=2).max(axis=1) / area2
+    same = ((np.all(det > 0, axis=1) | np.all(det < 0, axis=1)) & np.isfinite(ratio) & (ratio <= 4.0)
+            & np.isfinite(aspect) & (aspect <= SLIVER))
     return np.where(same[:, None], rho / np.where(same, rho.mean(axis=1), 1.0)[:, None], 1.0)
 
 

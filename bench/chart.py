@@ -34,7 +34,7 @@ R, T; curve: T only) and listed; their light is missing, which the error shows.
 
 Writes bench/results/chart.csv (scene,method,knob,seconds,relmse; empty seconds / relmse:
 too slow or unavailable), bench/results/chart_<scene>.png (log-log error against time) and
-the "chart" section of BENCHMARKS.md.  ``--quick``: 48² textures, 3 knob values, a 5 M photon
+the "chart" section of BENCHMARKS.md.  ``--quick``: 48² textures, 3 knob values, a 40 M photon
 reference, bounces 2 only where the scene needs them (glass: TT), 15 s limit.
 """
 
@@ -349,7 +349,7 @@ def main(argv=None):
     ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
     args = ap.parse_args(argv)
     args.res = args.res or (48 if args.quick else 128)
-    args.ref_photons = args.ref_photons or (5_000_000 if args.quick else 64_000_000)
+    args.ref_photons = args.ref_photons or (40_000_000 if args.quick else 64_000_000)
     args.limit = args.limit or (15.0 if args.quick else 120.0)
     args.methods = args.methods.split(",")
     rows, notes = [], {}

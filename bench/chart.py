@@ -6,9 +6,11 @@ Each sample scene (sample_blends/*.blend, read with addon/bake/extract.py) is ba
 method over a sweep of its speed knob:
 
 - spoly, newton, curve: supersamples per texel (the tuple loop's cost is linear in them);
-  spoly's two-bounce chains use its default two_bounce="flux" (the samples only set coverage);
-- spoly-flux: spoly with the forward-image flux estimator for every chain (one_bounce and
-  two_bounce "flux"), knob = the sub-triangles' deepest subdivision level (image_depth);
+  spoly here is one_bounce="points" (every exact path at every supersample); its two-bounce
+  chains use the flux default (the samples only set coverage);
+- spoly-flux: spoly's default since 2026-11-22, the forward-image flux estimator for every
+  chain (one_bounce and two_bounce "flux"), knob = the sub-triangles' deepest subdivision
+  level (image_depth, default 6);
 - sms: random Newton seeds per tuple (at 4 supersamples);
 - photon: photons traced;
 - cycles: Cycles' own shadow caustics (MNEE) baked by bpy (bench/cycles_bake.py: two Cycles
@@ -115,6 +117,8 @@ def settings_for(method, knob, res, bounces):
         kw.update(samples=4, sms_seeds=knob)
     elif method == "photon":
         kw.update(photons=knob)
+    elif method == "spoly":  # exact paths at every supersample (R, T); two bounces: the flux default
+        kw.update(samples=knob, one_bounce="points")
     else:
         kw.update(samples=knob)
     return BakeSettings(**kw)
@@ -301,9 +305,10 @@ def section(rows, notes, args):
              f"with other jobs: timings are noisy), Python {platform.python_version()}; {args.res}² textures, one light "
              f"sample, date {time.strftime('%Y-%m-%d')}; {'`--quick`' if args.quick else 'full'} sweep.",
              "",
-             "Knobs: supersamples per texel (spoly, newton, curve; spoly's two-bounce chains use its default flux "
-             "estimator), subdivision depth of the forward-image sub-triangles (spoly-flux: one_bounce and two_bounce "
-             "'flux'), random seeds per tuple at 4 supersamples (sms), photons (photon), Cycles samples (cycles: "
+             "Knobs: supersamples per texel (spoly, newton, curve; spoly here solves every exact R/T path at every "
+             "supersample (one_bounce='points'), its two-bounce chains use the flux estimator), subdivision depth of "
+             "the forward-image sub-triangles (spoly-flux: one_bounce and two_bounce 'flux', **the default bake**), "
+             "random seeds per tuple at 4 supersamples (sms), photons (photon), Cycles samples (cycles: "
              "Cycles' MNEE shadow caustics baked by bpy, two bakes per point, see bench/cycles_bake.py; refraction "
              "chains only). Error: relMSE (tests/test_bake_caustics.py's definition, all receivers and channels) against a "
              f"{args.ref_photons:,}-photon reference of every chain the scene has (bounces 2 for the glass scenes: TT); "

@@ -34,8 +34,8 @@ SCENES = {
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_bounds_cull_matches_cone_cull_with_fewer_tuples(name):
     sc = SCENES[name]()
-    cone = bake(sc, BakeSettings(samples=16, seed=3, margin=0, cull="cone"))
-    bnd = bake(sc, BakeSettings(samples=16, seed=3, margin=0, cull="bounds"))
+    cone = bake(sc, BakeSettings(samples=16, seed=3, margin=0, cull="cone", one_bounce="points"))
+    bnd = bake(sc, BakeSettings(samples=16, seed=3, margin=0, cull="bounds", one_bounce="points"))
     rec = sc.receivers[0].name
     a, b = cone.raw[rec], bnd.raw[rec]
     ca, cb = cone.report["counts"], bnd.report["counts"]
@@ -52,8 +52,8 @@ def test_gamma_sampling_solves_fewer_tuples_and_keeps_the_energy():
     """Finite γ (P = min(γ Ẽ, 1), weight 1/P): fewer tuples solved than enumeration, and the
     total irradiance (an unbiased estimate) stays close to the enumerated one."""
     sc = SCENES["ring"]()
-    full = bake(sc, BakeSettings(samples=4, seed=1, margin=0, cull="bounds"))
-    part = bake(sc, BakeSettings(samples=4, seed=1, margin=0, cull="bounds", gamma=0.05))
+    full = bake(sc, BakeSettings(samples=4, seed=1, margin=0, cull="bounds", one_bounce="points"))
+    part = bake(sc, BakeSettings(samples=4, seed=1, margin=0, cull="bounds", gamma=0.05, one_bounce="points"))
     ref = full.raw["floor"].sum()
     est = part.raw["floor"].sum()
     print(f"\ntuples enumerate {full.report['counts']['tuples']:,}, gamma=0.05 {part.report['counts']['tuples']:,}; "

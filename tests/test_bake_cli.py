@@ -86,13 +86,14 @@ def test_bad_input_gives_one_line_and_nonzero_exit(tmp_path, capsys):
 def test_bake_writes_exr_and_report(tmp_path, capsys):
     out = tmp_path / "out"
     blend = os.path.join(SAMPLES, "mirror_plane.blend")
-    assert main(["bake", blend, "--out", str(out), "--resolution", "32", "--samples", "4", "--seed", "3"]) == 0
+    assert main(["bake", blend, "--out", str(out), "--resolution", "32", "--samples", "4", "--seed", "3",
+                 "--one-bounce", "points"]) == 0
     assert "baked 1 receiver(s)" in capsys.readouterr().out
     img = read_exr(out / "Floor.exr")
     report = json.loads((out / "report.json").read_text())
     # The same numbers as a bake of the extracted scene in this process.
     open_blend(blend)
-    res = bake(extract_scene(resolution=32), BakeSettings(resolution=32, samples=4, seed=3))
+    res = bake(extract_scene(resolution=32), BakeSettings(resolution=32, samples=4, seed=3, one_bounce="points"))
     np.testing.assert_array_equal(img, res.images["Floor"])
     assert img.shape == (32, 32, 3) and img.max() > 0 and np.count_nonzero(img[:, :, 0]) > 100
     assert report["settings"]["resolution"] == 32 and report["files"] == {"Floor": "Floor.exr"}

@@ -8,7 +8,7 @@ from addon.bake.scene import SceneError
 
 from bake_scenes import mirror_scene
 
-SETTINGS = dict(samples=4, seed=3, margin=2, batch_tuples=4096, band_samples=1024)
+SETTINGS = dict(samples=4, seed=3, margin=2, batch_tuples=4096, band_samples=1024, one_bounce="points")  # banded tuple steps
 
 
 def _drain(steps):

@@ -192,8 +192,11 @@ class _ModalStub:
 
 
 def _slow_scene(tmp_path):
-    """Enough work for many chunks: metal ring, 64 x 64 texels, 4 samples each."""
+    """Enough work for many chunks: metal ring, 64 x 64 texels, 4 samples each, the exact-path
+    estimator (its bands are the modal steps; the flux estimator is one step per light sample
+    and chain)."""
     _open_copy(tmp_path, "metal_ring", resolution=64, samples=4)
+    bpy.context.scene.caustic_bake.one_bounce = "points"
 
 
 def test_modal_steps_then_cancel_leave_the_scene_unchanged(tmp_path):

@@ -39,8 +39,8 @@ def add_arguments(parser):
                         "their images: texel averages, finite at focal points; default), seeded (exact paths at the "
                         "supersamples, Newton from forward-image seeds) or exact (every path of every candidate tuple "
                         "by the two-bounce Specular Polynomials: complete but very slow)")
-    parser.add_argument("--one-bounce", default="points", choices=("points", "flux"),
-                        help="method spoly, chains R and T: points (every path at every supersample, default) or flux "
+    parser.add_argument("--one-bounce", default="flux", choices=("points", "flux"),
+                        help="method spoly, chains R and T: flux (default) or points (every path at every supersample) "
                         "(forward-image sub-triangles as --two-bounce flux: texel averages)")
     parser.add_argument("--sms-seeds", type=int, default=16, help="method sms: random Newton seeds per tuple (default 16)")
     parser.add_argument("--photons", type=int, default=1_000_000, help="method photon: photons traced (default 1,000,000)")

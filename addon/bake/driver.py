@@ -152,7 +152,7 @@ class BakeSettings:
     #                           their flux spread over their images: texel averages), "seeded" (exact paths at the samples
     #                           by Newton from forward-image seeds) or "exact" (cone cull + two-bounce Specular Polynomials)
     image_depth: int = 6  # "flux" / "seeded": subdivision levels of the caster triangles (4 x 4 first)
-    one_bounce: str = "points"  # method "spoly", R and T: "points" (every path at every supersample, exact) or "flux"
+    one_bounce: str = "flux"  # method "spoly", R and T: "flux" (default) or "points" (every path at every supersample, exact)
     #                             (forward-image sub-triangles as two_bounce="flux": texel averages)
 
     def as_dict(self):

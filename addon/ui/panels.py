@@ -73,6 +73,8 @@ class RENDER_PT_caustic_bake(bpy.types.Panel):
             col.prop(props, "sms_seeds")
         elif props.solver == "photon":
             col.prop(props, "photons")
+        if props.solver == "spoly":
+            col.prop(props, "one_bounce")
         if props.solver == "spoly" and props.bounces > 1 and props.quality == "FINAL":
             col.prop(props, "two_bounce")
         if props.solver in ("spoly", "newton", "sms", "curve"):

@@ -44,6 +44,11 @@ TWO_BOUNCE_ITEMS = (
     ("seeded", "Seeded Paths", "Exact paths at the supersamples, Newton from forward-image seeds"),
     ("exact", "Exact (slow)", "Every path of every candidate tuple by the two-bounce Specular Polynomials"),
 )
+ONE_BOUNCE_ITEMS = (
+    ("flux", "Flux", "Forward-traced sub-triangles spread their flux over their images: texel averages, "
+     "noise- and alias-free (default)"),
+    ("points", "Exact Paths", "Every exact path at every supersample (the OpenCL device solves these)"),
+)
 RECEIVER_ITEMS = (
     ("auto", "Auto", "A receiver if it has a UV map and casts no caustics"),
     ("yes", "Yes", "Always a receiver (needs a UV map)"),
@@ -66,6 +71,7 @@ class CausticBakeSceneSettings(bpy.types.PropertyGroup):
                            default=16, min=1, max=4096, soft_max=256)
     photons: IntProperty(name="Photons", description="Photon Tracing: photons traced over all lights",
                          default=1_000_000, min=1, soft_max=100_000_000)
+    one_bounce: EnumProperty(name="One Bounce", items=ONE_BOUNCE_ITEMS, default="flux")
     two_bounce: EnumProperty(name="Two Bounces", items=TWO_BOUNCE_ITEMS, default="flux")
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="numba")
     seed: IntProperty(name="Seed", description="Seed of the supersample jitter and light samples", default=0, min=0)
@@ -117,4 +123,5 @@ def bake_settings(props):
         sms_seeds=int(props.sms_seeds),
         photons=int(props.photons),
         two_bounce=str(getattr(props, "two_bounce", "flux")),
+        one_bounce=str(getattr(props, "one_bounce", "flux")),
     )

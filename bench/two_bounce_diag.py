@@ -248,3 +248,101 @@ def diagnose_path(chain, d, t, uv_missed, pieces=None, all_uv=None):
                 land = "" if th is None else f" -> dist to missed {np.abs(th - uv_missed).max():.2g}; {msg}"
                 out.append(f"     {mark}cand u={u:.9f} at v={vr:.12f} rel|b|={rel:.2g} taken={taken}{land}")
     return "\n".join(out)
+
+
+# --- exact check of the determinant --------------------------------------------------------
+
+
+def _exact_det(M):
+    """sign and log|det| of a matrix of Fractions (Gaussian elimination, exact)."""
+    from fractions import Fraction
+
+    n = len(M)
+    M = [row[:] for row in M]
+    det = Fraction(1)
+    for k in range(n):
+        p = next((i for i in range(k, n) if M[i][k] != 0), None)
+        if p is None:
+            return 0, -math.inf
+        if p != k:
+            M[k], M[p] = M[p], M[k]
+            det = -det
+        det *= M[k][k]
+        for i in range(k + 1, n):
+            f = M[i][k] / M[k][k]
+            if f:
+                for j in range(k + 1, n):
+                    M[i][j] -= f * M[k][j]
+    return (1 if det > 0 else -1), math.log(abs(det.numerator)) - math.log(det.denominator)
+
+
+def _padded_bezout(A, B, n, zero):
+    """The paper's Bézout matrix (eq 29) of coefficient vectors A, B padded to degree n."""
+    M = [[zero] * n for _ in range(n)]
+    for j in range(n):
+        M[0][j] = A[0] * B[j + 1] - B[0] * A[j + 1]
+    for i in range(1, n):
+        for j in range(n):
+            t = A[i] * B[j + 1] - B[i] * A[j + 1]
+            if j + 1 < n:
+                t += M[i - 1][j + 1]
+            M[i][j] = t
+    return M
+
+
+def _coeff_vectors(A, da, B, db, n, v):
+    na = int(tb._top_row(A, da, n))
+    nb = int(tb._top_row(B, db, n))
+    a = np.array([sum(A[i, j] * v ** j for j in range(da - i, -1, -1)) if i <= na else 0.0 for i in range(n + 1)])
+    b = np.array([sum(B[i, j] * v ** j for j in range(db - i, -1, -1)) if i <= nb else 0.0 for i in range(n + 1)])
+    return a / np.abs(a).max(), b / np.abs(b).max(), na, nb
+
+
+def exact_check(chain, d, t, uv_path, rev=False, width=0.004, npts=7):
+    """At npts values of the hidden variable within ±width of a path's, the sign and
+    log|det| of (1) ``det_bezout`` and (2) the paper's padded Bézout matrix eliminated in
+    doubles (LAPACK), each against the exact determinant (Fractions) of the same matrix built
+    from the same double coefficients.  Returns {name: [(sign ok, |log error|), ...]}."""
+    from fractions import Fraction
+
+    refract1, refract2 = chain[0] == "T", chain[1] == "T"
+    x0, x3, P, N, eta = d["x0"][t], d["x3"][t], d["P"][t], d["N"][t], float(d["eta"][t])
+    if rev:
+        args = (refract2, refract1, x3, x0, P[1], N[1], P[0], N[0], eta)
+        us, vs = uv_path[2], uv_path[3]
+    else:
+        args = (refract1, refract2, x0, x3, P[0], N[0], P[1], N[1], eta)
+        us, vs = uv_path[0], uv_path[1]
+    best = None
+    for label, A, da, B, db, margin, geo in systems(*args):
+        r = max(_rel(A, da, us, vs), _rel(B, db, us, vs))
+        if best is None or r < best[0]:
+            best = (r, A, da, B, db)
+    _, A, da, B, db = best
+    n = max(int(tb._u_degree(A.copy(), da, 1e-14)), int(tb._u_degree(B.copy(), db, 1e-15)))
+    out = {"det_bezout": [], "padded": []}
+    for v in vs + np.linspace(-width, width, npts):
+        a, b, na, nb = _coeff_vectors(A, da, B, db, n, v)
+        # det_bezout's matrix (the hybrid Bézout matrix) in exact arithmetic
+        m, nf, g, f = (na, nb, a, b) if na <= nb else (nb, na, b, a)
+        F = [Fraction(float(x)) for x in f[:nf + 1]]
+        G = [Fraction(float(x)) for x in g[:m + 1]]
+        S = [[Fraction(0)] * nf for _ in range(nf)]
+        for r in range(nf - m):
+            for k in range(m + 1):
+                S[r][r + k] = G[k]
+        for c in range(m, 0, -1):
+            for j in range(nf):
+                t_ = Fraction(0)
+                for l in range(max(0, j - (nf - c)), min(c - 1, j) + 1):
+                    t_ += F[j - l + c] * G[l]
+                for l in range(max(0, j - (m - c)), min(c - 1, j) + 1):
+                    t_ -= G[j - l + c] * F[l]
+                S[nf - c][j] = t_
+        se, le = _exact_det(S)
+        s1, l1 = det(A, da, B, db, n, v)
+        out["det_bezout"].append((s1, l1, se, le))
+        pe = _exact_det(_padded_bezout([Fraction(float(x)) for x in a], [Fraction(float(x)) for x in b], n, Fraction(0)))
+        ps, pl = np.linalg.slogdet(np.array(_padded_bezout(a, b, n, 0.0)))
+        out["padded"].append((int(ps), pl, pe[0], pe[1]))
+    return {name: [(r[0] == r[2], abs(r[1] - r[3])) for r in rows] for name, rows in out.items()}

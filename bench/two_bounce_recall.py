@@ -134,9 +134,31 @@ def main():
     ap.add_argument("--diag", action="store_true", help="resultant diagnostics around each missed root")
     ap.add_argument("--only", default="", help="comma-separated tuple indices to solve (default: all)")
     ap.add_argument("--save", default="", help="save the solver's paths to this .npz")
+    ap.add_argument("--exact", default="", help="comma-separated tuples: det_bezout and the padded Bézout matrix "
+                    "against exact arithmetic around each tuple's first brute-force path (both orientations)")
     args = ap.parse_args()
     d = truth(args.chain, args.tuples, args.cache, args.chunk)
     if args.truth_only:
+        return
+    if args.exact:
+        from two_bounce_diag import exact_check
+
+        agg = {}
+        for t in (int(x) for x in args.exact.split(",")):
+            uv0 = d["bf_uv"][d["bf_t"] == t]
+            if not len(uv0):
+                continue
+            for rev in (False, True):
+                res = exact_check(args.chain, d, t, uv0[0], rev)
+                for name, rows in res.items():
+                    agg.setdefault((rev, name), []).extend(rows)
+                print(f"  tuple {t} {'reversed' if rev else 'forward'}: " + "; ".join(
+                    f"{k} sign ok {sum(r[0] for r in v)}/{len(v)} max log err {max(r[1] for r in v):.2g}" for k, v in res.items()),
+                    flush=True)
+        for (rev, name), rows in sorted(agg.items()):
+            e = np.array([r[1] for r in rows])
+            print(f"{'reversed' if rev else 'forward'} {name}: sign wrong at {sum(not r[0] for r in rows)}/{len(rows)} "
+                  f"samples; log error median {np.median(e):.2g}, max {e.max():.2g}")
         return
     idx = [int(x) for x in args.only.split(",")] if args.only else None
     ti, uv, dt, rep = solve(args.chain, d, args.pieces, idx)

@@ -133,6 +133,7 @@ def main():
     ap.add_argument("--truth-only", action="store_true")
     ap.add_argument("--diag", action="store_true", help="resultant diagnostics around each missed root")
     ap.add_argument("--only", default="", help="comma-separated tuple indices to solve (default: all)")
+    ap.add_argument("--range", default="", help="a:b, solve tuples a .. b-1 only")
     ap.add_argument("--save", default="", help="save the solver's paths to this .npz")
     ap.add_argument("--exact", default="", help="comma-separated tuples: det_bezout and the padded Bézout matrix "
                     "against exact arithmetic around each tuple's first brute-force path (both orientations)")
@@ -161,6 +162,9 @@ def main():
                   f"samples; log error median {np.median(e):.2g}, max {e.max():.2g}")
         return
     idx = [int(x) for x in args.only.split(",")] if args.only else None
+    if args.range:
+        a_, b_ = (int(x) for x in args.range.split(":"))
+        idx = list(range(a_, b_))
     ti, uv, dt, rep = solve(args.chain, d, args.pieces, idx)
     n = len(d["x0"]) if idx is None else len(idx)
     if args.save:

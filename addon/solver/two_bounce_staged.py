@@ -17,10 +17,13 @@ B (device)  the piecewise sign scan of ``find_v_roots``: det R(v) at the pieces'
 C (Numba)   ``_candidates_at`` at each scan root (u1 from a(·, v1), exact map to triangle
             2, Gauss-Newton polish in path space): the paths, and which roots were
             productive.
-D (device)  ``refine_v_roots``: the pieces around productive roots and next to convex
-            kinks of the deflated log|det| are sub-sampled (``SUB_SAMPLES``) on the device,
-            new sign changes pinned on the device; the bookkeeping (kink rule, deflation,
-            noisy pieces, one-signed dips) runs here, in the same order as there.
+D (device)  ``refine_v_roots``: the ghost samples outside the range, the sub-samples
+            (``SUB_SAMPLES``) of the pieces around productive roots and next to convex
+            kinks of the deflated log|det| (with the extra samples at the ends of each run of
+            flagged pieces) on the device, new sign changes pinned on the device; the
+            bookkeeping (kink rule, deflation, noisy pieces, one-signed dips) runs here, in
+            the same order as there, and so do the few determinants that resolve a dip
+            (``_resolve_dip``: Numba on the host, 3-8 per dip).
 E (Numba)   candidates at the refined roots, the seeded polish of degenerate systems,
             the straight-line candidate, the statistics.
 
@@ -48,8 +51,8 @@ from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_ACCEPTED, STAT_DETS, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
     TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, _bernstein_has_zero, _bmax, _build_system, _candidates_at,
-    _deflate, _det_checked, _illinois, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
-    solve_two_bounce_tuple,
+    _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
+    refine_flags_one, solve_two_bounce_tuple,
 )
 
 SYS_CAP = 24  # systems per tuple held by stage A; a tuple with more is solved by the one-kernel path
@@ -469,21 +472,18 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
 
 
 @kernel(parallel=True)
-def refine_flags(vs, lgs, roots, nv, piece_of, productive, pieces, flags):
-    """``refine_v_roots``'s choice of pieces: lgs (S, pieces + 1) is deflated in place by the
-    scan roots; flags[s, k] = 1 for a piece next to a convex kink or around a productive root."""
+def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, flags):
+    """``refine_v_roots``'s choice of pieces: lgs (S, pieces + 1) and the ghost samples
+    (S, 2: raw log|det| a piece below and above the range) are deflated by the scan roots;
+    flags[s, k] = 1 for a piece next to a convex kink or around a productive root
+    (``refine_flags_one``)."""
     for s in prange(vs.shape[0]):
+        h = vs[s, 1] - vs[s, 0]
+        g_lo = _deflate(vs[s, 0] - h, ghost[s, 0], roots[s], nv[s])
+        g_hi = _deflate(vs[s, pieces] + h, ghost[s, 1], roots[s], nv[s])
         for k in range(pieces + 1):
             lgs[s, k] = _deflate(vs[s, k], lgs[s, k], roots[s], nv[s])
-        for k in range(pieces):
-            flagged = (k > 0 and lgs[s, k - 1] + lgs[s, k + 1] - 2.0 * lgs[s, k] > KINK) or \
-                      (k + 1 < pieces and lgs[s, k] + lgs[s, k + 2] - 2.0 * lgs[s, k + 1] > KINK)
-            if not flagged:
-                for i in range(nv[s]):
-                    if productive[s, i] and abs(int(piece_of[s, i]) - k) <= 1:
-                        flagged = True
-                        break
-            flags[s, k] = 1 if flagged else 0
+        refine_flags_one(lgs[s], g_lo, g_hi, roots[s], nv[s], piece_of[s], productive[s], pieces, flags[s])
 
 
 @kernel(parallel=True)
@@ -512,23 +512,38 @@ def refine_brackets(job_sys, sv, ss, roots, nv, bracket):
 
 
 @kernel(parallel=True)
-def refine_assemble(flag_first, sv, ss, sl, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots):
+def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots,
+                    coef, sysint3, b_offset, dip_dets):
     """The refined roots of each system in ``_refine_interval``'s order (pieces ascending;
-    per piece its pinned sign changes, then the one-signed dips of the log|det| deflated by
-    every root found so far), into ref_roots[ref_first[s]:] (ref_count[s] of them)."""
-    M = ss.shape[1] - 1
+    per piece its pinned sign changes, then its one-signed dips of the log|det| deflated by
+    every root found so far), into ref_roots[ref_first[s]:] (ref_count[s] of them).
+
+    svx, ssx, slx (F, M + 3): per flagged piece its M + 1 sub-samples at 1 .. M + 1, the
+    sample before it at 0 (the previous piece's of the run, or the extra one of a run's
+    first piece) and, for the last piece of a run (``has_right``), the extra one after it at
+    M + 2.  A dip is resolved (``_resolve_dip``) with Numba's determinants on the host, the
+    one-kernel path's own function: 3-8 determinants per dip, a few per cent of the work
+    (dip_dets[s] counts them)."""
+    M = svx.shape[1] - 3
     for s in prange(nv.shape[0]):
         nf = flag_first[s + 1] - flag_first[s]
         buf = np.empty(nv[s] + (2 * M - 1) * nf)
         cap = min(buf.shape[0], MAX_ROOTS)
-        lg = np.empty(M + 1)
+        out = buf[:cap]
+        lg = np.empty(M + 3)
+        a = np.empty((MAXD + 1, MAXD + 1))
+        b = np.empty((MAXD + 1, MAXD + 1))
+        cf = np.empty((2, MAXD + 2))
+        mat = np.empty((MAXD + 1, MAXD + 1))
+        st = np.zeros(N_STATS, dtype=np.int64)
+        loaded = False
         for i in range(nv[s]):
             buf[i] = roots[s, i]
         count = nv[s]
         for f in range(flag_first[s], flag_first[s + 1]):
             changes = 0
-            for k in range(M):
-                if ss[f, k] != ss[f, k + 1]:
+            for k in range(1, M + 1):
+                if ssx[f, k] != ssx[f, k + 1]:
                     changes += 1
             if changes > NOISY_CHANGES:
                 continue
@@ -536,14 +551,23 @@ def refine_assemble(flag_first, sv, ss, sl, bracket, pinned, roots, nv, ref_firs
                 if bracket[f, k] and count < cap:
                     buf[count] = pinned[f, k]
                     count += 1
-            for k in range(M + 1):
-                lg[k] = _deflate(sv[f, k], sl[f, k], buf, count)
-            for k in range(M):
-                kink_l = k > 0 and lg[k - 1] + lg[k + 1] - 2.0 * lg[k] > KINK
-                if kink_l and count < cap and ss[f, k] == ss[f, k - 1] and ss[f, k] == ss[f, k + 1] \
-                        and lg[k] < lg[k - 1] and lg[k] < lg[k + 1]:
-                    buf[count] = sv[f, k]  # a one-signed dip: (near-)double root candidate
-                    count += 1
+            k_hi = M + 2 if has_right[f] else M + 1
+            for k in range(k_hi + 1):
+                lg[k] = _deflate(svx[f, k], slx[f, k], buf, count)
+            for k in range(1, (M + 1 if has_right[f] else M) + 1):
+                if count < cap and lg[k - 1] + lg[k + 1] - 2.0 * lg[k] > KINK and ssx[f, k] == ssx[f, k - 1] \
+                        and ssx[f, k] == ssx[f, k + 1] and ssx[f, k] != 0 and lg[k] < lg[k - 1] and lg[k] < lg[k + 1]:
+                    if (k - 2 < 0 or lg[k - 2] >= lg[k - 1]) and (k + 2 > k_hi or lg[k + 2] >= lg[k + 1]):
+                        if not loaded:
+                            _unpack(coef[s], 0, sysint3[s, 0], a)
+                            _unpack(coef[s], b_offset, sysint3[s, 1], b)
+                            loaded = True
+                        count = _resolve_dip(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], svx[f, k - 1], svx[f, k],
+                                             svx[f, k + 1], ssx[f, k], lg[k - 1], lg[k], lg[k + 1], cf, mat, out, count, st)
+                    else:
+                        buf[count] = svx[f, k]  # noise dip: its deepest sample is a candidate
+                        count += 1
+        dip_dets[s] = st[STAT_DETS]
         ref_count[s] = count - nv[s]
         for i in range(nv[s], count):
             ref_roots[ref_first[s] + i - nv[s]] = buf[i]
@@ -720,24 +744,59 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     M = SUB_SAMPLES
     flags = np.zeros((S, max(pieces, 1)), dtype=np.int64)
     if REFINE_LEVELS and S:
-        refine_flags(vs, lg, roots, nv, piece_of, productive, pieces, flags)
+        # the ghost samples a piece outside both ends of the range
+        ls = np.flatnonzero(live)
+        hh = vs[ls, 1] - vs[ls, 0]
+        ghost = np.zeros((S, 2))
+        sign, log, dets = dev.dets(np.repeat(ls, 2).astype(np.int32),
+                                   np.ascontiguousarray(np.column_stack([vs[ls, 0] - hh, vs[ls, pieces] + hh])).ravel())
+        ghost[ls] = log.reshape(-1, 2)
+        np.add.at(dets_per_sys, np.repeat(ls, 2), dets)
+        refine_flags(vs, lg, ghost, roots, nv, piece_of, productive, pieces, flags)
         flags[~live] = 0
     fs, fk = np.nonzero(flags)
+    F = fs.shape[0]
     flag_first = np.concatenate([[0], np.cumsum(np.count_nonzero(flags, axis=1))]).astype(np.int64)
+    # runs of consecutive flagged pieces: the previous piece of a run gives the sample before a
+    # piece; a run's first piece takes an extra one below it, its last one an extra one above
+    prev_flag = (fk > 0) & (flags[fs, np.maximum(fk - 1, 0)] != 0)
+    next_flag = (fk + 1 < pieces) & (flags[fs, np.minimum(fk + 1, max(pieces - 1, 0))] != 0)
     a_ = vs[fs, fk]
     b_ = vs[fs, fk + 1]
     hsub = (b_ - a_) / M
     sv = a_[:, None] + np.arange(M + 1)[None, :] * hsub[:, None]
     sv[:, M] = b_
-    sign, log, dets = dev.dets(np.repeat(fs, M + 1).astype(np.int32), np.ascontiguousarray(sv).ravel())
-    ss = sign.reshape(-1, M + 1).astype(np.int64)
-    sl = log.reshape(-1, M + 1)
-    np.add.at(dets_per_sys, np.repeat(fs, M + 1), dets)
-    bracket = np.zeros((fs.shape[0], M), dtype=np.int64)
-    if fs.shape[0]:
+    first = np.flatnonzero(~prev_flag)
+    last = np.flatnonzero(~next_flag)
+    job_sys = np.concatenate([np.repeat(fs, M + 1), fs[first], fs[last]]).astype(np.int32)
+    job_v = np.concatenate([sv.ravel(), a_[first] - hsub[first], b_[last] + hsub[last]])
+    sign, log, dets = dev.dets(job_sys, np.ascontiguousarray(job_v))
+    np.add.at(dets_per_sys, job_sys, dets)
+    ss = sign[:F * (M + 1)].reshape(-1, M + 1).astype(np.int64)
+    sl = log[:F * (M + 1)].reshape(-1, M + 1)
+    svx = np.zeros((F, M + 3))
+    ssx = np.zeros((F, M + 3), dtype=np.int64)
+    slx = np.zeros((F, M + 3))
+    svx[:, 1:M + 2] = sv
+    ssx[:, 1:M + 2] = ss
+    slx[:, 1:M + 2] = sl
+    inner = np.flatnonzero(prev_flag)
+    svx[inner, 0] = sv[inner - 1, M - 1]
+    ssx[inner, 0] = ss[inner - 1, M - 1]
+    slx[inner, 0] = sl[inner - 1, M - 1]
+    o = F * (M + 1)
+    svx[first, 0] = job_v[o:o + first.size]
+    ssx[first, 0] = sign[o:o + first.size]
+    slx[first, 0] = log[o:o + first.size]
+    o += first.size
+    svx[last, M + 2] = job_v[o:o + last.size]
+    ssx[last, M + 2] = sign[o:o + last.size]
+    slx[last, M + 2] = log[o:o + last.size]
+    bracket = np.zeros((F, M), dtype=np.int64)
+    if F:
         refine_brackets(fs.astype(np.int64), sv, ss, roots, nv, bracket)
     bf, bk = np.nonzero(bracket)
-    pinned = np.zeros((fs.shape[0], M))
+    pinned = np.zeros((F, M))
     root, dets = dev.illinois(fs[bf].astype(np.int32), np.ascontiguousarray(np.column_stack([sv[bf, bk], sv[bf, bk + 1], sl[bf, bk], sl[bf, bk + 1]])),
                               np.ascontiguousarray(np.column_stack([ss[bf, bk], ss[bf, bk + 1]]), dtype=np.int32))
     pinned[bf, bk] = root
@@ -745,8 +804,11 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     ref_first = (flag_first * (2 * M - 1)).astype(np.int64)
     ref_roots = np.zeros(max(int(ref_first[-1]), 1))
     ref_count = np.zeros(S, dtype=np.int64)
+    dip_dets = np.zeros(S, dtype=np.int64)
     if S:
-        refine_assemble(flag_first, sv, ss, sl, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots)
+        refine_assemble(flag_first, svx, ssx, slx, ~next_flag, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots,
+                        coef, sysint3, b_offset, dip_dets)
+        dets_per_sys += dip_dets
 
     # stage E: candidates at the refined roots, seeded polish, straight line, statistics
     stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,

@@ -42,28 +42,51 @@ static double coeffs_at(__global const double *p, int d, int n, double v, double
     return m;
 }
 
-// Sign and log|det| of the n x n Bézout matrix of (a(., v), b(., v)) (eq 29): the O(n^2)
-// recurrence R[i, j] = R[i-1, j+1] + a_i b_{j+1} - b_i a_{j+1}, then Gaussian elimination
-// with partial pivoting carrying the sign and the log-magnitude (as det_bezout).  Sign 0
-// when a column is exactly zero or a coefficient vector vanishes.
+// The u-degree of the packed polynomial p of total degree d, at most n (rows above it were
+// zeroed by _u_degree), as _top_row.
+static int top_row(__global const double *p, int d, int n) {
+    int i = min(n, d);
+    while (i > 0) {
+        int off = i * (d + 1) - i * (i - 1) / 2;
+        for (int j = 0; j <= d - i; ++j)
+            if (p[off + j] != 0.0) return i;
+        --i;
+    }
+    return 0;
+}
+
+// Sign and log|det| of the hybrid Bézout matrix of (a(., v), b(., v)) (eq 29; as
+// det_bezout): f the polynomial of the larger u-degree n, g the other (degree m); rows
+// k < n - m the shifts u^k g, rows n - c (c = m .. 1) the Bézoutian rows
+// F_hi G_lo - G_hi F_lo (f = u^c F_hi + F_lo, g = u^c G_hi + G_lo); its determinant is the
+// resultant.  Then Gaussian elimination with partial pivoting carrying the sign and the
+// log-magnitude.  Sign 0 when a column is exactly zero or a coefficient vector vanishes.
 static int det_bezout(__global const double *a, int da, __global const double *b, int db, int n, double v,
                       double *logdet) {
     double A[MAXN + 2], B[MAXN + 2];
     double mat[MAXN * MAXN];
-    int na = min(n, da);
+    int na = top_row(a, da, n);
+    int nb = top_row(b, db, n);
     double ma = coeffs_at(a, da, na, v, A);
-    double mb = coeffs_at(b, db, n, v, B);
-    for (int i = na + 1; i <= n; ++i) A[i] = 0.0;
+    double mb = coeffs_at(b, db, nb, v, B);
     *logdet = -INFINITY;
     if (!(ma > 0.0 && mb > 0.0) || !(isfinite(ma) && isfinite(mb))) return 0;
+    const double *F = B, *G = A;
+    int m = na;
+    n = nb;
+    if (na > nb) { F = A; G = B; m = nb; n = na; }
     if (n == 0) { *logdet = 0.0; return 1; }
-    for (int j = 0; j < n; ++j) mat[j] = A[0] * B[j + 1] - B[0] * A[j + 1];
-    for (int i = 1; i < n; ++i)
+    for (int r = 0; r < n - m; ++r)
+        for (int j = 0; j < n; ++j) mat[r * n + j] = (j >= r && j - r <= m) ? G[j - r] : 0.0;
+    for (int c = m; c >= 1; --c) {
+        int r = n - c;
         for (int j = 0; j < n; ++j) {
-            double t = A[i] * B[j + 1] - B[i] * A[j + 1];
-            if (j + 1 < n) t += mat[(i - 1) * n + j + 1];
-            mat[i * n + j] = t;
+            double t = 0.0;
+            for (int l = max(0, j - (n - c)); l <= min(c - 1, j); ++l) t += F[j - l + c] * G[l];
+            for (int l = max(0, j - (m - c)); l <= min(c - 1, j); ++l) t -= G[j - l + c] * F[l];
+            mat[r * n + j] = t;
         }
+    }
     int sign = 1;
     double logm = 0.0;
     for (int k = 0; k < n; ++k) {

@@ -131,6 +131,9 @@ def _run(args):
         c = result.report["counts"]
         work = (f"{c['photons']:,} photons, {c['photons_deposited']:,} deposited" if args.method == "photon"
                 else f"{c['tuples']:,} tuples, {c['paths_visible']:,} paths")
+        passes = (result.report.get("two_bounce_image") or {}).get("passes") or []
+        if passes:  # the flux / seeded estimators: forward-traced sub-triangles
+            work += f", {sum(p['sub_triangles'] for p in passes):,} forward-image sub-triangles"
         print(f"{'frame ' + str(frame) + ': ' if frame is not None else ''}baked {len(result.images)} receiver(s) "
               f"[{args.method}] in {result.report['timings']['bake_total']:.2f} s: {work}, "
               f"{c['texels_touched']:,} texels lit -> {out_dir}")

@@ -646,9 +646,7 @@ def _partial(bary, mid, uv, muv, robj):
     rows = np.arange(m)[:, None]
     nb = pts_b[rows, nearest]
     nuv = pts_uv[rows, nearest]
-    q = np.where(ok[:, :, None], pts_uv, np.nan)
-    span = np.nanmax(q, axis=1) - np.nanmin(q, axis=1)  # (m, 2)
-    dev = np.sqrt((span ** 2).sum(axis=1))
+    dev = np.sqrt((_landed_span(ok, uv, muv) ** 2).sum(axis=1))
     return nb, nuv, rec, dev
 
 

@@ -416,18 +416,23 @@ def det_bezout(a, da, b, db, n, v, cf, mat):
     n = nf
     if n == 0:
         return 1, 0.0
-    for r in range(n - m):
+    for r in range(n):
         for j in range(n):
-            mat[r, j] = G[j - r] if (j >= r and j - r <= m) else 0.0
+            mat[r, j] = 0.0
+    for r in range(n - m):
+        for i in range(m + 1):
+            mat[r, r + i] = G[i]
+    # row n - c: Σ_l G_l u^l Σ_(i >= c) F_i u^(i-c) - Σ_l F_l u^l Σ_(i >= c) G_i u^(i-c), l < c
     for c in range(m, 0, -1):
         r = n - c
-        for j in range(n):
-            t = 0.0
-            for l in range(max(0, j - (n - c)), min(c - 1, j) + 1):
-                t += F[j - l + c] * G[l]
-            for l in range(max(0, j - (m - c)), min(c - 1, j) + 1):
-                t -= G[j - l + c] * F[l]
-            mat[r, j] = t
+        for l in range(c):
+            g = G[l]
+            for i in range(c, n + 1):
+                mat[r, i - c + l] += g * F[i]
+        for l in range(c):
+            f = F[l]
+            for i in range(c, m + 1):
+                mat[r, i - c + l] -= f * G[i]
     sign = 1
     logm = 0.0
     for k in range(n):

@@ -76,15 +76,19 @@ static int det_bezout(__global const double *a, int da, __global const double *b
     n = nb;
     if (na > nb) { F = A; G = B; m = nb; n = na; }
     if (n == 0) { *logdet = 0.0; return 1; }
+    for (int r = 0; r < n * n; ++r) mat[r] = 0.0;
     for (int r = 0; r < n - m; ++r)
-        for (int j = 0; j < n; ++j) mat[r * n + j] = (j >= r && j - r <= m) ? G[j - r] : 0.0;
+        for (int i = 0; i <= m; ++i) mat[r * n + r + i] = G[i];
+    // row n - c: sum_l G_l u^l sum_(i >= c) F_i u^(i-c) - sum_l F_l u^l sum_(i >= c) G_i u^(i-c), l < c
     for (int c = m; c >= 1; --c) {
         int r = n - c;
-        for (int j = 0; j < n; ++j) {
-            double t = 0.0;
-            for (int l = max(0, j - (n - c)); l <= min(c - 1, j); ++l) t += F[j - l + c] * G[l];
-            for (int l = max(0, j - (m - c)); l <= min(c - 1, j); ++l) t -= G[j - l + c] * F[l];
-            mat[r * n + j] = t;
+        for (int l = 0; l < c; ++l) {
+            double g = G[l];
+            for (int i = c; i <= n; ++i) mat[r * n + i - c + l] += g * F[i];
+        }
+        for (int l = 0; l < c; ++l) {
+            double f = F[l];
+            for (int i = c; i <= m; ++i) mat[r * n + i - c + l] -= f * G[i];
         }
     }
     int sign = 1;

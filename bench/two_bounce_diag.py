@@ -131,18 +131,24 @@ def det(A, da, B, db, n, v):
 def scan_roots(A, da, B, db, n, margin, pieces, productive_v):
     cf = np.zeros((2, tb.MAXD + 2))
     mat = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
-    scan = np.zeros((7, tb.MAX_PIECES + 1))
+    scan = np.zeros((8, tb.MAX_PIECES + 1))
     roots = np.zeros(4 * tb.MAX_PIECES)
     stats = np.zeros(tb.N_STATS, np.int64)
-    nv = tb.find_v_roots(A, da, B, db, n, -margin, 1.0 + margin, pieces, cf, mat, scan, roots, stats)
+    live = scan[7]  # the solver's live pre-pass (pieces where a and b can vanish together)
+    live[:pieces] = 1
+    if tb.LIVE_PREPASS:
+        biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
+        if tb.live_pieces(A, da, B, db, margin, pieces, biv, np.zeros((tb.LIVE_STACK, 4)), np.zeros(tb.MAXD + 2), live) == 0:
+            return None, None, "no live piece (the pre-pass excluded the whole square)"
+    nv = tb.find_v_roots(A, da, B, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, roots, stats)
     if nv < 0:
         return None, None, None
-    grid = (scan[0, :pieces + 1].copy(), scan[1, :pieces + 1].copy(), scan[2, :pieces + 1].copy())
+    grid = (scan[0, :pieces + 1].copy(), scan[1, :pieces + 1].copy(), scan[2, :pieces + 1].copy(), live[:pieces].copy())
     productive = np.zeros(scan.shape[1])
     for i in range(nv):
         productive[i] = 1.0 if any(abs(roots[i] - pv) < 1e-5 for pv in productive_v) else 0.0
     scan[5] = productive
-    nall = tb.refine_v_roots(A, da, B, db, n, pieces, cf, mat, scan, roots, nv, scan[5], stats)
+    nall = tb.refine_v_roots(A, da, B, db, n, pieces, live, cf, mat, scan, roots, nv, scan[5], stats)
     return roots[:nv].copy(), roots[nv:nall].copy(), grid
 
 
@@ -210,12 +216,13 @@ def diagnose_path(chain, d, t, uv_missed, pieces=None, all_uv=None):
         sr, rr, grid = scan_roots(A, da, B, db, n, margin, pieces, prod_v)
         head = f"  [{name}] system {label} (rel |a|={ra:.2g}, |b|={rb:.2g}) n={n}; hidden v*={vs:.12f} u*={us:.9f}"
         if sr is None:
-            out.append(head + ": degenerate (det zero at most samples)")
+            out.append(head + ": " + (grid or "degenerate (det zero at most samples)"))
             continue
-        vgrid, sgrid, lgrid = grid
+        vgrid, sgrid, lgrid, live = grid
         h = (vgrid[-1] - vgrid[0]) / pieces
         k = int(min(pieces - 1, max(0, math.floor((vs - vgrid[0]) / h))))
         lo, hi = max(0, k - 2), min(pieces, k + 3)
+        head += f"; its piece {k} {'live' if live[k] else 'NOT live (pre-pass)'}"
         samp = " ".join(f"{sgrid[i]:+.0f}/{lgrid[i]:.2f}" for i in range(lo, hi + 1))
         allr = np.concatenate([sr, rr])
         near = np.sort(np.abs(allr - vs))[:3] if len(allr) else []

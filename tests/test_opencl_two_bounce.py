@@ -129,7 +129,8 @@ def test_opencl_determinant_equals_det_bezout():
     sysint = np.zeros((n, SYS_CAP, 7), dtype=np.int64)
     nsys = np.zeros(n, dtype=np.int64)
     state = np.zeros(n, dtype=np.int64)
-    stage_a(True, True, x0, x3, P, N, eta, b_offset, coef, sysint, nsys, state, np.zeros((n, N_STATS), dtype=np.int64))
+    stage_a(True, True, x0, x3, P, N, eta, b_offset, coef, sysint, nsys, state, np.zeros((n, N_STATS), dtype=np.int64),
+            100, np.zeros((n, SYS_CAP, 100), dtype=np.int64))
     t, k = np.nonzero((np.arange(SYS_CAP)[None, :] < nsys[:, None]) & (sysint[:, :, 1] == 1))
     assert t.size >= 20
     coef, sysint = np.ascontiguousarray(coef[t, k]), sysint[t, k]

@@ -49,8 +49,9 @@ from .jit import kernel, prange
 from .path_space2 import pack_geometry
 from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
-    SQRT_ALL_PIECES, SQRT_PIECES, STAT_ACCEPTED, STAT_DETS, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
-    TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, _bernstein_has_zero, _bmax, _build_system, _candidates_at,
+    SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
+    TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces,
+    _bernstein_has_zero, _bmax, _build_system, _candidates_at,
     _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
     refine_flags_one, solve_two_bounce_tuple,
 )
@@ -126,7 +127,7 @@ def _prepare_system(biv, da, db, refract1, stats):
 
 @kernel
 def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv, geo, geo_l, b_offset, coef, sysint,
-                      nsys, stats):
+                      nsys, stats, pieces, live_mask, live_work):
     """``_solve_oriented`` up to the systems: the same side tests and system loop, each
     system stored instead of solved (sysint has room for sysint.shape[0]).  Returns the new
     system count (more than there is room for: the tuple goes to the one-kernel path)."""
@@ -297,6 +298,16 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 status, na, nb, n = _prepare_system(biv, da, db, refract1, stats)
                 if status == 0:
                     continue
+                live = live_work[0]
+                if status == 1:
+                    if LIVE_PREPASS:
+                        boxes = live_work[1, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
+                        if live_pieces(biv[0], da, biv[1], db, V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT, pieces,
+                                       biv, boxes, live_work[2], live) == 0:
+                            continue  # as ``_eliminate``: no common zero near the triangle
+                    else:
+                        for k in range(pieces):
+                            live[k] = 1
                 if nsys < sysint.shape[0]:
                     sysint[nsys, 0] = rev
                     sysint[nsys, 1] = status
@@ -308,27 +319,31 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                     if status == 1:
                         _pack(biv[0], da, coef[nsys], 0)
                         _pack(biv[1], db, coef[nsys], b_offset)
+                        for k in range(pieces):
+                            live_mask[nsys, k] = live[k]
                 nsys += 1
     return nsys
 
 
 @kernel(parallel=True)
-def stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats):
+def stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, pieces, live_mask):
     """Stage A over a batch: systems per tuple into coef (n, cap, stride) and sysint
     (n, cap, 7) = (rev, status, da, db, na, nb, n), their count nsys (n,), and state (n,):
     0 nothing to solve, 1 staged, 2 more than cap systems (solved by the one-kernel path in
-    stage E)."""
+    stage E); live_mask (n, cap, pieces): the scan pieces of each system ``live_pieces`` keeps."""
     n = x_start.shape[0]
     for ch in prange((n + CHUNK - 1) // CHUNK):
         biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
         geo = np.zeros((3, 15, 3))
+        live_work = np.zeros((3, MAX_PIECES + 1))
         for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
             _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, t,
-                           biv, geo)
+                           biv, geo, pieces, live_mask, live_work)
 
 
 @kernel
-def _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, t, biv, geo):
+def _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, t, biv, geo,
+                   pieces, live_mask, live_work):
     for k in range(N_STATS):
         stats[t, k] = 0
     x0 = (x_start[t, 0], x_start[t, 1], x_start[t, 2])
@@ -339,10 +354,10 @@ def _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef
         state[t] = 0
         return
     m = _stage_a_oriented(refract1, refract2, x0, x3, P[t, 0], N[t, 0], P[t, 1], N[t, 1], eta[t], 0, biv, geo[0],
-                          geo[1], b_offset, coef[t], sysint[t], 0, stats[t])
+                          geo[1], b_offset, coef[t], sysint[t], 0, stats[t], pieces, live_mask[t], live_work)
     if BOTH_DIRECTIONS:
         m = _stage_a_oriented(refract2, refract1, x3, x0, P[t, 1], N[t, 1], P[t, 0], N[t, 0], eta[t], 1, biv,
-                              geo[2], geo[1], b_offset, coef[t], sysint[t], m, stats[t])
+                              geo[2], geo[1], b_offset, coef[t], sysint[t], m, stats[t], pieces, live_mask[t], live_work)
     nsys[t] = m
     state[t] = 2 if m > sysint.shape[1] else 1
 
@@ -396,11 +411,11 @@ def _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef
         margin = V_MARGIN_APPROX if r1 else V_MARGIN_EXACT
         g = geo[2] if rev else geo[0]
         for iv in range(nv[s]):
-            accepted = stats[t, STAT_ACCEPTED]
+            near = stats[t, STAT_NEAR]
             count = _candidates_at(roots[s, iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], False, r1, r2,
                                    margin, g, eta[t], work, th, u_roots, coeffs, chain, lists, rev, geo[0], out_uv[t],
                                    meta[t], count, stats[t])
-            productive[s, iv] = 1.0 if stats[t, STAT_ACCEPTED] > accepted else 0.0
+            productive[s, iv] = 1.0 if stats[t, STAT_NEAR] > near else 0.0
     out_count[t] = count
 
 
@@ -472,7 +487,7 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
 
 
 @kernel(parallel=True)
-def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, flags):
+def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, live, flags):
     """``refine_v_roots``'s choice of pieces: lgs (S, pieces + 1) and the ghost samples
     (S, 2: raw log|det| a piece below and above the range) are deflated by the scan roots;
     flags[s, k] = 1 for a piece next to a convex kink or around a productive root
@@ -483,7 +498,7 @@ def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, flags)
         g_hi = _deflate(vs[s, pieces] + h, ghost[s, 1], roots[s], nv[s])
         for k in range(pieces + 1):
             lgs[s, k] = _deflate(vs[s, k], lgs[s, k], roots[s], nv[s])
-        refine_flags_one(lgs[s], g_lo, g_hi, roots[s], nv[s], piece_of[s], productive[s], pieces, flags[s])
+        refine_flags_one(lgs[s], g_lo, g_hi, roots[s], nv[s], piece_of[s], productive[s], pieces, live[s], flags[s])
 
 
 @kernel(parallel=True)
@@ -684,7 +699,8 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     sysint = np.zeros((nb, sys_cap, 7), dtype=np.int64)
     nsys = np.zeros(nb, dtype=np.int64)
     state = np.zeros(nb, dtype=np.int64)
-    stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats)
+    live_mask = np.zeros((nb, sys_cap, max(pieces, 1)), dtype=np.int64)
+    stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, pieces, live_mask)
     # compact: the systems of staged tuples, tuple by tuple in stage A's order
     m = np.where(state == 1, nsys, 0)
     sys_first = np.concatenate([[0], np.cumsum(m)]).astype(np.int64)
@@ -693,6 +709,7 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     slot = np.arange(S) - np.repeat(sys_first[:-1], m)
     coef = np.ascontiguousarray(coef[owner, slot])
     sysint = np.ascontiguousarray(sysint[owner, slot])
+    live_mask = np.ascontiguousarray(live_mask[owner, slot])
     sysint3 = np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32)
     dets_per_sys = np.zeros(S, dtype=np.int64)
     dev.load(coef, sysint3, b_offset)
@@ -705,19 +722,25 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     h = (hi - lo) / pieces
     vs = lo[:, None] + np.arange(pieces + 1)[None, :] * h[:, None]
     solve = np.flatnonzero(sysint[:, 1] == 1) if S else np.zeros(0, dtype=np.int64)
-    sg = np.zeros((S, pieces + 1), dtype=np.int32)
-    lg = np.full((S, pieces + 1), -np.inf)
-    job_sys = np.repeat(solve, pieces + 1).astype(np.int32)
-    sign, log, dets = dev.dets(job_sys, np.ascontiguousarray(vs[solve]).ravel())
-    sg[solve] = sign.reshape(-1, pieces + 1)
-    lg[solve] = log.reshape(-1, pieces + 1)
-    np.add.at(dets_per_sys, job_sys, dets)
+    # the samples find_v_roots takes: those of the live pieces and the neighbours their kink
+    # test needs (sample k for the pieces k - 2 .. k + 1); the others hold sign 2
+    padded = np.pad(live_mask != 0, ((0, 0), (2, 2)))
+    need = padded[:, 0:pieces + 1] | padded[:, 1:pieces + 2] | padded[:, 2:pieces + 3] | padded[:, 3:pieces + 4]
+    need[sysint[:, 1] != 1] = False
+    sg = np.full((S, pieces + 1), 2, dtype=np.int32)
+    lg = np.zeros((S, pieces + 1))
+    ns, nk = np.nonzero(need)
+    sign, log, dets = dev.dets(ns.astype(np.int32), np.ascontiguousarray(vs[ns, nk]))
+    sg[ns, nk] = sign
+    lg[ns, nk] = log
+    np.add.at(dets_per_sys, ns, dets)
     degenerate = np.zeros(S, dtype=bool)
-    degenerate[solve] = 2 * np.count_nonzero(sg[solve] == 0, axis=1) > pieces
+    degenerate[solve] = 2 * np.count_nonzero((sg[solve] == 0) & need[solve], axis=1) > np.count_nonzero(need[solve], axis=1)
     sysint[degenerate, 1] = -1
     live = sysint[:, 1] == 1
-    change = (sg[:, :-1] != sg[:, 1:]) & (sg[:, :-1] != 0) & (sg[:, 1:] != 0) & live[:, None]
-    zero = (sg[:, :-1] == 0) & live[:, None]
+    in_live = (live_mask != 0) & live[:, None]
+    change = (sg[:, :-1] != sg[:, 1:]) & (sg[:, :-1] != 0) & (sg[:, 1:] != 0) & in_live
+    zero = (sg[:, :-1] == 0) & in_live
     picked = change | zero
     nv = np.count_nonzero(picked, axis=1).astype(np.int64)
     rank = np.cumsum(picked, axis=1) - 1
@@ -744,15 +767,15 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     M = SUB_SAMPLES
     flags = np.zeros((S, max(pieces, 1)), dtype=np.int64)
     if REFINE_LEVELS and S:
-        # the ghost samples a piece outside both ends of the range
-        ls = np.flatnonzero(live)
-        hh = vs[ls, 1] - vs[ls, 0]
+        # the ghost samples a piece outside either end of the range (where that end's piece is live)
         ghost = np.zeros((S, 2))
-        sign, log, dets = dev.dets(np.repeat(ls, 2).astype(np.int32),
-                                   np.ascontiguousarray(np.column_stack([vs[ls, 0] - hh, vs[ls, pieces] + hh])).ravel())
-        ghost[ls] = log.reshape(-1, 2)
-        np.add.at(dets_per_sys, np.repeat(ls, 2), dets)
-        refine_flags(vs, lg, ghost, roots, nv, piece_of, productive, pieces, flags)
+        for end, piece, v_end, sgn in ((0, 0, 0, -1.0), (1, pieces - 1, pieces, 1.0)):
+            ls = np.flatnonzero(live & (live_mask[:, piece] != 0))
+            hh = vs[ls, 1] - vs[ls, 0]
+            sign, log, dets = dev.dets(ls.astype(np.int32), np.ascontiguousarray(vs[ls, v_end] + sgn * hh))
+            ghost[ls, end] = log
+            np.add.at(dets_per_sys, ls, dets)
+        refine_flags(vs, lg, ghost, roots, nv, piece_of, productive, pieces, live_mask, flags)
         flags[~live] = 0
     fs, fk = np.nonzero(flags)
     F = fs.shape[0]

@@ -140,7 +140,7 @@ from .roots import MAX_DEGREE, roots_in_interval
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 4  # tuples per parallel work item: a two-bounce tuple costs ~1-200 ms, so small chunks balance threads
 MAXD = 47  # bivariate arrays are (MAXD + 1)²; b has total degree ≤ 46 (TT)
-N_SLOTS = 46  # 0, 1: a, b; 2-36 the system's intermediates, then the live pre-pass's stack (2-33); 40-45 its temporaries
+N_SLOTS = 46  # 0, 1: a, b; 2-36 the system's intermediates, then the live pre-pass's stack (2-33) and its temporaries (34-36, 40-44)
 DEFAULT_PIECES = 100
 MAX_PIECES = 1024
 ROOT_TOL = 1e-7  # v1 brackets are pinned to this; the path-space Newton polish takes it to ~1e-15
@@ -425,32 +425,39 @@ def _tensor_bernstein(p, d, lo, w, R, out, tmp):
 
 
 @kernel
-def _split_u(src, d, left, right, tmp):
-    """de Casteljau at the midpoint of the u axis of the tensor Bernstein form src."""
+def _split_u(src, d, left, right):
+    """de Casteljau at the midpoint of the u axis (rows i) of the tensor Bernstein form src,
+    in place in ``left`` (a copy of src): after step r its rows 0 .. r are the left half's
+    and row d the right half's row d - r.  Whole rows at a time: the inner loop runs along
+    the contiguous v index, so it vectorises."""
+    for k in range(d + 1):
+        for q in range(d + 1):
+            left[k, q] = src[k, q]
     for q in range(d + 1):
-        for k in range(d + 1):
-            tmp[k] = src[k, q]
-        for r in range(d + 1):
-            left[r, q] = tmp[0]
-            right[d - r, q] = tmp[d - r]
-            for k in range(d - r):
-                tmp[k] = 0.5 * (tmp[k] + tmp[k + 1])
+        right[d, q] = left[d, q]
+    for r in range(1, d + 1):
+        for k in range(d, r - 1, -1):
+            for q in range(d + 1):
+                left[k, q] = 0.5 * (left[k - 1, q] + left[k, q])
+        for q in range(d + 1):
+            right[d - r, q] = left[d, q]
 
 
 @kernel
-def _split_v(src, d, left, right):
-    """de Casteljau at the midpoint of the v axis, in place along each (contiguous) row of
-    ``left``: the r-th de Casteljau row is kept shifted by r, so positions 0 .. r hold the
-    left half's coefficients and position d the right half's r-th."""
-    for q in range(d + 1):
-        row = left[q]
-        for k in range(d + 1):
-            row[k] = src[q, k]
-        right[q, d] = row[d]
-        for r in range(1, d + 1):
-            for k in range(d, r - 1, -1):
-                row[k] = 0.5 * (row[k - 1] + row[k])
-            right[q, d - r] = row[d]
+def _transpose_square(src, d, dst):
+    for i in range(d + 1):
+        for j in range(d + 1):
+            dst[j, i] = src[i, j]
+
+
+@kernel
+def _split_v(src, d, left, right, t0, t1, t2):
+    """de Casteljau at the midpoint of the v axis: :func:`_split_u` of the transpose (t0, t1,
+    t2 scratch), the same arithmetic in the same order as along u."""
+    _transpose_square(src, d, t0)
+    _split_u(t0, d, t1, t2)
+    _transpose_square(t1, d, left)
+    _transpose_square(t2, d, right)
 
 
 @kernel
@@ -531,7 +538,7 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, tmp, live):
         # children in slots top .. top + 3 (u half su, v half sv -> top + 2 su + sv): a's
         # first; b (up to 3x a's degree, ~25x the work) only for the u halves where one of
         # a's children may vanish
-        _split_u(ca, da, biv[41], biv[42], tmp)
+        _split_u(ca, da, biv[41], biv[42])
         hw = 0.5 * w
         for c in range(4):
             boxes[top + c, 0] = u0 + (c // 2) * hw
@@ -539,7 +546,8 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, tmp, live):
             boxes[top + c, 2] = hw
             boxes[top + c, 3] = level + 1.0
         for su in range(2):
-            _split_v(biv[41 + su], da, biv[LIVE_SLOT0 + 2 * (top + 2 * su)], biv[LIVE_SLOT0 + 2 * (top + 2 * su + 1)])
+            _split_v(biv[41 + su], da, biv[LIVE_SLOT0 + 2 * (top + 2 * su)], biv[LIVE_SLOT0 + 2 * (top + 2 * su + 1)],
+                     biv[34], biv[35], biv[36])
         keep = 0
         for su in range(2):
             for sv in range(2):
@@ -550,11 +558,11 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, tmp, live):
                 else:
                     keep |= 1 << su
         if keep != 0:
-            _split_u(cb, db, biv[43], biv[44], tmp)
+            _split_u(cb, db, biv[43], biv[44])
             for su in range(2):
                 if (keep >> su) & 1:
                     _split_v(biv[43 + su], db, biv[LIVE_SLOT0 + 2 * (top + 2 * su) + 1],
-                             biv[LIVE_SLOT0 + 2 * (top + 2 * su + 1) + 1])
+                             biv[LIVE_SLOT0 + 2 * (top + 2 * su + 1) + 1], biv[34], biv[35], biv[36])
         top += 4
     return n_live
 

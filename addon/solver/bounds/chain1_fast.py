@@ -328,8 +328,9 @@ S_TB = 36                                 # T: 4 fields x (pu, pv, q) = 12 slots
 S_NNDD, S_DN2 = 48, 49
 S_BOX = 50                                # restricted copies (12 + 2)
 S_REST = 64                               # per-box combined numerators (2 slices x 3 + w, tx, ty)
-S_IRR = 76                                # T irradiance per piece (many)
-NSLOTS = 110
+S_IRR = 76                                # R irradiance set-up (14)
+S_CK = 110                                # per caster: 4 fields x (s × V, V) (24, plain Bernstein)
+NSLOTS = 134
 
 
 @kernel
@@ -360,76 +361,123 @@ def _caster_unit(W, x0, P, N, Q, lo, hi):
 
 
 @kernel
-def _numerators(W, v0, ev, out_pu, out_pv, out_q, eo):
-    """pu = V·(ek2 × r), pv = V·(r × ek1), q = V·(ek2 × ek1) for the direction field in slots
-    v0.. (eq 9 with (a×b)·c = a·(b×c)), elevated to extents eo, converted to plain Bernstein."""
+def _field_parts(W, v0, ev, f0, eo):
+    """Per-caster parts of the numerators of one direction field V (slots v0..v0+2, extents
+    ev): K = s × V with s = x1 - P0 (slots S_R.., affine) into f0..f0+2 and V itself into
+    f0+3..f0+5, elevated to extents eo and converted to plain Bernstein.  With r = x1 - Q0 =
+    s + h, h = P0 - Q0, eq 9's numerators are linear in them (:func:`_setup_tuple`), so the
+    products are formed once per caster triangle, not once per (caster, receiver) tuple."""
     tmp = W[S_TMP]
-    t2 = W[S_TMP + 1]
     t3 = W[S_TMP + 2]
-    e = _dotv(W, v0, ev, S_E2R, E2, t3, tmp)
-    pelevate(t3, e, eo, out_pu, tmp)
-    to_bernstein(out_pu, eo)
-    e = _dotv(W, v0, ev, S_RE1, E2, t3, tmp)
-    pelevate(t3, e, eo, out_pv, tmp)
-    to_bernstein(out_pv, eo)
-    # q: the constant vector ek2 × ek1 is in slot S_TMP+3 (first 3 entries)
-    c = W[S_TMP + 3]
-    n = _size(ev)
-    for k in range(n):
-        t2[k] = c[0] * W[v0, k] + c[1] * W[v0 + 1, k] + c[2] * W[v0 + 2, k]
-    pelevate(t2, ev, eo, out_q, tmp)
-    to_bernstein(out_q, eo)
+    for c in range(3):
+        i = (c + 1) % 3
+        j = (c + 2) % 3
+        e = pmul(W[S_R + i], E2, W[v0 + j], ev, t3)
+        pmul(W[S_R + j], E2, W[v0 + i], ev, W[S_TMP + 1])
+        n = _size(e)
+        for k in range(n):
+            t3[k] -= W[S_TMP + 1, k]
+        pelevate(t3, e, eo, W[f0 + c], tmp)
+        to_bernstein(W[f0 + c], eo)
+        pelevate(W[v0 + c], ev, eo, W[f0 + 3 + c], tmp)
+        to_bernstein(W[f0 + 3 + c], eo)
 
 
 @kernel
-def _setup(W, refract, irradiance, x0, P, N, Q):
-    """Per-tuple polynomials on the unit box of (u1, v1) (slots S_PU.., S_TB..)."""
+def _setup_caster(W, refract, x0, P, N):
+    """Per-caster-triangle polynomials on the unit box of (u1, v1): x1, n1, d0 (eq 6–8), the
+    direction fields of eq 10 and their numerator parts (:func:`_field_parts`, slots S_CK..);
+    for T also nndd, dn² (plain Bernstein).  They do not depend on the receiver triangle, so
+    the batch builds them once per run of tuples that share the caster."""
     lo = (0.0, 0.0)
     hi = (1.0, 1.0)
-    _caster_unit(W, x0, P, N, Q, lo, hi)
-    ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
-    ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
-    _cross_const_affine(W, S_R, ek2, S_E2R, True)
-    _cross_const_affine(W, S_R, ek1, S_RE1, False)
-    c = W[S_TMP + 3]
-    c[0] = ek2[1] * ek1[2] - ek2[2] * ek1[1]
-    c[1] = ek2[2] * ek1[0] - ek2[0] * ek1[2]
-    c[2] = ek2[0] * ek1[1] - ek2[1] * ek1[0]
+    for c in range(3):
+        e1 = P[1, c] - P[0, c]
+        e2 = P[2, c] - P[0, c]
+        _affine2(P[0, c], e1, e2, lo, hi, W[S_X + c])
+        _affine2(N[0, c], N[1, c] - N[0, c], N[2, c] - N[0, c], lo, hi, W[S_N + c])
+        _affine2(P[0, c] - x0[c], e1, e2, lo, hi, W[S_D + c])
+        _affine2(0.0, e1, e2, lo, hi, W[S_R + c])  # s = x1 - P0
     tmp = W[S_TMP]
     e3 = _dotv(W, S_N, E2, S_N, E2, W[S_NN], tmp)  # n·n
     _dotv(W, S_D, E2, S_N, E2, W[S_DN], tmp)       # d·n
     ev = (1, 1, 4, 4)
     if not refract:
-        # d̃ = (n·n) d - 2 (d·n) n (eq 10), extents (1,1,4,4)
+        # d̃ = (n·n) d - 2 (d·n) n (eq 10), extents (1,1,4,4); kept in S_V for the irradiance
         for cc in range(3):
             ev = pmul(W[S_NN], e3, W[S_D + cc], E2, W[S_V + cc])
             pmul(W[S_DN], e3, W[S_N + cc], E2, tmp)
             _axpy(_size(ev), -2.0, tmp, W[S_V + cc])
-        ep = (1, 1, 5, 5)
-        _numerators(W, S_V, ev, W[S_PU], W[S_PV], W[S_Q], ep)
-        if irradiance:
-            _setup_reflect_irradiance(W)
+        _field_parts(W, S_V, ev, S_CK, (1, 1, 5, 5))
         return
     # refraction: fields P1 = (n·n) d - (d·n) n, nndd n, dn² n, n (eq 10 with √β -> aβ + b + ξ δ)
-    ev = (1, 1, 4, 4)
+    ep = (1, 1, 7, 7)
     for cc in range(3):
         pmul(W[S_NN], e3, W[S_D + cc], E2, W[S_V + cc])
         pmul(W[S_DN], e3, W[S_N + cc], E2, tmp)
         _axpy(_size(ev), -1.0, tmp, W[S_V + cc])
-    ev6 = (1, 1, 6, 6)
-    ep = (1, 1, 7, 7)
-    _numerators(W, S_V, ev, W[S_TB + 0], W[S_TB + 1], W[S_TB + 2], ep)
+    _field_parts(W, S_V, ev, S_CK, ep)
     _dotv(W, S_D, E2, S_D, E2, W[S_DD], tmp)
     e5 = pmul(W[S_NN], e3, W[S_DD], e3, W[S_NNDD])
     pmul(W[S_DN], e3, W[S_DN], e3, W[S_DN2])
     for f in range(2):
         src = S_NNDD if f == 0 else S_DN2
+        ev6 = e5
         for cc in range(3):
             ev6 = pmul(W[src], e5, W[S_N + cc], E2, W[S_V + cc])
-        _numerators(W, S_V, ev6, W[S_TB + 3 + 3 * f], W[S_TB + 4 + 3 * f], W[S_TB + 5 + 3 * f], ep)
-    _numerators(W, S_N, E2, W[S_TB + 9], W[S_TB + 10], W[S_TB + 11], ep)
+        _field_parts(W, S_V, ev6, S_CK + 6 + 6 * f, ep)
+    _field_parts(W, S_N, E2, S_CK + 18, ep)
     to_bernstein(W[S_NNDD], e5)
     to_bernstein(W[S_DN2], e5)
+
+
+@kernel
+def _setup_tuple(W, refract, x0, P, Q):
+    """Per-tuple numerators of eq 9 on the unit box from the caster parts of
+    :func:`_setup_caster`: with r = x1 - Q0 = s + h (h = P0 - Q0),
+    pu = V·(ek2 × r) = ek2·(s × V) + (ek2 × h)·V, pv = V·(r × ek1) = -ek1·(s × V) + (h × ek1)·V,
+    q = (ek2 × ek1)·V: 15 coefficient rows per field instead of 9 polynomial products, an
+    elevation and a basis conversion (both linear, so applied once per caster instead)."""
+    ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
+    ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
+    h = (P[0, 0] - Q[0, 0], P[0, 1] - Q[0, 1], P[0, 2] - Q[0, 2])
+    a = (ek2[1] * h[2] - ek2[2] * h[1], ek2[2] * h[0] - ek2[0] * h[2], ek2[0] * h[1] - ek2[1] * h[0])
+    b = (h[1] * ek1[2] - h[2] * ek1[1], h[2] * ek1[0] - h[0] * ek1[2], h[0] * ek1[1] - h[1] * ek1[0])
+    c = W[S_TMP + 3]
+    c[0] = ek2[1] * ek1[2] - ek2[2] * ek1[1]
+    c[1] = ek2[2] * ek1[0] - ek2[0] * ek1[2]
+    c[2] = ek2[0] * ek1[1] - ek2[1] * ek1[0]
+    nf = 4 if refract else 1
+    n = 49 if refract else 25
+    for f in range(nf):
+        k0 = S_CK + 6 * f
+        o = S_TB + 3 * f if refract else S_PU
+        pu = W[o]
+        pv = W[o + 1]
+        q = W[o + 2]
+        K0, K1, K2 = W[k0], W[k0 + 1], W[k0 + 2]
+        V0, V1, V2 = W[k0 + 3], W[k0 + 4], W[k0 + 5]
+        for k in range(n):
+            pu[k] = ek2[0] * K0[k] + ek2[1] * K1[k] + ek2[2] * K2[k] + a[0] * V0[k] + a[1] * V1[k] + a[2] * V2[k]
+            pv[k] = -(ek1[0] * K0[k] + ek1[1] * K1[k] + ek1[2] * K2[k]) + b[0] * V0[k] + b[1] * V1[k] + b[2] * V2[k]
+            q[k] = c[0] * V0[k] + c[1] * V1[k] + c[2] * V2[k]
+    if not refract:
+        # r, ek2 × r, r × ek1 (affine) for the lazily built reflection irradiance polynomials
+        lo = (0.0, 0.0)
+        hi = (1.0, 1.0)
+        for cc in range(3):
+            _affine2(P[0, cc] - Q[0, cc], P[1, cc] - P[0, cc], P[2, cc] - P[0, cc], lo, hi, W[S_R + cc])
+        _cross_const_affine(W, S_R, ek2, S_E2R, True)
+        _cross_const_affine(W, S_R, ek1, S_RE1, False)
+
+
+@kernel
+def _setup(W, refract, irradiance, x0, P, N, Q):
+    """Per-tuple polynomials on the unit box of (u1, v1) (slots S_PU.., S_TB..)."""
+    _setup_caster(W, refract, x0, P, N)
+    _setup_tuple(W, refract, x0, P, Q)
+    if irradiance and not refract:
+        _setup_reflect_irradiance(W)
 
 
 @kernel
@@ -1042,9 +1090,10 @@ def tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P, N, Q, UV, 
     """chain1.tuple_pieces with the fast engine: same stopping rules (§6.1), same piece rows.
 
     The root's position bound is computed before the per-tuple polynomials of the irradiance
-    so that a tuple whose caustic misses the receiver triangle costs one position bound."""
+    so that a tuple whose caustic misses the receiver triangle costs one position bound.
+    The caller has built the caster's polynomials (:func:`_setup_caster`) in W."""
     cap = out.shape[0]
-    _setup(W, refract, False, x0, P, N, Q)
+    _setup_tuple(W, refract, x0, P, Q)
     have_irr = False
     stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0.0, 1.0, 0.0, 1.0, 0.0
     top = 1
@@ -1120,9 +1169,13 @@ def batch_fast(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, ir
         W, work, scr, U = workspace()
         stack = np.empty((4 * (max_depth + 2), 5))
         rstack = np.empty((4 * (irr_refine + 2), 5))
+        last = -1
         for t in range(ci * chunk, min(n, (ci + 1) * chunk)):
             c = pairs[t, 0]
             r = pairs[t, 1]
+            if c != last:  # pairs are usually grouped by caster: its polynomials are reused
+                _setup_caster(W, refract, x0, P[c], N[c])
+                last = c
             counts[t] = tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma,
                                           alpha, irradiance, irr_refine, out[t], stats[t])
 

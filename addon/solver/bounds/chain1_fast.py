@@ -207,42 +207,61 @@ def coef_minmax(a, n):
     return lo, hi
 
 
+@kernel(error_model="numpy")
+def _ratio_minmax(p, q, n, buf):
+    """min and max of p[k] / q[k] over k < n (q has no zero: the callers checked its sign).
+    The quotients go through ``buf`` so that the division loop is a plain vector loop (the
+    numpy error model drops Python's zero-division test per quotient), and the min / max
+    run in four independent chains; NaN quotients are skipped as min(acc, nan) = acc does."""
+    for k in range(n):
+        buf[k] = p[k] / q[k]
+    lo0 = lo1 = lo2 = lo3 = np.inf
+    hi0 = hi1 = hi2 = hi3 = -np.inf
+    m = n - n % 4
+    for k in range(0, m, 4):
+        r0 = buf[k]
+        r1 = buf[k + 1]
+        r2 = buf[k + 2]
+        r3 = buf[k + 3]
+        lo0 = min(lo0, r0)
+        lo1 = min(lo1, r1)
+        lo2 = min(lo2, r2)
+        lo3 = min(lo3, r3)
+        hi0 = max(hi0, r0)
+        hi1 = max(hi1, r1)
+        hi2 = max(hi2, r2)
+        hi3 = max(hi3, r3)
+    for k in range(m, n):
+        lo0 = min(lo0, buf[k])
+        hi0 = max(hi0, buf[k])
+    return min(min(lo0, lo1), min(lo2, lo3)), max(max(hi0, hi1), max(hi2, hi3))
+
+
 @kernel
-def ratio_bound(p, q, n):
+def _one_signed(a, n):
+    """(all a[k] > 0, all a[k] < 0) over k < n, by counting (a branch-free loop)."""
+    npos = 0
+    nneg = 0
+    for k in range(n):
+        v = a[k]
+        npos += 1 if v > 0.0 else 0
+        nneg += 1 if v < 0.0 else 0
+    return npos == n, nneg == n
+
+
+@kernel
+def ratio_bound(p, q, n, buf):
     """Fan et al. 2025 eq 3 and the two fallbacks of §4.1 on n coefficient pairs at one
-    degree (the same cases as ``bernstein.rational_bound``): (lo1, hi1, lo2, hi2)."""
-    pos = True
-    neg = True
-    for k in range(n):
-        v = q[k]
-        if not v > 0.0:
-            pos = False
-        if not v < 0.0:
-            neg = False
+    degree (the same cases as ``bernstein.rational_bound``): (lo1, hi1, lo2, hi2).
+    ``buf`` is scratch of n entries."""
+    pos, neg = _one_signed(q, n)
     if pos or neg:
-        lo = np.inf
-        hi = -np.inf
-        for k in range(n):
-            r = p[k] / q[k]
-            lo = min(lo, r)
-            hi = max(hi, r)
+        lo, hi = _ratio_minmax(p, q, n, buf)
         return lo, hi, np.inf, -np.inf
-    pos = True
-    neg = True
-    for k in range(n):
-        v = p[k]
-        if not v > 0.0:
-            pos = False
-        if not v < 0.0:
-            neg = False
+    pos, neg = _one_signed(p, n)
     if not (pos or neg):
         return -np.inf, np.inf, np.inf, -np.inf
-    rlo = np.inf
-    rhi = -np.inf
-    for k in range(n):
-        r = q[k] / p[k]
-        rlo = min(rlo, r)
-        rhi = max(rhi, r)
+    rlo, rhi = _ratio_minmax(q, p, n, buf)
     if rlo > 0.0 or rhi < 0.0:
         return 1.0 / rhi, 1.0 / rlo, np.inf, -np.inf
     a = 1.0 / rlo if rlo < 0.0 else -np.inf
@@ -328,6 +347,7 @@ S_TB = 36                                 # T: 4 fields x (pu, pv, q) = 12 slots
 S_NNDD, S_DN2 = 48, 49
 S_BOX = 50                                # restricted copies (12 + 2)
 S_REST = 64                               # per-box combined numerators (2 slices x 3 + w, tx, ty)
+S_RBUF = 73                               # quotients of ratio_bound (<= 128)
 S_IRR = 76                                # R irradiance set-up (14)
 S_CK = 110                                # per caster: 4 fields x (s × V, V) (24, plain Bernstein)
 NSLOTS = 134
@@ -577,18 +597,18 @@ def _orientation_mask(x0, P, N, lo, hi):
 def _bounds_from(W, pu, pv, q, n, UV, res):
     """uk, vk, w = 1 - uk - vk and UV bounds from coefficient arrays (one degree, n of them);
     res[0:8] as chain1.piece_position before padding; returns False when the bound misses."""
-    a, b, c, e = ratio_bound(W[pu], W[q], n)
+    a, b, c, e = ratio_bound(W[pu], W[q], n, W[S_RBUF])
     ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
     if ulo > uhi:
         return False
-    a, b, c, e = ratio_bound(W[pv], W[q], n)
+    a, b, c, e = ratio_bound(W[pv], W[q], n, W[S_RBUF])
     vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
     if vlo > vhi or ulo + vlo > 1.0:
         return False
     t = W[S_REST + 8]
     for k in range(n):
         t[k] = W[q, k] - W[pu, k] - W[pv, k]
-    a, b, c, e = ratio_bound(t, W[q], n)
+    a, b, c, e = ratio_bound(t, W[q], n, W[S_RBUF])
     wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
     if wlo > whi:
         return False
@@ -600,11 +620,11 @@ def _bounds_from(W, pu, pv, q, n, UV, res):
     uvhi_y = max(UV[0, 1], UV[1, 1], UV[2, 1])
     for k in range(n):
         t[k] = W[q, k] * UV[0, 0] + W[pu, k] * (UV[1, 0] - UV[0, 0]) + W[pv, k] * (UV[2, 0] - UV[0, 0])
-    a, b, c, e = ratio_bound(t, W[q], n)
+    a, b, c, e = ratio_bound(t, W[q], n, W[S_RBUF])
     xlo, xhi = clip_hull(a, b, c, e, uvlo_x, uvhi_x)
     for k in range(n):
         t[k] = W[q, k] * UV[0, 1] + W[pu, k] * (UV[1, 1] - UV[0, 1]) + W[pv, k] * (UV[2, 1] - UV[0, 1])
-    a, b, c, e = ratio_bound(t, W[q], n)
+    a, b, c, e = ratio_bound(t, W[q], n, W[S_RBUF])
     ylo, yhi = clip_hull(a, b, c, e, uvlo_y, uvhi_y)
     if xlo > xhi or ylo > yhi:
         return False
@@ -706,7 +726,7 @@ def box_irradiance_reflect(W, work, Q, lo, hi):
     e3 = (1, 1, 3, 3)
     restrict2(W[S_DDB], e3, lo, hi, W[S_BOX + 2], tmp, work)
     dlo, dhi = coef_minmax(W[S_BOX + 2], 9)
-    a, b, c, d = ratio_bound(W[S_BOX + 1], W[S_BOX], 121)
+    a, b, c, d = ratio_bound(W[S_BOX + 1], W[S_BOX], 121, W[S_RBUF])
     ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
     ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
     ak = math.sqrt((ek1[1] * ek2[2] - ek1[2] * ek2[1]) ** 2 + (ek1[2] * ek2[0] - ek1[0] * ek2[2]) ** 2
@@ -738,8 +758,8 @@ U_FV = 64                   # ∂f_α/∂v1 (6)
 U_DET = 70                  # det1 coefficient of σ^a τ^b, |(a, b)| <= 3 (10), order 00, 10, 01, 20, 11, 02, 30, 21, 12, 03
 U_NK = 80                   # detk coefficient of 1, σ, τ (3)
 U_NC = 83                   # cos × detk (3)
-U_E = 86                    # an elevated copy
-NU = 88
+U_E = 86                    # elevated copies (3)
+NU = 89
 
 
 @kernel
@@ -774,24 +794,17 @@ def _zero(n, x):
 
 
 @kernel
-def _pow_to_bernstein3(i, a):
-    """Coefficient of B_i^3 in the Bernstein form of t^a on [0, 1]: C(i, a) / C(3, a)."""
-    if a > i:
-        return 0.0
-    return BINOM[i, a] / BINOM[3, a]
-
-
-@kernel
-def _elevate2_11(a, n, out, tmp):
-    """Degree elevation of scaled coefficients in (u1, v1), extents (n, n) -> (11, 11): the
-    product with the constant 1 of degree 11 - n (binomial weights), one axis at a time with
-    the long rows innermost (pelevate's generic loops run rows of length 1 on the last axis)."""
+def _elevate2_11(a, n, s, out, tmp):
+    """s times the degree elevation of scaled coefficients in (u1, v1), extents (n, n) ->
+    (11, 11): the product with the constant 1 of degree 11 - n (binomial weights), one axis
+    at a time with the long rows innermost (pelevate's generic loops run rows of length 1 on
+    the last axis)."""
     k = 11 - n
     for t in range(n * 11):
         tmp[t] = 0.0
     for i in range(n):
         for c in range(k + 1):
-            w = BINOM[k, c]
+            w = s * BINOM[k, c]
             src = i * n
             dst = i * 11 + c
             for j in range(n):
@@ -808,19 +821,101 @@ def _elevate2_11(a, n, out, tmp):
 
 
 @kernel
-def _accumulate4(U, src, n, a, b, scale, out, tmp):
-    """out (extents (4, 4, 11, 11), order (uk, vk, u1, v1)) += scale · σ^a τ^b · U[src], where
-    U[src] (extents (1, 1, n, n), scaled Bernstein in (u1, v1)) is elevated to (11, 11) and the
-    monomial σ^a τ^b is written in the degree-(3, 3) Bernstein basis of the (uk, vk) box."""
-    _elevate2_11(U[src], n, U[U_E], tmp)
-    ev = U[U_E]
-    for i in range(a, 4):
-        wi = scale * _pow_to_bernstein3(i, a)
-        for j in range(b, 4):
-            w = wi * _pow_to_bernstein3(j, b)
+def _det_to_bernstein4(U, out, tmp):
+    """out (extents (4, 4, 11, 11), order (uk, vk, u1, v1)) = Σ_{a+b<=3} σ^a τ^b D_ab, D_ab =
+    U[U_DET..] (extents 9 - a - b in (u1, v1), elevated to 11), in the degree-(3, 3)
+    Bernstein basis of the (uk, vk) box.  σ^a = Σ_i C(i, a)/C(3, a) B_i^3(σ), so with
+    m_a = D_a / C(3, a) placed in slab a the coefficients c_i = Σ_a C(i, a) m_a are three
+    rounds of Pascal-triangle sums (6 slab additions per axis, no multiplications), in place.
+    Slab (a, b) starts at (4 a + b)·121; extents are written as constants (fixed-length loops)."""
+    third = 1.0 / 3.0
+    ninth = 1.0 / 9.0
+    _elevate2_11(U[U_DET], 9, 1.0, out[0:121], tmp)              # (0, 0)
+    _elevate2_11(U[U_DET + 1], 8, third, out[484:605], tmp)      # (1, 0)
+    _elevate2_11(U[U_DET + 2], 8, third, out[121:242], tmp)      # (0, 1)
+    _elevate2_11(U[U_DET + 3], 7, third, out[968:1089], tmp)     # (2, 0)
+    _elevate2_11(U[U_DET + 4], 7, ninth, out[605:726], tmp)      # (1, 1)
+    _elevate2_11(U[U_DET + 5], 7, third, out[242:363], tmp)      # (0, 2)
+    _elevate2_11(U[U_DET + 6], 6, 1.0, out[1452:1573], tmp)      # (3, 0)
+    _elevate2_11(U[U_DET + 7], 6, ninth, out[1089:1210], tmp)    # (2, 1)
+    _elevate2_11(U[U_DET + 8], 6, ninth, out[726:847], tmp)      # (1, 2)
+    _elevate2_11(U[U_DET + 9], 6, 1.0, out[363:484], tmp)        # (0, 3)
+    for slab in (7, 10, 11, 13, 14, 15):                         # a + b > 3
+        for k in range(slab * 121, slab * 121 + 121):
+            out[k] = 0.0
+    for j in range(4):  # along uk (slab index a -> i) for each vk slab
+        for r in range(3):
+            for i in range(3, r, -1):
+                d = (i * 4 + j) * 121
+                e = ((i - 1) * 4 + j) * 121
+                for k in range(121):
+                    out[d + k] += out[e + k]
+    for i in range(4):  # along vk
+        for r in range(3):
+            for j in range(3, r, -1):
+                d = (i * 4 + j) * 121
+                e = d - 121
+                for k in range(121):
+                    out[d + k] += out[e + k]
+
+
+@kernel
+def _num_to_bernstein4(U, kscale, out, tmp):
+    """out (extents (4, 4, 11, 11)) = kscale (N00 + σ N10 + τ N01), N = U[U_NC..] elevated to
+    (11, 11), in the degree-(3, 3) Bernstein basis of (uk, vk): σ = Σ_i (i/3) B_i^3(σ)."""
+    e0 = U[U_E]
+    e1 = U[U_E + 1]
+    e2 = U[U_E + 2]
+    _elevate2_11(U[U_NC], 9, kscale, e0, tmp)
+    _elevate2_11(U[U_NC + 1], 8, kscale, e1, tmp)
+    _elevate2_11(U[U_NC + 2], 8, kscale, e2, tmp)
+    for i in range(4):
+        wi = i / 3.0
+        for j in range(4):
+            wj = j / 3.0
             base = (i * 4 + j) * 121
             for k in range(121):
-                out[base + k] += w * ev[k]
+                out[base + k] = e0[k] + wi * e1[k] + wj * e2[k]
+
+
+@kernel
+def _det_alpha0(U, ia, ig):
+    """det1 terms of f_α, |α| = 0 (extents 7): f_α,u1 g_β,v1 - f_α,v1 g_β,u1 for β = 0 (g0,
+    extents 4) into γ = α (slot ig) and β = σ, τ (g3, g4, extents 3) into γ = α + β (slots 1,
+    2).  The extents are written as constants so that each _mac2 is compiled for its fixed
+    loop lengths (about 2x faster than the generic loops on these 3..7-long rows)."""
+    fu = U[U_FU + ia]
+    fv = U[U_FV + ia]
+    _mac2(fu, 6, 7, U[U_GV], 4, 3, U[U_DET + ig], 1.0)
+    _mac2(fv, 7, 6, U[U_GU], 3, 4, U[U_DET + ig], -1.0)
+    for k in range(2):
+        _mac2(fu, 6, 7, U[U_GV + 1 + k], 3, 2, U[U_DET + 1 + k], 1.0)
+        _mac2(fv, 7, 6, U[U_GU + 1 + k], 2, 3, U[U_DET + 1 + k], -1.0)
+
+
+@kernel
+def _det_alpha1(U, ia, ig, ig1):
+    """As _det_alpha0 for |α| = 1 (extents 6): γ = α in slot ig, γ = α + σ, α + τ in slots
+    ig1, ig1 + 1."""
+    fu = U[U_FU + ia]
+    fv = U[U_FV + ia]
+    _mac2(fu, 5, 6, U[U_GV], 4, 3, U[U_DET + ig], 1.0)
+    _mac2(fv, 6, 5, U[U_GU], 3, 4, U[U_DET + ig], -1.0)
+    for k in range(2):
+        _mac2(fu, 5, 6, U[U_GV + 1 + k], 3, 2, U[U_DET + ig1 + k], 1.0)
+        _mac2(fv, 6, 5, U[U_GU + 1 + k], 2, 3, U[U_DET + ig1 + k], -1.0)
+
+
+@kernel
+def _det_alpha2(U, ia, ig, ig1):
+    """As _det_alpha0 for |α| = 2 (extents 5)."""
+    fu = U[U_FU + ia]
+    fv = U[U_FV + ia]
+    _mac2(fu, 4, 5, U[U_GV], 4, 3, U[U_DET + ig], 1.0)
+    _mac2(fv, 5, 4, U[U_GU], 3, 4, U[U_DET + ig], -1.0)
+    for k in range(2):
+        _mac2(fu, 4, 5, U[U_GV + 1 + k], 3, 2, U[U_DET + ig1 + k], 1.0)
+        _mac2(fv, 5, 4, U[U_GU + 1 + k], 2, 3, U[U_DET + ig1 + k], -1.0)
 
 
 @kernel
@@ -977,34 +1072,31 @@ def box_irradiance_refract(W, U, scr, x0, P, N, Q, eta, lo, hi, pos):
             for ig in range(10):
                 dg = 0 if ig == 0 else (1 if ig < 3 else (2 if ig < 6 else 3))
                 _zero((9 - dg) * (9 - dg), U[U_DET + ig])
-            for da in range(3):
-                for ba in range(da + 1):
-                    ia = (0, 1, 3)[da] + ba
-                    for db in range(2):
-                        for bb2 in range(db + 1):
-                            ib = db + bb2
-                            ig = (0, 1, 3, 6)[da + db] + ba + bb2
-                            _mac2(U[U_FU + ia], 6 - da, 7 - da, U[U_GV + ib], 4 - db, 3 - db, U[U_DET + ig], 1.0)
-                            _mac2(U[U_FV + ia], 7 - da, 6 - da, U[U_GU + ib], 3 - db, 4 - db, U[U_DET + ig], -1.0)
+            _det_alpha0(U, 0, 0)
+            _det_alpha1(U, 1, 1, 3)
+            _det_alpha1(U, 2, 2, 4)
+            for ba in range(3):
+                _det_alpha2(U, 3 + ba, 3 + ba, 6 + ba)
             # F_σ G_τ - F_τ G_σ with F_σ = f10 + 2σ f20 + τ f11, F_τ = f01 + σ f11 + 2τ f02, G_σ = g3, G_τ = g4
-            for t in range(3):
-                n = 8 if t == 0 else 7
-                _zero(n * n, U[U_NK + t])
-                fp = U_F + (1 if t == 0 else (3 if t == 1 else 4))
-                fm = U_F + (2 if t == 0 else (4 if t == 1 else 5))
-                _mac2(U[fp], n - 2, n - 2, U[U_G4], 3, 3, U[U_NK + t], 1.0 if t != 1 else 2.0)   # f (n-2, n-2)
-                _mac2(U[fm], n - 2, n - 2, U[U_G3], 3, 3, U[U_NK + t], -1.0 if t != 2 else -2.0)
-                _zero((n + 1) * (n + 1), U[U_NC + t])
-                _mac2(U[U_COS], 2, 2, U[U_NK + t], n, n, U[U_NC + t], 1.0)
-            _zero(nfin, DET1)
-            _zero(nfin, NUM)
-            for da in range(4):
-                for b in range(da + 1):
-                    _accumulate4(U, U_DET + (0, 1, 3, 6)[da] + b, 9 - da, da - b, b, 1.0, DET1, tmp)
-            _accumulate4(U, U_NC, 9, 0, 0, kscale, NUM, tmp)
-            _accumulate4(U, U_NC + 1, 8, 1, 0, kscale, NUM, tmp)
-            _accumulate4(U, U_NC + 2, 8, 0, 1, kscale, NUM, tmp)
-            a, b2, c, d = ratio_bound(NUM, DET1, nfin)
+            # (sizes written out as constants: the kernels are then compiled for fixed loop lengths)
+            _zero(64, U[U_NK])
+            _mac2(U[U_F + 1], 6, 6, U[U_G4], 3, 3, U[U_NK], 1.0)    # f10 g4 - f01 g3 (8, 8)
+            _mac2(U[U_F + 2], 6, 6, U[U_G3], 3, 3, U[U_NK], -1.0)
+            _zero(81, U[U_NC])
+            _mac2(U[U_COS], 2, 2, U[U_NK], 8, 8, U[U_NC], 1.0)
+            _zero(49, U[U_NK + 1])
+            _mac2(U[U_F + 3], 5, 5, U[U_G4], 3, 3, U[U_NK + 1], 2.0)    # σ: 2 f20 g4 - f11 g3 (7, 7)
+            _mac2(U[U_F + 4], 5, 5, U[U_G3], 3, 3, U[U_NK + 1], -1.0)
+            _zero(64, U[U_NC + 1])
+            _mac2(U[U_COS], 2, 2, U[U_NK + 1], 7, 7, U[U_NC + 1], 1.0)
+            _zero(49, U[U_NK + 2])
+            _mac2(U[U_F + 4], 5, 5, U[U_G4], 3, 3, U[U_NK + 2], 1.0)    # τ: f11 g4 - 2 f02 g3
+            _mac2(U[U_F + 5], 5, 5, U[U_G3], 3, 3, U[U_NK + 2], -2.0)
+            _zero(64, U[U_NC + 2])
+            _mac2(U[U_COS], 2, 2, U[U_NK + 2], 7, 7, U[U_NC + 2], 1.0)
+            _det_to_bernstein4(U, DET1, tmp)
+            _num_to_bernstein4(U, kscale, NUM, tmp)
+            a, b2, c, d = ratio_bound(NUM, DET1, nfin, scr[SCR4 + 2 * N4:SCR4 + 3 * N4])
             hi_v[variant] = min(hi_v[variant], abs_upper(a, b2, c, d))
             lo_v[variant] = max(lo_v[variant], abs_lower(a, b2, c, d))
     for variant in range(2):
@@ -1158,7 +1250,7 @@ def tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P, N, Q, UV, 
 
 @kernel
 def workspace():
-    return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(SCR4 + 2 * N4), np.zeros((NU, UW))
+    return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(SCR4 + 3 * N4), np.zeros((NU, UW))
 
 
 @kernel(parallel=True)

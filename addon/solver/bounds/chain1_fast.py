@@ -381,26 +381,34 @@ def _caster_unit(W, x0, P, N, Q, lo, hi):
 
 
 @kernel
-def _field_parts(W, v0, ev, f0, eo):
-    """Per-caster parts of the numerators of one direction field V (slots v0..v0+2, extents
-    ev): K = s × V with s = x1 - P0 (slots S_R.., affine) into f0..f0+2 and V itself into
-    f0+3..f0+5, elevated to extents eo and converted to plain Bernstein.  With r = x1 - Q0 =
-    s + h, h = P0 - Q0, eq 9's numerators are linear in them (:func:`_setup_tuple`), so the
-    products are formed once per caster triangle, not once per (caster, receiver) tuple."""
+def _field_parts(W, v0, nv, nk, f0, m):
+    """Per-caster parts of the numerators of one direction field V (slots v0..v0+2, scaled,
+    extents (nv, nv)): K = s × V with s = x1 - P0 (slots S_R.., affine; K has extents
+    nk = nv + 1) into f0..f0+2 and V itself into f0+3..f0+5, elevated to (m, m) and
+    converted to plain Bernstein.  With r = x1 - Q0 = s + h, h = P0 - Q0, eq 9's numerators
+    are linear in them (:func:`_setup_tuple`), so the products are formed once per caster
+    triangle, not once per (caster, receiver) tuple.  nv, nk, m are constants at the calls."""
     tmp = W[S_TMP]
     t3 = W[S_TMP + 2]
     for c in range(3):
         i = (c + 1) % 3
         j = (c + 2) % 3
-        e = pmul(W[S_R + i], E2, W[v0 + j], ev, t3)
-        pmul(W[S_R + j], E2, W[v0 + i], ev, W[S_TMP + 1])
-        n = _size(e)
-        for k in range(n):
-            t3[k] -= W[S_TMP + 1, k]
-        pelevate(t3, e, eo, W[f0 + c], tmp)
-        to_bernstein(W[f0 + c], eo)
-        pelevate(W[v0 + c], ev, eo, W[f0 + 3 + c], tmp)
-        to_bernstein(W[f0 + 3 + c], eo)
+        _zero(nk * nk, t3)
+        _mac2(W[S_R + i], 2, 2, W[v0 + j], nv, nv, t3, 1.0)
+        _mac2(W[S_R + j], 2, 2, W[v0 + i], nv, nv, t3, -1.0)
+        _elevate2(t3, nk, m, 1.0, W[f0 + c], tmp)
+        _to_bernstein2(W[f0 + c], m)
+        _elevate2(W[v0 + c], nv, m, 1.0, W[f0 + 3 + c], tmp)
+        _to_bernstein2(W[f0 + 3 + c], m)
+
+
+@kernel
+def _dot2(W, a0, na, b0, nb, out):
+    """out = Σ_c W[a0+c]·W[b0+c] for 3-vectors of (u1, v1) polynomials, extents (na, na),
+    (nb, nb) (constants at the calls)."""
+    _zero((na + nb - 1) * (na + nb - 1), out)
+    for c in range(3):
+        _mac2(W[a0 + c], na, na, W[b0 + c], nb, nb, out, 1.0)
 
 
 @kernel
@@ -408,7 +416,8 @@ def _setup_caster(W, refract, x0, P, N):
     """Per-caster-triangle polynomials on the unit box of (u1, v1): x1, n1, d0 (eq 6–8), the
     direction fields of eq 10 and their numerator parts (:func:`_field_parts`, slots S_CK..);
     for T also nndd, dn² (plain Bernstein).  They do not depend on the receiver triangle, so
-    the batch builds them once per run of tuples that share the caster."""
+    the batch builds them once per run of tuples that share the caster.  Scaled Bernstein
+    products in (u1, v1) with constant extents (:func:`_mac2`)."""
     lo = (0.0, 0.0)
     hi = (1.0, 1.0)
     for c in range(3):
@@ -418,37 +427,41 @@ def _setup_caster(W, refract, x0, P, N):
         _affine2(N[0, c], N[1, c] - N[0, c], N[2, c] - N[0, c], lo, hi, W[S_N + c])
         _affine2(P[0, c] - x0[c], e1, e2, lo, hi, W[S_D + c])
         _affine2(0.0, e1, e2, lo, hi, W[S_R + c])  # s = x1 - P0
-    tmp = W[S_TMP]
-    e3 = _dotv(W, S_N, E2, S_N, E2, W[S_NN], tmp)  # n·n
-    _dotv(W, S_D, E2, S_N, E2, W[S_DN], tmp)       # d·n
-    ev = (1, 1, 4, 4)
     if not refract:
         # d̃ = (n·n) d - 2 (d·n) n (eq 10), extents (1,1,4,4); kept in S_V for the irradiance
+        # (generic products, as before the per-caster split: R's bounds are unchanged bit for bit)
+        tmp = W[S_TMP]
+        e3 = _dotv(W, S_N, E2, S_N, E2, W[S_NN], tmp)
+        _dotv(W, S_D, E2, S_N, E2, W[S_DN], tmp)
         for cc in range(3):
             ev = pmul(W[S_NN], e3, W[S_D + cc], E2, W[S_V + cc])
             pmul(W[S_DN], e3, W[S_N + cc], E2, tmp)
             _axpy(_size(ev), -2.0, tmp, W[S_V + cc])
-        _field_parts(W, S_V, ev, S_CK, (1, 1, 5, 5))
+        _field_parts(W, S_V, 4, 5, S_CK, 5)
         return
-    # refraction: fields P1 = (n·n) d - (d·n) n, nndd n, dn² n, n (eq 10 with √β -> aβ + b + ξ δ)
-    ep = (1, 1, 7, 7)
+    _dot2(W, S_N, 2, S_N, 2, W[S_NN])  # n·n (3, 3)
+    _dot2(W, S_D, 2, S_N, 2, W[S_DN])  # d·n
+    # refraction: fields P1 = (n·n) d - (d·n) n (4, 4), nndd n, dn² n, n (eq 10 with
+    # √β -> aβ + b + ξ δ), all elevated to (7, 7)
     for cc in range(3):
-        pmul(W[S_NN], e3, W[S_D + cc], E2, W[S_V + cc])
-        pmul(W[S_DN], e3, W[S_N + cc], E2, tmp)
-        _axpy(_size(ev), -1.0, tmp, W[S_V + cc])
-    _field_parts(W, S_V, ev, S_CK, ep)
-    _dotv(W, S_D, E2, S_D, E2, W[S_DD], tmp)
-    e5 = pmul(W[S_NN], e3, W[S_DD], e3, W[S_NNDD])
-    pmul(W[S_DN], e3, W[S_DN], e3, W[S_DN2])
+        _zero(16, W[S_V + cc])
+        _mac2(W[S_NN], 3, 3, W[S_D + cc], 2, 2, W[S_V + cc], 1.0)
+        _mac2(W[S_DN], 3, 3, W[S_N + cc], 2, 2, W[S_V + cc], -1.0)
+    _field_parts(W, S_V, 4, 5, S_CK, 7)
+    _dot2(W, S_D, 2, S_D, 2, W[S_DD])
+    _zero(25, W[S_NNDD])
+    _mac2(W[S_NN], 3, 3, W[S_DD], 3, 3, W[S_NNDD], 1.0)
+    _zero(25, W[S_DN2])
+    _mac2(W[S_DN], 3, 3, W[S_DN], 3, 3, W[S_DN2], 1.0)
     for f in range(2):
         src = S_NNDD if f == 0 else S_DN2
-        ev6 = e5
         for cc in range(3):
-            ev6 = pmul(W[src], e5, W[S_N + cc], E2, W[S_V + cc])
-        _field_parts(W, S_V, ev6, S_CK + 6 + 6 * f, ep)
-    _field_parts(W, S_N, E2, S_CK + 18, ep)
-    to_bernstein(W[S_NNDD], e5)
-    to_bernstein(W[S_DN2], e5)
+            _zero(36, W[S_V + cc])
+            _mac2(W[src], 5, 5, W[S_N + cc], 2, 2, W[S_V + cc], 1.0)
+        _field_parts(W, S_V, 6, 7, S_CK + 6 + 6 * f, 7)
+    _field_parts(W, S_N, 2, 3, S_CK + 18, 7)
+    _to_bernstein2(W[S_NNDD], 5)
+    _to_bernstein2(W[S_DN2], 5)
 
 
 @kernel
@@ -463,10 +476,11 @@ def _setup_tuple(W, refract, x0, P, Q):
     h = (P[0, 0] - Q[0, 0], P[0, 1] - Q[0, 1], P[0, 2] - Q[0, 2])
     a = (ek2[1] * h[2] - ek2[2] * h[1], ek2[2] * h[0] - ek2[0] * h[2], ek2[0] * h[1] - ek2[1] * h[0])
     b = (h[1] * ek1[2] - h[2] * ek1[1], h[2] * ek1[0] - h[0] * ek1[2], h[0] * ek1[1] - h[1] * ek1[0])
-    c = W[S_TMP + 3]
-    c[0] = ek2[1] * ek1[2] - ek2[2] * ek1[1]
-    c[1] = ek2[2] * ek1[0] - ek2[0] * ek1[2]
-    c[2] = ek2[0] * ek1[1] - ek2[1] * ek1[0]
+    c0 = ek2[1] * ek1[2] - ek2[2] * ek1[1]
+    c1 = ek2[2] * ek1[0] - ek2[0] * ek1[2]
+    c2 = ek2[0] * ek1[1] - ek2[1] * ek1[0]
+    c = W[S_TMP + 3]  # ek2 × ek1, also read by _setup_reflect_irradiance
+    c[0], c[1], c[2] = c0, c1, c2
     nf = 4 if refract else 1
     n = 49 if refract else 25
     for f in range(nf):
@@ -477,10 +491,14 @@ def _setup_tuple(W, refract, x0, P, Q):
         q = W[o + 2]
         K0, K1, K2 = W[k0], W[k0 + 1], W[k0 + 2]
         V0, V1, V2 = W[k0 + 3], W[k0 + 4], W[k0 + 5]
+        # one output per loop, constants in scalars: the rows are all in W, so the vector
+        # loops need a run-time overlap test per (input, output) pair; few enough here
         for k in range(n):
             pu[k] = ek2[0] * K0[k] + ek2[1] * K1[k] + ek2[2] * K2[k] + a[0] * V0[k] + a[1] * V1[k] + a[2] * V2[k]
+        for k in range(n):
             pv[k] = -(ek1[0] * K0[k] + ek1[1] * K1[k] + ek1[2] * K2[k]) + b[0] * V0[k] + b[1] * V1[k] + b[2] * V2[k]
-            q[k] = c[0] * V0[k] + c[1] * V1[k] + c[2] * V2[k]
+        for k in range(n):
+            q[k] = c0 * V0[k] + c1 * V1[k] + c2 * V2[k]
     if not refract:
         # r, ek2 × r, r × ek1 (affine) for the lazily built reflection irradiance polynomials
         lo = (0.0, 0.0)
@@ -794,30 +812,38 @@ def _zero(n, x):
 
 
 @kernel
-def _elevate2_11(a, n, s, out, tmp):
+def _elevate2(a, n, m, s, out, tmp):
     """s times the degree elevation of scaled coefficients in (u1, v1), extents (n, n) ->
-    (11, 11): the product with the constant 1 of degree 11 - n (binomial weights), one axis
-    at a time with the long rows innermost (pelevate's generic loops run rows of length 1 on
-    the last axis)."""
-    k = 11 - n
-    for t in range(n * 11):
+    (m, m): the product with the constant 1 of degree m - n (binomial weights), one axis at
+    a time with the long rows innermost (pelevate's generic loops run rows of length 1 on the
+    last axis).  Callers pass n, m as constants, so the loops have fixed lengths."""
+    k = m - n
+    for t in range(n * m):
         tmp[t] = 0.0
     for i in range(n):
         for c in range(k + 1):
             w = s * BINOM[k, c]
             src = i * n
-            dst = i * 11 + c
+            dst = i * m + c
             for j in range(n):
                 tmp[dst + j] += w * a[src + j]
-    for t in range(121):
+    for t in range(m * m):
         out[t] = 0.0
     for i in range(n):
         for c in range(k + 1):
             w = BINOM[k, c]
-            src = i * 11
-            dst = (i + c) * 11
-            for j in range(11):
+            src = i * m
+            dst = (i + c) * m
+            for j in range(m):
                 out[dst + j] += w * tmp[src + j]
+
+
+@kernel
+def _to_bernstein2(a, m):
+    """Scaled -> plain Bernstein coefficients in (u1, v1), extents (m, m), in place."""
+    for i in range(m):
+        for j in range(m):
+            a[i * m + j] /= BINOM[m - 1, i] * BINOM[m - 1, j]
 
 
 @kernel
@@ -830,16 +856,16 @@ def _det_to_bernstein4(U, out, tmp):
     Slab (a, b) starts at (4 a + b)·121; extents are written as constants (fixed-length loops)."""
     third = 1.0 / 3.0
     ninth = 1.0 / 9.0
-    _elevate2_11(U[U_DET], 9, 1.0, out[0:121], tmp)              # (0, 0)
-    _elevate2_11(U[U_DET + 1], 8, third, out[484:605], tmp)      # (1, 0)
-    _elevate2_11(U[U_DET + 2], 8, third, out[121:242], tmp)      # (0, 1)
-    _elevate2_11(U[U_DET + 3], 7, third, out[968:1089], tmp)     # (2, 0)
-    _elevate2_11(U[U_DET + 4], 7, ninth, out[605:726], tmp)      # (1, 1)
-    _elevate2_11(U[U_DET + 5], 7, third, out[242:363], tmp)      # (0, 2)
-    _elevate2_11(U[U_DET + 6], 6, 1.0, out[1452:1573], tmp)      # (3, 0)
-    _elevate2_11(U[U_DET + 7], 6, ninth, out[1089:1210], tmp)    # (2, 1)
-    _elevate2_11(U[U_DET + 8], 6, ninth, out[726:847], tmp)      # (1, 2)
-    _elevate2_11(U[U_DET + 9], 6, 1.0, out[363:484], tmp)        # (0, 3)
+    _elevate2(U[U_DET], 9, 11, 1.0, out[0:121], tmp)              # (0, 0)
+    _elevate2(U[U_DET + 1], 8, 11, third, out[484:605], tmp)      # (1, 0)
+    _elevate2(U[U_DET + 2], 8, 11, third, out[121:242], tmp)      # (0, 1)
+    _elevate2(U[U_DET + 3], 7, 11, third, out[968:1089], tmp)     # (2, 0)
+    _elevate2(U[U_DET + 4], 7, 11, ninth, out[605:726], tmp)      # (1, 1)
+    _elevate2(U[U_DET + 5], 7, 11, third, out[242:363], tmp)      # (0, 2)
+    _elevate2(U[U_DET + 6], 6, 11, 1.0, out[1452:1573], tmp)      # (3, 0)
+    _elevate2(U[U_DET + 7], 6, 11, ninth, out[1089:1210], tmp)    # (2, 1)
+    _elevate2(U[U_DET + 8], 6, 11, ninth, out[726:847], tmp)      # (1, 2)
+    _elevate2(U[U_DET + 9], 6, 11, 1.0, out[363:484], tmp)        # (0, 3)
     for slab in (7, 10, 11, 13, 14, 15):                         # a + b > 3
         for k in range(slab * 121, slab * 121 + 121):
             out[k] = 0.0
@@ -866,9 +892,9 @@ def _num_to_bernstein4(U, kscale, out, tmp):
     e0 = U[U_E]
     e1 = U[U_E + 1]
     e2 = U[U_E + 2]
-    _elevate2_11(U[U_NC], 9, kscale, e0, tmp)
-    _elevate2_11(U[U_NC + 1], 8, kscale, e1, tmp)
-    _elevate2_11(U[U_NC + 2], 8, kscale, e2, tmp)
+    _elevate2(U[U_NC], 9, 11, kscale, e0, tmp)
+    _elevate2(U[U_NC + 1], 8, 11, kscale, e1, tmp)
+    _elevate2(U[U_NC + 2], 8, 11, kscale, e2, tmp)
     for i in range(4):
         wi = i / 3.0
         for j in range(4):

@@ -13,7 +13,10 @@ Per tuple, the polynomials whose coefficients do not depend on the box (everythi
 position numerators of T, which are linear in the √β approximation's coefficients a, b and
 in ξ, eq 10–13) are built once on the unit box of (u1, v1) and restricted to each piece's box
 by de Casteljau splits (the Bernstein coefficients of a polynomial on a sub-box, exact up to
-rounding).  The implicit refraction irradiance bound (eq 17–19) depends on the piece's
+rounding).  Those numerators are V·(ek2 × r), V·(r × ek1), V·(ek2 × ek1) for direction
+fields V of the caster alone and r = x1 - Q0; the products V and s × V (s = x1 - P0) are
+formed once per caster triangle (``_setup_caster``), and each tuple combines them linearly
+with its receiver's edge vectors (``_setup_tuple``).  The implicit refraction irradiance bound (eq 17–19) depends on the piece's
 (uk, vk) box, so it is built per piece in the 4-D box, as sums over monomials in the box's
 (uk, vk) coordinates of 2-D products in (u1, v1) (``box_irradiance_refract``).
 

@@ -347,7 +347,7 @@ S_TMP = 26                                # scratch (4)
 S_PU, S_PV, S_Q = 30, 31, 32              # R: position numerators / denominator (plain Bernstein, unit box)
 S_DET, S_NUM, S_DDB = 33, 34, 35          # R: irradiance det, numerator, |d0|² (plain Bernstein, unit box)
 S_TB = 36                                 # T: 4 fields x (pu, pv, q) = 12 slots, then nndd, dn2
-S_NNDD, S_DN2 = 48, 49
+S_NNDD, S_DN2 = 48, 49                    # = S_TB + 12, 13 (box_position reads them so)
 S_BOX = 50                                # restricted copies (12 + 2)
 S_REST = 64                               # per-box combined numerators (2 slices x 3 + w, tx, ty)
 S_RBUF = 73                               # quotients of ratio_bound (<= 128)
@@ -690,11 +690,15 @@ def box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, out, res):
     else:
         ep = (1, 1, 7, 7)
         n = 49
-        for k in range(12):
-            restrict2(W[S_TB + k], ep, lo, hi, W[S_BOX + k], tmp, work)
-        e5 = (1, 1, 5, 5)
-        restrict2(W[S_NNDD], e5, lo, hi, W[S_BOX + 12], tmp, work)
-        restrict2(W[S_DN2], e5, lo, hi, W[S_BOX + 13], tmp, work)
+        if lo[0] == 0.0 and hi[0] == 1.0 and lo[1] == 0.0 and hi[1] == 1.0:
+            B = S_TB  # the root: the unit-box polynomials themselves (nndd, dn² follow at S_TB + 12, 13)
+        else:
+            B = S_BOX
+            for k in range(12):
+                restrict2(W[S_TB + k], ep, lo, hi, W[S_BOX + k], tmp, work)
+            e5 = (1, 1, 5, 5)
+            restrict2(W[S_NNDD], e5, lo, hi, W[S_BOX + 12], tmp, work)
+            restrict2(W[S_DN2], e5, lo, hi, W[S_BOX + 13], tmp, work)
         for variant in range(2):
             if not (mask >> variant) & 1:
                 continue
@@ -704,7 +708,7 @@ def box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, out, res):
             blo = np.inf
             bhi = -np.inf
             for k in range(25):
-                bv = (1.0 - e2) * W[S_BOX + 12, k] + e2 * W[S_BOX + 13, k]
+                bv = (1.0 - e2) * W[B + 12, k] + e2 * W[B + 13, k]
                 blo = min(blo, bv)
                 bhi = max(bhi, bv)
             if bhi <= 0.0:
@@ -715,11 +719,14 @@ def box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, out, res):
             # slices ξ = 0 and ξ = 1 of pu, pv, q: 2n coefficients each (eq 10, 12)
             for f in range(3):
                 dst = W[S_REST + f]
+                p1 = W[B + f]
+                pa = W[B + 3 + f]
+                pb = W[B + 6 + f]
+                pn = W[B + 9 + f]
                 for k in range(n):
-                    s0 = (er * W[S_BOX + f, k]
-                          - o * (a * ((1.0 - e2) * W[S_BOX + 3 + f, k] + e2 * W[S_BOX + 6 + f, k]) + cc * W[S_BOX + 9 + f, k]))
+                    s0 = er * p1[k] - o * (a * ((1.0 - e2) * pa[k] + e2 * pb[k]) + cc * pn[k])
                     dst[k] = s0
-                    dst[n + k] = s0 - o * wx * W[S_BOX + 9 + f, k]
+                    dst[n + k] = s0 - o * wx * pn[k]
             if not _bounds_from(W, S_REST, S_REST + 1, S_REST + 2, 2 * n, UV, res):
                 continue
             bu0, bu1, bv0, bv1 = min(bu0, res[0]), max(bu1, res[1]), min(bv0, res[2]), max(bv1, res[3])

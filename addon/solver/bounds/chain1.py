@@ -529,6 +529,12 @@ def bound_one_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
         pairs = np.stack([ci.ravel(), ri.ravel()], axis=1)
     pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
     n = pairs.shape[0]
+    # A quadtree of depth max_depth has at most 4**max_depth leaves, and the split test
+    # (count + pending + 4 <= capacity) never refuses a split below that many rows (finished
+    # leaves, pending boxes and the split box's children lie in disjoint subtrees), so the
+    # smaller capacity gives the same pieces.  It keeps the row buffer small: 64 rows x 40k
+    # tuples would be 307 MB whose first-touch page faults cost more than the pool20k bound.
+    capacity = max(1, min(int(capacity), 4 ** int(max_depth)))
     out = np.empty((n, capacity, PIECE_FIELDS))
     counts = np.zeros(n, dtype=np.int64)
     stats = np.zeros((n, N_STATS), dtype=np.int64)

@@ -13,7 +13,10 @@ Per tuple, the polynomials whose coefficients do not depend on the box (everythi
 position numerators of T, which are linear in the √β approximation's coefficients a, b and
 in ξ, eq 10–13) are built once on the unit box of (u1, v1) and restricted to each piece's box
 by de Casteljau splits (the Bernstein coefficients of a polynomial on a sub-box, exact up to
-rounding).  The implicit refraction irradiance bound (eq 17–19) depends on the piece's
+rounding).  Those numerators are V·(ek2 × r), V·(r × ek1), V·(ek2 × ek1) for direction
+fields V of the caster alone and r = x1 - Q0; the products V and s × V (s = x1 - P0) are
+formed once per caster triangle (``_setup_caster``), and each tuple combines them linearly
+with its receiver's edge vectors (``_setup_tuple``).  The implicit refraction irradiance bound (eq 17–19) depends on the piece's
 (uk, vk) box, so it is built per piece in the 4-D box, as sums over monomials in the box's
 (uk, vk) coordinates of 2-D products in (u1, v1) (``box_irradiance_refract``).
 
@@ -207,42 +210,61 @@ def coef_minmax(a, n):
     return lo, hi
 
 
+@kernel(error_model="numpy")
+def _ratio_minmax(p, q, n, buf):
+    """min and max of p[k] / q[k] over k < n (q has no zero: the callers checked its sign).
+    The quotients go through ``buf`` so that the division loop is a plain vector loop (the
+    numpy error model drops Python's zero-division test per quotient), and the min / max
+    run in four independent chains; NaN quotients are skipped as min(acc, nan) = acc does."""
+    for k in range(n):
+        buf[k] = p[k] / q[k]
+    lo0 = lo1 = lo2 = lo3 = np.inf
+    hi0 = hi1 = hi2 = hi3 = -np.inf
+    m = n - n % 4
+    for k in range(0, m, 4):
+        r0 = buf[k]
+        r1 = buf[k + 1]
+        r2 = buf[k + 2]
+        r3 = buf[k + 3]
+        lo0 = min(lo0, r0)
+        lo1 = min(lo1, r1)
+        lo2 = min(lo2, r2)
+        lo3 = min(lo3, r3)
+        hi0 = max(hi0, r0)
+        hi1 = max(hi1, r1)
+        hi2 = max(hi2, r2)
+        hi3 = max(hi3, r3)
+    for k in range(m, n):
+        lo0 = min(lo0, buf[k])
+        hi0 = max(hi0, buf[k])
+    return min(min(lo0, lo1), min(lo2, lo3)), max(max(hi0, hi1), max(hi2, hi3))
+
+
 @kernel
-def ratio_bound(p, q, n):
+def _one_signed(a, n):
+    """(all a[k] > 0, all a[k] < 0) over k < n, by counting (a branch-free loop)."""
+    npos = 0
+    nneg = 0
+    for k in range(n):
+        v = a[k]
+        npos += 1 if v > 0.0 else 0
+        nneg += 1 if v < 0.0 else 0
+    return npos == n, nneg == n
+
+
+@kernel
+def ratio_bound(p, q, n, buf):
     """Fan et al. 2025 eq 3 and the two fallbacks of §4.1 on n coefficient pairs at one
-    degree (the same cases as ``bernstein.rational_bound``): (lo1, hi1, lo2, hi2)."""
-    pos = True
-    neg = True
-    for k in range(n):
-        v = q[k]
-        if not v > 0.0:
-            pos = False
-        if not v < 0.0:
-            neg = False
+    degree (the same cases as ``bernstein.rational_bound``): (lo1, hi1, lo2, hi2).
+    ``buf`` is scratch of n entries."""
+    pos, neg = _one_signed(q, n)
     if pos or neg:
-        lo = np.inf
-        hi = -np.inf
-        for k in range(n):
-            r = p[k] / q[k]
-            lo = min(lo, r)
-            hi = max(hi, r)
+        lo, hi = _ratio_minmax(p, q, n, buf)
         return lo, hi, np.inf, -np.inf
-    pos = True
-    neg = True
-    for k in range(n):
-        v = p[k]
-        if not v > 0.0:
-            pos = False
-        if not v < 0.0:
-            neg = False
+    pos, neg = _one_signed(p, n)
     if not (pos or neg):
         return -np.inf, np.inf, np.inf, -np.inf
-    rlo = np.inf
-    rhi = -np.inf
-    for k in range(n):
-        r = q[k] / p[k]
-        rlo = min(rlo, r)
-        rhi = max(rhi, r)
+    rlo, rhi = _ratio_minmax(q, p, n, buf)
     if rlo > 0.0 or rhi < 0.0:
         return 1.0 / rhi, 1.0 / rlo, np.inf, -np.inf
     a = 1.0 / rlo if rlo < 0.0 else -np.inf
@@ -325,11 +347,13 @@ S_TMP = 26                                # scratch (4)
 S_PU, S_PV, S_Q = 30, 31, 32              # R: position numerators / denominator (plain Bernstein, unit box)
 S_DET, S_NUM, S_DDB = 33, 34, 35          # R: irradiance det, numerator, |d0|² (plain Bernstein, unit box)
 S_TB = 36                                 # T: 4 fields x (pu, pv, q) = 12 slots, then nndd, dn2
-S_NNDD, S_DN2 = 48, 49
+S_NNDD, S_DN2 = 48, 49                    # = S_TB + 12, 13 (box_position reads them so)
 S_BOX = 50                                # restricted copies (12 + 2)
 S_REST = 64                               # per-box combined numerators (2 slices x 3 + w, tx, ty)
-S_IRR = 76                                # T irradiance per piece (many)
-NSLOTS = 110
+S_RBUF = 73                               # quotients of ratio_bound (<= 128)
+S_IRR = 76                                # R irradiance set-up (14)
+S_CK = 110                                # per caster: 4 fields x (s × V, V) (24, plain Bernstein)
+NSLOTS = 134
 
 
 @kernel
@@ -360,76 +384,141 @@ def _caster_unit(W, x0, P, N, Q, lo, hi):
 
 
 @kernel
-def _numerators(W, v0, ev, out_pu, out_pv, out_q, eo):
-    """pu = V·(ek2 × r), pv = V·(r × ek1), q = V·(ek2 × ek1) for the direction field in slots
-    v0.. (eq 9 with (a×b)·c = a·(b×c)), elevated to extents eo, converted to plain Bernstein."""
+def _field_parts(W, v0, nv, nk, f0, m):
+    """Per-caster parts of the numerators of one direction field V (slots v0..v0+2, scaled,
+    extents (nv, nv)): K = s × V with s = x1 - P0 (slots S_R.., affine; K has extents
+    nk = nv + 1) into f0..f0+2 and V itself into f0+3..f0+5, elevated to (m, m) and
+    converted to plain Bernstein.  With r = x1 - Q0 = s + h, h = P0 - Q0, eq 9's numerators
+    are linear in them (:func:`_setup_tuple`), so the products are formed once per caster
+    triangle, not once per (caster, receiver) tuple.  nv, nk, m are constants at the calls."""
     tmp = W[S_TMP]
-    t2 = W[S_TMP + 1]
     t3 = W[S_TMP + 2]
-    e = _dotv(W, v0, ev, S_E2R, E2, t3, tmp)
-    pelevate(t3, e, eo, out_pu, tmp)
-    to_bernstein(out_pu, eo)
-    e = _dotv(W, v0, ev, S_RE1, E2, t3, tmp)
-    pelevate(t3, e, eo, out_pv, tmp)
-    to_bernstein(out_pv, eo)
-    # q: the constant vector ek2 × ek1 is in slot S_TMP+3 (first 3 entries)
-    c = W[S_TMP + 3]
-    n = _size(ev)
-    for k in range(n):
-        t2[k] = c[0] * W[v0, k] + c[1] * W[v0 + 1, k] + c[2] * W[v0 + 2, k]
-    pelevate(t2, ev, eo, out_q, tmp)
-    to_bernstein(out_q, eo)
+    for c in range(3):
+        i = (c + 1) % 3
+        j = (c + 2) % 3
+        _zero(nk * nk, t3)
+        _mac2(W[S_R + i], 2, 2, W[v0 + j], nv, nv, t3, 1.0)
+        _mac2(W[S_R + j], 2, 2, W[v0 + i], nv, nv, t3, -1.0)
+        _elevate2(t3, nk, m, 1.0, W[f0 + c], tmp)
+        _to_bernstein2(W[f0 + c], m)
+        _elevate2(W[v0 + c], nv, m, 1.0, W[f0 + 3 + c], tmp)
+        _to_bernstein2(W[f0 + 3 + c], m)
+
+
+@kernel
+def _dot2(W, a0, na, b0, nb, out):
+    """out = Σ_c W[a0+c]·W[b0+c] for 3-vectors of (u1, v1) polynomials, extents (na, na),
+    (nb, nb) (constants at the calls)."""
+    _zero((na + nb - 1) * (na + nb - 1), out)
+    for c in range(3):
+        _mac2(W[a0 + c], na, na, W[b0 + c], nb, nb, out, 1.0)
+
+
+@kernel
+def _setup_caster(W, refract, x0, P, N):
+    """Per-caster-triangle polynomials on the unit box of (u1, v1): x1, n1, d0 (eq 6–8), the
+    direction fields of eq 10 and their numerator parts (:func:`_field_parts`, slots S_CK..);
+    for T also nndd, dn² (plain Bernstein).  They do not depend on the receiver triangle, so
+    the batch builds them once per run of tuples that share the caster.  Scaled Bernstein
+    products in (u1, v1) with constant extents (:func:`_mac2`)."""
+    lo = (0.0, 0.0)
+    hi = (1.0, 1.0)
+    for c in range(3):
+        e1 = P[1, c] - P[0, c]
+        e2 = P[2, c] - P[0, c]
+        _affine2(P[0, c], e1, e2, lo, hi, W[S_X + c])
+        _affine2(N[0, c], N[1, c] - N[0, c], N[2, c] - N[0, c], lo, hi, W[S_N + c])
+        _affine2(P[0, c] - x0[c], e1, e2, lo, hi, W[S_D + c])
+        _affine2(0.0, e1, e2, lo, hi, W[S_R + c])  # s = x1 - P0
+    if not refract:
+        # d̃ = (n·n) d - 2 (d·n) n (eq 10), extents (1,1,4,4); kept in S_V for the irradiance
+        # (generic products, as before the per-caster split: R's bounds are unchanged bit for bit)
+        tmp = W[S_TMP]
+        e3 = _dotv(W, S_N, E2, S_N, E2, W[S_NN], tmp)
+        _dotv(W, S_D, E2, S_N, E2, W[S_DN], tmp)
+        for cc in range(3):
+            ev = pmul(W[S_NN], e3, W[S_D + cc], E2, W[S_V + cc])
+            pmul(W[S_DN], e3, W[S_N + cc], E2, tmp)
+            _axpy(_size(ev), -2.0, tmp, W[S_V + cc])
+        _field_parts(W, S_V, 4, 5, S_CK, 5)
+        return
+    _dot2(W, S_N, 2, S_N, 2, W[S_NN])  # n·n (3, 3)
+    _dot2(W, S_D, 2, S_N, 2, W[S_DN])  # d·n
+    # refraction: fields P1 = (n·n) d - (d·n) n (4, 4), nndd n, dn² n, n (eq 10 with
+    # √β -> aβ + b + ξ δ), all elevated to (7, 7)
+    for cc in range(3):
+        _zero(16, W[S_V + cc])
+        _mac2(W[S_NN], 3, 3, W[S_D + cc], 2, 2, W[S_V + cc], 1.0)
+        _mac2(W[S_DN], 3, 3, W[S_N + cc], 2, 2, W[S_V + cc], -1.0)
+    _field_parts(W, S_V, 4, 5, S_CK, 7)
+    _dot2(W, S_D, 2, S_D, 2, W[S_DD])
+    _zero(25, W[S_NNDD])
+    _mac2(W[S_NN], 3, 3, W[S_DD], 3, 3, W[S_NNDD], 1.0)
+    _zero(25, W[S_DN2])
+    _mac2(W[S_DN], 3, 3, W[S_DN], 3, 3, W[S_DN2], 1.0)
+    for f in range(2):
+        src = S_NNDD if f == 0 else S_DN2
+        for cc in range(3):
+            _zero(36, W[S_V + cc])
+            _mac2(W[src], 5, 5, W[S_N + cc], 2, 2, W[S_V + cc], 1.0)
+        _field_parts(W, S_V, 6, 7, S_CK + 6 + 6 * f, 7)
+    _field_parts(W, S_N, 2, 3, S_CK + 18, 7)
+    _to_bernstein2(W[S_NNDD], 5)
+    _to_bernstein2(W[S_DN2], 5)
+
+
+@kernel
+def _setup_tuple(W, refract, x0, P, Q):
+    """Per-tuple numerators of eq 9 on the unit box from the caster parts of
+    :func:`_setup_caster`: with r = x1 - Q0 = s + h (h = P0 - Q0),
+    pu = V·(ek2 × r) = ek2·(s × V) + (ek2 × h)·V, pv = V·(r × ek1) = -ek1·(s × V) + (h × ek1)·V,
+    q = (ek2 × ek1)·V: 15 coefficient rows per field instead of 9 polynomial products, an
+    elevation and a basis conversion (both linear, so applied once per caster instead)."""
+    ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
+    ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
+    h = (P[0, 0] - Q[0, 0], P[0, 1] - Q[0, 1], P[0, 2] - Q[0, 2])
+    a = (ek2[1] * h[2] - ek2[2] * h[1], ek2[2] * h[0] - ek2[0] * h[2], ek2[0] * h[1] - ek2[1] * h[0])
+    b = (h[1] * ek1[2] - h[2] * ek1[1], h[2] * ek1[0] - h[0] * ek1[2], h[0] * ek1[1] - h[1] * ek1[0])
+    c0 = ek2[1] * ek1[2] - ek2[2] * ek1[1]
+    c1 = ek2[2] * ek1[0] - ek2[0] * ek1[2]
+    c2 = ek2[0] * ek1[1] - ek2[1] * ek1[0]
+    c = W[S_TMP + 3]  # ek2 × ek1, also read by _setup_reflect_irradiance
+    c[0], c[1], c[2] = c0, c1, c2
+    nf = 4 if refract else 1
+    n = 49 if refract else 25
+    for f in range(nf):
+        k0 = S_CK + 6 * f
+        o = S_TB + 3 * f if refract else S_PU
+        pu = W[o]
+        pv = W[o + 1]
+        q = W[o + 2]
+        K0, K1, K2 = W[k0], W[k0 + 1], W[k0 + 2]
+        V0, V1, V2 = W[k0 + 3], W[k0 + 4], W[k0 + 5]
+        # one output per loop, constants in scalars: the rows are all in W, so the vector
+        # loops need a run-time overlap test per (input, output) pair; few enough here
+        for k in range(n):
+            pu[k] = ek2[0] * K0[k] + ek2[1] * K1[k] + ek2[2] * K2[k] + a[0] * V0[k] + a[1] * V1[k] + a[2] * V2[k]
+        for k in range(n):
+            pv[k] = -(ek1[0] * K0[k] + ek1[1] * K1[k] + ek1[2] * K2[k]) + b[0] * V0[k] + b[1] * V1[k] + b[2] * V2[k]
+        for k in range(n):
+            q[k] = c0 * V0[k] + c1 * V1[k] + c2 * V2[k]
+    if not refract:
+        # r, ek2 × r, r × ek1 (affine) for the lazily built reflection irradiance polynomials
+        lo = (0.0, 0.0)
+        hi = (1.0, 1.0)
+        for cc in range(3):
+            _affine2(P[0, cc] - Q[0, cc], P[1, cc] - P[0, cc], P[2, cc] - P[0, cc], lo, hi, W[S_R + cc])
+        _cross_const_affine(W, S_R, ek2, S_E2R, True)
+        _cross_const_affine(W, S_R, ek1, S_RE1, False)
 
 
 @kernel
 def _setup(W, refract, irradiance, x0, P, N, Q):
     """Per-tuple polynomials on the unit box of (u1, v1) (slots S_PU.., S_TB..)."""
-    lo = (0.0, 0.0)
-    hi = (1.0, 1.0)
-    _caster_unit(W, x0, P, N, Q, lo, hi)
-    ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
-    ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
-    _cross_const_affine(W, S_R, ek2, S_E2R, True)
-    _cross_const_affine(W, S_R, ek1, S_RE1, False)
-    c = W[S_TMP + 3]
-    c[0] = ek2[1] * ek1[2] - ek2[2] * ek1[1]
-    c[1] = ek2[2] * ek1[0] - ek2[0] * ek1[2]
-    c[2] = ek2[0] * ek1[1] - ek2[1] * ek1[0]
-    tmp = W[S_TMP]
-    e3 = _dotv(W, S_N, E2, S_N, E2, W[S_NN], tmp)  # n·n
-    _dotv(W, S_D, E2, S_N, E2, W[S_DN], tmp)       # d·n
-    ev = (1, 1, 4, 4)
-    if not refract:
-        # d̃ = (n·n) d - 2 (d·n) n (eq 10), extents (1,1,4,4)
-        for cc in range(3):
-            ev = pmul(W[S_NN], e3, W[S_D + cc], E2, W[S_V + cc])
-            pmul(W[S_DN], e3, W[S_N + cc], E2, tmp)
-            _axpy(_size(ev), -2.0, tmp, W[S_V + cc])
-        ep = (1, 1, 5, 5)
-        _numerators(W, S_V, ev, W[S_PU], W[S_PV], W[S_Q], ep)
-        if irradiance:
-            _setup_reflect_irradiance(W)
-        return
-    # refraction: fields P1 = (n·n) d - (d·n) n, nndd n, dn² n, n (eq 10 with √β -> aβ + b + ξ δ)
-    ev = (1, 1, 4, 4)
-    for cc in range(3):
-        pmul(W[S_NN], e3, W[S_D + cc], E2, W[S_V + cc])
-        pmul(W[S_DN], e3, W[S_N + cc], E2, tmp)
-        _axpy(_size(ev), -1.0, tmp, W[S_V + cc])
-    ev6 = (1, 1, 6, 6)
-    ep = (1, 1, 7, 7)
-    _numerators(W, S_V, ev, W[S_TB + 0], W[S_TB + 1], W[S_TB + 2], ep)
-    _dotv(W, S_D, E2, S_D, E2, W[S_DD], tmp)
-    e5 = pmul(W[S_NN], e3, W[S_DD], e3, W[S_NNDD])
-    pmul(W[S_DN], e3, W[S_DN], e3, W[S_DN2])
-    for f in range(2):
-        src = S_NNDD if f == 0 else S_DN2
-        for cc in range(3):
-            ev6 = pmul(W[src], e5, W[S_N + cc], E2, W[S_V + cc])
-        _numerators(W, S_V, ev6, W[S_TB + 3 + 3 * f], W[S_TB + 4 + 3 * f], W[S_TB + 5 + 3 * f], ep)
-    _numerators(W, S_N, E2, W[S_TB + 9], W[S_TB + 10], W[S_TB + 11], ep)
-    to_bernstein(W[S_NNDD], e5)
-    to_bernstein(W[S_DN2], e5)
+    _setup_caster(W, refract, x0, P, N)
+    _setup_tuple(W, refract, x0, P, Q)
+    if irradiance and not refract:
+        _setup_reflect_irradiance(W)
 
 
 @kernel
@@ -529,18 +618,18 @@ def _orientation_mask(x0, P, N, lo, hi):
 def _bounds_from(W, pu, pv, q, n, UV, res):
     """uk, vk, w = 1 - uk - vk and UV bounds from coefficient arrays (one degree, n of them);
     res[0:8] as chain1.piece_position before padding; returns False when the bound misses."""
-    a, b, c, e = ratio_bound(W[pu], W[q], n)
+    a, b, c, e = ratio_bound(W[pu], W[q], n, W[S_RBUF])
     ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
     if ulo > uhi:
         return False
-    a, b, c, e = ratio_bound(W[pv], W[q], n)
+    a, b, c, e = ratio_bound(W[pv], W[q], n, W[S_RBUF])
     vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
     if vlo > vhi or ulo + vlo > 1.0:
         return False
     t = W[S_REST + 8]
     for k in range(n):
         t[k] = W[q, k] - W[pu, k] - W[pv, k]
-    a, b, c, e = ratio_bound(t, W[q], n)
+    a, b, c, e = ratio_bound(t, W[q], n, W[S_RBUF])
     wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
     if wlo > whi:
         return False
@@ -552,11 +641,11 @@ def _bounds_from(W, pu, pv, q, n, UV, res):
     uvhi_y = max(UV[0, 1], UV[1, 1], UV[2, 1])
     for k in range(n):
         t[k] = W[q, k] * UV[0, 0] + W[pu, k] * (UV[1, 0] - UV[0, 0]) + W[pv, k] * (UV[2, 0] - UV[0, 0])
-    a, b, c, e = ratio_bound(t, W[q], n)
+    a, b, c, e = ratio_bound(t, W[q], n, W[S_RBUF])
     xlo, xhi = clip_hull(a, b, c, e, uvlo_x, uvhi_x)
     for k in range(n):
         t[k] = W[q, k] * UV[0, 1] + W[pu, k] * (UV[1, 1] - UV[0, 1]) + W[pv, k] * (UV[2, 1] - UV[0, 1])
-    a, b, c, e = ratio_bound(t, W[q], n)
+    a, b, c, e = ratio_bound(t, W[q], n, W[S_RBUF])
     ylo, yhi = clip_hull(a, b, c, e, uvlo_y, uvhi_y)
     if xlo > xhi or ylo > yhi:
         return False
@@ -601,11 +690,15 @@ def box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, out, res):
     else:
         ep = (1, 1, 7, 7)
         n = 49
-        for k in range(12):
-            restrict2(W[S_TB + k], ep, lo, hi, W[S_BOX + k], tmp, work)
-        e5 = (1, 1, 5, 5)
-        restrict2(W[S_NNDD], e5, lo, hi, W[S_BOX + 12], tmp, work)
-        restrict2(W[S_DN2], e5, lo, hi, W[S_BOX + 13], tmp, work)
+        if lo[0] == 0.0 and hi[0] == 1.0 and lo[1] == 0.0 and hi[1] == 1.0:
+            B = S_TB  # the root: the unit-box polynomials themselves (nndd, dn² follow at S_TB + 12, 13)
+        else:
+            B = S_BOX
+            for k in range(12):
+                restrict2(W[S_TB + k], ep, lo, hi, W[S_BOX + k], tmp, work)
+            e5 = (1, 1, 5, 5)
+            restrict2(W[S_NNDD], e5, lo, hi, W[S_BOX + 12], tmp, work)
+            restrict2(W[S_DN2], e5, lo, hi, W[S_BOX + 13], tmp, work)
         for variant in range(2):
             if not (mask >> variant) & 1:
                 continue
@@ -615,7 +708,7 @@ def box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, out, res):
             blo = np.inf
             bhi = -np.inf
             for k in range(25):
-                bv = (1.0 - e2) * W[S_BOX + 12, k] + e2 * W[S_BOX + 13, k]
+                bv = (1.0 - e2) * W[B + 12, k] + e2 * W[B + 13, k]
                 blo = min(blo, bv)
                 bhi = max(bhi, bv)
             if bhi <= 0.0:
@@ -626,11 +719,14 @@ def box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, out, res):
             # slices ξ = 0 and ξ = 1 of pu, pv, q: 2n coefficients each (eq 10, 12)
             for f in range(3):
                 dst = W[S_REST + f]
+                p1 = W[B + f]
+                pa = W[B + 3 + f]
+                pb = W[B + 6 + f]
+                pn = W[B + 9 + f]
                 for k in range(n):
-                    s0 = (er * W[S_BOX + f, k]
-                          - o * (a * ((1.0 - e2) * W[S_BOX + 3 + f, k] + e2 * W[S_BOX + 6 + f, k]) + cc * W[S_BOX + 9 + f, k]))
+                    s0 = er * p1[k] - o * (a * ((1.0 - e2) * pa[k] + e2 * pb[k]) + cc * pn[k])
                     dst[k] = s0
-                    dst[n + k] = s0 - o * wx * W[S_BOX + 9 + f, k]
+                    dst[n + k] = s0 - o * wx * pn[k]
             if not _bounds_from(W, S_REST, S_REST + 1, S_REST + 2, 2 * n, UV, res):
                 continue
             bu0, bu1, bv0, bv1 = min(bu0, res[0]), max(bu1, res[1]), min(bv0, res[2]), max(bv1, res[3])
@@ -658,7 +754,7 @@ def box_irradiance_reflect(W, work, Q, lo, hi):
     e3 = (1, 1, 3, 3)
     restrict2(W[S_DDB], e3, lo, hi, W[S_BOX + 2], tmp, work)
     dlo, dhi = coef_minmax(W[S_BOX + 2], 9)
-    a, b, c, d = ratio_bound(W[S_BOX + 1], W[S_BOX], 121)
+    a, b, c, d = ratio_bound(W[S_BOX + 1], W[S_BOX], 121, W[S_RBUF])
     ek1 = (Q[1, 0] - Q[0, 0], Q[1, 1] - Q[0, 1], Q[1, 2] - Q[0, 2])
     ek2 = (Q[2, 0] - Q[0, 0], Q[2, 1] - Q[0, 1], Q[2, 2] - Q[0, 2])
     ak = math.sqrt((ek1[1] * ek2[2] - ek1[2] * ek2[1]) ** 2 + (ek1[2] * ek2[0] - ek1[0] * ek2[2]) ** 2
@@ -690,8 +786,8 @@ U_FV = 64                   # ∂f_α/∂v1 (6)
 U_DET = 70                  # det1 coefficient of σ^a τ^b, |(a, b)| <= 3 (10), order 00, 10, 01, 20, 11, 02, 30, 21, 12, 03
 U_NK = 80                   # detk coefficient of 1, σ, τ (3)
 U_NC = 83                   # cos × detk (3)
-U_E = 86                    # an elevated copy
-NU = 88
+U_E = 86                    # elevated copies (3)
+NU = 89
 
 
 @kernel
@@ -726,53 +822,136 @@ def _zero(n, x):
 
 
 @kernel
-def _pow_to_bernstein3(i, a):
-    """Coefficient of B_i^3 in the Bernstein form of t^a on [0, 1]: C(i, a) / C(3, a)."""
-    if a > i:
-        return 0.0
-    return BINOM[i, a] / BINOM[3, a]
-
-
-@kernel
-def _elevate2_11(a, n, out, tmp):
-    """Degree elevation of scaled coefficients in (u1, v1), extents (n, n) -> (11, 11): the
-    product with the constant 1 of degree 11 - n (binomial weights), one axis at a time with
-    the long rows innermost (pelevate's generic loops run rows of length 1 on the last axis)."""
-    k = 11 - n
-    for t in range(n * 11):
+def _elevate2(a, n, m, s, out, tmp):
+    """s times the degree elevation of scaled coefficients in (u1, v1), extents (n, n) ->
+    (m, m): the product with the constant 1 of degree m - n (binomial weights), one axis at
+    a time with the long rows innermost (pelevate's generic loops run rows of length 1 on the
+    last axis).  Callers pass n, m as constants, so the loops have fixed lengths."""
+    k = m - n
+    for t in range(n * m):
         tmp[t] = 0.0
     for i in range(n):
         for c in range(k + 1):
-            w = BINOM[k, c]
+            w = s * BINOM[k, c]
             src = i * n
-            dst = i * 11 + c
+            dst = i * m + c
             for j in range(n):
                 tmp[dst + j] += w * a[src + j]
-    for t in range(121):
+    for t in range(m * m):
         out[t] = 0.0
     for i in range(n):
         for c in range(k + 1):
             w = BINOM[k, c]
-            src = i * 11
-            dst = (i + c) * 11
-            for j in range(11):
+            src = i * m
+            dst = (i + c) * m
+            for j in range(m):
                 out[dst + j] += w * tmp[src + j]
 
 
 @kernel
-def _accumulate4(U, src, n, a, b, scale, out, tmp):
-    """out (extents (4, 4, 11, 11), order (uk, vk, u1, v1)) += scale · σ^a τ^b · U[src], where
-    U[src] (extents (1, 1, n, n), scaled Bernstein in (u1, v1)) is elevated to (11, 11) and the
-    monomial σ^a τ^b is written in the degree-(3, 3) Bernstein basis of the (uk, vk) box."""
-    _elevate2_11(U[src], n, U[U_E], tmp)
-    ev = U[U_E]
-    for i in range(a, 4):
-        wi = scale * _pow_to_bernstein3(i, a)
-        for j in range(b, 4):
-            w = wi * _pow_to_bernstein3(j, b)
+def _to_bernstein2(a, m):
+    """Scaled -> plain Bernstein coefficients in (u1, v1), extents (m, m), in place."""
+    for i in range(m):
+        for j in range(m):
+            a[i * m + j] /= BINOM[m - 1, i] * BINOM[m - 1, j]
+
+
+@kernel
+def _det_to_bernstein4(U, out, tmp):
+    """out (extents (4, 4, 11, 11), order (uk, vk, u1, v1)) = Σ_{a+b<=3} σ^a τ^b D_ab, D_ab =
+    U[U_DET..] (extents 9 - a - b in (u1, v1), elevated to 11), in the degree-(3, 3)
+    Bernstein basis of the (uk, vk) box.  σ^a = Σ_i C(i, a)/C(3, a) B_i^3(σ), so with
+    m_a = D_a / C(3, a) placed in slab a the coefficients c_i = Σ_a C(i, a) m_a are three
+    rounds of Pascal-triangle sums (6 slab additions per axis, no multiplications), in place.
+    Slab (a, b) starts at (4 a + b)·121; extents are written as constants (fixed-length loops)."""
+    third = 1.0 / 3.0
+    ninth = 1.0 / 9.0
+    _elevate2(U[U_DET], 9, 11, 1.0, out[0:121], tmp)              # (0, 0)
+    _elevate2(U[U_DET + 1], 8, 11, third, out[484:605], tmp)      # (1, 0)
+    _elevate2(U[U_DET + 2], 8, 11, third, out[121:242], tmp)      # (0, 1)
+    _elevate2(U[U_DET + 3], 7, 11, third, out[968:1089], tmp)     # (2, 0)
+    _elevate2(U[U_DET + 4], 7, 11, ninth, out[605:726], tmp)      # (1, 1)
+    _elevate2(U[U_DET + 5], 7, 11, third, out[242:363], tmp)      # (0, 2)
+    _elevate2(U[U_DET + 6], 6, 11, 1.0, out[1452:1573], tmp)      # (3, 0)
+    _elevate2(U[U_DET + 7], 6, 11, ninth, out[1089:1210], tmp)    # (2, 1)
+    _elevate2(U[U_DET + 8], 6, 11, ninth, out[726:847], tmp)      # (1, 2)
+    _elevate2(U[U_DET + 9], 6, 11, 1.0, out[363:484], tmp)        # (0, 3)
+    for slab in (7, 10, 11, 13, 14, 15):                         # a + b > 3
+        for k in range(slab * 121, slab * 121 + 121):
+            out[k] = 0.0
+    for j in range(4):  # along uk (slab index a -> i) for each vk slab
+        for r in range(3):
+            for i in range(3, r, -1):
+                d = (i * 4 + j) * 121
+                e = ((i - 1) * 4 + j) * 121
+                for k in range(121):
+                    out[d + k] += out[e + k]
+    for i in range(4):  # along vk
+        for r in range(3):
+            for j in range(3, r, -1):
+                d = (i * 4 + j) * 121
+                e = d - 121
+                for k in range(121):
+                    out[d + k] += out[e + k]
+
+
+@kernel
+def _num_to_bernstein4(U, kscale, out, tmp):
+    """out (extents (4, 4, 11, 11)) = kscale (N00 + σ N10 + τ N01), N = U[U_NC..] elevated to
+    (11, 11), in the degree-(3, 3) Bernstein basis of (uk, vk): σ = Σ_i (i/3) B_i^3(σ)."""
+    e0 = U[U_E]
+    e1 = U[U_E + 1]
+    e2 = U[U_E + 2]
+    _elevate2(U[U_NC], 9, 11, kscale, e0, tmp)
+    _elevate2(U[U_NC + 1], 8, 11, kscale, e1, tmp)
+    _elevate2(U[U_NC + 2], 8, 11, kscale, e2, tmp)
+    for i in range(4):
+        wi = i / 3.0
+        for j in range(4):
+            wj = j / 3.0
             base = (i * 4 + j) * 121
             for k in range(121):
-                out[base + k] += w * ev[k]
+                out[base + k] = e0[k] + wi * e1[k] + wj * e2[k]
+
+
+@kernel
+def _det_alpha0(U, ia, ig):
+    """det1 terms of f_α, |α| = 0 (extents 7): f_α,u1 g_β,v1 - f_α,v1 g_β,u1 for β = 0 (g0,
+    extents 4) into γ = α (slot ig) and β = σ, τ (g3, g4, extents 3) into γ = α + β (slots 1,
+    2).  The extents are written as constants so that each _mac2 is compiled for its fixed
+    loop lengths (about 2x faster than the generic loops on these 3..7-long rows)."""
+    fu = U[U_FU + ia]
+    fv = U[U_FV + ia]
+    _mac2(fu, 6, 7, U[U_GV], 4, 3, U[U_DET + ig], 1.0)
+    _mac2(fv, 7, 6, U[U_GU], 3, 4, U[U_DET + ig], -1.0)
+    for k in range(2):
+        _mac2(fu, 6, 7, U[U_GV + 1 + k], 3, 2, U[U_DET + 1 + k], 1.0)
+        _mac2(fv, 7, 6, U[U_GU + 1 + k], 2, 3, U[U_DET + 1 + k], -1.0)
+
+
+@kernel
+def _det_alpha1(U, ia, ig, ig1):
+    """As _det_alpha0 for |α| = 1 (extents 6): γ = α in slot ig, γ = α + σ, α + τ in slots
+    ig1, ig1 + 1."""
+    fu = U[U_FU + ia]
+    fv = U[U_FV + ia]
+    _mac2(fu, 5, 6, U[U_GV], 4, 3, U[U_DET + ig], 1.0)
+    _mac2(fv, 6, 5, U[U_GU], 3, 4, U[U_DET + ig], -1.0)
+    for k in range(2):
+        _mac2(fu, 5, 6, U[U_GV + 1 + k], 3, 2, U[U_DET + ig1 + k], 1.0)
+        _mac2(fv, 6, 5, U[U_GU + 1 + k], 2, 3, U[U_DET + ig1 + k], -1.0)
+
+
+@kernel
+def _det_alpha2(U, ia, ig, ig1):
+    """As _det_alpha0 for |α| = 2 (extents 5)."""
+    fu = U[U_FU + ia]
+    fv = U[U_FV + ia]
+    _mac2(fu, 4, 5, U[U_GV], 4, 3, U[U_DET + ig], 1.0)
+    _mac2(fv, 5, 4, U[U_GU], 3, 4, U[U_DET + ig], -1.0)
+    for k in range(2):
+        _mac2(fu, 4, 5, U[U_GV + 1 + k], 3, 2, U[U_DET + ig1 + k], 1.0)
+        _mac2(fv, 5, 4, U[U_GU + 1 + k], 2, 3, U[U_DET + ig1 + k], -1.0)
 
 
 @kernel
@@ -929,34 +1108,31 @@ def box_irradiance_refract(W, U, scr, x0, P, N, Q, eta, lo, hi, pos):
             for ig in range(10):
                 dg = 0 if ig == 0 else (1 if ig < 3 else (2 if ig < 6 else 3))
                 _zero((9 - dg) * (9 - dg), U[U_DET + ig])
-            for da in range(3):
-                for ba in range(da + 1):
-                    ia = (0, 1, 3)[da] + ba
-                    for db in range(2):
-                        for bb2 in range(db + 1):
-                            ib = db + bb2
-                            ig = (0, 1, 3, 6)[da + db] + ba + bb2
-                            _mac2(U[U_FU + ia], 6 - da, 7 - da, U[U_GV + ib], 4 - db, 3 - db, U[U_DET + ig], 1.0)
-                            _mac2(U[U_FV + ia], 7 - da, 6 - da, U[U_GU + ib], 3 - db, 4 - db, U[U_DET + ig], -1.0)
+            _det_alpha0(U, 0, 0)
+            _det_alpha1(U, 1, 1, 3)
+            _det_alpha1(U, 2, 2, 4)
+            for ba in range(3):
+                _det_alpha2(U, 3 + ba, 3 + ba, 6 + ba)
             # F_σ G_τ - F_τ G_σ with F_σ = f10 + 2σ f20 + τ f11, F_τ = f01 + σ f11 + 2τ f02, G_σ = g3, G_τ = g4
-            for t in range(3):
-                n = 8 if t == 0 else 7
-                _zero(n * n, U[U_NK + t])
-                fp = U_F + (1 if t == 0 else (3 if t == 1 else 4))
-                fm = U_F + (2 if t == 0 else (4 if t == 1 else 5))
-                _mac2(U[fp], n - 2, n - 2, U[U_G4], 3, 3, U[U_NK + t], 1.0 if t != 1 else 2.0)   # f (n-2, n-2)
-                _mac2(U[fm], n - 2, n - 2, U[U_G3], 3, 3, U[U_NK + t], -1.0 if t != 2 else -2.0)
-                _zero((n + 1) * (n + 1), U[U_NC + t])
-                _mac2(U[U_COS], 2, 2, U[U_NK + t], n, n, U[U_NC + t], 1.0)
-            _zero(nfin, DET1)
-            _zero(nfin, NUM)
-            for da in range(4):
-                for b in range(da + 1):
-                    _accumulate4(U, U_DET + (0, 1, 3, 6)[da] + b, 9 - da, da - b, b, 1.0, DET1, tmp)
-            _accumulate4(U, U_NC, 9, 0, 0, kscale, NUM, tmp)
-            _accumulate4(U, U_NC + 1, 8, 1, 0, kscale, NUM, tmp)
-            _accumulate4(U, U_NC + 2, 8, 0, 1, kscale, NUM, tmp)
-            a, b2, c, d = ratio_bound(NUM, DET1, nfin)
+            # (sizes written out as constants: the kernels are then compiled for fixed loop lengths)
+            _zero(64, U[U_NK])
+            _mac2(U[U_F + 1], 6, 6, U[U_G4], 3, 3, U[U_NK], 1.0)    # f10 g4 - f01 g3 (8, 8)
+            _mac2(U[U_F + 2], 6, 6, U[U_G3], 3, 3, U[U_NK], -1.0)
+            _zero(81, U[U_NC])
+            _mac2(U[U_COS], 2, 2, U[U_NK], 8, 8, U[U_NC], 1.0)
+            _zero(49, U[U_NK + 1])
+            _mac2(U[U_F + 3], 5, 5, U[U_G4], 3, 3, U[U_NK + 1], 2.0)    # σ: 2 f20 g4 - f11 g3 (7, 7)
+            _mac2(U[U_F + 4], 5, 5, U[U_G3], 3, 3, U[U_NK + 1], -1.0)
+            _zero(64, U[U_NC + 1])
+            _mac2(U[U_COS], 2, 2, U[U_NK + 1], 7, 7, U[U_NC + 1], 1.0)
+            _zero(49, U[U_NK + 2])
+            _mac2(U[U_F + 4], 5, 5, U[U_G4], 3, 3, U[U_NK + 2], 1.0)    # τ: f11 g4 - 2 f02 g3
+            _mac2(U[U_F + 5], 5, 5, U[U_G3], 3, 3, U[U_NK + 2], -2.0)
+            _zero(64, U[U_NC + 2])
+            _mac2(U[U_COS], 2, 2, U[U_NK + 2], 7, 7, U[U_NC + 2], 1.0)
+            _det_to_bernstein4(U, DET1, tmp)
+            _num_to_bernstein4(U, kscale, NUM, tmp)
+            a, b2, c, d = ratio_bound(NUM, DET1, nfin, scr[SCR4 + 2 * N4:SCR4 + 3 * N4])
             hi_v[variant] = min(hi_v[variant], abs_upper(a, b2, c, d))
             lo_v[variant] = max(lo_v[variant], abs_lower(a, b2, c, d))
     for variant in range(2):
@@ -1042,9 +1218,10 @@ def tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P, N, Q, UV, 
     """chain1.tuple_pieces with the fast engine: same stopping rules (§6.1), same piece rows.
 
     The root's position bound is computed before the per-tuple polynomials of the irradiance
-    so that a tuple whose caustic misses the receiver triangle costs one position bound."""
+    so that a tuple whose caustic misses the receiver triangle costs one position bound.
+    The caller has built the caster's polynomials (:func:`_setup_caster`) in W."""
     cap = out.shape[0]
-    _setup(W, refract, False, x0, P, N, Q)
+    _setup_tuple(W, refract, x0, P, Q)
     have_irr = False
     stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0.0, 1.0, 0.0, 1.0, 0.0
     top = 1
@@ -1109,7 +1286,7 @@ def tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P, N, Q, UV, 
 
 @kernel
 def workspace():
-    return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(SCR4 + 2 * N4), np.zeros((NU, UW))
+    return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(SCR4 + 3 * N4), np.zeros((NU, UW))
 
 
 @kernel(parallel=True)
@@ -1120,9 +1297,13 @@ def batch_fast(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, ir
         W, work, scr, U = workspace()
         stack = np.empty((4 * (max_depth + 2), 5))
         rstack = np.empty((4 * (irr_refine + 2), 5))
+        last = -1
         for t in range(ci * chunk, min(n, (ci + 1) * chunk)):
             c = pairs[t, 0]
             r = pairs[t, 1]
+            if c != last:  # pairs are usually grouped by caster: its polynomials are reused
+                _setup_caster(W, refract, x0, P[c], N[c])
+                last = c
             counts[t] = tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma,
                                           alpha, irradiance, irr_refine, out[t], stats[t])
 

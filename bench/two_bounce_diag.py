@@ -138,7 +138,7 @@ def scan_roots(A, da, B, db, n, margin, pieces, productive_v):
     live[:pieces] = 1
     if tb.LIVE_PREPASS:
         biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
-        if tb.live_pieces(A, da, B, db, margin, pieces, biv, np.zeros((tb.LIVE_STACK, 4)), np.zeros(tb.MAXD + 2), live) == 0:
+        if tb.live_pieces(A, da, B, db, margin, pieces, biv, np.zeros((tb.LIVE_STACK, 4)), live) == 0:
             return None, None, "no live piece (the pre-pass excluded the whole square)"
     nv = tb.find_v_roots(A, da, B, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, roots, stats)
     if nv < 0:

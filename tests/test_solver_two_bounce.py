@@ -157,7 +157,6 @@ def test_live_prepass():
 
     rng = np.random.default_rng(3)
     biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
-    tmp = np.zeros(tb.MAXD + 2)
     # 1. the Bernstein form of a random degree-46 polynomial over [-m, 1 + m]²
     d = 46
     p = np.zeros((48, 48))
@@ -167,7 +166,7 @@ def test_live_prepass():
     R = np.zeros((48, 48))
     out = np.zeros((48, 48))
     tb._binomial_ratios(d, R)
-    tb._tensor_bernstein(p, d, -m, 1 + 2 * m, R, out, tmp)
+    tb._tensor_bernstein(p, d, -m, 1 + 2 * m, R, out, np.zeros((48, 48)), np.zeros((48, 48)))
     worst = 0.0
     for s, t in rng.random((6, 2)):
         bs = np.array([comb(d, k) * s ** k * (1 - s) ** (d - k) for k in range(d + 1)])
@@ -191,7 +190,7 @@ def test_live_prepass():
     for fa, fb, zeros in cases:
         a, da = _poly_from_factors(fa)
         b, db = _poly_from_factors(fb)
-        n_live = tb.live_pieces(a, da, b, db, m, pieces, biv, boxes, tmp, live)
+        n_live = tb.live_pieces(a, da, b, db, m, pieces, biv, boxes, live)
         for u, v in zeros:
             if -m <= u and -m <= v <= 1 + m and u + v <= 1 + m:
                 k = int((v + m) / h)
@@ -205,7 +204,7 @@ def test_live_prepass():
     # 3. common zeros only outside the triangle: a = u - 0.9, b = v - 0.8 (u + v = 1.7)
     a, da = _poly_from_factors([(-0.9, 1, 0)] + [(1.5, 0.1, 0.2)] * 5)
     b, db = _poly_from_factors([(-0.8, 0, 1)] + [(2.0, 0.3, 0.1)] * 20)
-    assert tb.live_pieces(a, da, b, db, m, pieces, biv, boxes, tmp, live) == 0
+    assert tb.live_pieces(a, da, b, db, m, pieces, biv, boxes, live) == 0
 
 
 @pytest.mark.parametrize("chain", CHAINS)

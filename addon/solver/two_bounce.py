@@ -379,49 +379,52 @@ def _binomial_ratios(d, R):
 
 
 @kernel
-def _tensor_bernstein(p, d, lo, w, R, out, tmp):
+def _shift_rows(A, d, lo, w):
+    """A[i, :] are the coefficients of s^i along the first axis: substitute s = lo + w t
+    (Taylor shift, then scaling), whole rows at a time so the inner loop vectorises."""
+    for k in range(d):
+        for i in range(d - 1, k - 1, -1):
+            for q in range(d + 1):
+                A[i, q] += lo * A[i + 1, q]
+    f = 1.0
+    for i in range(d + 1):
+        for q in range(d + 1):
+            A[i, q] *= f
+        f *= w
+
+
+@kernel
+def _bernstein_rows(A, d, R, B):
+    """B[k, :] = Σ_(i ≤ k) R[k, i] A[i, :]: power -> Bernstein along the first axis."""
+    for k in range(d + 1):
+        for q in range(d + 1):
+            B[k, q] = 0.0
+        for i in range(k + 1):
+            r = R[k, i]
+            for q in range(d + 1):
+                B[k, q] += r * A[i, q]
+
+
+@kernel
+def _tensor_bernstein(p, d, lo, w, R, out, t0, t1):
     """p (triangular power basis, p[i, j] u^i v^j, total degree d) -> its tensor Bernstein
     coefficients of degree (d, d) over the square [lo, lo + w]² (out[i, j]: u index i, v
-    index j).  Taylor shift and scaling per axis, then the power -> Bernstein weights R
-    (:func:`_binomial_ratios`); every step is a positive combination or an exact shift, so
-    the coefficients carry rounding of the size of the polynomial's max-norm only."""
+    index j).  Taylor shift and scaling along u, then v, then the power -> Bernstein weights
+    R (:func:`_binomial_ratios`) along u, then v; every step is a positive combination or an
+    exact shift, so the coefficients carry rounding of the size of the polynomial's max-norm
+    only.  Each step runs on whole rows (the v steps on the transpose, t0 and t1 scratch);
+    the zeros above the triangle stay zero."""
     for i in range(d + 1):
         for j in range(d + 1):
             out[i, j] = p[i, j] if i + j <= d else 0.0
-    for j in range(d + 1):  # u: u = lo + w s, column j has u-degree ≤ d - j
-        m = d - j
-        for k in range(m):
-            for i in range(m - 1, k - 1, -1):
-                out[i, j] += lo * out[i + 1, j]
-        f = 1.0
-        for i in range(m + 1):
-            out[i, j] *= f
-            f *= w
-    for i in range(d + 1):  # v, row i has v-degree ≤ d - i
-        m = d - i
-        for k in range(m):
-            for j in range(m - 1, k - 1, -1):
-                out[i, j] += lo * out[i, j + 1]
-        f = 1.0
-        for j in range(m + 1):
-            out[i, j] *= f
-            f *= w
-    for j in range(d + 1):
-        for k in range(d + 1):
-            acc = 0.0
-            for i in range(k + 1):
-                acc += R[k, i] * out[i, j]
-            tmp[k] = acc
-        for k in range(d + 1):
-            out[k, j] = tmp[k]
-    for i in range(d + 1):
-        for k in range(d + 1):
-            acc = 0.0
-            for j in range(k + 1):
-                acc += R[k, j] * out[i, j]
-            tmp[k] = acc
-        for k in range(d + 1):
-            out[i, k] = tmp[k]
+    _shift_rows(out, d, lo, w)
+    _transpose_square(out, d, t0)
+    _shift_rows(t0, d, lo, w)
+    _transpose_square(t0, d, out)
+    _bernstein_rows(out, d, R, t1)
+    _transpose_square(t1, d, t0)
+    _bernstein_rows(t0, d, R, t1)
+    _transpose_square(t1, d, out)
 
 
 @kernel
@@ -485,7 +488,7 @@ def _max_abs(c, d):
 
 
 @kernel
-def live_pieces(a, da, b, db, margin, pieces, biv, boxes, tmp, live):
+def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
     """live[k] = 1 for the scan pieces whose v1 range a common zero of a and b with
     u1 ∈ [-m, 1 - v1 + m] can lie in; returns their count.
 
@@ -504,9 +507,9 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, tmp, live):
     R = biv[40]
     dm = max(da, db)
     _binomial_ratios(da, R)
-    _tensor_bernstein(a, da, -margin, 1.0 + 2.0 * margin, R, biv[LIVE_SLOT0], tmp)
+    _tensor_bernstein(a, da, -margin, 1.0 + 2.0 * margin, R, biv[LIVE_SLOT0], biv[34], biv[35])
     _binomial_ratios(db, R)
-    _tensor_bernstein(b, db, -margin, 1.0 + 2.0 * margin, R, biv[LIVE_SLOT0 + 1], tmp)
+    _tensor_bernstein(b, db, -margin, 1.0 + 2.0 * margin, R, biv[LIVE_SLOT0 + 1], biv[34], biv[35])
     tol_a = LIVE_TOL * _max_abs(biv[LIVE_SLOT0], da)
     tol_b = LIVE_TOL * _max_abs(biv[LIVE_SLOT0 + 1], db)
     boxes[0, 0] = -margin
@@ -1616,7 +1619,7 @@ def _eliminate(a, da, b, db, swapped, refract1, refract2, margin, pieces, stop_a
     live = scan[7]
     if LIVE_PREPASS:
         boxes = scan[3, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
-        if live_pieces(a, da, b, db, margin, pieces, biv, boxes, cf[0], live) == 0:
+        if live_pieces(a, da, b, db, margin, pieces, biv, boxes, live) == 0:
             return count
     else:
         for k in range(pieces):

@@ -303,7 +303,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                     if LIVE_PREPASS:
                         boxes = live_work[1, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
                         if live_pieces(biv[0], da, biv[1], db, V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT, pieces,
-                                       biv, boxes, live_work[2], live) == 0:
+                                       biv, boxes, live) == 0:
                             continue  # as ``_eliminate``: no common zero near the triangle
                     else:
                         for k in range(pieces):
@@ -335,7 +335,7 @@ def stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysin
     for ch in prange((n + CHUNK - 1) // CHUNK):
         biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
         geo = np.zeros((3, 15, 3))
-        live_work = np.zeros((3, MAX_PIECES + 1))
+        live_work = np.zeros((2, MAX_PIECES + 1))
         for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
             _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, t,
                            biv, geo, pieces, live_mask, live_work)

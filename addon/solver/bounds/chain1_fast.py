@@ -82,46 +82,6 @@ def _pmul(a, ea, b, eb, out):
 
 
 @kernel
-def pelevate(a, ea, eo, out, tmp):
-    """Degree elevation of scaled coefficients to extents eo (each >= ea): the product with
-    the constant 1 of degree eo - ea, whose scaled coefficients are binomials; one variable at
-    a time.  ``tmp`` is scratch.  Returns eo."""
-    cur = (ea[0], ea[1], ea[2], ea[3])
-    n = _size(ea)
-    for k in range(n):
-        tmp[k] = a[k]
-    for dim in range(4):
-        k = eo[dim] - cur[dim]
-        if k == 0:
-            continue
-        pre = 1
-        for d in range(dim):
-            pre *= cur[d]
-        post = 1
-        for d in range(dim + 1, 4):
-            post *= cur[d]
-        m = cur[dim]
-        mo = m + k
-        for t in range(pre * mo * post):
-            out[t] = 0.0
-        for p in range(pre):
-            for i in range(m):
-                for j in range(k + 1):
-                    w = BINOM[k, j]
-                    src = (p * m + i) * post
-                    dst = (p * mo + i + j) * post
-                    for q in range(post):
-                        out[dst + q] += w * tmp[src + q]
-        cur = (mo if dim == 0 else cur[0], mo if dim == 1 else cur[1], mo if dim == 2 else cur[2], mo if dim == 3 else cur[3])
-        for t in range(pre * mo * post):
-            tmp[t] = out[t]
-    n = _size(cur)
-    for t in range(n):
-        out[t] = tmp[t]
-    return cur
-
-
-@kernel
 def pderiv(a, ea, dim, width, out):
     """∂/∂x_dim of scaled coefficients: c'_i = ((i+1) c_{i+1} - (n-i) c_i) / width, degree n-1."""
     m = ea[dim]
@@ -825,8 +785,8 @@ def _zero(n, x):
 def _elevate2(a, n, m, s, out, tmp):
     """s times the degree elevation of scaled coefficients in (u1, v1), extents (n, n) ->
     (m, m): the product with the constant 1 of degree m - n (binomial weights), one axis at
-    a time with the long rows innermost (pelevate's generic loops run rows of length 1 on the
-    last axis).  Callers pass n, m as constants, so the loops have fixed lengths."""
+    a time with the long rows innermost (a generic 4-axis elevation runs rows of length 1 on
+    the last axis).  Callers pass n, m as constants, so the loops have fixed lengths."""
     k = m - n
     for t in range(n * m):
         tmp[t] = 0.0

@@ -318,6 +318,12 @@ def rational_bound(p, q):
     p and q are first elevated to a common degree.
     """
     pp, qq = _common(p, q)
+    return _bound_of_coefficients(pp, qq)
+
+
+@kernel
+def _bound_of_coefficients(pp, qq):
+    """The three cases of ``rational_bound`` on coefficient arrays of one shape."""
     ok, lo, hi = _ratio_range(pp, qq)
     if ok:
         return lo, hi, np.inf, -np.inf
@@ -333,6 +339,24 @@ def rational_bound(p, q):
     if rhi == 0.0:
         return -np.inf, a, np.inf, -np.inf
     return -np.inf, a, b, np.inf
+
+
+@kernel
+def rational_bound_pair(p0, q0, p1, q1):
+    """``rational_bound`` of a rational function that is degree 1 in an extra variable ξ on
+    [0, 1]: p = (1-ξ) p0 + ξ p1, q likewise.  Its Bernstein coefficients in ξ are the values at
+    ξ = 0 and ξ = 1, so eq 3 over (p0, q0) and (p1, q1) together bounds p/q over the 5-variable
+    box; both pairs are first elevated to one common degree."""
+    shape = (max(p0.shape[0], q0.shape[0], p1.shape[0], q1.shape[0]), max(p0.shape[1], q0.shape[1], p1.shape[1], q1.shape[1]),
+             max(p0.shape[2], q0.shape[2], p1.shape[2], q1.shape[2]), max(p0.shape[3], q0.shape[3], p1.shape[3], q1.shape[3]))
+    m = shape[0] * shape[1] * shape[2] * shape[3]
+    pp = np.empty(2 * m)
+    qq = np.empty(2 * m)
+    pp[:m] = elevate(p0, shape).ravel()
+    pp[m:] = elevate(p1, shape).ravel()
+    qq[:m] = elevate(q0, shape).ravel()
+    qq[m:] = elevate(q1, shape).ravel()
+    return _bound_of_coefficients(pp, qq)
 
 
 @kernel

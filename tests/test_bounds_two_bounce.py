@@ -6,8 +6,8 @@
   lies in the position bound of its tuple's piece containing (u1, v1) (receiver barycentrics
   and UV): zero violations; the bounds are tight (median width asserted).
 * Convergence: on a small box the bound approaches the exact image of the box.
-* The ξ2 endpoint bound (``rational_bound_pair``) contains sampled values of the 5-variable
-  rational function.
+* The ξ2 endpoint bound (coefficients at ξ2 = 0 and 1 together) contains sampled values of the
+  5-variable rational function.
 """
 
 import os
@@ -32,11 +32,6 @@ def _scene(name, chain):
     sc = S.scene(name)
     sc["chain"] = chain
     return sc
-
-
-def _triples(pairs, n_receivers):
-    r = np.arange(n_receivers)
-    return np.stack([np.repeat(pairs[:, 0], n_receivers), np.repeat(pairs[:, 1], n_receivers), np.tile(r, pairs.shape[0])], 1)
 
 
 @pytest.mark.parametrize("name,chain,n_first,most_per_first", [
@@ -72,7 +67,7 @@ def test_position_bounds_hold_every_traced_path(name, chain, n_first, widest):
     first = np.random.default_rng(5).choice(sc["caster_P"].shape[0], n_first, replace=False)
     pairs, _ = two_bounce_pairs(chain, sc["light"], sc["caster_P"], sc["caster_N"], sc["eta"], first=first)
     res = bound_two_bounce(chain, sc["light"], sc["caster_P"], sc["caster_N"], sc["receiver_P"], sc["receiver_UV"],
-                           eta=sc["eta"], triples=_triples(pairs, sc["receiver_P"].shape[0]), max_depth=1)
+                           eta=sc["eta"], pairs=pairs, max_depth=1)
     paths = S.trace_two(sc, first, samples_per_triangle=64)
     c = S.check_bounds_two(res, sc, paths)
     print(f"\n{name} {chain}: {c['paths']} paths, {res.report['tuples']} tuples, {res.report['pieces_per_tuple']:.2f} "
@@ -118,8 +113,11 @@ def test_position_bound_converges_to_the_image_of_a_small_box():
     assert checked >= 10
 
 
-def test_rational_bound_pair_contains_the_function_of_the_remainder_variable():
-    from addon.solver.bounds.bernstein import power_to_bernstein, rational_bound_pair, evaluate
+def test_remainder_endpoint_bound_contains_the_function_of_the_remainder_variable():
+    """pu/q with pu = (1-ξ) p0 + ξ p1, q likewise: eq 3 over the ξ = 0 and ξ = 1 coefficient sets
+    together (chain2's handling of ξ2) bounds it over the 5-variable box."""
+    from addon.solver.bounds.bernstein import _bound_of_coefficients, evaluate, power_to_bernstein
+    from addon.solver.bounds.chain2 import _flat_common
 
     rng = np.random.default_rng(11)
     for _ in range(20):
@@ -127,7 +125,8 @@ def test_rational_bound_pair_contains_the_function_of_the_remainder_variable():
         p1 = power_to_bernstein(rng.normal(size=(3, 3, 2, 2)))
         q0 = power_to_bernstein(np.abs(rng.normal(size=(2, 2, 1, 1))) + 0.5)
         q1 = power_to_bernstein(np.abs(rng.normal(size=(2, 2, 1, 1))) + 0.5)
-        lo, hi, lo2, hi2 = rational_bound_pair(p0, q0, p1, q1)
+        fp, _, fq = _flat_common(p0, p0, q0, p1, p1, q1, (3, 3, 2, 2))
+        lo, hi, lo2, hi2 = _bound_of_coefficients(fp, fq)
         assert lo2 > hi2  # q has one sign: a single interval
         x = rng.random((400, 5))
         vals = []

@@ -83,12 +83,31 @@ def affine(c, g, lo, hi):
 @kernel
 def elevate(a, shape):
     """Degree elevation to the extents in ``shape`` (each >= a's): b'_k = sum_i C(m,i)
-    C(n-m,k-i) / C(n,k) b_i per variable (Farouki 2012), computed as the Bernstein product
-    with the constant 1 of degree n - m (whose coefficients are all 1)."""
-    if shape[0] == a.shape[0] and shape[1] == a.shape[1] and shape[2] == a.shape[2] and shape[3] == a.shape[3]:
+    C(n-m,k-i) / C(n,k) b_i per variable (Farouki 2012), one variable at a time (the 4-D
+    product with the constant 1 of degree n - m gives the same coefficients at many times the
+    cost)."""
+    out = a
+    for dim in range(4):
+        m1 = out.shape[dim]
+        n1 = shape[dim]
+        if n1 == m1:
+            continue
+        pre, _, post = _split(out.shape, dim)
+        src = np.ascontiguousarray(out).reshape((pre, m1, post))
+        res = np.zeros((pre, n1, post))
+        m = m1 - 1
+        n = n1 - 1
+        r = n - m
+        for k in range(n1):
+            for i in range(max(0, k - r), min(m, k) + 1):
+                w = BINOM[m, i] * BINOM[r, k - i] / BINOM[n, k]
+                for p in range(pre):
+                    for q in range(post):
+                        res[p, k, q] += w * src[p, i, q]
+        out = res.reshape(_with_extent(out.shape, dim, n1))
+    if out is a:
         return a.copy()
-    return mul(a, np.ones((shape[0] - a.shape[0] + 1, shape[1] - a.shape[1] + 1, shape[2] - a.shape[2] + 1,
-                           shape[3] - a.shape[3] + 1)))
+    return out
 
 
 @kernel
@@ -150,37 +169,56 @@ def lincomb(a, sa, b, sb):
 
 
 @kernel
+def _scaled(a):
+    """a's coefficients times the binomials C(n, i) of every variable (the power-like scaling
+    under which the Bernstein product is a plain convolution)."""
+    s0, s1, s2, s3 = a.shape
+    out = np.empty(a.shape)
+    for i0 in range(s0):
+        for i1 in range(s1):
+            w01 = BINOM[s0 - 1, i0] * BINOM[s1 - 1, i1]
+            for i2 in range(s2):
+                w = w01 * BINOM[s2 - 1, i2]
+                for i3 in range(s3):
+                    out[i0, i1, i2, i3] = a[i0, i1, i2, i3] * w * BINOM[s3 - 1, i3]
+    return out
+
+
+@kernel
 def mul(a, b):
     """Product in Bernstein form: with scaled coefficients C(n,i) b_i the product is a
-    convolution; dividing by C(n+m,k) returns to the Bernstein basis (Farouki 2012)."""
+    convolution; dividing by C(n+m,k) returns to the Bernstein basis (Farouki 2012).  The
+    convolution runs over the smaller factor's coefficients outside and the larger one's
+    inside, whose last axis is contiguous in both arrays."""
+    if a.size < b.size:
+        a, b = b, a
     s0, s1, s2, s3 = a.shape
     t0, t1, t2, t3 = b.shape
-    m0, m1, m2, m3 = s0 - 1, s1 - 1, s2 - 1, s3 - 1
-    n0, n1, n2, n3 = t0 - 1, t1 - 1, t2 - 1, t3 - 1
+    sa = _scaled(a)
+    sb = _scaled(b)
     out = np.zeros((s0 + t0 - 1, s1 + t1 - 1, s2 + t2 - 1, s3 + t3 - 1))
-    bs = np.empty((t0, t1, t2, t3))
     for j0 in range(t0):
         for j1 in range(t1):
             for j2 in range(t2):
                 for j3 in range(t3):
-                    bs[j0, j1, j2, j3] = b[j0, j1, j2, j3] * BINOM[n0, j0] * BINOM[n1, j1] * BINOM[n2, j2] * BINOM[n3, j3]
-    for i0 in range(s0):
-        for i1 in range(s1):
-            for i2 in range(s2):
-                for i3 in range(s3):
-                    av = a[i0, i1, i2, i3] * BINOM[m0, i0] * BINOM[m1, i1] * BINOM[m2, i2] * BINOM[m3, i3]
-                    if av == 0.0:
+                    w = sb[j0, j1, j2, j3]
+                    if w == 0.0:
                         continue
-                    for j0 in range(t0):
-                        for j1 in range(t1):
-                            for j2 in range(t2):
-                                for j3 in range(t3):
-                                    out[i0 + j0, i1 + j1, i2 + j2, i3 + j3] += av * bs[j0, j1, j2, j3]
-    for k0 in range(out.shape[0]):
-        for k1 in range(out.shape[1]):
-            for k2 in range(out.shape[2]):
-                for k3 in range(out.shape[3]):
-                    out[k0, k1, k2, k3] /= (BINOM[m0 + n0, k0] * BINOM[m1 + n1, k1] * BINOM[m2 + n2, k2] * BINOM[m3 + n3, k3])
+                    for i0 in range(s0):
+                        for i1 in range(s1):
+                            for i2 in range(s2):
+                                row = out[i0 + j0, i1 + j1, i2 + j2]
+                                src = sa[i0, i1, i2]
+                                for i3 in range(s3):
+                                    row[i3 + j3] += w * src[i3]
+    o0, o1, o2, o3 = out.shape
+    for k0 in range(o0):
+        for k1 in range(o1):
+            w01 = BINOM[o0 - 1, k0] * BINOM[o1 - 1, k1]
+            for k2 in range(o2):
+                w = w01 * BINOM[o2 - 1, k2]
+                for k3 in range(o3):
+                    out[k0, k1, k2, k3] /= w * BINOM[o3 - 1, k3]
     return out
 
 
@@ -339,24 +377,6 @@ def _bound_of_coefficients(pp, qq):
     if rhi == 0.0:
         return -np.inf, a, np.inf, -np.inf
     return -np.inf, a, b, np.inf
-
-
-@kernel
-def rational_bound_pair(p0, q0, p1, q1):
-    """``rational_bound`` of a rational function that is degree 1 in an extra variable ξ on
-    [0, 1]: p = (1-ξ) p0 + ξ p1, q likewise.  Its Bernstein coefficients in ξ are the values at
-    ξ = 0 and ξ = 1, so eq 3 over (p0, q0) and (p1, q1) together bounds p/q over the 5-variable
-    box; both pairs are first elevated to one common degree."""
-    shape = (max(p0.shape[0], q0.shape[0], p1.shape[0], q1.shape[0]), max(p0.shape[1], q0.shape[1], p1.shape[1], q1.shape[1]),
-             max(p0.shape[2], q0.shape[2], p1.shape[2], q1.shape[2]), max(p0.shape[3], q0.shape[3], p1.shape[3], q1.shape[3]))
-    m = shape[0] * shape[1] * shape[2] * shape[3]
-    pp = np.empty(2 * m)
-    qq = np.empty(2 * m)
-    pp[:m] = elevate(p0, shape).ravel()
-    pp[m:] = elevate(p1, shape).ravel()
-    qq[:m] = elevate(q0, shape).ravel()
-    qq[m:] = elevate(q1, shape).ravel()
-    return _bound_of_coefficients(pp, qq)
 
 
 @kernel

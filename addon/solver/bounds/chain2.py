@@ -25,8 +25,12 @@ so the bound stays conservative:
    [δ_lo, δ_hi] through a remainder variable ξ2) and (uk, vk) by eq 9.  The receiver
    coordinates are linear fractional in ξ2 (d̃2 is affine in ξ2 and eq 9 is linear in d̃2), so
    their 5-variable Bernstein coefficients are those at ξ2 = 0 and ξ2 = 1: the bound (eq 3) is
-   taken over both coefficient sets together (``rational_bound_pair``), exact for the 5-variable
-   polynomial without a fifth array dimension.
+   taken over both coefficient sets together (``_flat_common``, ``_receiver_bound``), exact for
+   the 5-variable polynomial without a fifth array dimension.  Every receiver quantity bounded
+   (uk, vk, 1 - uk - vk, UV) is affine in (uk, vk), so one elevation of pu, pv, q serves all.
+4. The steps before eq 9 do not depend on the receiver: a pair (triangle 1, triangle 2) is
+   subdivided once for all receiver triangles (``pair_pieces_two``), each keeping its own
+   quadtree of the §6.1 stopping rules.
 
 Degrees stay at most 6 per variable (TT), far below the ~40 where the paper reduces degree.
 The bound converges as U1 shrinks: the remainders of step 2 are O(|U1|²) away from focal points.
@@ -45,7 +49,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..jit import kernel, prange
-from .bernstein import affine, clip_hull, coef_range, evaluate, lincomb, mul, rational_bound, rational_bound_pair, sqrt_linearisation, sub
+from .bernstein import (_bound_of_coefficients, _with_extent, add, affine, affine_map, clip_hull, coef_range, elevate, evaluate, lincomb, mul,
+                        rational_bound, sqrt_linearisation, sub)
 from .chain1 import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, P_X0, P_X1, P_Y0, P_Y1, PIECE_FIELDS, POS_PAD, _c3, _caster, _d3, _direction,
                      _dot, _eta_ratio, _orientations, _receiver_numerators)
 
@@ -175,38 +180,95 @@ def _orientations_two(P1, P2, n2, lo, hi):
 
 @kernel
 def _directions_two(refract, o, eta_ratio, n, d):
-    """d̃2 (eq 10) at ξ2 = 0 and ξ2 = 1 (identical for reflection).  Refraction replaces √β2
-    (eq 11) by aβ2 + b + δ, δ in [δ_lo, δ_hi] (eq 12–13).  ok = False where β2 < 0 on the whole
-    box (total internal reflection)."""
+    """d̃2 (eq 10) at ξ2 = 0, and the direction m with d̃2(ξ2) = d̃2(0) + ξ2 m.  Refraction replaces
+    √β2 (eq 11) by aβ2 + b + δ_lo + ξ2 (δ_hi - δ_lo) (eq 12–13), so m = -o (δ_hi - δ_lo) n2 is
+    affine; reflection has m = 0 (has_m False).  ok = False where β2 < 0 on the whole box (total
+    internal reflection).  Returns (ok, has_m, d̃2(0), m)."""
     nn = _dot(n[0], n[1], n[2], n[0], n[1], n[2])
     dn = _dot(d[0], d[1], d[2], n[0], n[1], n[2])
     if not refract:
         dt = (lincomb(mul(nn, d[0]), 1.0, mul(dn, n[0]), -2.0), lincomb(mul(nn, d[1]), 1.0, mul(dn, n[1]), -2.0),
               lincomb(mul(nn, d[2]), 1.0, mul(dn, n[2]), -2.0))
-        return True, dt, dt
+        return True, False, dt, n
     e2 = eta_ratio * eta_ratio
     dd = _dot(d[0], d[1], d[2], d[0], d[1], d[2])
     beta = lincomb(mul(nn, dd), 1.0 - e2, mul(dn, dn), e2)
     blo, bhi = coef_range(beta)
     if bhi <= 0.0:
-        return False, (beta, beta, beta), (beta, beta, beta)
+        return False, False, (beta, beta, beta), n
     a, b, dlo, dhi = sqrt_linearisation(blo, bhi)
-    base = (lincomb(mul(nn, d[0]), eta_ratio, mul(dn, n[0]), -eta_ratio),
-            lincomb(mul(nn, d[1]), eta_ratio, mul(dn, n[1]), -eta_ratio),
-            lincomb(mul(nn, d[2]), eta_ratio, mul(dn, n[2]), -eta_ratio))
     r0 = np.empty_like(beta)
-    r1 = np.empty_like(beta)
     bf = beta.ravel()
     r0f = r0.ravel()
-    r1f = r1.ravel()
-    for i in range(bf.shape[0]):  # aβ + b + δ: adding a constant adds it to every coefficient
+    for i in range(bf.shape[0]):  # aβ + b + δ_lo: adding a constant adds it to every coefficient
         r0f[i] = a * bf[i] + b + dlo
-        r1f[i] = a * bf[i] + b + dhi
-    d0 = (lincomb(base[0], 1.0, mul(r0, n[0]), -o), lincomb(base[1], 1.0, mul(r0, n[1]), -o),
-          lincomb(base[2], 1.0, mul(r0, n[2]), -o))
-    d1 = (lincomb(base[0], 1.0, mul(r1, n[0]), -o), lincomb(base[1], 1.0, mul(r1, n[1]), -o),
-          lincomb(base[2], 1.0, mul(r1, n[2]), -o))
-    return True, d0, d1
+    dt = (lincomb(lincomb(mul(nn, d[0]), eta_ratio, mul(dn, n[0]), -eta_ratio), 1.0, mul(r0, n[0]), -o),
+          lincomb(lincomb(mul(nn, d[1]), eta_ratio, mul(dn, n[1]), -eta_ratio), 1.0, mul(r0, n[1]), -o),
+          lincomb(lincomb(mul(nn, d[2]), eta_ratio, mul(dn, n[2]), -eta_ratio), 1.0, mul(r0, n[2]), -o))
+    s = -o * (dhi - dlo)
+    m = (affine_map(n[0], s, 0.0), affine_map(n[1], s, 0.0), affine_map(n[2], s, 0.0))
+    return True, True, dt, m
+
+
+@kernel
+def _flat_common(a, b, c, d, e, f, shape):
+    """The six polynomials elevated to ``shape`` and laid out as two flat coefficient sets:
+    (a | d), (b | e), (c | f) (the ξ2 = 0 and ξ2 = 1 sets of pu, pv, q)."""
+    k = shape[0] * shape[1] * shape[2] * shape[3]
+    x = np.empty(2 * k)
+    y = np.empty(2 * k)
+    z = np.empty(2 * k)
+    x[:k] = elevate(a, shape).ravel()
+    x[k:] = elevate(d, shape).ravel()
+    y[:k] = elevate(b, shape).ravel()
+    y[k:] = elevate(e, shape).ravel()
+    z[:k] = elevate(c, shape).ravel()
+    z[k:] = elevate(f, shape).ravel()
+    return x, y, z
+
+
+@kernel
+def _receiver_bound(pu, pv, q, UV, res):
+    """Receiver position bound from flat Bernstein coefficient sets of uk = pu/q, vk = pv/q
+    (eq 3 over every set together): clipped (uk, vk) box in res[0:4], UV box in res[4:8].
+    Every bounded coordinate (uk, vk, 1 - uk - vk, the two UV components) is an affine
+    combination of uk and vk, so its numerator's coefficients are the same combination of pu,
+    pv and q: one elevation serves all five bounds.  Returns False when the bound misses."""
+    m = pu.shape[0]
+    num = np.empty(m)
+    a, b, c, e = _bound_of_coefficients(pu, q)
+    ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
+    if ulo > uhi:
+        return False
+    a, b, c, e = _bound_of_coefficients(pv, q)
+    vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
+    if vlo > vhi or ulo + vlo > 1.0:
+        return False
+    for i in range(m):
+        num[i] = q[i] - pu[i] - pv[i]
+    a, b, c, e = _bound_of_coefficients(num, q)
+    wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
+    if wlo > whi:
+        return False
+    uhi = min(uhi, 1.0 - vlo - wlo)
+    vhi = min(vhi, 1.0 - ulo - wlo)
+    for axis in range(2):
+        c0 = UV[0, axis]
+        c1 = UV[1, axis] - UV[0, axis]
+        c2 = UV[2, axis] - UV[0, axis]
+        for i in range(m):
+            num[i] = c0 * q[i] + c1 * pu[i] + c2 * pv[i]
+        a, b, c, e = _bound_of_coefficients(num, q)
+        lo_, hi_ = clip_hull(a, b, c, e, min(UV[0, axis], UV[1, axis], UV[2, axis]), max(UV[0, axis], UV[1, axis], UV[2, axis]))
+        if lo_ > hi_:
+            return False
+        res[4 + 2 * axis] = lo_
+        res[5 + 2 * axis] = hi_
+    res[0] = ulo
+    res[1] = uhi
+    res[2] = vlo
+    res[3] = vhi
+    return True
 
 
 @kernel
@@ -244,15 +306,14 @@ def _stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
 
 
 @kernel
-def piece_position_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, lo, hi, out, stats):
-    """Position bound (eq 4–5, 9, 12–13) of the two-bounce piece lo <= (u1, v1) <= hi.
-
-    chain_code: bit 0 set when vertex 1 refracts, bit 1 when vertex 2 refracts ("RR" 0, "TR" 1,
-    "RT" 2, "TT" 3).  Writes out[0:8] as ``chain1.piece_position`` (receiver barycentric box,
-    then UV box, padded by POS_PAD) and returns False when no admissible path of the piece can
-    reach the receiver triangle."""
+def _box_bounds(chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, found, stats):
+    """Position bounds of the box lo <= (u1, v1) <= hi for every receiver r with alive[r]
+    (the shared steps 1–3 once, then eq 9 and eq 3 per receiver): writes out[r, 0:8] (receiver
+    barycentric box, then UV box, padded by POS_PAD) and found[r] (False: the bound misses)."""
+    for r in range(Q.shape[0]):
+        found[r] = False
     if lo[0] + lo[1] > 1.0:
-        return False
+        return
     refract1 = (chain_code & 1) != 0
     refract2 = (chain_code & 2) != 0
     lo4 = np.zeros(4)
@@ -260,21 +321,10 @@ def piece_position_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, lo, hi, out, 
     lo4[0], lo4[1], hi4[0], hi4[1] = lo[0], lo[1], hi[0], hi[1]
     mask1 = _orientations(x0, P1, N1, lo4, hi4)
     if mask1 == 0:
-        return False
-    bu0 = np.inf
-    bu1 = -np.inf
-    bv0 = np.inf
-    bv1 = -np.inf
-    X0 = np.inf
-    X1 = -np.inf
-    Y0 = np.inf
-    Y1 = -np.inf
-    uvlo_x = min(UV[0, 0], UV[1, 0], UV[2, 0])
-    uvhi_x = max(UV[0, 0], UV[1, 0], UV[2, 0])
-    uvlo_y = min(UV[0, 1], UV[1, 1], UV[2, 1])
-    uvhi_y = max(UV[0, 1], UV[1, 1], UV[2, 1])
+        return
     fu = np.zeros(4)
     fv = np.zeros(4)
+    res = np.zeros(8)
     reached = False
     for v1 in range(2):
         if not (mask1 >> v1) & 1:
@@ -293,78 +343,114 @@ def piece_position_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, lo, hi, out, 
             if not refract2 and v2 == 1 and (mask2 & 1):
                 continue
             o2 = 1.0 if v2 == 0 else -1.0
-            ok, dA, dB = _directions_two(refract2, o2, _eta_ratio(o2, eta), n, d)
+            ok, has_m, dt, m = _directions_two(refract2, o2, _eta_ratio(o2, eta), n, d)
             if not ok:
                 continue
-            pu0, pv0, q0 = _receiver_numerators(x, dA, Q)
-            pu1, pv1, q1 = _receiver_numerators(x, dB, Q)
-            a, b, c, e = rational_bound_pair(pu0, q0, pu1, q1)
-            ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
-            if ulo > uhi:
-                continue
-            a, b, c, e = rational_bound_pair(pv0, q0, pv1, q1)
-            vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
-            if vlo > vhi or ulo + vlo > 1.0:
-                continue
-            w0 = lincomb(lincomb(q0, 1.0, pu0, -1.0), 1.0, pv0, -1.0)
-            w1 = lincomb(lincomb(q1, 1.0, pu1, -1.0), 1.0, pv1, -1.0)
-            a, b, c, e = rational_bound_pair(w0, q0, w1, q1)
-            wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
-            if wlo > whi:
-                continue
-            uhi = min(uhi, 1.0 - vlo - wlo)
-            vhi = min(vhi, 1.0 - ulo - wlo)
-            t0 = lincomb(lincomb(q0, UV[0, 0], pu0, UV[1, 0] - UV[0, 0]), 1.0, pv0, UV[2, 0] - UV[0, 0])
-            t1 = lincomb(lincomb(q1, UV[0, 0], pu1, UV[1, 0] - UV[0, 0]), 1.0, pv1, UV[2, 0] - UV[0, 0])
-            a, b, c, e = rational_bound_pair(t0, q0, t1, q1)
-            xlo, xhi = clip_hull(a, b, c, e, uvlo_x, uvhi_x)
-            t0 = lincomb(lincomb(q0, UV[0, 1], pu0, UV[1, 1] - UV[0, 1]), 1.0, pv0, UV[2, 1] - UV[0, 1])
-            t1 = lincomb(lincomb(q1, UV[0, 1], pu1, UV[1, 1] - UV[0, 1]), 1.0, pv1, UV[2, 1] - UV[0, 1])
-            a, b, c, e = rational_bound_pair(t0, q0, t1, q1)
-            ylo, yhi = clip_hull(a, b, c, e, uvlo_y, uvhi_y)
-            if xlo > xhi or ylo > yhi:
-                continue
-            bu0, bu1, bv0, bv1 = min(bu0, ulo), max(bu1, uhi), min(bv0, vlo), max(bv1, vhi)
-            X0, X1, Y0, Y1 = min(X0, xlo), max(X1, xhi), min(Y0, ylo), max(Y1, yhi)
+            for r in range(Q.shape[0]):
+                if not alive[r]:
+                    continue
+                pu0, pv0, q0 = _receiver_numerators(x, dt, Q[r])
+                if has_m:  # ξ2 = 1: numerators are linear in the direction
+                    mu, mv, mq = _receiver_numerators(x, m, Q[r])
+                    pu1, pv1, q1 = add(pu0, mu), add(pv0, mv), add(q0, mq)
+                else:
+                    pu1, pv1, q1 = pu0, pv0, q0
+                shape = pu1.shape
+                for k in range(4):
+                    shape = _with_extent(shape, k, max(pu0.shape[k], pv0.shape[k], q0.shape[k], pu1.shape[k], pv1.shape[k], q1.shape[k]))
+                fpu, fpv, fq = _flat_common(pu0, pv0, q0, pu1, pv1, q1, shape)
+                if not _receiver_bound(fpu, fpv, fq, UV[r], res):
+                    continue
+                o = out[r]
+                if not found[r]:
+                    o[0] = o[2] = o[4] = o[6] = np.inf
+                    o[1] = o[3] = o[5] = o[7] = -np.inf
+                    found[r] = True
+                for k in range(4):
+                    o[2 * k] = min(o[2 * k], res[2 * k] - POS_PAD)
+                    o[2 * k + 1] = max(o[2 * k + 1], res[2 * k + 1] + POS_PAD)
     if not reached:
         stats[1] += 1
-    if bu0 > bu1:
-        return False
-    out[0] = bu0 - POS_PAD
-    out[1] = bu1 + POS_PAD
-    out[2] = bv0 - POS_PAD
-    out[3] = bv1 + POS_PAD
-    out[4] = X0 - POS_PAD
-    out[5] = X1 + POS_PAD
-    out[6] = Y0 - POS_PAD
-    out[7] = Y1 + POS_PAD
-    return True
 
 
 @kernel
-def tuple_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma, out, stats):
-    """Subdivide triangle 1's domain of one two-bounce tuple (§6.1: split at the midpoint while
-    the position bound's area is >= σ and the depth is below the limit; pieces whose bound misses
-    the receiver are dropped).  Writes up to out.shape[0] rows (chain1's P_* layout, Ē = inf,
-    E̲ = 0) and returns their number; a full buffer stops splitting (stats[3])."""
+def piece_position_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, lo, hi, out, stats):
+    """Position bound (eq 4–5, 9, 12–13) of the two-bounce piece lo <= (u1, v1) <= hi for one
+    receiver triangle Q (3,3) with UV (3,2).
+
+    chain_code: bit 0 set when vertex 1 refracts, bit 1 when vertex 2 refracts ("RR" 0, "TR" 1,
+    "RT" 2, "TT" 3).  Writes out[0:8] as ``chain1.piece_position`` (receiver barycentric box,
+    then UV box, padded by POS_PAD) and returns False when no admissible path of the piece can
+    reach the receiver triangle."""
+    res = np.zeros((1, 8))
+    found = np.zeros(1, dtype=np.bool_)
+    alive = np.ones(1, dtype=np.bool_)
+    _box_bounds(chain_code, x0, P1, N1, P2, N2, Q.reshape((1, 3, 3)), UV.reshape((1, 3, 2)), alive, eta, lo, hi, res, found, stats)
+    for k in range(8):
+        out[k] = res[0, k]
+    return found[0]
+
+
+P_RECEIVER = PIECE_FIELDS  # extra column of the pair-level rows: the receiver triangle of the piece
+
+
+@kernel
+def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma, out, stats):
+    """Subdivide triangle 1's domain for the pair (triangle 1, triangle 2) and every receiver
+    triangle at once (§6.1: split at the midpoint while the position bound's area is >= σ and
+    the depth is below the limit; a receiver whose bound misses is dropped from the box and its
+    sub-boxes).  Each receiver's pieces are those of its own quadtree: a receiver that stops at
+    a box emits its piece there and is not evaluated in the sub-boxes; the shared work of a box
+    (vertex 1 -> 2 and d̃2) is done once for all receivers still splitting.
+
+    Writes rows of chain1's P_* layout plus the receiver index in column P_RECEIVER (Ē = inf,
+    E̲ = 0) and returns their number; when the rows might not fit, boxes stop splitting
+    (stats[3])."""
+    nr = Q.shape[0]
     cap = out.shape[0]
-    stack = np.empty((4 * (max_depth + 2), 5))
+    size = 4 * (max_depth + 2)
+    stack = np.empty((size, 5))
+    alive = np.zeros((size, nr), dtype=np.bool_)
     stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0.0, 1.0, 0.0, 1.0, 0.0
+    alive[0, :] = True
     top = 1
     count = 0
     lo = np.zeros(2)
     hi = np.zeros(2)
-    pos = np.zeros(8)
+    pos = np.zeros((nr, 8))
+    found = np.zeros(nr, dtype=np.bool_)
+    node_alive = np.zeros(nr, dtype=np.bool_)
+    child = np.zeros(nr, dtype=np.bool_)
     while top > 0:
         top -= 1
         lo[0], hi[0], lo[1], hi[1] = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
         depth = int(stack[top, 4])
+        node_alive[:] = alive[top]
         stats[0] += 1
-        if not piece_position_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, lo, hi, pos, stats):
-            continue
-        area = (pos[1] - pos[0]) * (pos[3] - pos[2])
-        can_split = depth < max_depth and count + top + 4 <= cap
-        if area >= sigma and can_split:
+        _box_bounds(chain_code, x0, P1, N1, P2, N2, Q, UV, node_alive, eta, lo, hi, pos, found, stats)
+        can_split = depth < max_depth and count + (top + 4) * nr <= cap
+        any_child = False
+        for r in range(nr):
+            child[r] = False
+            if not found[r]:
+                continue
+            area = (pos[r, 1] - pos[r, 0]) * (pos[r, 3] - pos[r, 2])
+            if area >= sigma and can_split:
+                child[r] = True
+                any_child = True
+                continue
+            if depth < max_depth and area >= sigma:
+                stats[3] += 1
+            row = out[count]
+            row[P_U0], row[P_U1], row[P_V0], row[P_V1] = lo[0], hi[0], lo[1], hi[1]
+            for k in range(8):
+                row[P_BU0 + k] = pos[r, k]
+            row[P_EHI] = np.inf
+            row[P_ELO] = 0.0
+            row[P_DEPTH] = depth
+            row[P_RECEIVER] = r
+            count += 1
+        if any_child:
             um = 0.5 * (lo[0] + hi[0])
             vm = 0.5 * (lo[1] + hi[1])
             for k in range(4):
@@ -374,28 +460,17 @@ def tuple_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigm
                 b1 = vm if k & 2 == 0 else hi[1]
                 if a0 + b0 < 1.0:
                     stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], stack[top, 4] = a0, a1, b0, b1, depth + 1
+                    alive[top] = child
                     top += 1
-            continue
-        if depth < max_depth and area >= sigma:
-            stats[3] += 1
-        row = out[count]
-        row[P_U0], row[P_U1], row[P_V0], row[P_V1] = lo[0], hi[0], lo[1], hi[1]
-        for k in range(8):
-            row[P_BU0 + k] = pos[k]
-        row[P_EHI] = np.inf
-        row[P_ELO] = 0.0
-        row[P_DEPTH] = depth
-        count += 1
     return count
 
 
 @kernel(parallel=True)
-def _batch_two(chain_code, x0, P, N, Q, UV, eta, triples, max_depth, sigma, out, counts, stats):
-    for t in prange(triples.shape[0]):
-        a = triples[t, 0]
-        b = triples[t, 1]
-        r = triples[t, 2]
-        counts[t] = tuple_pieces_two(chain_code, x0, P[a], N[a], P[b], N[b], Q[r], UV[r], eta, max_depth, sigma, out[t], stats[t])
+def _batch_two(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats):
+    for t in prange(pairs.shape[0]):
+        a = pairs[t, 0]
+        b = pairs[t, 1]
+        counts[t] = pair_pieces_two(chain_code, x0, P[a], N[a], P[b], N[b], Q, UV, eta, max_depth, sigma, out[t], stats[t])
 
 
 CHAIN_CODES = {"RR": 0, "TR": 1, "RT": 2, "TT": 3}
@@ -416,17 +491,16 @@ class TwoBounceBounds:
     report: dict = field(default_factory=dict)
 
 
-def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, triples=None, max_depth=1,
+def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=1,
                      sigma=1e-4, capacity=16):
     """Position bounds of two-bounce tuples (Fan et al. 2025 §4.2–4.3, eq 3–13; subdivision §6.1).
 
     chain: "RR", "RT", "TR" or "TT"; caster_P, caster_N: (n,3,3) corners and corner normals of
     the specular triangles (both vertices index into them); receiver_P (r,3,3), receiver_UV
     (r,3,2); eta: IOR behind the caster surfaces (normals point away from it);
-    triples: (t,3) candidate (triangle 1, triangle 2, receiver) indices (default: every pair of
-    distinct casters from :func:`..tuples.two_bounce_pairs` is up to the caller — here all n·(n-1)·r,
-    only sensible for tiny meshes); max_depth, sigma: the stopping rules; capacity: most pieces
-    per tuple."""
+    pairs: (t,2) (triangle 1, triangle 2) candidates, each bounded against every receiver
+    (``tuples.two_bounce_pairs`` builds them; default all n·(n-1), only for tiny meshes);
+    max_depth, sigma: the stopping rules; capacity: most pieces per tuple."""
     if chain not in CHAIN_CODES:
         raise ValueError(f"bound_two_bounce handles chains RR, RT, TR and TT, got {chain!r}")
     t0 = time.perf_counter()
@@ -435,32 +509,41 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     caster_N = np.ascontiguousarray(caster_N, dtype=np.float64)
     receiver_P = np.ascontiguousarray(receiver_P, dtype=np.float64)
     receiver_UV = np.ascontiguousarray(receiver_UV, dtype=np.float64)
-    if triples is None:
+    if pairs is None:
         n = caster_P.shape[0]
-        a, b, r = np.meshgrid(np.arange(n), np.arange(n), np.arange(receiver_P.shape[0]), indexing="ij")
+        a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
         keep = (a != b).ravel()
-        triples = np.stack([a.ravel()[keep], b.ravel()[keep], r.ravel()[keep]], axis=1)
-    triples = np.ascontiguousarray(triples, dtype=np.int64).reshape(-1, 3)
-    n = triples.shape[0]
+        pairs = np.stack([a.ravel()[keep], b.ravel()[keep]], axis=1)
+    pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
+    n = pairs.shape[0]
+    nr = receiver_P.shape[0]
     capacity = max(1, min(int(capacity), 4 ** int(max_depth)))
-    out = np.empty((n, capacity, PIECE_FIELDS))
+    out = np.empty((n, capacity * nr, PIECE_FIELDS + 1))
     counts = np.zeros(n, dtype=np.int64)
     stats = np.zeros((n, N_STATS), dtype=np.int64)
     t1 = time.perf_counter()
-    if n:
-        _batch_two(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), triples,
+    if n and nr:
+        _batch_two(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs,
                    int(max_depth), float(sigma), out, counts, stats)
     t2 = time.perf_counter()
-    keep = np.flatnonzero(counts > 0)
-    kept = counts[keep]
-    piece_tuple = np.repeat(np.arange(keep.shape[0]), kept)
-    slot = np.arange(piece_tuple.shape[0]) - np.repeat(np.cumsum(kept) - kept, kept)
-    pieces = out[keep[piece_tuple], slot] if piece_tuple.shape[0] else np.empty((0, PIECE_FIELDS))
+    pair_of = np.repeat(np.arange(n), counts)
+    slot = np.arange(pair_of.shape[0]) - np.repeat(np.cumsum(counts) - counts, counts)
+    rows = out[pair_of, slot]
     del out
-    m = keep.shape[0]
+    receiver = rows[:, P_RECEIVER].astype(np.int64)
+    order = np.lexsort((receiver, pair_of))  # tuples (pair, receiver) contiguous
+    rows, pair_of, receiver = rows[order], pair_of[order], receiver[order]
+    key = pair_of * max(nr, 1) + receiver
+    new = np.ones(key.shape[0], dtype=bool)
+    new[1:] = key[1:] != key[:-1]
+    starts = np.flatnonzero(new)
+    piece_tuple = np.cumsum(new) - 1
+    tuples = np.stack([pairs[pair_of[starts], 0], pairs[pair_of[starts], 1], receiver[starts]], axis=1) if starts.size \
+        else np.zeros((0, 3), dtype=np.int64)
+    pieces = np.ascontiguousarray(rows[:, :PIECE_FIELDS])
+    m = starts.shape[0]
     box = np.empty((m, 4))
     if m:
-        starts = np.cumsum(kept) - kept
         box[:, 0] = np.minimum.reduceat(pieces[:, P_X0], starts)
         box[:, 1] = np.maximum.reduceat(pieces[:, P_X1], starts)
         box[:, 2] = np.minimum.reduceat(pieces[:, P_Y0], starts)
@@ -468,11 +551,11 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     t3 = time.perf_counter()
     total = stats.sum(axis=0)
     report = {
-        "tuples_tried": int(n), "tuples": int(m), "pieces": int(pieces.shape[0]),
+        "pairs": int(n), "receivers": int(nr), "tuples": int(m), "pieces": int(pieces.shape[0]),
         "pieces_per_tuple": float(pieces.shape[0] / m) if m else 0.0,
-        "position_evaluations": int(total[0]), "stage_one_misses": int(total[1]), "constant_forms": int(total[2]),
+        "box_evaluations": int(total[0]), "stage_one_misses": int(total[1]), "constant_forms": int(total[2]),
         "capacity_stops": int(total[3]),
-        "memory_mb": (pieces.nbytes + box.nbytes + piece_tuple.nbytes) / 2**20,
+        "memory_mb": (pieces.nbytes + box.nbytes + piece_tuple.nbytes + tuples.nbytes) / 2**20,
         "seconds": {"prepare": t1 - t0, "bound": t2 - t1, "compact": t3 - t2},
     }
-    return TwoBounceBounds(chain, triples[keep], piece_tuple, pieces, box, report)
+    return TwoBounceBounds(chain, tuples, piece_tuple, pieces, box, report)

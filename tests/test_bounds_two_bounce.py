@@ -23,7 +23,6 @@ for p in (HERE, ROOT):
         sys.path.insert(0, p)
 
 import bounds_scenes as S  # noqa: E402
-from addon.solver.bounds import chain1 as C  # noqa: E402
 from addon.solver.bounds.chain2 import bound_two_bounce, piece_position_two, CHAIN_CODES  # noqa: E402
 from addon.solver.bounds.tuples import two_bounce_pairs  # noqa: E402
 

@@ -83,9 +83,10 @@ def run_row_two(name, check=True, samples=16):
 
 def run_row(name, check=True, samples=4):
     """Bound one scene; return the row dict (warm time of this call, no compile if cached)."""
-    if len(SCENE_CHAIN.get(name.split("_")[0], "")) == 2:
-        return run_row_two(name, check)
     import bounds_scenes as S
+
+    if len(S.SCENES[name.split("_")[0]][0]) == 2:
+        return run_row_two(name, check)
     from addon.solver.bounds.chain1 import bound_one_bounce
 
     sc = S.scene(name.split("_")[0])
@@ -105,9 +106,6 @@ def run_row(name, check=True, samples=4):
         row["unbounded_paths"] = c["unbounded_paths"]
         row["median_bound_ratio"] = round(c["median_ratio"], 3)
     return row
-
-
-SCENE_CHAIN = {"plane7k": "R", "pool4k": "T", "pool20k": "T", "slab10k": "TT", "ball80": "TT", "ball320": "TT", "ball1280": "TT"}
 
 
 def cold_time(name):

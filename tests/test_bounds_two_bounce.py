@@ -124,7 +124,7 @@ def test_remainder_endpoint_bound_contains_the_function_of_the_remainder_variabl
         p1 = power_to_bernstein(rng.normal(size=(3, 3, 2, 2)))
         q0 = power_to_bernstein(np.abs(rng.normal(size=(2, 2, 1, 1))) + 0.5)
         q1 = power_to_bernstein(np.abs(rng.normal(size=(2, 2, 1, 1))) + 0.5)
-        fp, _, fq = _flat_common(p0, p0, q0, p1, p1, q1, (3, 3, 2, 2))
+        fp, _, fq = _flat_common(p0, p0, q0, p1, p1, q1)
         lo, hi, lo2, hi2 = _bound_of_coefficients(fp, fq)
         assert lo2 > hi2  # q has one sign: a single interval
         x = rng.random((400, 5))

@@ -43,8 +43,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..jit import kernel, prange
-from .bernstein import (abs_lower, abs_upper, affine, affine_map, clip_hull, coef_range, deriv, lincomb, mul, rational_bound,
-                        sqrt_linearisation, sub)
+from .bernstein import (_bound_of_coefficients, abs_lower, abs_upper, affine, affine_map, clip_hull, coef_range, deriv, elevate, lincomb, mul,
+                        rational_bound, sqrt_linearisation, sub)
 
 # Piece record layout (one row of ``pieces``).
 P_U0, P_U1, P_V0, P_V1 = 0, 1, 2, 3          # caster (u1, v1) box
@@ -207,6 +207,85 @@ def _eta_ratio(o, eta):
 
 
 @kernel
+def flat_coefficients(pu, pv, q):
+    """pu, pv and q elevated to their common degree, as flat coefficient arrays (one
+    elevation for every receiver bound of ``receiver_box``)."""
+    shape = (max(pu.shape[0], pv.shape[0], q.shape[0]), max(pu.shape[1], pv.shape[1], q.shape[1]),
+             max(pu.shape[2], pv.shape[2], q.shape[2]), max(pu.shape[3], pv.shape[3], q.shape[3]))
+    return elevate(pu, shape).ravel(), elevate(pv, shape).ravel(), elevate(q, shape).ravel()
+
+
+@kernel
+def barycentric_box(pu, pv, q, res):
+    """Bound (eq 3) of the receiver barycentrics uk = pu/q, vk = pv/q from flat coefficient
+    arrays of one degree (one or several coefficient sets laid end to end), clipped to the
+    triangle: uk, vk and 1 - uk - vk each in [0, 1].  Writes res[0:4] = (uk_lo, uk_hi, vk_lo,
+    vk_hi); returns False when the bound misses the triangle."""
+    a, b, c, e = _bound_of_coefficients(pu, q)
+    ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
+    if ulo > uhi:
+        return False
+    a, b, c, e = _bound_of_coefficients(pv, q)
+    vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
+    if vlo > vhi or ulo + vlo > 1.0:
+        return False
+    num = np.empty(pu.shape[0])
+    for i in range(pu.shape[0]):
+        num[i] = q[i] - pu[i] - pv[i]
+    a, b, c, e = _bound_of_coefficients(num, q)
+    wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
+    if wlo > whi:
+        return False
+    res[0] = ulo
+    res[1] = min(uhi, 1.0 - vlo - wlo)
+    res[2] = vlo
+    res[3] = min(vhi, 1.0 - ulo - wlo)
+    return True
+
+
+@kernel
+def receiver_box(pu, pv, q, UV, res):
+    """``barycentric_box`` in res[0:4] and the bound of the receiver's UV coordinates in
+    res[4:8] (x_lo, x_hi, y_lo, y_hi), clipped to the hull of the corner UVs.  Every bounded
+    coordinate is affine in (uk, vk), so its numerator's coefficients are the same combination
+    of pu, pv and q.  Returns False when the bound misses."""
+    if not barycentric_box(pu, pv, q, res):
+        return False
+    num = np.empty(pu.shape[0])
+    for axis in range(2):
+        c0 = UV[0, axis]
+        c1 = UV[1, axis] - UV[0, axis]
+        c2 = UV[2, axis] - UV[0, axis]
+        for i in range(pu.shape[0]):
+            num[i] = c0 * q[i] + c1 * pu[i] + c2 * pv[i]
+        a, b, c, e = _bound_of_coefficients(num, q)
+        lo, hi = clip_hull(a, b, c, e, min(UV[0, axis], UV[1, axis], UV[2, axis]), max(UV[0, axis], UV[1, axis], UV[2, axis]))
+        if lo > hi:
+            return False
+        res[4 + 2 * axis] = lo
+        res[5 + 2 * axis] = hi
+    return True
+
+
+@kernel
+def push_children(stack, top, lo, hi, depth):
+    """Push the four midpoint children of the box lo <= (u1, v1) <= hi (§6.1 subdivision) that
+    reach into the triangle (lower corner with u1 + v1 < 1) as rows (u_lo, u_hi, v_lo, v_hi,
+    depth + 1) at stack[top:]; returns the new top."""
+    um = 0.5 * (lo[0] + hi[0])
+    vm = 0.5 * (lo[1] + hi[1])
+    for k in range(4):
+        a0 = lo[0] if k & 1 == 0 else um
+        a1 = um if k & 1 == 0 else hi[0]
+        b0 = lo[1] if k & 2 == 0 else vm
+        b1 = vm if k & 2 == 0 else hi[1]
+        if a0 + b0 < 1.0:
+            stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], stack[top, 4] = a0, a1, b0, b1, depth + 1
+            top += 1
+    return top
+
+
+@kernel
 def piece_position(refract, x0, P, N, Q, UV, eta, lo, hi, out):
     """Position bound (eq 4–5, 9; refraction with eq 12–13) of the piece lo <= (u1, v1) <= hi.
 
@@ -229,10 +308,7 @@ def piece_position(refract, x0, P, N, Q, UV, eta, lo, hi, out):
     X1 = -np.inf
     Y0 = np.inf
     Y1 = -np.inf
-    uvlo_x = min(UV[0, 0], UV[1, 0], UV[2, 0])
-    uvhi_x = max(UV[0, 0], UV[1, 0], UV[2, 0])
-    uvlo_y = min(UV[0, 1], UV[1, 1], UV[2, 1])
-    uvhi_y = max(UV[0, 1], UV[1, 1], UV[2, 1])
+    res = np.zeros(8)
     for variant in range(2):
         if not (mask >> variant) & 1:
             continue
@@ -243,31 +319,11 @@ def piece_position(refract, x0, P, N, Q, UV, eta, lo, hi, out):
         if not ok:
             continue
         pu, pv, q = _receiver_numerators(x, dt, Q)
-        a, b, c, e = rational_bound(pu, q)
-        ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
-        if ulo > uhi:
+        fpu, fpv, fq = flat_coefficients(pu, pv, q)
+        if not receiver_box(fpu, fpv, fq, UV, res):
             continue
-        a, b, c, e = rational_bound(pv, q)
-        vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
-        if vlo > vhi or ulo + vlo > 1.0:
-            continue
-        w = lincomb(lincomb(q, 1.0, pu, -1.0), 1.0, pv, -1.0)
-        a, b, c, e = rational_bound(w, q)
-        wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
-        if wlo > whi:
-            continue
-        uhi = min(uhi, 1.0 - vlo - wlo)
-        vhi = min(vhi, 1.0 - ulo - wlo)
-        tx = lincomb(lincomb(q, UV[0, 0], pu, UV[1, 0] - UV[0, 0]), 1.0, pv, UV[2, 0] - UV[0, 0])
-        a, b, c, e = rational_bound(tx, q)
-        xlo, xhi = clip_hull(a, b, c, e, uvlo_x, uvhi_x)
-        ty = lincomb(lincomb(q, UV[0, 1], pu, UV[1, 1] - UV[0, 1]), 1.0, pv, UV[2, 1] - UV[0, 1])
-        a, b, c, e = rational_bound(ty, q)
-        ylo, yhi = clip_hull(a, b, c, e, uvlo_y, uvhi_y)
-        if xlo > xhi or ylo > yhi:
-            continue
-        bu0, bu1, bv0, bv1 = min(bu0, ulo), max(bu1, uhi), min(bv0, vlo), max(bv1, vhi)
-        X0, X1, Y0, Y1 = min(X0, xlo), max(X1, xhi), min(Y0, ylo), max(Y1, yhi)
+        bu0, bu1, bv0, bv1 = min(bu0, res[0]), max(bu1, res[1]), min(bv0, res[2]), max(bv1, res[3])
+        X0, X1, Y0, Y1 = min(X0, res[4]), max(X1, res[5]), min(Y0, res[6]), max(Y1, res[7])
     if bu0 > bu1:
         return False
     out[0] = bu0 - POS_PAD
@@ -443,16 +499,7 @@ def tuple_pieces(refract, x0, P, N, Q, UV, eta, max_depth, sigma, alpha, irradia
             else:
                 ehi, elo = piece_irradiance_reflect(x0, P, N, Q, lo, hi)
         if split:
-            um = 0.5 * (lo[0] + hi[0])
-            vm = 0.5 * (lo[1] + hi[1])
-            for k in range(4):
-                a0 = lo[0] if k & 1 == 0 else um
-                a1 = um if k & 1 == 0 else hi[0]
-                b0 = lo[1] if k & 2 == 0 else vm
-                b1 = vm if k & 2 == 0 else hi[1]
-                if a0 + b0 < 1.0:
-                    stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], stack[top, 4] = a0, a1, b0, b1, depth + 1
-                    top += 1
+            top = push_children(stack, top, lo, hi, depth)
             continue
         if depth < max_depth and area >= sigma and not can_split:
             stats[3] += 1

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..jit import kernel, prange
 from .bernstein import BINOM, abs_lower, abs_upper, clip_hull, sqrt_linearisation
-from .chain1 import IRR_PAD, MIN_WIDTH, N_STATS, P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD
+from .chain1 import IRR_PAD, MIN_WIDTH, N_STATS, P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD, push_children
 
 # ---------------------------------------------------------------------------------------
 # flat 4-D polynomial kernels (scaled Bernstein unless said otherwise)
@@ -1133,15 +1133,7 @@ def refine_irradiance(W, U, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo
     ehi = 0.0
     elo = np.inf
     found = False
-    um = 0.5 * (lo[0] + hi[0])
-    vm = 0.5 * (lo[1] + hi[1])
-    for k in range(4):
-        a0 = lo[0] if k & 1 == 0 else um
-        b0 = lo[1] if k & 2 == 0 else vm
-        if a0 + b0 < 1.0:
-            rstack[top, 0], rstack[top, 1] = a0, um if k & 1 == 0 else hi[0]
-            rstack[top, 2], rstack[top, 3], rstack[top, 4] = b0, vm if k & 2 == 0 else hi[1], 1.0
-            top += 1
+    top = push_children(rstack, top, lo, hi, 0)
     while top > 0:
         top -= 1
         slo[0], shi[0], slo[1], shi[1] = rstack[top, 0], rstack[top, 1], rstack[top, 2], rstack[top, 3]
@@ -1154,15 +1146,7 @@ def refine_irradiance(W, U, work, scr, rstack, refract, x0, P, N, Q, UV, eta, lo
         if not h < np.inf:
             if level >= levels:
                 return np.inf, 0.0
-            um = 0.5 * (slo[0] + shi[0])
-            vm = 0.5 * (slo[1] + shi[1])
-            for k in range(4):
-                a0 = slo[0] if k & 1 == 0 else um
-                b0 = slo[1] if k & 2 == 0 else vm
-                if a0 + b0 < 1.0:
-                    rstack[top, 0], rstack[top, 1] = a0, um if k & 1 == 0 else shi[0]
-                    rstack[top, 2], rstack[top, 3], rstack[top, 4] = b0, vm if k & 2 == 0 else shi[1], level + 1.0
-                    top += 1
+            top = push_children(rstack, top, slo, shi, level)
             continue
         found = True
         ehi = max(ehi, h)
@@ -1216,16 +1200,7 @@ def tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P, N, Q, UV, 
             stats[1] += 1
             ehi, elo = _irradiance(W, U, work, scr, refract, x0, P, N, Q, eta, lo, hi, pos)
         if split:
-            um = 0.5 * (lo[0] + hi[0])
-            vm = 0.5 * (lo[1] + hi[1])
-            for k in range(4):
-                a0 = lo[0] if k & 1 == 0 else um
-                a1 = um if k & 1 == 0 else hi[0]
-                b0 = lo[1] if k & 2 == 0 else vm
-                b1 = vm if k & 2 == 0 else hi[1]
-                if a0 + b0 < 1.0:
-                    stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], stack[top, 4] = a0, a1, b0, b1, depth + 1
-                    top += 1
+            top = push_children(stack, top, lo, hi, depth)
             continue
         if depth < max_depth and area >= sigma and not can_split:
             stats[3] += 1

@@ -25,7 +25,7 @@ so the bound stays conservative:
    [δ_lo, δ_hi] through a remainder variable ξ2) and (uk, vk) by eq 9.  The receiver
    coordinates are linear fractional in ξ2 (d̃2 is affine in ξ2 and eq 9 is linear in d̃2), so
    their 5-variable Bernstein coefficients are those at ξ2 = 0 and ξ2 = 1: the bound (eq 3) is
-   taken over both coefficient sets together (``_flat_common``, ``_receiver_bound``), exact for
+   taken over both coefficient sets together (``_flat_common``, ``chain1.receiver_box``), exact for
    the 5-variable polynomial without a fifth array dimension.  Every receiver quantity bounded
    (uk, vk, 1 - uk - vk, UV) is affine in (uk, vk), so one elevation of pu, pv, q serves all.
 4. The steps before eq 9 do not depend on the receiver: a pair (triangle 1, triangle 2) is
@@ -49,10 +49,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..jit import kernel, prange
-from .bernstein import (_bound_of_coefficients, _with_extent, add, affine, affine_map, clip_hull, coef_range, elevate, evaluate, lincomb, mul,
-                        rational_bound, sqrt_linearisation, sub)
+from .bernstein import _with_extent, add, affine, affine_map, coef_range, elevate, evaluate, lincomb, mul, rational_bound, sqrt_linearisation, sub
 from .chain1 import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, P_X0, P_X1, P_Y0, P_Y1, PIECE_FIELDS, POS_PAD, _c3, _caster, _d3, _direction,
-                     _dot, _eta_ratio, _orientations, _receiver_numerators)
+                     _dot, _eta_ratio, _orientations, _receiver_numerators, barycentric_box, flat_coefficients, push_children, receiver_box)
 
 N_STATS = 4  # position evaluations, stage-1 misses (light of the piece misses triangle 2), constant-form fallbacks, capacity stops
 
@@ -211,64 +210,23 @@ def _directions_two(refract, o, eta_ratio, n, d):
 
 
 @kernel
-def _flat_common(a, b, c, d, e, f, shape):
-    """The six polynomials elevated to ``shape`` and laid out as two flat coefficient sets:
-    (a | d), (b | e), (c | f) (the ξ2 = 0 and ξ2 = 1 sets of pu, pv, q)."""
-    k = shape[0] * shape[1] * shape[2] * shape[3]
-    x = np.empty(2 * k)
-    y = np.empty(2 * k)
-    z = np.empty(2 * k)
-    x[:k] = elevate(a, shape).ravel()
-    x[k:] = elevate(d, shape).ravel()
-    y[:k] = elevate(b, shape).ravel()
-    y[k:] = elevate(e, shape).ravel()
-    z[:k] = elevate(c, shape).ravel()
-    z[k:] = elevate(f, shape).ravel()
+def _flat_common(a, b, c, d, e, f):
+    """The six polynomials elevated to their common degree and laid out as two flat
+    coefficient sets: (a | d), (b | e), (c | f) (the ξ2 = 0 and ξ2 = 1 sets of pu, pv, q)."""
+    shape = a.shape
+    for k in range(4):
+        shape = _with_extent(shape, k, max(a.shape[k], b.shape[k], c.shape[k], d.shape[k], e.shape[k], f.shape[k]))
+    n = shape[0] * shape[1] * shape[2] * shape[3]
+    x = np.empty(2 * n)
+    y = np.empty(2 * n)
+    z = np.empty(2 * n)
+    x[:n] = elevate(a, shape).ravel()
+    x[n:] = elevate(d, shape).ravel()
+    y[:n] = elevate(b, shape).ravel()
+    y[n:] = elevate(e, shape).ravel()
+    z[:n] = elevate(c, shape).ravel()
+    z[n:] = elevate(f, shape).ravel()
     return x, y, z
-
-
-@kernel
-def _receiver_bound(pu, pv, q, UV, res):
-    """Receiver position bound from flat Bernstein coefficient sets of uk = pu/q, vk = pv/q
-    (eq 3 over every set together): clipped (uk, vk) box in res[0:4], UV box in res[4:8].
-    Every bounded coordinate (uk, vk, 1 - uk - vk, the two UV components) is an affine
-    combination of uk and vk, so its numerator's coefficients are the same combination of pu,
-    pv and q: one elevation serves all five bounds.  Returns False when the bound misses."""
-    m = pu.shape[0]
-    num = np.empty(m)
-    a, b, c, e = _bound_of_coefficients(pu, q)
-    ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
-    if ulo > uhi:
-        return False
-    a, b, c, e = _bound_of_coefficients(pv, q)
-    vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
-    if vlo > vhi or ulo + vlo > 1.0:
-        return False
-    for i in range(m):
-        num[i] = q[i] - pu[i] - pv[i]
-    a, b, c, e = _bound_of_coefficients(num, q)
-    wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
-    if wlo > whi:
-        return False
-    uhi = min(uhi, 1.0 - vlo - wlo)
-    vhi = min(vhi, 1.0 - ulo - wlo)
-    for axis in range(2):
-        c0 = UV[0, axis]
-        c1 = UV[1, axis] - UV[0, axis]
-        c2 = UV[2, axis] - UV[0, axis]
-        for i in range(m):
-            num[i] = c0 * q[i] + c1 * pu[i] + c2 * pv[i]
-        a, b, c, e = _bound_of_coefficients(num, q)
-        lo_, hi_ = clip_hull(a, b, c, e, min(UV[0, axis], UV[1, axis], UV[2, axis]), max(UV[0, axis], UV[1, axis], UV[2, axis]))
-        if lo_ > hi_:
-            return False
-        res[4 + 2 * axis] = lo_
-        res[5 + 2 * axis] = hi_
-    res[0] = ulo
-    res[1] = uhi
-    res[2] = vlo
-    res[3] = vhi
-    return True
 
 
 @kernel
@@ -283,24 +241,13 @@ def _stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
     if not ok:
         return False
     pu, pv, q = _receiver_numerators(x, dt, P2)
-    a, b, c, e = rational_bound(pu, q)
-    ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
-    if ulo > uhi:
+    fpu, fpv, fq = flat_coefficients(pu, pv, q)
+    box = np.empty(4)
+    if not barycentric_box(fpu, fpv, fq, box):
         return False
-    a, b, c, e = rational_bound(pv, q)
-    vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
-    if vlo > vhi or ulo + vlo > 1.0:
-        return False
-    w = lincomb(lincomb(q, 1.0, pu, -1.0), 1.0, pv, -1.0)
-    a, b, c, e = rational_bound(w, q)
-    wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
-    if wlo > whi:
-        return False
-    uhi = min(uhi, 1.0 - vlo - wlo)
-    vhi = min(vhi, 1.0 - ulo - wlo)
-    if not _reduce(pu, q, lo4, hi4, ulo, uhi, fu):
+    if not _reduce(pu, q, lo4, hi4, box[0], box[1], fu):
         stats[2] += 1
-    if not _reduce(pv, q, lo4, hi4, vlo, vhi, fv):
+    if not _reduce(pv, q, lo4, hi4, box[2], box[3], fv):
         stats[2] += 1
     return True
 
@@ -355,11 +302,8 @@ def _box_bounds(chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, 
                     pu1, pv1, q1 = add(pu0, mu), add(pv0, mv), add(q0, mq)
                 else:
                     pu1, pv1, q1 = pu0, pv0, q0
-                shape = pu1.shape
-                for k in range(4):
-                    shape = _with_extent(shape, k, max(pu0.shape[k], pv0.shape[k], q0.shape[k], pu1.shape[k], pv1.shape[k], q1.shape[k]))
-                fpu, fpv, fq = _flat_common(pu0, pv0, q0, pu1, pv1, q1, shape)
-                if not _receiver_bound(fpu, fpv, fq, UV[r], res):
+                fpu, fpv, fq = _flat_common(pu0, pv0, q0, pu1, pv1, q1)
+                if not receiver_box(fpu, fpv, fq, UV[r], res):
                     continue
                 o = out[r]
                 if not found[r]:
@@ -451,17 +395,10 @@ def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma
             row[P_RECEIVER] = r
             count += 1
         if any_child:
-            um = 0.5 * (lo[0] + hi[0])
-            vm = 0.5 * (lo[1] + hi[1])
-            for k in range(4):
-                a0 = lo[0] if k & 1 == 0 else um
-                a1 = um if k & 1 == 0 else hi[0]
-                b0 = lo[1] if k & 2 == 0 else vm
-                b1 = vm if k & 2 == 0 else hi[1]
-                if a0 + b0 < 1.0:
-                    stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], stack[top, 4] = a0, a1, b0, b1, depth + 1
-                    alive[top] = child
-                    top += 1
+            pushed = push_children(stack, top, lo, hi, depth)
+            for k in range(top, pushed):
+                alive[k] = child
+            top = pushed
     return count
 
 

@@ -221,16 +221,19 @@ def trace_two(sc, first, samples_per_triangle=16, seed=1):
     flip = a + b > 1
     a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
     uv = np.stack([a, b], 1)
-    t2, hit, buv, _, _ = forward_trace_two(sc["chain"], sc["light"], sc["caster_P"], sc["caster_N"], sc["eta"], tri, uv,
-                                           sc["receiver_P"])
+    t2, hit, buv, _, uv2 = forward_trace_two(sc["chain"], sc["light"], sc["caster_P"], sc["caster_N"], sc["eta"], tri, uv,
+                                             sc["receiver_P"])
     sel = hit >= 0
-    return dict(tri=tri[sel], uv=uv[sel], t2=t2[sel], hit=hit[sel], buv=buv[sel])
+    return dict(tri=tri[sel], uv=uv[sel], t2=t2[sel], hit=hit[sel], buv=buv[sel], uv2=uv2[sel])
 
 
 def check_bounds_two(res, sc, paths):
-    """Validity of two-bounce position bounds: every traced path (``trace_two``) must belong to a
-    tuple (t1, t2, receiver) of ``res`` and lie in the position bound of the piece containing its
-    (u1, v1).  Returns counts and the median barycentric width of the pieces hit."""
+    """Validity of two-bounce bounds: every traced path (``trace_two``) must belong to a tuple
+    (t1, t2, receiver) of ``res``, lie in the position bound of the piece containing its (u1, v1),
+    and carry an irradiance (``path_irradiance`` of the two-bounce chain, receiver normal given:
+    dΩ0/dA_k · F) <= that piece's Ē.  Returns counts, the median barycentric width of the pieces
+    hit and the median Ē/E over the paths with a finite Ē."""
+    from addon.solver import path_irradiance
     from addon.solver.bounds import chain1 as C
 
     nc, nr = sc["caster_P"].shape[0], sc["receiver_P"].shape[0]
@@ -244,8 +247,25 @@ def check_bounds_two(res, sc, paths):
     piece, viol = _position_check(res, t, paths["uv"], paths["hit"], paths["buv"], sc["receiver_UV"])
     pc = res.pieces[piece[piece >= 0]]
     widths = np.stack([pc[:, C.P_BU1] - pc[:, C.P_BU0], pc[:, C.P_BV1] - pc[:, C.P_BV0]], 1)
-    return dict(paths=int(t.shape[0]), missing_tuple=int((t < 0).sum()), missing_piece=int((piece < 0).sum()),
-                position_violations=int(viol.sum()),
+    # irradiance of each traced path (two-bounce geometry term through both vertices, Fresnel product)
+    m = t.shape[0]
+    RP, P, N = sc["receiver_P"], sc["caster_P"], sc["caster_N"]
+    hit, buv, tri, t2 = paths["hit"], paths["buv"], paths["tri"], paths["t2"]
+    xk = RP[hit, 0] + buv[:, :1] * (RP[hit, 1] - RP[hit, 0]) + buv[:, 1:] * (RP[hit, 2] - RP[hit, 0])
+    nk = np.cross(RP[hit, 1] - RP[hit, 0], RP[hit, 2] - RP[hit, 0])
+    E = path_irradiance(sc["chain"], np.broadcast_to(sc["light"], (m, 3)), xk, np.stack([P[tri], P[t2]], 1),
+                        np.stack([N[tri], N[t2]], 1), sc["eta"], np.arange(m), np.concatenate([paths["uv"], paths["uv2"]], 1),
+                        receiver_normal=nk).irradiance if m else np.zeros(0)
+    has = piece >= 0
+    ehi = res.pieces[np.maximum(piece, 0), C.P_EHI]
+    irr_viol = has & ~(E <= ehi)
+    finite = has & np.isfinite(ehi)
+    ratio = ehi[finite] / np.maximum(E[finite], 1e-300)
+    return dict(paths=int(m), missing_tuple=int((t < 0).sum()), missing_piece=int((piece < 0).sum()),
+                position_violations=int(viol.sum()), irradiance_violations=int(irr_viol.sum()),
+                unbounded_paths=int((has & ~np.isfinite(ehi)).sum()),
+                median_ratio=float(np.median(ratio)) if ratio.size else float("nan"),
+                worst_irradiance=np.flatnonzero(irr_viol)[:5].tolist(),
                 median_width=np.median(widths, axis=0).tolist() if widths.size else [float("nan")] * 2)
 
 

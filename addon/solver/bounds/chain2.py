@@ -38,8 +38,11 @@ The bound converges as U1 shrinks: the remainders of step 2 are O(|U1|²) away f
 Orientation at each vertex follows CONTRACT.md (the light's side of the geometric normal turned
 to the shading normal); at vertex 2 the "light" is x1, whose side of triangle 2's plane is
 taken over the corners of U1.  η' = 1/η entering the medium (shading normal towards the
-incoming light), η leaving it.  The irradiance bound of two-bounce chains is not computed here
-(Ē = inf in every piece).
+incoming light), η leaving it.  The irradiance bound (Ē, E̲ of every final piece) is a
+separate pass, ``irradiance_two.bound_irradiance_two`` (eq 14–16 in affine arithmetic);
+``bound_two_bounce`` runs it unless ``irradiance=False``.  Subdivision here follows the
+position rules only (σ, depth), not the ratio α of §6.1: the irradiance pass refines inside
+each piece by itself.
 """
 
 import math
@@ -418,7 +421,8 @@ class TwoBounceBounds:
     """Result of :func:`bound_two_bounce`.
 
     tuples: (m, 3) int64 (triangle 1, triangle 2, receiver) of the tuples with at least one piece;
-    piece_tuple, pieces, tuple_uv_box as ``chain1.OneBounceBounds`` (Ē = inf: no irradiance bound)."""
+    piece_tuple, pieces, tuple_uv_box as ``chain1.OneBounceBounds`` (Ē = inf where the irradiance
+    pass did not run or could not bound the piece)."""
 
     chain: str
     tuples: np.ndarray
@@ -429,7 +433,7 @@ class TwoBounceBounds:
 
 
 def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=1,
-                     sigma=1e-4, capacity=16):
+                     sigma=1e-4, capacity=16, irradiance=True, irr_depth=4, irr_ratio=2.0):
     """Position bounds of two-bounce tuples (Fan et al. 2025 §4.2–4.3, eq 3–13; subdivision §6.1).
 
     chain: "RR", "RT", "TR" or "TT"; caster_P, caster_N: (n,3,3) corners and corner normals of
@@ -437,7 +441,9 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     (r,3,2); eta: IOR behind the caster surfaces (normals point away from it);
     pairs: (t,2) (triangle 1, triangle 2) candidates, each bounded against every receiver
     (``tuples.two_bounce_pairs`` builds them; default all n·(n-1), only for tiny meshes);
-    max_depth, sigma: the stopping rules; capacity: most pieces per tuple."""
+    max_depth, sigma: the stopping rules; capacity: most pieces per tuple; irradiance: also bound
+    Ē, E̲ per piece (``irradiance_two.bound_irradiance_two`` with irr_depth, irr_ratio), else
+    Ē = inf."""
     if chain not in CHAIN_CODES:
         raise ValueError(f"bound_two_bounce handles chains RR, RT, TR and TT, got {chain!r}")
     t0 = time.perf_counter()
@@ -495,4 +501,9 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
         "memory_mb": (pieces.nbytes + box.nbytes + piece_tuple.nbytes + tuples.nbytes) / 2**20,
         "seconds": {"prepare": t1 - t0, "bound": t2 - t1, "compact": t3 - t2},
     }
-    return TwoBounceBounds(chain, tuples, piece_tuple, pieces, box, report)
+    result = TwoBounceBounds(chain, tuples, piece_tuple, pieces, box, report)
+    if irradiance:
+        from .irradiance_two import bound_irradiance_two
+
+        bound_irradiance_two(result, light, caster_P, caster_N, receiver_P, eta, irr_depth=irr_depth, irr_ratio=irr_ratio)
+    return result

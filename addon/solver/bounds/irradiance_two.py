@@ -1,0 +1,560 @@
+"""Irradiance bounds of two-bounce chains (RR, RT, TR, TT) from a point light (Fan et al. 2025 §4.4).
+
+For a piece — a box U1 of triangle 1's barycentrics (u1, v1) of a tuple (light x0, caster
+triangle 1, caster triangle 2, receiver triangle k) — this module bounds the irradiance
+dΩ0/dA_k (eq 14–15 with I0 = 1, F, V <= 1 left out as in the paper) of every admissible path
+x0 -> x1 -> x2 -> xk with x1 in U1:
+
+    dΩ0/dA_k = |d0·(e1×e2)| / |d0|³ · |det ∂(u1,v1)/∂(uk,vk)| / |e_k1 × e_k2|          (eq 15)
+
+with the Jacobian taken explicitly, as the reciprocal of det ∂(uk,vk)/∂(u1,v1) (eq 16).
+
+Why not the Bernstein form of eq 16 as in ``chain1``: through two vertices uk is rational in
+(u1, v1) only after both square roots of the refractions are approximated; the remainder
+variables that keep the *position* bound conservative (eq 12–13 and the degree reduction of
+§6.1) say nothing about derivatives, and the paper's implicit form (eq 17–19) for the last
+vertex needs x2 as independent variables too — a 6-variable determinant of degree ~20 per
+variable, millions of Bernstein coefficients per piece.  Instead the exact forward map
+u1 -> x1 -> d̃1 (eq 10, exact √β1) -> u2 (eq 9 on triangle 2) -> x2, n2 -> d̃2 (exact √β2) -> uk
+(eq 9 on the receiver) is evaluated in *first-order interval arithmetic*: every quantity
+carries an enclosure of its value and of its two partial derivatives over the box (forward
+differentiation with intervals), and each value enclosure is intersected with its centred
+(mean-value) form f(c) + ∇f(box)·(box - c).  The result encloses det ∂(uk,vk)/∂(u1,v1) over
+every point of the box, exactly (no approximation of √β), so the bound is conservative:
+
+* Ē = max |d0·(e1×e2)| / min |d0|³ / (min |det| · |e_k1 × e_k2|), E̲ with min/max swapped;
+* Ē = inf where the determinant's enclosure contains 0 (focal points), where β of a
+  refraction reaches 0 inside the box (grazing refraction: its √ has an unbounded derivative)
+  or where a denominator can vanish;
+* sub-boxes whose x1 lies outside triangle 1, whose u2 enclosure misses triangle 2, whose uk
+  enclosure misses the receiver triangle, or whose β < 0 everywhere (total internal reflection)
+  hold no admissible path and are skipped (a piece with none gets Ē = E̲ = 0).
+
+Interval enclosures shrink linearly with the box, so the piece is split (quadtree of at most
+``irr_depth`` levels, inside the piece only) while the bound is unbounded or Ē/E̲ > ``irr_ratio``.
+Orientation at each vertex follows CONTRACT.md as in ``chain2`` (o = sign((source - x)·ng) ·
+sign(ng·n), η' = 1/η for o > 0, η otherwise); where the sign is not fixed over a box both
+orientations are bounded and the larger Ē kept.  Floating-point rounding: the centred forms
+are widened by a relative 1e-12 and the final bound padded by IRR_PAD.
+"""
+
+import math
+import time
+
+import numpy as np
+
+from ..jit import kernel, prange
+from .chain1 import IRR_PAD, P_ELO, P_EHI, P_U0, P_U1, P_V0, P_V1
+
+NO_PATH = 0
+BOUNDED = 1
+UNBOUNDED = 2           # statuses >= UNBOUNDED: Ē = inf, for the reason they name
+UNBOUNDED_GRAZING = 3   # β of a refraction reaches 0 in the box (√β has an unbounded derivative)
+UNBOUNDED_PARALLEL = 4  # a ray can be parallel to the next triangle's plane
+UNBOUNDED_FOCAL = 5     # det ∂(uk,vk)/∂(u1,v1) can vanish (a focal point or caustic curve)
+
+EDGE_TOL = 1e-9      # barycentric slack before a sub-box is declared to miss a triangle
+BETA_MIN = 1e-300    # β enclosure below this counts as reaching 0 (unbounded √ derivative)
+N_IRR_STATS = 6      # sub-box evaluations, no-path leaves, then unbounded leaves by status 2..5 (index = status)
+
+
+# --------------------------------------------------------------------------------------------
+# Affine forms over the box: x = c + a δu + b δv + e with δu, δv in [-1, 1] (u1 = u_c + h_u δu,
+# v1 = v_c + h_v δv) and |e| <= r, as 4-tuples (c, a, b, r).  Products keep the linear parts
+# exact and put only second-order terms into r, so correlated quantities (x1 and d̃1, q and its
+# numerator, the two products of a determinant) do not lose their correlation as in plain
+# interval arithmetic.  ROUND widens r by a relative amount per operation for rounding.
+
+ROUND = 4e-16
+
+
+@kernel
+def _iabs_range(lo, hi):
+    """(min |x|, max |x|) over [lo, hi]."""
+    if lo >= 0.0:
+        return lo, hi
+    if hi <= 0.0:
+        return -hi, -lo
+    return 0.0, max(-lo, hi)
+
+
+@kernel
+def _arad(p):
+    return abs(p[1]) + abs(p[2]) + p[3]
+
+
+@kernel
+def _arange(p):
+    rad = abs(p[1]) + abs(p[2]) + p[3]
+    return p[0] - rad, p[0] + rad
+
+
+@kernel
+def _aadd(p, q):
+    c = p[0] + q[0]
+    a = p[1] + q[1]
+    b = p[2] + q[2]
+    return (c, a, b, p[3] + q[3] + ROUND * (abs(c) + abs(a) + abs(b)))
+
+
+@kernel
+def _asub(p, q):
+    c = p[0] - q[0]
+    a = p[1] - q[1]
+    b = p[2] - q[2]
+    return (c, a, b, p[3] + q[3] + ROUND * (abs(c) + abs(a) + abs(b)))
+
+
+@kernel
+def _ascale(p, k):
+    return (p[0] * k, p[1] * k, p[2] * k, p[3] * abs(k) + ROUND * abs(k) * (abs(p[0]) + abs(p[1]) + abs(p[2])))
+
+
+@kernel
+def _amul(p, q):
+    """Product; (a1 δu + b1 δv)(a2 δu + b2 δv) contributes its mean (a1a2 + b1b2)/2 to c and
+    its half-range to r (δu², δv² in [0, 1], δu δv in [-1, 1])."""
+    c1, a1, b1, r1 = p
+    c2, a2, b2, r2 = q
+    uu = a1 * a2
+    vv = b1 * b2
+    uv = a1 * b2 + a2 * b1
+    c = c1 * c2 + 0.5 * (uu + vv)
+    a = c1 * a2 + c2 * a1
+    b = c1 * b2 + c2 * b1
+    r = 0.5 * (abs(uu) + abs(vv)) + abs(uv) + abs(c1) * r2 + abs(c2) * r1 \
+        + (abs(a1) + abs(b1)) * r2 + (abs(a2) + abs(b2)) * r1 + r1 * r2
+    return (c, a, b, r + ROUND * (abs(c) + abs(a) + abs(b) + r + abs(c1 * c2)))
+
+
+@kernel
+def _arecip(p):
+    """1/x about c (|x| >= m > 0 on the box): 1/c - (x - c)/c² with the Taylor remainder
+    <= rad²/m³."""
+    c, a, b, r = p
+    rad = abs(a) + abs(b) + r
+    m = abs(c) - rad
+    ic = 1.0 / c
+    ic2 = ic * ic
+    rem = r * ic2 + rad * rad / (m * m * m)
+    return (ic, -a * ic2, -b * ic2, rem + ROUND * 4.0 * (abs(ic) + rad * ic2))
+
+
+@kernel
+def _asqrt(p):
+    """√x about c (x >= lo > 0 on the box): √c + (x - c)/(2√c) with the Taylor remainder
+    <= rad²/(8 lo^1.5)."""
+    c, a, b, r = p
+    rad = abs(a) + abs(b) + r
+    lo = c - rad
+    sc = math.sqrt(c)
+    k = 0.5 / sc
+    rem = r * k + rad * rad / (8.0 * lo * math.sqrt(lo))
+    return (sc, a * k, b * k, rem + ROUND * 4.0 * (sc + rad * k))
+
+
+# --------------------------------------------------------------------------------------------
+# First-order "dual" affine forms: (value, ∂/∂u1, ∂/∂v1), each an affine form over the box.
+# The derivative forms keep their own linear variation over the box, so the Jacobian entries
+# are enclosed to second order in the box size.
+
+@kernel
+def _dconst(k):
+    return ((k, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0))
+
+
+@kernel
+def _daffine(c0, gu, gv, box):
+    """c0 + gu u1 + gv v1 on box = (u_lo, u_hi, v_lo, v_hi)."""
+    hu = 0.5 * (box[1] - box[0])
+    hv = 0.5 * (box[3] - box[2])
+    c = c0 + gu * (box[0] + hu) + gv * (box[2] + hv)
+    return ((c, gu * hu, gv * hv, ROUND * 4.0 * (abs(c) + abs(gu * hu) + abs(gv * hv))), (gu, 0.0, 0.0, 0.0), (gv, 0.0, 0.0, 0.0))
+
+
+@kernel
+def _dadd(x, y):
+    return (_aadd(x[0], y[0]), _aadd(x[1], y[1]), _aadd(x[2], y[2]))
+
+
+@kernel
+def _dsub(x, y):
+    return (_asub(x[0], y[0]), _asub(x[1], y[1]), _asub(x[2], y[2]))
+
+
+@kernel
+def _dscale(x, k):
+    return (_ascale(x[0], k), _ascale(x[1], k), _ascale(x[2], k))
+
+
+@kernel
+def _daddc(x, k):
+    v = x[0]
+    c = v[0] + k
+    return ((c, v[1], v[2], v[3] + ROUND * abs(c)), x[1], x[2])
+
+
+@kernel
+def _dmul(x, y):
+    return (_amul(x[0], y[0]), _aadd(_amul(x[1], y[0]), _amul(x[0], y[1])), _aadd(_amul(x[2], y[0]), _amul(x[0], y[2])))
+
+
+@kernel
+def _drange(x):
+    return _arange(x[0])
+
+
+@kernel
+def _ddiv(x, y):
+    """x / y; ok = False when y's range contains 0.  ∂(x/y) = (∂x - (x/y) ∂y) / y."""
+    lo, hi = _arange(y[0])
+    if not (lo > 0.0 or hi < 0.0):
+        return False, x
+    r = _arecip(y[0])
+    q = _amul(x[0], r)
+    return True, (q, _amul(_asub(x[1], _amul(q, y[1])), r), _amul(_asub(x[2], _amul(q, y[2])), r))
+
+
+@kernel
+def _dsqrt(x):
+    """√x for x > 0 on the whole box; ∂√x = ∂x / (2√x)."""
+    s = _asqrt(x[0])
+    r = _ascale(_arecip(s), 0.5)
+    return (s, _amul(x[1], r), _amul(x[2], r))
+
+
+# 3-vectors of duals -----------------------------------------------------------------------
+
+@kernel
+def _vdot(a, b):
+    return _dadd(_dadd(_dmul(a[0], b[0]), _dmul(a[1], b[1])), _dmul(a[2], b[2]))
+
+
+@kernel
+def _vdotc(a, k):
+    return _dadd(_dadd(_dscale(a[0], k[0]), _dscale(a[1], k[1])), _dscale(a[2], k[2]))
+
+
+@kernel
+def _vcrossc(a, k):
+    """a × k for a constant vector k."""
+    return (_dsub(_dscale(a[1], k[2]), _dscale(a[2], k[1])),
+            _dsub(_dscale(a[2], k[0]), _dscale(a[0], k[2])),
+            _dsub(_dscale(a[0], k[1]), _dscale(a[1], k[0])))
+
+
+@kernel
+def _c3(a, b):
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+# --------------------------------------------------------------------------------------------
+# The exact forward map in dual intervals.
+
+@kernel
+def _scatter(refract, o, eta_ratio, n, d):
+    """Outgoing direction d̃ (eq 10) of incoming d at unnormalised normal n (orientation o),
+    with the exact √β (eq 11).  Returns (status, d̃)."""
+    nn = _vdot(n, n)
+    dn = _vdot(d, n)
+    if not refract:
+        two_dn = _dscale(dn, 2.0)
+        return BOUNDED, (_dsub(_dmul(nn, d[0]), _dmul(two_dn, n[0])), _dsub(_dmul(nn, d[1]), _dmul(two_dn, n[1])),
+                         _dsub(_dmul(nn, d[2]), _dmul(two_dn, n[2])))
+    e2 = eta_ratio * eta_ratio
+    dd = _vdot(d, d)
+    beta = _dadd(_dscale(_dmul(nn, dd), 1.0 - e2), _dscale(_dmul(dn, dn), e2))
+    blo, bhi = _drange(beta)
+    if bhi <= 0.0:
+        return NO_PATH, d  # total internal reflection on the whole box
+    if blo <= BETA_MIN:
+        return UNBOUNDED_GRAZING, d
+    root = _dscale(_dsqrt(beta), -o)
+    out0 = _dadd(_dscale(_dsub(_dmul(nn, d[0]), _dmul(dn, n[0])), eta_ratio), _dmul(root, n[0]))
+    out1 = _dadd(_dscale(_dsub(_dmul(nn, d[1]), _dmul(dn, n[1])), eta_ratio), _dmul(root, n[1]))
+    out2 = _dadd(_dscale(_dsub(_dmul(nn, d[2]), _dmul(dn, n[2])), eta_ratio), _dmul(root, n[2]))
+    return BOUNDED, (out0, out1, out2)
+
+
+@kernel
+def _hit(x, dt, Q):
+    """Barycentrics (u, v) on triangle Q of the line x + t d̃ (eq 9).  Returns (status, u, v);
+    NO_PATH when the enclosures miss the triangle, UNBOUNDED when the line can be parallel to
+    the plane.
+
+    Eq 9 (u = ((d̃×e2)·r)/q, v = ((r×e1)·d̃)/q, q = (d̃×e2)·e1, r = x - Q0) is rewritten about
+    the centre ray's hit point X_c = Q0 + u_c e1 + v_c e2 (any point of a line gives the same
+    u, v): u = u_c + ((d̃×e2)·Y)/q, v = v_c + ((Y×e1)·d̃)/q with Y = x - X_c.  Same function;
+    but the numerators are small near the centre, so their derivative enclosures do not carry
+    the large u_c ∂q terms that cancel in the original form (interval dependency)."""
+    e1 = Q[1] - Q[0]
+    e2 = Q[2] - Q[0]
+    ng = _c3(e1, e2)
+    # forward only: t = ((Q0 - x)·ng) / (d̃·ng) must be positive somewhere on the box
+    hlo, hhi = _drange(_vdotc((_daddc(x[0], -Q[0, 0]), _daddc(x[1], -Q[0, 1]), _daddc(x[2], -Q[0, 2])), ng))  # -(numerator)
+    glo, ghi = _drange(_vdotc(dt, ng))
+    if (hlo >= 0.0 and glo > 0.0) or (hhi <= 0.0 and ghi < 0.0):
+        return NO_PATH, x[0], x[1]
+    xc0, xc1, xc2 = x[0][0][0], x[1][0][0], x[2][0][0]
+    dc0, dc1, dc2 = dt[0][0][0], dt[1][0][0], dt[2][0][0]
+    den = dc0 * ng[0] + dc1 * ng[1] + dc2 * ng[2]
+    if den == 0.0 or not math.isfinite(den):
+        return UNBOUNDED_PARALLEL, x[0], x[1]
+    tc = ((Q[0, 0] - xc0) * ng[0] + (Q[0, 1] - xc1) * ng[1] + (Q[0, 2] - xc2) * ng[2]) / den
+    Xc = np.array([xc0 + tc * dc0, xc1 + tc * dc1, xc2 + tc * dc2])
+    # barycentrics of X_c (exact up to rounding: the same (u, v) rules as below)
+    w = Xc - Q[0]
+    g11 = e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2]
+    g12 = e1[0] * e2[0] + e1[1] * e2[1] + e1[2] * e2[2]
+    g22 = e2[0] * e2[0] + e2[1] * e2[1] + e2[2] * e2[2]
+    b1 = w[0] * e1[0] + w[1] * e1[1] + w[2] * e1[2]
+    b2 = w[0] * e2[0] + w[1] * e2[1] + w[2] * e2[2]
+    gd = g11 * g22 - g12 * g12
+    if gd <= 0.0:
+        return UNBOUNDED_PARALLEL, x[0], x[1]
+    uc = (g22 * b1 - g12 * b2) / gd
+    vc = (g11 * b2 - g12 * b1) / gd
+    Xc = Q[0] + uc * e1 + vc * e2  # on the plane exactly as far as rounding allows
+    Y = (_daddc(x[0], -Xc[0]), _daddc(x[1], -Xc[1]), _daddc(x[2], -Xc[2]))
+    c = _vcrossc(dt, e2)
+    pu = _vdot(c, Y)
+    q = _vdotc(c, e1)
+    rk = _vcrossc(Y, e1)
+    pv = _vdot(rk, dt)
+    ok, u = _ddiv(pu, q)
+    if not ok:
+        return UNBOUNDED_PARALLEL, pu, pv
+    ok, v = _ddiv(pv, q)
+    if not ok:
+        return UNBOUNDED_PARALLEL, pu, pv
+    u = _daddc(u, uc)
+    v = _daddc(v, vc)
+    ulo, uhi = _drange(u)
+    vlo, vhi = _drange(v)
+    if ulo > 1.0 + EDGE_TOL or uhi < -EDGE_TOL or vlo > 1.0 + EDGE_TOL or vhi < -EDGE_TOL or ulo + vlo > 1.0 + EDGE_TOL:
+        return NO_PATH, u, v
+    return BOUNDED, u, v
+
+
+@kernel
+def _jacobian_abs_det(uk, vk):
+    """Enclosure (min, max) of |det ∂(uk,vk)/∂(u1,v1)| (eq 16) over the box: the determinant
+    of the derivative forms in affine arithmetic.  (0, inf) when it may vanish."""
+    det = _asub(_amul(uk[1], vk[2]), _amul(uk[2], vk[1]))
+    lo, hi = _arange(det)
+    if lo > 0.0:
+        return lo, hi
+    if hi < 0.0:
+        return -hi, -lo
+    return 0.0, np.inf
+
+
+@kernel
+def _orientation_mask(side_lo, side_hi, ndot_lo, ndot_hi):
+    """Orientations o = sign(side)·sign(n·ng) possible on the box: bit 1 for +1, bit 2 for -1."""
+    mask = 0
+    if side_hi > 0.0:
+        if ndot_hi > 0.0:
+            mask |= 1
+        if ndot_lo < 0.0:
+            mask |= 2
+    if side_lo < 0.0:
+        if ndot_hi > 0.0:
+            mask |= 2
+        if ndot_lo < 0.0:
+            mask |= 1
+    return mask
+
+
+@kernel
+def _eta_ratio(o, eta):
+    return 1.0 / eta if o > 0.0 else eta
+
+
+@kernel
+def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box):
+    """Bound dΩ0/dA_k (eq 15–16) over the box (u_lo, u_hi, v_lo, v_hi) of triangle 1's
+    barycentrics.  Returns (status, Ē, E̲): NO_PATH (no admissible path in the box reaches
+    the receiver triangle), BOUNDED, or UNBOUNDED (Ē = inf)."""
+    if box[0] + box[2] > 1.0 + EDGE_TOL:
+        return NO_PATH, 0.0, 0.0
+    e1 = P1[1] - P1[0]
+    e2 = P1[2] - P1[0]
+    ng1 = _c3(e1, e2)
+    m1 = N1[1] - N1[0]
+    m2 = N1[2] - N1[0]
+    x1 = (_daffine(P1[0, 0], e1[0], e2[0], box), _daffine(P1[0, 1], e1[1], e2[1], box), _daffine(P1[0, 2], e1[2], e2[2], box))
+    n1 = (_daffine(N1[0, 0], m1[0], m2[0], box), _daffine(N1[0, 1], m1[1], m2[1], box), _daffine(N1[0, 2], m1[2], m2[2], box))
+    d0 = (_daddc(x1[0], -x0[0]), _daddc(x1[1], -x0[1]), _daddc(x1[2], -x0[2]))
+    # light factor |d0·(e1×e2)| / |d0|³ (value enclosures only)
+    clo, chi = _drange(_vdotc(d0, ng1))
+    clo, chi = _iabs_range(clo, chi)
+    dlo, dhi = _drange(_vdot(d0, d0))
+    if dlo <= 0.0:
+        return UNBOUNDED, np.inf, 0.0
+    light_hi = chi / dlo ** 1.5
+    light_lo = clo / dhi ** 1.5
+    side1 = (x0[0] - P1[0, 0]) * ng1[0] + (x0[1] - P1[0, 1]) * ng1[1] + (x0[2] - P1[0, 2]) * ng1[2]
+    nlo, nhi = _drange(_vdotc(n1, ng1))
+    mask1 = _orientation_mask(side1, side1, nlo, nhi)
+    ak = math.sqrt(np.sum(_c3(Q[1] - Q[0], Q[2] - Q[0]) ** 2))
+    ng2 = _c3(P2[1] - P2[0], P2[2] - P2[0])
+    f1 = P2[1] - P2[0]
+    f2 = P2[2] - P2[0]
+    g1 = N2[1] - N2[0]
+    g2 = N2[2] - N2[0]
+    status = NO_PATH
+    e_hi = 0.0
+    e_lo = np.inf
+    for k1 in range(2):
+        if not (mask1 >> k1) & 1:
+            continue
+        if not refract1 and k1 == 1 and (mask1 & 1):
+            continue  # reflection does not depend on the orientation
+        o1 = 1.0 if k1 == 0 else -1.0
+        st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+        if st >= UNBOUNDED:
+            return st, np.inf, 0.0
+        if st == NO_PATH:
+            continue
+        st, u2, v2 = _hit(x1, dt1, P2)
+        if st >= UNBOUNDED:
+            return st, np.inf, 0.0
+        if st == NO_PATH:
+            continue
+        x2 = (_daddc(_dadd(_dscale(u2, f1[0]), _dscale(v2, f2[0])), P2[0, 0]),
+              _daddc(_dadd(_dscale(u2, f1[1]), _dscale(v2, f2[1])), P2[0, 1]),
+              _daddc(_dadd(_dscale(u2, f1[2]), _dscale(v2, f2[2])), P2[0, 2]))
+        n2 = (_daddc(_dadd(_dscale(u2, g1[0]), _dscale(v2, g2[0])), N2[0, 0]),
+              _daddc(_dadd(_dscale(u2, g1[1]), _dscale(v2, g2[1])), N2[0, 1]),
+              _daddc(_dadd(_dscale(u2, g1[2]), _dscale(v2, g2[2])), N2[0, 2]))
+        # The incoming direction at x2 is d̃1 itself (d1 = x2 - x1 = t d̃1, t > 0 for every
+        # path; eq 10 is homogeneous in d, so the scale does not matter).  Using d̃1 instead
+        # of x2 - x1 keeps the forms well conditioned when x2 comes close to x1 (adjacent
+        # triangles of one surface), where |d1| -> 0 would make β2 vanish with it.
+        d1 = dt1
+        slo, shi = _drange(_vdotc(d1, ng2))  # side of x1: (x1 - x2)·ng2 = -t d̃1·ng2
+        nlo2, nhi2 = _drange(_vdotc(n2, ng2))
+        mask2 = _orientation_mask(-shi, -slo, nlo2, nhi2)
+        for k2 in range(2):
+            if not (mask2 >> k2) & 1:
+                continue
+            if not refract2 and k2 == 1 and (mask2 & 1):
+                continue
+            o2 = 1.0 if k2 == 0 else -1.0
+            st, dt2 = _scatter(refract2, o2, _eta_ratio(o2, eta), n2, d1)
+            if st >= UNBOUNDED:
+                return st, np.inf, 0.0
+            if st == NO_PATH:
+                continue
+            st, uk, vk = _hit(x2, dt2, Q)
+            if st >= UNBOUNDED:
+                return st, np.inf, 0.0
+            if st == NO_PATH:
+                continue
+            # det ∂(uk, vk)/∂(u1, v1) (eq 16)
+            jlo, jhi = _jacobian_abs_det(uk, vk)
+            if not (jlo > 0.0):
+                return UNBOUNDED_FOCAL, np.inf, 0.0
+            status = BOUNDED
+            e_hi = max(e_hi, light_hi / (jlo * ak))
+            e_lo = min(e_lo, light_lo / (jhi * ak))
+    if status == NO_PATH:
+        return NO_PATH, 0.0, 0.0
+    if not math.isfinite(e_hi):
+        return UNBOUNDED, np.inf, 0.0
+    return BOUNDED, e_hi, e_lo
+
+
+@kernel
+def piece_irradiance_two(chain_code, x0, P1, N1, P2, N2, Q, eta, lo, hi, irr_depth, irr_ratio, stats):
+    """(Ē, E̲) of dΩ0/dA_k over the piece lo <= (u1, v1) <= hi of the tuple (triangle 1,
+    triangle 2, receiver Q) (eq 15–16 in first-order interval arithmetic, module doc).
+
+    chain_code as ``chain2.CHAIN_CODES`` (bit 0: vertex 1 refracts, bit 1: vertex 2 refracts).
+    The piece is split into a quadtree of at most irr_depth levels while a sub-box is
+    unbounded or its Ē/E̲ > irr_ratio; Ē is the largest of the leaves', E̲ the smallest.
+    stats[0] += sub-box evaluations, stats[1] += leaves without a path, stats[s] += 1 for the
+    unbounded leaf's status s (2..5) when Ē = inf."""
+    refract1 = (chain_code & 1) != 0
+    refract2 = (chain_code & 2) != 0
+    size = 3 * irr_depth + 4
+    stack = np.empty((size, 5))
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = lo[0], hi[0], lo[1], hi[1], 0.0
+    top = 1
+    box = np.empty(4)
+    e_hi = 0.0
+    e_lo = np.inf
+    while top > 0:
+        top -= 1
+        for k in range(4):
+            box[k] = stack[top, k]
+        level = int(stack[top, 4])
+        stats[0] += 1
+        st, bh, bl = sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box)
+        if st == NO_PATH:
+            stats[1] += 1
+            continue
+        if level < irr_depth and (st >= UNBOUNDED or bh > irr_ratio * bl):
+            um = 0.5 * (box[0] + box[1])
+            vm = 0.5 * (box[2] + box[3])
+            for c in range(4):
+                stack[top, 0] = box[0] if c & 1 == 0 else um
+                stack[top, 1] = um if c & 1 == 0 else box[1]
+                stack[top, 2] = box[2] if c & 2 == 0 else vm
+                stack[top, 3] = vm if c & 2 == 0 else box[3]
+                stack[top, 4] = level + 1
+                top += 1
+            continue
+        if st >= UNBOUNDED:
+            stats[st] += 1
+            return np.inf, 0.0
+        e_hi = max(e_hi, bh)
+        e_lo = min(e_lo, bl)
+    if e_lo == np.inf:  # no admissible path anywhere in the piece
+        return 0.0, 0.0
+    return e_hi * (1.0 + IRR_PAD), e_lo * (1.0 - IRR_PAD)
+
+
+@kernel(parallel=True)
+def _batch_irradiance_two(chain_code, x0, P, N, Q, eta, piece_pair, piece_receiver, pieces, irr_depth, irr_ratio, stats):
+    for i in prange(pieces.shape[0]):
+        a = piece_pair[i, 0]
+        b = piece_pair[i, 1]
+        lo = np.empty(2)
+        hi = np.empty(2)
+        lo[0], hi[0], lo[1], hi[1] = pieces[i, P_U0], pieces[i, P_U1], pieces[i, P_V0], pieces[i, P_V1]
+        eh, el = piece_irradiance_two(chain_code, x0, P[a], N[a], P[b], N[b], Q[piece_receiver[i]], eta, lo, hi,
+                                      irr_depth, irr_ratio, stats[i])
+        pieces[i, P_EHI] = eh
+        pieces[i, P_ELO] = el
+
+
+def bound_irradiance_two(bounds, light, caster_P, caster_N, receiver_P, eta=1.5, irr_depth=2, irr_ratio=2.0):
+    """Fill Ē and E̲ (columns P_EHI, P_ELO) of every piece of a ``chain2.TwoBounceBounds`` in
+    place (Fan et al. 2025 eq 14–16, module doc) and add the counts to its report.
+
+    irr_depth: most quadtree levels inside a piece for the irradiance bound (0: the piece as
+    it is); irr_ratio: split while Ē/E̲ exceeds it.  Returns ``bounds``."""
+    from .chain2 import CHAIN_CODES
+
+    t0 = time.perf_counter()
+    tuples = bounds.tuples
+    pair = np.ascontiguousarray(tuples[bounds.piece_tuple, :2], dtype=np.int64)
+    receiver = np.ascontiguousarray(tuples[bounds.piece_tuple, 2], dtype=np.int64)
+    stats = np.zeros((bounds.pieces.shape[0], N_IRR_STATS), dtype=np.int64)
+    if bounds.pieces.shape[0]:
+        _batch_irradiance_two(CHAIN_CODES[bounds.chain], np.ascontiguousarray(light, dtype=np.float64).reshape(3),
+                              np.ascontiguousarray(caster_P, dtype=np.float64), np.ascontiguousarray(caster_N, dtype=np.float64),
+                              np.ascontiguousarray(receiver_P, dtype=np.float64), float(eta), pair, receiver, bounds.pieces,
+                              int(irr_depth), float(irr_ratio), stats)
+    total = stats.sum(axis=0)
+    ehi = bounds.pieces[:, P_EHI]
+    bounds.report.update({
+        "irradiance_evaluations": int(total[0]), "unbounded_pieces": int((~np.isfinite(ehi)).sum()),
+        "unbounded_by_reason": {"other": int(total[UNBOUNDED]), "grazing": int(total[UNBOUNDED_GRAZING]),
+                                "parallel": int(total[UNBOUNDED_PARALLEL]), "focal": int(total[UNBOUNDED_FOCAL])},
+        "no_path_pieces": int((ehi == 0.0).sum()), "irr_depth": int(irr_depth), "irr_ratio": float(irr_ratio),
+    })
+    bounds.report.setdefault("seconds", {})["irradiance"] = time.perf_counter() - t0
+    return bounds

@@ -16,26 +16,36 @@ variables that keep the *position* bound conservative (eq 12–13 and the degree
 vertex needs x2 as independent variables too — a 6-variable determinant of degree ~20 per
 variable, millions of Bernstein coefficients per piece.  Instead the exact forward map
 u1 -> x1 -> d̃1 (eq 10, exact √β1) -> u2 (eq 9 on triangle 2) -> x2, n2 -> d̃2 (exact √β2) -> uk
-(eq 9 on the receiver) is evaluated in *first-order interval arithmetic*: every quantity
-carries an enclosure of its value and of its two partial derivatives over the box (forward
-differentiation with intervals), and each value enclosure is intersected with its centred
-(mean-value) form f(c) + ∇f(box)·(box - c).  The result encloses det ∂(uk,vk)/∂(u1,v1) over
-every point of the box, exactly (no approximation of √β), so the bound is conservative:
+(eq 9 on the receiver) is evaluated in *affine arithmetic* with forward differentiation: every
+quantity carries its value and its two partial derivatives ∂/∂u1, ∂/∂v1, each as an affine form
+c + a δu + b δv + [-r, r] over the box (δu, δv in [-1, 1]; Stolfi & de Figueiredo's affine
+arithmetic, one shared pair of noise symbols).  Products keep the linear parts exactly and move
+only second-order terms into r, so the derivatives — and eq 16's determinant built from them —
+are enclosed up to O(box²): unlike plain interval arithmetic, the correlated terms of eq 9's
+numerators and of the determinant's two products cancel as they do in the exact function.  No
+approximation of √β enters (its Taylor remainder is bounded explicitly), so the bound is
+conservative:
 
 * Ē = max |d0·(e1×e2)| / min |d0|³ / (min |det| · |e_k1 × e_k2|), E̲ with min/max swapped;
-* Ē = inf where the determinant's enclosure contains 0 (focal points), where β of a
-  refraction reaches 0 inside the box (grazing refraction: its √ has an unbounded derivative)
-  or where a denominator can vanish;
-* sub-boxes whose x1 lies outside triangle 1, whose u2 enclosure misses triangle 2, whose uk
-  enclosure misses the receiver triangle, or whose β < 0 everywhere (total internal reflection)
-  hold no admissible path and are skipped (a piece with none gets Ē = E̲ = 0).
+* Ē = inf (status UNBOUNDED_*, counted per reason) where the determinant's enclosure contains
+  0 (focal points, caustic curves), where β of a refraction reaches 0 inside the box (grazing
+  refraction or the onset of total internal reflection: √β has an unbounded derivative there;
+  the paper's implicit form eq 17–19 avoids this at the last vertex, not implemented here) or
+  where a ray can be parallel to the next plane;
+* sub-boxes whose x1 lies outside triangle 1, whose ray meets a plane only backwards, whose u2
+  enclosure misses triangle 2, whose uk enclosure misses the receiver triangle, or whose β < 0
+  everywhere (total internal reflection) hold no admissible path and are skipped (a piece with
+  none gets Ē = E̲ = 0).
 
-Interval enclosures shrink linearly with the box, so the piece is split (quadtree of at most
-``irr_depth`` levels, inside the piece only) while the bound is unbounded or Ē/E̲ > ``irr_ratio``.
-Orientation at each vertex follows CONTRACT.md as in ``chain2`` (o = sign((source - x)·ng) ·
-sign(ng·n), η' = 1/η for o > 0, η otherwise); where the sign is not fixed over a box both
-orientations are bounded and the larger Ē kept.  Floating-point rounding: the centred forms
-are widened by a relative 1e-12 and the final bound padded by IRR_PAD.
+At vertex 2 the incoming direction is d̃1 itself rather than x2 - x1 (the same direction for
+every path, t > 0): for triangle 2 adjacent to triangle 1 on one surface, x2 - x1 can vanish
+and would take β2 to 0 with it.  The enclosures shrink with the box, so the piece is split
+(quadtree of at most ``irr_depth`` levels, inside the piece only) while the bound is unbounded
+or Ē/E̲ > ``irr_ratio``.  Orientation at each vertex follows CONTRACT.md as in ``chain2``
+(o = sign((source - x)·ng) · sign(ng·n), η' = 1/η for o > 0, η otherwise); where the sign is
+not fixed over a box both orientations are bounded and the larger Ē kept.  Floating-point
+rounding: every affine operation widens r by a relative ROUND, and the final bound is padded by
+IRR_PAD.
 """
 
 import math
@@ -469,7 +479,7 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box):
 @kernel
 def piece_irradiance_two(chain_code, x0, P1, N1, P2, N2, Q, eta, lo, hi, irr_depth, irr_ratio, stats):
     """(Ē, E̲) of dΩ0/dA_k over the piece lo <= (u1, v1) <= hi of the tuple (triangle 1,
-    triangle 2, receiver Q) (eq 15–16 in first-order interval arithmetic, module doc).
+    triangle 2, receiver Q) (eq 15–16 in affine arithmetic, module doc).
 
     chain_code as ``chain2.CHAIN_CODES`` (bit 0: vertex 1 refracts, bit 1: vertex 2 refracts).
     The piece is split into a quadtree of at most irr_depth levels while a sub-box is

@@ -33,6 +33,9 @@ from addon.solver.bounds.chain2 import bound_two_bounce, piece_position_two, CHA
 from addon.solver.bounds.tuples import two_bounce_pairs  # noqa: E402
 
 
+WHOLE = np.array([0.0, 1.0, 0.0, 1.0])  # a receiver barycentric box covering the whole receiver triangle
+
+
 def _scene(name, chain):
     sc = S.scene(name)
     sc["chain"] = chain
@@ -109,7 +112,8 @@ def test_irradiance_bound_shrinks_onto_the_path_geometry_term():
             lo = uv - 5e-5
             hi = uv + 5e-5
             eh, el = piece_irradiance_two(CHAIN_CODES[chain], sc["light"], sc["caster_P"][t1], sc["caster_N"][t1],
-                                          sc["caster_P"][t2], sc["caster_N"][t2], RP[r], sc["eta"], lo, hi, 0, 2.0, stats)
+                                          sc["caster_P"][t2], sc["caster_N"][t2], RP[r], sc["eta"], lo, hi, WHOLE, 0, 2.0,
+                                          stats)
             if not np.isfinite(eh):
                 continue  # a focal or grazing path: no finite bound expected
             xk = RP[r, 0] + buv[0] * (RP[r, 1] - RP[r, 0]) + buv[1] * (RP[r, 2] - RP[r, 0])
@@ -122,6 +126,79 @@ def test_irradiance_bound_shrinks_onto_the_path_geometry_term():
             assert eh <= 1.01 * el
             checked += 1
     assert checked >= 60
+
+
+def _path_geometry(sc, chain, t1, t2, r, uv, uv2, buv):
+    """dΩ0/dA_k of one traced path by path_irradiance (path_space2's chained footprint), no Fresnel."""
+    from addon.solver import path_irradiance
+
+    RP = sc["receiver_P"]
+    xk = RP[r, 0] + buv[0] * (RP[r, 1] - RP[r, 0]) + buv[1] * (RP[r, 2] - RP[r, 0])
+    nk = np.cross(RP[r, 1] - RP[r, 0], RP[r, 2] - RP[r, 0])
+    out = path_irradiance(chain, sc["light"][None], xk[None], np.stack([sc["caster_P"][t1], sc["caster_P"][t2]])[None],
+                          np.stack([sc["caster_N"][t1], sc["caster_N"][t2]])[None], sc["eta"], np.zeros(1, dtype=int),
+                          np.concatenate([uv, uv2])[None], receiver_normal=nk[None])
+    return float(out.geometry[0] * out.cos_receiver[0])
+
+
+@pytest.mark.parametrize("name,chain", [("slab10k", "TT"), ("slab10k", "RT"), ("slab10k", "TR"), ("ball1280", "TT")])
+def test_implicit_last_vertex_bound_brackets_the_path_jacobian(name, chain):
+    """The implicit form at the last vertex (eq 17–19; ``irradiance_two``'s fallback where the
+    explicit Jacobian cannot be bounded) over a (u1, v1) box times a (uk, vk) box around a traced
+    path brackets the path's |det ∂u1/∂uk| (from its independently computed geometry term), for
+    boxes of 1e-2 and 1e-4, with both tangent vectors b."""
+    import addon.solver.bounds.irradiance_two as I
+
+    sc = _scene(name, chain)
+    n = sc["caster_P"].shape[0]
+    paths = S.trace_two(sc, np.arange(0, n, max(1, n // 300)), samples_per_triangle=4, seed=11)
+    r1, r2 = chain[0] == "T", chain[1] == "T"
+    x0, eta = sc["light"], sc["eta"]
+    finite = 0
+    for i in range(min(400, paths["tri"].shape[0])):
+        t1, t2, r = paths["tri"][i], paths["t2"][i], paths["hit"][i]
+        uv, uv2, buv = paths["uv"][i], paths["uv2"][i], paths["buv"][i]
+        P1, N1, P2, N2, Q = sc["caster_P"][t1], sc["caster_N"][t1], sc["caster_P"][t2], sc["caster_N"][t2], sc["receiver_P"][r]
+        G = _path_geometry(sc, chain, t1, t2, r, uv, uv2, buv)
+        for w in (1e-2, 1e-4):
+            box = np.array([uv[0] - w, uv[0] + w, uv[1] - w, uv[1] + w])
+            e1, e2 = P1[1] - P1[0], P1[2] - P1[0]
+            x1 = tuple(I._daffine(P1[0, k], e1[k], e2[k], box) for k in range(3))
+            n1 = tuple(I._daffine(N1[0, k], N1[1, k] - N1[0, k], N1[2, k] - N1[0, k], box) for k in range(3))
+            d0 = tuple(I._daddc(x1[k], -x0[k]) for k in range(3))
+            ng1 = np.cross(e1, e2)
+            o1 = np.sign((x0 - P1[0]) @ ng1) * np.sign(N1[0] @ ng1)  # the path's side (interpolated normals turn slowly)
+            st, dt1 = I._scatter(r1, o1, I._eta_ratio(o1, eta), n1, d0)
+            if st != I.BOUNDED:
+                continue
+            st, u2, v2 = I._hit(x1, dt1, P2)
+            if st != I.BOUNDED:
+                continue
+            f1, f2, g1, g2 = P2[1] - P2[0], P2[2] - P2[0], N2[1] - N2[0], N2[2] - N2[0]
+            x2 = tuple(I._daddc(I._dadd(I._dscale(u2, f1[k]), I._dscale(v2, f2[k])), P2[0, k]) for k in range(3))
+            n2 = tuple(I._daddc(I._dadd(I._dscale(u2, g1[k]), I._dscale(v2, g2[k])), N2[0, k]) for k in range(3))
+            ng2 = np.cross(f1, f2)
+            o2 = -np.sign(sum(dt1[k][0][0] * ng2[k] for k in range(3))) * np.sign(N2[0] @ ng2)
+            eta_f = 1.0 / I._eta_ratio(o2, eta) if r2 else 1.0
+            t_a = f1 / np.linalg.norm(f1)
+            t_b = np.cross(ng2, t_a)
+            t_b /= np.linalg.norm(t_b)
+            rbox = np.array([buv[0] - 30 * w, buv[0] + 30 * w, buv[1] - 30 * w, buv[1] + 30 * w])
+            for b in (t_a, t_b):
+                lo, hi = I._implicit_last_vertex(dt1, n2, x2, Q, rbox, eta_f, b)
+                if not np.isfinite(hi):
+                    continue
+                finite += 1
+                ratio_lo, ratio_hi = lo, hi
+                # G = light(x1) · |det ∂u1/∂uk| / ak: check the Jacobian part through G / light(x1 of the path)
+                x1p = P1[0] + uv[0] * e1 + uv[1] * e2
+                dp = x1p - x0
+                lightp = abs(dp @ ng1) / (dp @ dp) ** 1.5
+                ak = np.linalg.norm(np.cross(Q[1] - Q[0], Q[2] - Q[0]))
+                jac = G * ak / lightp
+                assert ratio_lo * (1 - 1e-9) <= jac <= ratio_hi * (1 + 1e-9), (name, chain, i, w, ratio_lo, jac, ratio_hi)
+    print(f"\n{name} {chain}: {finite} finite implicit bounds checked")
+    assert finite >= 50
 
 
 def test_irradiance_bound_flat_slab_analytic():
@@ -159,7 +236,7 @@ def test_irradiance_bound_flat_slab_analytic():
         v = (x1[1] - top[0, 1]) / e2[1]
         for half in (1e-3, 1e-4):
             lo, hi = np.array([u - half, v - half]), np.array([u + half, v + half])
-            eh, el = piece_irradiance_two(CHAIN_CODES["TT"], x0, top, N1, bottom, N2, floor, eta, lo, hi, 0, 2.0, stats)
+            eh, el = piece_irradiance_two(CHAIN_CODES["TT"], x0, top, N1, bottom, N2, floor, eta, lo, hi, WHOLE, 0, 2.0, stats)
             corners = [analytic(top[0] + a * e1 + b * e2) for a in (lo[0], hi[0]) for b in (lo[1], hi[1])]
             assert el <= min(corners) and max(corners) <= eh, (dx, dy, half, el, corners, eh)
             # tight: the enclosure exceeds the true range over the box by a second-order amount
@@ -189,7 +266,7 @@ def test_irradiance_bound_degenerate_inputs_never_nan():
         cases.append((rng.normal(size=3) * 3, P[0], rng.normal(size=(3, 3)), P[1], rng.normal(size=(3, 3))))
     for x0, P1, N1, P2, N2 in cases:
         for code in range(4):
-            eh, el = piece_irradiance_two(code, x0, P1, N1, P2, N2, floor, 1.5, lo, hi, 3, 2.0, stats)
+            eh, el = piece_irradiance_two(code, x0, P1, N1, P2, N2, floor, 1.5, lo, hi, WHOLE, 3, 2.0, stats)
             assert not np.isnan(eh) and not np.isnan(el)
             assert eh >= 0.0 and el >= 0.0 and el <= eh
 

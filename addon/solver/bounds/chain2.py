@@ -433,7 +433,7 @@ class TwoBounceBounds:
 
 
 def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=1,
-                     sigma=1e-4, capacity=16, irradiance=True, irr_depth=4, irr_ratio=2.0):
+                     sigma=1e-4, capacity=16, irradiance=True, irr_depth=4, irr_ratio=2.0, prune=True):
     """Position bounds of two-bounce tuples (Fan et al. 2025 §4.2–4.3, eq 3–13; subdivision §6.1).
 
     chain: "RR", "RT", "TR" or "TT"; caster_P, caster_N: (n,3,3) corners and corner normals of
@@ -443,7 +443,7 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     (``tuples.two_bounce_pairs`` builds them; default all n·(n-1), only for tiny meshes);
     max_depth, sigma: the stopping rules; capacity: most pieces per tuple; irradiance: also bound
     Ē, E̲ per piece (``irradiance_two.bound_irradiance_two`` with irr_depth, irr_ratio), else
-    Ē = inf."""
+    Ē = inf; prune: then drop the pieces (and tuples) that pass proved to hold no path."""
     if chain not in CHAIN_CODES:
         raise ValueError(f"bound_two_bounce handles chains RR, RT, TR and TT, got {chain!r}")
     t0 = time.perf_counter()
@@ -506,4 +506,35 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
         from .irradiance_two import bound_irradiance_two
 
         bound_irradiance_two(result, light, caster_P, caster_N, receiver_P, eta, irr_depth=irr_depth, irr_ratio=irr_ratio)
+        if prune:
+            result = drop_pieces_without_paths(result)
     return result
+
+
+def drop_pieces_without_paths(bounds):
+    """Remove the pieces the irradiance pass proved empty (Ē = E̲ = 0: no admissible path in the
+    box reaches the receiver — backward rays, u2 outside triangle 2 or total internal reflection
+    on the whole box, which the position bound's relaxations cannot see) and the tuples left
+    without a piece.  Returns a new ``TwoBounceBounds``; the report keeps the counts before."""
+    from .chain1 import P_EHI, P_ELO
+
+    keep = ~((bounds.pieces[:, P_EHI] == 0.0) & (bounds.pieces[:, P_ELO] == 0.0))
+    pieces = np.ascontiguousarray(bounds.pieces[keep])
+    old_tuple = bounds.piece_tuple[keep]
+    used, piece_tuple = np.unique(old_tuple, return_inverse=True)  # old_tuple is sorted: order kept
+    tuples = bounds.tuples[used]
+    m = tuples.shape[0]
+    box = np.empty((m, 4))
+    if m:
+        starts = np.flatnonzero(np.r_[True, piece_tuple[1:] != piece_tuple[:-1]])
+        box[:, 0] = np.minimum.reduceat(pieces[:, P_X0], starts)
+        box[:, 1] = np.maximum.reduceat(pieces[:, P_X1], starts)
+        box[:, 2] = np.minimum.reduceat(pieces[:, P_Y0], starts)
+        box[:, 3] = np.maximum.reduceat(pieces[:, P_Y1], starts)
+    report = dict(bounds.report)
+    report.update({
+        "tuples_before_pruning": bounds.report["tuples"], "pieces_before_pruning": bounds.report["pieces"],
+        "tuples": int(m), "pieces": int(pieces.shape[0]), "pieces_per_tuple": float(pieces.shape[0] / m) if m else 0.0,
+        "memory_mb": (pieces.nbytes + box.nbytes + piece_tuple.nbytes + tuples.nbytes) / 2**20,
+    })
+    return TwoBounceBounds(bounds.chain, tuples, piece_tuple.astype(np.int64), pieces, box, report)

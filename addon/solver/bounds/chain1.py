@@ -201,6 +201,25 @@ def _receiver_numerators(x, dt, Q):
 
 
 @kernel
+def orientation_mask(side_lo, side_hi, ndot_lo, ndot_hi):
+    """Orientations o = sign(side)·sign(n·ng) (CONTRACT.md: the light's side of the geometric
+    normal turned to the shading normal) possible when the side (x_source - x)·ng ranges over
+    [side_lo, side_hi] and n·ng over [ndot_lo, ndot_hi]: bit 1 for o = +1, bit 2 for -1."""
+    mask = 0
+    if side_hi > 0.0:
+        if ndot_hi > 0.0:
+            mask |= 1
+        if ndot_lo < 0.0:
+            mask |= 2
+    if side_lo < 0.0:
+        if ndot_hi > 0.0:
+            mask |= 2
+        if ndot_lo < 0.0:
+            mask |= 1
+    return mask
+
+
+@kernel
 def _eta_ratio(o, eta):
     """η' = η_i/η_t for the side o (o > 0: light arrives from outside, IOR 1 -> eta)."""
     return 1.0 / eta if o > 0.0 else eta

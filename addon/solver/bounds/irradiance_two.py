@@ -59,7 +59,7 @@ import time
 import numpy as np
 
 from ..jit import kernel, prange
-from .chain1 import IRR_PAD, P_BU0, P_ELO, P_EHI, P_U0, P_U1, P_V0, P_V1
+from .chain1 import IRR_PAD, P_BU0, P_ELO, P_EHI, P_U0, P_U1, P_V0, P_V1, _eta_ratio, orientation_mask
 
 NO_PATH = 0
 BOUNDED = 1
@@ -429,28 +429,6 @@ def _implicit_last_vertex(d1, n2, x2, Q, rbox, eta_f, b):
 
 
 @kernel
-def _orientation_mask(side_lo, side_hi, ndot_lo, ndot_hi):
-    """Orientations o = sign(side)·sign(n·ng) possible on the box: bit 1 for +1, bit 2 for -1."""
-    mask = 0
-    if side_hi > 0.0:
-        if ndot_hi > 0.0:
-            mask |= 1
-        if ndot_lo < 0.0:
-            mask |= 2
-    if side_lo < 0.0:
-        if ndot_hi > 0.0:
-            mask |= 2
-        if ndot_lo < 0.0:
-            mask |= 1
-    return mask
-
-
-@kernel
-def _eta_ratio(o, eta):
-    return 1.0 / eta if o > 0.0 else eta
-
-
-@kernel
 def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox):
     """Bound dΩ0/dA_k (eq 15–16) over the box (u_lo, u_hi, v_lo, v_hi) of triangle 1's
     barycentrics; rbox (uk_lo, uk_hi, vk_lo, vk_hi) encloses the receiver barycentrics of its
@@ -481,7 +459,7 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
     light_lo = clo / dhi ** 1.5
     side1 = (x0[0] - P1[0, 0]) * ng1[0] + (x0[1] - P1[0, 1]) * ng1[1] + (x0[2] - P1[0, 2]) * ng1[2]
     nlo, nhi = _drange(_vdotc(n1, ng1))
-    mask1 = _orientation_mask(side1, side1, nlo, nhi)
+    mask1 = orientation_mask(side1, side1, nlo, nhi)
     ak = math.sqrt(np.sum(_c3(Q[1] - Q[0], Q[2] - Q[0]) ** 2))
     ng2 = _c3(P2[1] - P2[0], P2[2] - P2[0])
     f1 = P2[1] - P2[0]
@@ -524,7 +502,7 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
         d1 = dt1
         slo, shi = _drange(_vdotc(d1, ng2))  # side of x1: (x1 - x2)·ng2 = -t d̃1·ng2
         nlo2, nhi2 = _drange(_vdotc(n2, ng2))
-        mask2 = _orientation_mask(-shi, -slo, nlo2, nhi2)
+        mask2 = orientation_mask(-shi, -slo, nlo2, nhi2)
         for k2 in range(2):
             if not (mask2 >> k2) & 1:
                 continue

@@ -534,6 +534,7 @@ def drop_pieces_without_paths(bounds):
     report = dict(bounds.report)
     report.update({
         "tuples_before_pruning": bounds.report["tuples"], "pieces_before_pruning": bounds.report["pieces"],
+        "pairs_with_tuples": int(np.unique(tuples[:, 0] * (int(tuples[:, 1].max()) + 1 if m else 1) + tuples[:, 1]).shape[0]),
         "tuples": int(m), "pieces": int(pieces.shape[0]), "pieces_per_tuple": float(pieces.shape[0] / m) if m else 0.0,
         "memory_mb": (pieces.nbytes + box.nbytes + piece_tuple.nbytes + tuples.nbytes) / 2**20,
     })

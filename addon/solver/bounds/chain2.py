@@ -230,18 +230,16 @@ def _flat_common(a, b, c, d, e, f):
 
 
 @kernel
-def _vertex_one(refract1, o1, x0, P1, N1, eta, lo4, hi4):
-    """Step 1 up to eq 10 for orientation o1: x1 (eq 6) and d̃1 (eq 10–13) on the box, which
-    depend on triangle 1 only.  Returns (ok, x1, d̃1); ok = False under total internal reflection."""
+def _stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
+    """Steps 1–2 of the module doc for orientation o1 at vertex 1: the affine forms with
+    remainder of (u2, v2) in fu, fv.  Returns False when the light of the box misses triangle 2."""
+    lo4 = np.zeros(4)
+    hi4 = np.ones(4)
+    lo4[0], lo4[1], hi4[0], hi4[1] = lo[0], lo[1], hi[0], hi[1]
     x, n, d = _caster(x0, P1, N1, lo4, hi4)
     ok, dt = _direction(refract1, o1, _eta_ratio(o1, eta), n, d, lo4, hi4)
-    return ok, x, dt
-
-
-@kernel
-def _stage_one_from(x, dt, P2, lo4, hi4, fu, fv, stats):
-    """The rest of steps 1–2 from vertex 1's x1, d̃1: eq 9 on triangle 2 and the affine forms
-    with remainder of (u2, v2) in fu, fv.  Returns False when the light misses triangle 2."""
+    if not ok:
+        return False
     pu, pv, q = _receiver_numerators(x, dt, P2)
     fpu, fpv, fq = flat_coefficients(pu, pv, q)
     box = np.empty(4)
@@ -252,19 +250,6 @@ def _stage_one_from(x, dt, P2, lo4, hi4, fu, fv, stats):
     if not _reduce(pv, q, lo4, hi4, box[2], box[3], fv):
         stats[2] += 1
     return True
-
-
-@kernel
-def _stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
-    """Steps 1–2 of the module doc for orientation o1 at vertex 1: the affine forms with
-    remainder of (u2, v2) in fu, fv.  Returns False when the light of the box misses triangle 2."""
-    lo4 = np.zeros(4)
-    hi4 = np.ones(4)
-    lo4[0], lo4[1], hi4[0], hi4[1] = lo[0], lo[1], hi[0], hi[1]
-    ok, x, dt = _vertex_one(refract1, o1, x0, P1, N1, eta, lo4, hi4)
-    if not ok:
-        return False
-    return _stage_one_from(x, dt, P2, lo4, hi4, fu, fv, stats)
 
 
 @kernel
@@ -453,9 +438,8 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     pairs: (t,2) (triangle 1, triangle 2) candidates, each bounded against every receiver
     (``tuples.two_bounce_pairs`` builds them; default all n·(n-1), only for tiny meshes);
     max_depth, sigma: the stopping rules; capacity: most pieces per tuple;
-    engine: "fast" (``chain2_fast``: workspace slots, eq 9's products shared by the receivers and
-    vertex 1 shared by the pairs of one first triangle; the same pieces up to rounding) or
-    "reference" (the functions of this module)."""
+    engine: "fast" (``chain2_fast``: workspace slots, eq 9's products shared by the receivers;
+    the same pieces up to rounding) or "reference" (the functions of this module)."""
     if chain not in CHAIN_CODES:
         raise ValueError(f"bound_two_bounce handles chains RR, RT, TR and TT, got {chain!r}")
     t0 = time.perf_counter()

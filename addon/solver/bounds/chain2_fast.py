@@ -3,9 +3,9 @@ maths of ``chain2.py`` (the readable reference, whose module doc this follows st
 without allocation per box and with the receiver-independent work done once per box.
 
 Steps 1–2 (vertex 1 -> triangle 2 and the affine forms with remainder of (u2, v2)) are the
-reference's own functions, so the forms are bit-identical; x1 and d̃1 on a box depend on
-triangle 1 only and are kept per (box, orientation) while the (sorted) pairs share it.  Step 3
-(vertex 2 -> the receivers) runs here on a per-thread workspace.
+reference's own ``chain2._stage_one``, so the forms are bit-identical.  (Keeping x1, d̃1 per
+box of triangle 1 across its pairs saved 10 % of the bound but cost more compilation than that
+on a cold slab10k run.)  Step 3 (vertex 2 -> the receivers) runs here on a per-thread workspace.
 
 Representation (as ``chain1_fast``): a polynomial is a row ("slot") of the workspace W holding
 its *scaled* Bernstein coefficients c_i = b_i Π C(n_d, i_d) in C order, its extents (degree + 1
@@ -40,7 +40,7 @@ from ..jit import kernel
 from .bernstein import BINOM, clip_hull, sqrt_linearisation
 from .chain1 import P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD, push_children
 from .chain1_fast import ratio_bound
-from .chain2 import _stage_one_from, _vertex_one
+from .chain2 import _stage_one
 
 P_RECEIVER = PIECE_FIELDS  # extra column of the pair-level rows (as chain2.P_RECEIVER)
 
@@ -616,61 +616,16 @@ def _directions_two(W, E, refract, o, eta_ratio):
     return True, True, -o * (dhi - dlo)
 
 
-MAXV1 = 72  # largest vertex-1 polynomial kept: d̃1, degree (5, 5, 1) in (u1, v1, ξ1)
-
-
-def cache_size(max_depth):
-    """Entries of the vertex-1 cache: both orientations of every quadtree box down to
-    max_depth (at most 170; deeper boxes are computed every time)."""
-    return 2 * min((4 ** (int(max_depth) + 1) - 1) // 3, 85)
-
-
 @kernel
-def _restore(cache, cshape, c, j):
-    a = np.empty((cshape[c, j, 0], cshape[c, j, 1], cshape[c, j, 2], cshape[c, j, 3]))
-    af = a.ravel()
-    for i in range(af.shape[0]):
-        af[i] = cache[c, j, i]
-    return a
-
-
-@kernel
-def _vertex_one_cached(cache, ckey, cshape, ncache, refract1, o1, x0, P1, N1, eta, lo4, hi4):
-    """``chain2._vertex_one`` (x1, d̃1 on the box), kept per (box, orientation) while triangle 1
-    does not change (ckey rows: u_lo, u_hi, v_lo, v_hi, o, ok; the polynomials flattened in
-    cache, their shapes in cshape).  Returns (ok, x1, d̃1, new number of entries)."""
-    for c in range(ncache):
-        k = ckey[c]
-        if k[0] == lo4[0] and k[1] == hi4[0] and k[2] == lo4[1] and k[3] == hi4[1] and k[4] == o1:
-            x = (_restore(cache, cshape, c, 0), _restore(cache, cshape, c, 1), _restore(cache, cshape, c, 2))
-            dt = (_restore(cache, cshape, c, 3), _restore(cache, cshape, c, 4), _restore(cache, cshape, c, 5))
-            return k[5] != 0.0, x, dt, ncache
-    ok, x, dt = _vertex_one(refract1, o1, x0, P1, N1, eta, lo4, hi4)
-    if ncache < ckey.shape[0]:
-        k = ckey[ncache]
-        k[0], k[1], k[2], k[3], k[4], k[5] = lo4[0], hi4[0], lo4[1], hi4[1], o1, 1.0 if ok else 0.0
-        for j in range(6):
-            a = x[j] if j < 3 else dt[j - 3]
-            for d in range(4):
-                cshape[ncache, j, d] = a.shape[d]
-            af = a.ravel()
-            for i in range(af.shape[0]):
-                cache[ncache, j, i] = af[i]
-        ncache += 1
-    return ok, x, dt, ncache
-
-
-@kernel
-def _box_bounds(W, E, cache, ckey, cshape, ncache, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, found,
+def _box_bounds(W, E, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, found,
                 stats):
     """``chain2._box_bounds`` (same outputs: out[r, 0:8] and found[r] for every receiver r with
-    alive[r]): steps 1–2 by the reference (``chain2._vertex_one``, cached per triangle 1, and
-    ``chain2._stage_one_from``), the products of step 3 once for all receivers, then eq 9 and
-    eq 3 per receiver.  Returns the new number of vertex-1 cache entries."""
+    alive[r]): steps 1–2 by the reference (``chain2._stage_one``), the products of step 3 once
+    for all receivers, then eq 9 and eq 3 per receiver."""
     for r in range(Q.shape[0]):
         found[r] = False
     if lo[0] + lo[1] > 1.0:
-        return ncache
+        return
     refract1 = (chain_code & 1) != 0
     refract2 = (chain_code & 2) != 0
     lo4 = np.zeros(4)
@@ -678,7 +633,7 @@ def _box_bounds(W, E, cache, ckey, cshape, ncache, chain_code, x0, P1, N1, P2, N
     lo4[0], lo4[1], hi4[0], hi4[1] = lo[0], lo[1], hi[0], hi[1]
     mask1 = _orientations_one(x0, P1, N1, lo4, hi4)
     if mask1 == 0:
-        return ncache
+        return
     fu = np.zeros(4)
     fv = np.zeros(4)
     box = np.empty(4)
@@ -691,8 +646,7 @@ def _box_bounds(W, E, cache, ckey, cshape, ncache, chain_code, x0, P1, N1, P2, N
         if not refract1 and v1 == 1 and (mask1 & 1):
             continue  # reflection does not depend on the normal's sign
         o1 = 1.0 if v1 == 0 else -1.0
-        ok, x1, dt1, ncache = _vertex_one_cached(cache, ckey, cshape, ncache, refract1, o1, x0, P1, N1, eta, lo4, hi4)
-        if not ok or not _stage_one_from(x1, dt1, P2, lo4, hi4, fu, fv, stats):
+        if not _stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
             continue
         reached = True
         _vertex_two(W, E, P1, P2, N2, origin2, fu, fv, lo4, hi4)
@@ -751,71 +705,15 @@ def _box_bounds(W, E, cache, ckey, cshape, ncache, chain_code, x0, P1, N1, P2, N
                     o[2 * k + 1] = max(o[2 * k + 1], res[2 * k + 1] + POS_PAD)
     if not reached:
         stats[1] += 1
-    return ncache
 
 
 @kernel
-def pair_pieces_fast(W, E, cache, ckey, cshape, ncache, stack, alive, pos, found, node_alive, child, chain_code, x0, P1,
-                     N1, P2, N2, Q, UV, eta, max_depth, sigma, out, stats):
-    """``chain2.pair_pieces_two`` (the same quadtree of every receiver, §6.1 stopping rules) on
-    the workspace; returns (number of rows, number of vertex-1 cache entries)."""
-    nr = Q.shape[0]
-    cap = out.shape[0]
-    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0.0, 1.0, 0.0, 1.0, 0.0
-    alive[0, :] = True
-    top = 1
-    count = 0
-    lo = np.zeros(2)
-    hi = np.zeros(2)
-    while top > 0:
-        top -= 1
-        lo[0], hi[0], lo[1], hi[1] = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
-        depth = int(stack[top, 4])
-        node_alive[:] = alive[top]
-        stats[0] += 1
-        ncache = _box_bounds(W, E, cache, ckey, cshape, ncache, chain_code, x0, P1, N1, P2, N2, Q, UV, node_alive, eta, lo, hi,
-                             pos, found, stats)
-        can_split = depth < max_depth and count + (top + 4) * nr <= cap
-        any_child = False
-        for r in range(nr):
-            child[r] = False
-            if not found[r]:
-                continue
-            area = (pos[r, 1] - pos[r, 0]) * (pos[r, 3] - pos[r, 2])
-            if area >= sigma and can_split:
-                child[r] = True
-                any_child = True
-                continue
-            if depth < max_depth and area >= sigma:
-                stats[3] += 1
-            row = out[count]
-            row[P_U0], row[P_U1], row[P_V0], row[P_V1] = lo[0], hi[0], lo[1], hi[1]
-            for k in range(8):
-                row[P_BU0 + k] = pos[r, k]
-            row[P_EHI] = np.inf
-            row[P_ELO] = 0.0
-            row[P_DEPTH] = depth
-            row[P_RECEIVER] = r
-            count += 1
-        if any_child:
-            pushed = push_children(stack, top, lo, hi, depth)
-            for k in range(top, pushed):
-                alive[k] = child
-            top = pushed
-    return count, ncache
-
-
-@kernel
-def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, n_cache, out, counts, stats, start, stop):
-    """Pairs start..stop-1 on one workspace; the vertex-1 cache lives while triangle 1 does not
-    change (pairs sorted by triangle 1, as ``tuples.two_bounce_pairs`` returns them)."""
+def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats, start, stop):
+    """``chain2.pair_pieces_two`` (the pair-level quadtree of every receiver, §6.1 stopping rules)
+    for pairs start..stop-1 on one workspace (one function: every level of calls above the
+    polynomial kernels costs compilation)."""
     nr = Q.shape[0]
     W, E = workspace()
-    cache = np.empty((n_cache, 6, MAXV1))
-    ckey = np.empty((n_cache, 6))
-    cshape = np.zeros((n_cache, 6, 4), dtype=np.int64)
-    ncache = 0
-    last = -1
     size = 4 * (max_depth + 2)
     stack = np.empty((size, 5))
     alive = np.zeros((size, nr), dtype=np.bool_)
@@ -823,15 +721,52 @@ def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, n_cache, o
     found = np.zeros(nr, dtype=np.bool_)
     node_alive = np.zeros(nr, dtype=np.bool_)
     child = np.zeros(nr, dtype=np.bool_)
+    lo = np.zeros(2)
+    hi = np.zeros(2)
     for t in range(start, stop):
         a = pairs[t, 0]
         b = pairs[t, 1]
-        if a != last:
-            ncache = 0
-            last = a
-        counts[t], ncache = pair_pieces_fast(W, E, cache, ckey, cshape, ncache, stack, alive, pos, found, node_alive, child,
-                                             chain_code, x0, P[a], N[a], P[b], N[b], Q, UV, eta, max_depth, sigma, out[t],
-                                             stats[t])
+        rows = out[t]
+        cap = rows.shape[0]
+        stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0.0, 1.0, 0.0, 1.0, 0.0
+        alive[0, :] = True
+        top = 1
+        count = 0
+        while top > 0:
+            top -= 1
+            lo[0], hi[0], lo[1], hi[1] = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+            depth = int(stack[top, 4])
+            node_alive[:] = alive[top]
+            stats[t, 0] += 1
+            _box_bounds(W, E, chain_code, x0, P[a], N[a], P[b], N[b], Q, UV, node_alive, eta, lo, hi, pos, found, stats[t])
+            can_split = depth < max_depth and count + (top + 4) * nr <= cap
+            any_child = False
+            for r in range(nr):
+                child[r] = False
+                if not found[r]:
+                    continue
+                area = (pos[r, 1] - pos[r, 0]) * (pos[r, 3] - pos[r, 2])
+                if area >= sigma and can_split:
+                    child[r] = True
+                    any_child = True
+                    continue
+                if depth < max_depth and area >= sigma:
+                    stats[t, 3] += 1
+                row = rows[count]
+                row[P_U0], row[P_U1], row[P_V0], row[P_V1] = lo[0], hi[0], lo[1], hi[1]
+                for k in range(8):
+                    row[P_BU0 + k] = pos[r, k]
+                row[P_EHI] = np.inf
+                row[P_ELO] = 0.0
+                row[P_DEPTH] = depth
+                row[P_RECEIVER] = r
+                count += 1
+            if any_child:
+                pushed = push_children(stack, top, lo, hi, depth)
+                for k in range(top, pushed):
+                    alive[k] = child
+                top = pushed
+        counts[t] = count
 
 
 def batch_fast(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats, chunks=256):
@@ -845,7 +780,7 @@ def batch_fast(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, c
     n = pairs.shape[0]
     size = max(1, -(-n // max(1, int(chunks))))
     bounds = [(a, min(n, a + size)) for a in range(0, n, size)]
-    args = (chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, cache_size(max_depth), out, counts, stats)
+    args = (chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats)
     threads = get_num_threads()
     if threads <= 1 or len(bounds) <= 1:
         for a, b in bounds:
@@ -861,4 +796,4 @@ def box_bounds_one(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, lo, hi, out, foun
     """One box of one pair for every receiver (tests): as ``chain2._box_bounds`` with all alive."""
     W, E = workspace()
     alive = np.ones(Q.shape[0], dtype=np.bool_)
-    _box_bounds(W, E, np.empty((0, 6, MAXV1)), np.empty((0, 6)), np.zeros((0, 6, 4), dtype=np.int64), 0, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, found, stats)
+    _box_bounds(W, E, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, found, stats)

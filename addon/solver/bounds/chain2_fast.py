@@ -75,7 +75,6 @@ def workspace():
 # shifted axpy over the whole array and an elevation step a sum of shifted copies: long
 # vectorisable loops instead of loops over short rows.
 
-PAD = 7                      # padded extent of every variable
 STRIDES = (343, 49, 7, 1)
 
 

@@ -54,7 +54,8 @@ import numpy as np
 from ..jit import kernel, prange
 from .bernstein import _with_extent, add, affine, affine_map, coef_range, elevate, evaluate, lincomb, mul, rational_bound, sqrt_linearisation, sub
 from .chain1 import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, P_X0, P_X1, P_Y0, P_Y1, PIECE_FIELDS, POS_PAD, _c3, _caster, _d3, _direction,
-                     _dot, _eta_ratio, _orientations, _receiver_numerators, barycentric_box, flat_coefficients, push_children, receiver_box)
+                     _dot, _eta_ratio, _orientations, _receiver_numerators, barycentric_box, flat_coefficients, orientation_mask, push_children,
+                     receiver_box)
 
 N_STATS = 4  # position evaluations, stage-1 misses (light of the piece misses triangle 2), constant-form fallbacks, capacity stops
 
@@ -166,18 +167,7 @@ def _orientations_two(P1, P2, n2, lo, hi):
         smax = max(smax, s)
     ndot = lincomb(lincomb(n2[0], ng[0], n2[1], ng[1]), 1.0, n2[2], ng[2])
     nlo, nhi = coef_range(ndot)
-    mask = 0
-    if smax > 0.0:  # x1 on ng's side
-        if nhi > 0.0:
-            mask |= 1
-        if nlo < 0.0:
-            mask |= 2
-    if smin < 0.0:
-        if nhi > 0.0:
-            mask |= 2
-        if nlo < 0.0:
-            mask |= 1
-    return mask
+    return orientation_mask(smin, smax, nlo, nhi)
 
 
 @kernel
@@ -433,7 +423,7 @@ class TwoBounceBounds:
 
 
 def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=1,
-                     sigma=1e-4, capacity=16, irradiance=True, irr_depth=4, irr_ratio=2.0, prune=True):
+                     sigma=1e-4, capacity=16, engine="fast", irradiance=True, irr_depth=4, irr_ratio=2.0, prune=True):
     """Position bounds of two-bounce tuples (Fan et al. 2025 §4.2–4.3, eq 3–13; subdivision §6.1).
 
     chain: "RR", "RT", "TR" or "TT"; caster_P, caster_N: (n,3,3) corners and corner normals of
@@ -441,9 +431,12 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     (r,3,2); eta: IOR behind the caster surfaces (normals point away from it);
     pairs: (t,2) (triangle 1, triangle 2) candidates, each bounded against every receiver
     (``tuples.two_bounce_pairs`` builds them; default all n·(n-1), only for tiny meshes);
-    max_depth, sigma: the stopping rules; capacity: most pieces per tuple; irradiance: also bound
-    Ē, E̲ per piece (``irradiance_two.bound_irradiance_two`` with irr_depth, irr_ratio), else
-    Ē = inf; prune: then drop the pieces (and tuples) that pass proved to hold no path."""
+    max_depth, sigma: the stopping rules; capacity: most pieces per tuple;
+    engine: "fast" (``chain2_fast``: workspace slots, eq 9's products shared by the receivers;
+    the same pieces up to rounding) or "reference" (the functions of this module);
+    irradiance: also bound Ē, E̲ per piece (``irradiance_two.bound_irradiance_two`` with
+    irr_depth, irr_ratio), else Ē = inf; prune: then drop the pieces (and tuples) that pass
+    proved to hold no path."""
     if chain not in CHAIN_CODES:
         raise ValueError(f"bound_two_bounce handles chains RR, RT, TR and TT, got {chain!r}")
     t0 = time.perf_counter()
@@ -465,7 +458,12 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     counts = np.zeros(n, dtype=np.int64)
     stats = np.zeros((n, N_STATS), dtype=np.int64)
     t1 = time.perf_counter()
-    if n and nr:
+    if n and nr and engine == "fast":
+        from .chain2_fast import batch_fast
+
+        batch_fast(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, int(max_depth),
+                   float(sigma), out, counts, stats)
+    elif n and nr:
         _batch_two(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs,
                    int(max_depth), float(sigma), out, counts, stats)
     t2 = time.perf_counter()

@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from ..bvh import build_bvh
-from ..jit import kernel, prange
+from ..jit import kernel
 from .bernstein import coef_range
 from .chain1 import _caster, _direction, _eta_ratio, _orientations, piece_position
 
@@ -173,11 +173,35 @@ def _pairs_of(t1, refract, x0, P, N, eta, levels, node_min, node_max, node_child
     return count
 
 
-@kernel(parallel=True)
-def _all_pairs(refract, x0, P, N, eta, levels, first, node_min, node_max, node_child, node_count, node_start, order, out, counts, stats):
-    for i in prange(first.shape[0]):
+@kernel
+def _pairs_chunk(refract, x0, P, N, eta, levels, first, node_min, node_max, node_child, node_count, node_start, order, out, counts, stats,
+                 start, stop):
+    for i in range(start, stop):
         counts[i] = _pairs_of(first[i], refract, x0, P, N, eta, levels, node_min, node_max, node_child, node_count, node_start,
                               order, out[i], stats[i])
+
+
+def _all_pairs(refract, x0, P, N, eta, levels, first, node_min, node_max, node_child, node_count, node_start, order, out, counts, stats,
+               chunks=256):
+    """``_pairs_of`` for every first triangle, in about ``chunks`` chunks run by as many Python
+    threads as numba's thread count (``_pairs_chunk`` releases the GIL; a thread pool costs no
+    compilation, where a ``parallel=True`` wrapper takes seconds to compile)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ..jit import get_num_threads
+
+    n = first.shape[0]
+    size = max(1, -(-n // chunks))
+    args = (refract, x0, P, N, eta, levels, first, node_min, node_max, node_child, node_count, node_start, order, out, counts, stats)
+    bounds = [(a, min(n, a + size)) for a in range(0, n, size)]
+    threads = get_num_threads()
+    if threads <= 1 or len(bounds) <= 1:
+        for a, b in bounds:
+            _pairs_chunk(*args, a, b)
+        return
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        for f in [pool.submit(_pairs_chunk, *args, a, b) for a, b in bounds]:
+            f.result()
 
 
 def two_bounce_pairs(chain, light, caster_P, caster_N, eta=1.5, levels=1, first=None, capacity=64):

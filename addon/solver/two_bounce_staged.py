@@ -51,7 +51,7 @@ from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
     TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces,
-    _bernstein_has_zero, _bmax, _build_system, _candidates_at,
+    _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_fit, HERON_SQRT, HERON_CUT,
     _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
     refine_flags_one, solve_two_bounce_tuple,
 )
@@ -279,10 +279,20 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 xhi = min(1.0, xhi * 1.25)
             else:
                 mask |= 1 << _sqrt_piece(xc)
-        for piece in range(n_pieces_sqrt):
-            if refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
+        heron_ok = False
+        heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        if refract1 and HERON_SQRT:
+            heron_ok, heron = heron_sqrt_fit(geo_l, r1, V_MARGIN_APPROX, S * S, biv[45, 0:6, 0:7])
+        for piece in range(-1, n_pieces_sqrt):
+            # piece -1: the Heron √ (β/S² above HERON_CUT), then the eq (23) pieces (only
+            # those reaching below the cut when the Heron √ is used)
+            if piece < 0 and not heron_ok:
                 continue
-            if refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
+            if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= HERON_CUT:
+                continue
+            if piece >= 0 and refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
+                continue
+            if piece >= 0 and refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
                 continue
             for o2 in range(n_side2):
                 eta_in2 = 1.0
@@ -294,7 +304,8 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                     s_in2 = -sigma2 * (1.0 if side3 > 0.0 else -1.0)
                     eta_in2 = 1.0 if s_in2 > 0.0 else eta
                     eta_out2 = eta if s_in2 > 0.0 else 1.0
-                da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, eta_in2, eta_out2, flat2, c2, geo_l, biv)
+                da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2, eta_out2,
+                                       flat2, c2, geo_l, biv)
                 status, na, nb, n = _prepare_system(biv, da, db, refract1, stats)
                 if status == 0:
                     continue

@@ -591,14 +591,18 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
 
 @kernel
 def _coeffs_at(p, d, n, v, out):
-    """out[i] = p_i(v) (coefficient of u^i) for i ≤ n, scaled to unit max-norm; returns the scale."""
+    """out[i] = p_i(v) (coefficient of u^i) for i ≤ n, scaled to unit max-norm; returns the scale.
+
+    Horner in v for all rows at once (column j of p enters every row i ≤ d - j): the same
+    operations per row as one Horner loop per row, without its serial dependency chain."""
+    for i in range(n + 1):
+        out[i] = 0.0
+    for j in range(d, -1, -1):
+        for i in range(min(n, d - j) + 1):
+            out[i] = out[i] * v + p[i, j]
     m = 0.0
     for i in range(n + 1):
-        acc = 0.0
-        for j in range(d - i, -1, -1):
-            acc = acc * v + p[i, j]
-        out[i] = acc
-        m = max(m, abs(acc))
+        m = max(m, abs(out[i]))
     if m > 0.0 and np.isfinite(m):
         inv = 1.0 / m
         for i in range(n + 1):

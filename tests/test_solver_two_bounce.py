@@ -14,9 +14,9 @@ The acceptance run of the issue (>= 10,000 per chain) is
 
 (about 1 h on 2 cores, the brute force dominating; bench/two_bounce_recall.py runs one chain of it
 from a brute force cached once and lists the misses).  Its result (2026-11-25, BENCHMARKS.md, with
-the Heron-step √ and ROOT_TOL 1e-4 / KINK 2): recall RR 100.000 %, RT 99.927 %, TR 99.964 %,
-TT 99.480 %; zero false paths, zero duplicates (2026-11-22, before those: RR 100 %, RT 99.927 %,
-TR 99.988 %, TT 99.529 %, at 1.1-1.7x the determinants).
+the Heron-step √ and ROOT_TOL 1e-4): recall RR 100.000 %, RT 99.951 %, TR 99.988 %, TT 99.529 %;
+zero false paths, zero duplicates (2026-11-22, before those: RR 100 %, RT 99.927 %, TR 99.988 %,
+TT 99.529 %, at 1.1-1.5x the determinants).
 
 Asserts: contract output format, no NaN, zero false paths (check_path, direction tolerance 1e-6, both
 vertices, sides, inside both triangles), no duplicates, recall of the brute-force paths that are

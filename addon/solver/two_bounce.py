@@ -74,10 +74,10 @@ log-magnitude (bisection safeguard) down to ``ROOT_TOL`` = 1e-4, and its candida
 polished in path space, where Gauss-Newton converges quadratically: the accepted path has
 v1 to ~1e-15, and a strict path check never sees the bracket's error (pinning every bracket
 to 1e-12 instead cost 1.5x the determinants for the same paths; the authors' 10 bisection
-steps reach 1e-5 and validate that unpolished).  ROOT_TOL was 1e-7 and the kink threshold
-``KINK`` 1.0 until 2026-11-25: ROOT_TOL 1e-4 with KINK 2.0 takes 32 % fewer determinants on
-the TT acceptance tuples 0-999 and 5000-5999 (the same 4 + 5 misses); RT at 10,000 tuples
-keeps its 6 misses of 8,206.  Resultant roots cluster (all solutions
+steps reach 1e-5 and validate that unpolished).  ROOT_TOL was 1e-7 until 2026-11-25: 1e-4
+takes ~21 % fewer determinants on TT for the same paths of the test's 300 tuples.  A kink
+threshold ``KINK`` of 2.0 instead of 1.0 saved another ~10 % but lost two TT paths of those
+300 (root pairs inside one piece whose kink is between 1 and 2): not taken.  Resultant roots cluster (all solutions
 through a small or distant second triangle lie in a small patch of the first), so pieces are
 refined (``SUB_SAMPLES`` sub-pieces, ``REFINE_LEVELS`` levels): the pieces around a sign
 change whose root polished into a path lying within ``PRODUCTIVE_RADIUS`` of it in v1 (a
@@ -161,7 +161,7 @@ ROOT_TOL = 1e-4  # v1 brackets are pinned to this; the path-space Newton polish 
 V_MARGIN_EXACT = 1e-6
 V_MARGIN_APPROX = 2e-2  # √-approximated systems: their roots may sit a little off
 REFINE_LEVELS = 1
-KINK = 2.0  # second difference of log|det| that flags a root cluster nearby (1.0 until 2026-11-25)
+KINK = 1.0  # second difference of log|det| that flags a root cluster nearby (2.0 loses TT paths: see below)
 SUB_SAMPLES = 8
 NOISY_CHANGES = 3  # sign changes among one piece's sub-samples beyond which it is noise
 DIP_STEPS = 40  # steps resolving a one-signed dip (quadratic model of |det|, golden-section safeguard)

@@ -8,8 +8,9 @@ Bézout matrix R(v1) (eq 29), evaluated some 10³-10⁵ times per tuple — can 
 device (``opencl/two_bounce.cl``), many systems at once:
 
 A (Numba)   per tuple and orientation (forward, reversed): the side tests, then every
-            bivariate system {a = 0, b = 0} (eq 6 with 10 or 13; √ pieces of eq 23, the
-            refraction's two normal orientations) built by ``_build_system``, normalised
+            bivariate system {a = 0, b = 0} (eq 6 with 10 or 13; the Heron-step √ of
+            ``heron_sqrt_fit`` where it fits and the √ pieces of eq 23 below its cut, or all
+            the pieces; the refraction's two normal orientations) built by ``_build_system``, normalised
             and rejected early (Bernstein test) exactly as ``_solve_system`` does, and
             packed (row i of a total-degree-d polynomial: the coefficients of u^i v^j).
 B (device)  the piecewise sign scan of ``find_v_roots``: det R(v) at the pieces' ends,

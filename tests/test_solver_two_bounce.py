@@ -13,9 +13,10 @@ The acceptance run of the issue (>= 10,000 per chain) is
     TWO_BOUNCE_TUPLES=10000 .venv/bin/python -m pytest tests/test_solver_two_bounce.py -s
 
 (about 1 h on 2 cores, the brute force dominating; bench/two_bounce_recall.py runs one chain of it
-from a brute force cached once and lists the misses).  Its result (2026-11-22, BENCHMARKS.md, with
-the live pre-pass): recall RR 100.000 %, RT 99.927 %, TR 99.988 %, TT 99.529 %; zero false paths,
-zero duplicates (before the pre-pass: RT 99.939 %, TT 99.628 %, at twice the determinants).
+from a brute force cached once and lists the misses).  Its result (2026-11-25, BENCHMARKS.md, with
+the Heron-step √ and ROOT_TOL 1e-4): recall RR 100.000 %, RT 99.951 %, TR 99.988 %, TT 99.529 %;
+zero false paths, zero duplicates (2026-11-22, before those: RR 100 %, RT 99.927 %, TR 99.988 %,
+TT 99.529 %, at 1.1-1.5x the determinants).
 
 Asserts: contract output format, no NaN, zero false paths (check_path, direction tolerance 1e-6, both
 vertices, sides, inside both triangles), no duplicates, recall of the brute-force paths that are
@@ -129,6 +130,56 @@ def test_sqrt_fit():
     assert err.max() < 1e-4
     assert np.all(np.diff(SQRT_PIECES[:, 0]) > 0) and SQRT_PIECES[0, 0] == 0.0 and SQRT_PIECES[-1, 1] == 1.0
     assert np.all(SQRT_PIECES[1:, 0] == SQRT_PIECES[:-1, 1])
+
+
+def test_heron_sqrt_fit():
+    """The one-system √ (``heron_sqrt_fit``): where the fit is accepted, the Heron step
+    (β + q²) / (2q) errs by at most ~HERON_TOL relative to √β at random points of the widened
+    triangle with β/S² above HERON_CUT (the check grid is finite: 3x slack), and the TT system
+    built with it has total degrees (12, 34) instead of the √ pieces' (16, 46)."""
+    from addon.solver.two_bounce import (HERON_CUT, HERON_TOL, MAXD, N_SLOTS, V_MARGIN_APPROX, _beta_local,
+                                         _build_system, heron_sqrt_fit)
+
+    rng = np.random.default_rng(7)
+    accepted = 0
+    worst = 0.0
+    m = V_MARGIN_APPROX
+    for _ in range(200):
+        geo_l = np.zeros((13, 3))
+        geo_l[2], geo_l[3] = rng.normal(size=3), rng.normal(size=3)  # e11, e12 (p10 at the origin)
+        ng = np.cross(geo_l[2], geo_l[3])
+        ng /= np.linalg.norm(ng)
+        nc = ng + 0.3 * rng.normal(size=(3, 3))  # shading normals at the corners
+        geo_l[4], geo_l[5], geo_l[6] = nc[0], nc[1] - nc[0], nc[2] - nc[0]
+        geo_l[0] = (geo_l[2] + geo_l[3]) / 3 + ng * rng.uniform(1.0, 4.0) + rng.normal(size=3)  # x0
+        geo_l[7] = ng * -2.0 + rng.normal(size=3)  # p20, e21, e22, n20 (for the degrees only)
+        geo_l[8], geo_l[9] = rng.normal(size=3), rng.normal(size=3)
+        geo_l[10] = -ng
+        geo_l[11], geo_l[12] = 0.1 * rng.normal(size=3), 0.1 * rng.normal(size=3)
+        r = 1 / 1.5
+        S2 = max(np.sum(nc ** 2, 1)) * max(np.sum((np.array([[0, 0, 0], geo_l[2], geo_l[3]]) - geo_l[0]) ** 2, 1))
+        ok, c = heron_sqrt_fit(geo_l, r, m, S2, np.zeros((6, 7)))
+        if not ok:
+            continue
+        accepted += 1
+        uv = rng.uniform(-m, 1 + 2 * m, size=(400, 2))
+        uv = uv[uv.sum(1) <= 1 + m]
+        for u, v in uv:
+            beta = _beta_local(u, v, geo_l, r)
+            if beta < HERON_CUT * S2:
+                continue
+            q = c[0] + u * c[1] + v * c[2] + u * u * c[3] + u * v * c[4] + v * v * c[5]
+            worst = max(worst, abs((beta + q * q) / (2 * q) / np.sqrt(beta) - 1))
+        if accepted == 1:
+            biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
+            c2 = np.cross(geo_l[0], ng)
+            c2 /= np.linalg.norm(c2)
+            heron_deg = _build_system(True, True, 1.0, r, -1, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
+            piece_deg = _build_system(True, True, 1.0, r, 12, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
+            assert heron_deg == (12, 34) and piece_deg == (16, 46)
+    print(f"\n[heron sqrt] accepted {accepted}/200 configurations; worst relative error {worst:.3g} (HERON_TOL {HERON_TOL})")
+    assert accepted >= 50
+    assert worst <= 3 * HERON_TOL
 
 
 def _poly_from_factors(factors):

@@ -70,11 +70,14 @@ and which were only found by polishing the candidates of far-away roots).
 
 Roots in v1 (§4.2, made reliable): the range [-m, 1 + m] is cut into ``pieces`` (default
 100); every sign change is bracketed by the Illinois variant of regula falsi on the signed
-log-magnitude (bisection safeguard) down to ``ROOT_TOL`` = 1e-7, and its candidates are
+log-magnitude (bisection safeguard) down to ``ROOT_TOL`` = 1e-4, and its candidates are
 polished in path space, where Gauss-Newton converges quadratically: the accepted path has
 v1 to ~1e-15, and a strict path check never sees the bracket's error (pinning every bracket
 to 1e-12 instead cost 1.5x the determinants for the same paths; the authors' 10 bisection
-steps reach 1e-5 and validate that unpolished).  Resultant roots cluster (all solutions
+steps reach 1e-5 and validate that unpolished).  ROOT_TOL was 1e-7 until 2026-11-25: 1e-4
+takes ~21 % fewer determinants on TT for the same paths of the test's 300 tuples.  A kink
+threshold ``KINK`` of 2.0 instead of 1.0 saved another ~10 % but lost two TT paths of those
+300 (root pairs inside one piece whose kink is between 1 and 2): not taken.  Resultant roots cluster (all solutions
 through a small or distant second triangle lie in a small patch of the first), so pieces are
 refined (``SUB_SAMPLES`` sub-pieces, ``REFINE_LEVELS`` levels): the pieces around a sign
 change whose root polished into a path lying within ``PRODUCTIVE_RADIUS`` of it in v1 (a
@@ -107,6 +110,17 @@ more recall where x0 is close to a curved triangle, several times the cost); the
 polish removes the error of a piece used a little outside its interval.  A candidate from the straight
 line x0 -> x3 covers the normal-incidence path through parallel faces (on-axis slab), where
 the coplanarity polynomial vanishes identically.
+
+One √ for the triangle (``heron_sqrt_fit``, ``HERON_SQRT``).  β/S² spans several of eq
+(23)'s pieces over a triangle (β grows with |x1 - x0|²; planted TT: 3.5 pieces per
+orientation), and each piece is a full system to solve.  Where a quadratic q(u1, v1) fitted
+to √β (weighted least squares on a grid of the widened triangle) makes the Heron step
+√β ≈ (β + q²) / (2q) accurate to HERON_TOL (relative, checked on a finer grid) wherever
+β/S² ≥ HERON_CUT, that one system replaces the pieces above the cut; the pieces below it
+(grazing exit, next to TIR, where √ is too steep for a smooth fit) are solved as before.
+d̃1 then has degree 5 instead of 7 and TT's (a, b) degrees are (12, 34) instead of (16, 46),
+so each determinant is ~2x cheaper.  The path-space polish removes the approximation error as
+it does the pieces'.
 
 Path phase (§4.3): at each root v1*, u1 are the roots of a(·, v1*) in the triangle whose
 b(u1, v1*) is relatively small (the smallest always); (u1, v1) is mapped to (u2, v2) by the
@@ -143,11 +157,11 @@ MAXD = 47  # bivariate arrays are (MAXD + 1)²; b has total degree ≤ 46 (TT)
 N_SLOTS = 46  # 0, 1: a, b; 2-36 the system's intermediates, then the live pre-pass's stack (2-33) and its temporaries (34-36, 40-44)
 DEFAULT_PIECES = 100
 MAX_PIECES = 1024
-ROOT_TOL = 1e-7  # v1 brackets are pinned to this; the path-space Newton polish takes it to ~1e-15
+ROOT_TOL = 1e-4  # v1 brackets are pinned to this; the path-space Newton polish takes it to ~1e-15
 V_MARGIN_EXACT = 1e-6
 V_MARGIN_APPROX = 2e-2  # √-approximated systems: their roots may sit a little off
 REFINE_LEVELS = 1
-KINK = 1.0  # second difference of log|det| that flags a root cluster nearby
+KINK = 1.0  # second difference of log|det| that flags a root cluster nearby (2.0 loses TT paths: see below)
 SUB_SAMPLES = 8
 NOISY_CHANGES = 3  # sign changes among one piece's sub-samples beyond which it is noise
 DIP_STEPS = 40  # steps resolving a one-signed dip (quadratic model of |det|, golden-section safeguard)
@@ -163,6 +177,11 @@ LIVE_STACK = 3 * LIVE_DEPTH + 1
 TWO_PROJECTIONS = False  # also scan the other hidden variable (u1) of each orientation
 BOTH_DIRECTIONS = True  # solve the chain forward and reversed (reciprocity)
 SQRT_ALL_PIECES = False  # solve once per √ piece overlapping the triangle's β range (slow)
+HERON_SQRT = True  # one system per orientation with √β ≈ Heron step from a fitted quadratic, where it fits
+HERON_TOL = 1e-3  # the Heron √'s largest relative error over the check grid for the fit to be used
+HERON_CUT = 0.03  # ... at the check points with β/S² at least this; the √ pieces below it (eq 23) stay
+HERON_FIT_GRID = 6  # fit points: barycentric grid of this order on the triangle widened by the v margin
+HERON_CHECK_GRID = 10  # check points (a finer grid of the same triangle)
 PRODUCTIVE_RADIUS = 0.02  # a root is productive when a path it polished into lies this close (hidden variable)
 B_RELATIVE = 1e-2  # a u-root of a(·, v*) is a candidate when |b| / Σ|b_i u^i| is below this
 POLISH_STEPS = 40
@@ -575,14 +594,18 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
 
 @kernel
 def _coeffs_at(p, d, n, v, out):
-    """out[i] = p_i(v) (coefficient of u^i) for i ≤ n, scaled to unit max-norm; returns the scale."""
+    """out[i] = p_i(v) (coefficient of u^i) for i ≤ n, scaled to unit max-norm; returns the scale.
+
+    Horner in v for all rows at once (column j of p enters every row i ≤ d - j): the same
+    operations per row as one Horner loop per row, without its serial dependency chain."""
+    for i in range(n + 1):
+        out[i] = 0.0
+    for j in range(d, -1, -1):
+        for i in range(min(n, d - j) + 1):
+            out[i] = out[i] * v + p[i, j]
     m = 0.0
     for i in range(n + 1):
-        acc = 0.0
-        for j in range(d - i, -1, -1):
-            acc = acc * v + p[i, j]
-        out[i] = acc
-        m = max(m, abs(acc))
+        m = max(m, abs(out[i]))
     if m > 0.0 and np.isfinite(m):
         inv = 1.0 / m
         for i in range(n + 1):
@@ -655,16 +678,22 @@ def det_bezout(a, da, b, db, n, v, cf, mat):
         for i in range(m + 1):
             mat[r, r + i] = G[i]
     # row n - c: Σ_l G_l u^l Σ_(i >= c) F_i u^(i-c) - Σ_l F_l u^l Σ_(i >= c) G_i u^(i-c), l < c
+    # (on 1-D slices: the same arithmetic in the same order as the element-wise loops, but
+    # it vectorises — the matrix set-up was half of a determinant's time)
     for c in range(m, 0, -1):
-        r = n - c
+        row = mat[n - c]
+        F_hi = F[c:n + 1]
         for l in range(c):
             g = G[l]
-            for i in range(c, n + 1):
-                mat[r, i - c + l] += g * F[i]
+            dst = row[l:l + n + 1 - c]
+            for i in range(n + 1 - c):
+                dst[i] += g * F_hi[i]
+        G_hi = G[c:m + 1]
         for l in range(c):
             f = F[l]
-            for i in range(c, m + 1):
-                mat[r, i - c + l] -= f * G[i]
+            dst = row[l:l + m + 1 - c]
+            for i in range(m + 1 - c):
+                dst[i] -= f * G_hi[i]
     sign = 1
     logm = 0.0
     for k in range(n):
@@ -688,11 +717,17 @@ def det_bezout(a, da, b, db, n, v, cf, mat):
             sign = -sign
         logm += math.log(abs(piv))
         inv = 1.0 / piv
+        # the pivot row's tail in a separate buffer (A: the coefficients are in the matrix
+        # now): the row updates then provably do not alias it and vectorise (2-5x faster
+        # at n = 22-46, the same arithmetic in the same order)
+        w = n - k - 1
+        for j in range(w):
+            A[j] = mat[k, k + 1 + j]
         for i in range(k + 1, n):
             f = mat[i, k] * inv
             if f != 0.0:
-                for j in range(k + 1, n):
-                    mat[i, j] -= f * mat[k, j]
+                for j in range(w):
+                    mat[i, k + 1 + j] -= f * A[j]
     return sign, logm
 
 
@@ -1093,15 +1128,119 @@ def _resolve_dip(a, da, b, db, n, xl, xm, xr, sgn, fl, fm, fr, cf, mat, out_root
     return count
 
 
+# --- one √ for the whole triangle: a Heron step from a fitted quadratic ---------------------
+
+
+@kernel
+def _beta_local(u, v, geo_l, r):
+    """β(u1, v1) = |n1|²|d0|²(1 - η'²) + η'²(d0·n1)² of eq (22) at one point (local frame)."""
+    d0 = (u * geo_l[2, 0] + v * geo_l[3, 0] - geo_l[0, 0], u * geo_l[2, 1] + v * geo_l[3, 1] - geo_l[0, 1],
+          u * geo_l[2, 2] + v * geo_l[3, 2] - geo_l[0, 2])
+    n1 = (geo_l[4, 0] + u * geo_l[5, 0] + v * geo_l[6, 0], geo_l[4, 1] + u * geo_l[5, 1] + v * geo_l[6, 1],
+          geo_l[4, 2] + u * geo_l[5, 2] + v * geo_l[6, 2])
+    nn = n1[0] * n1[0] + n1[1] * n1[1] + n1[2] * n1[2]
+    dd = d0[0] * d0[0] + d0[1] * d0[1] + d0[2] * d0[2]
+    dn = d0[0] * n1[0] + d0[1] * n1[1] + d0[2] * n1[2]
+    return nn * dd * (1.0 - r * r) + r * r * dn * dn
+
+
+@kernel
+def _quadratic_at(c, u, v):
+    return c[0] + u * c[1] + v * c[2] + u * u * c[3] + u * v * c[4] + v * v * c[5]
+
+
+@kernel
+def heron_sqrt_fit(geo_l, r, margin, S2, M):
+    """A quadratic q(u1, v1) ≈ √β over triangle 1 widened by the v margin, for the Heron
+    step √β ≈ (β + q²) / (2q) (exact where q = √β; relative error (q - √β)² / (2 q √β), the
+    square of the fit's); returns (ok, q's coefficients (1, u, v, u², uv, v²)).
+
+    Replaces eq (23)'s piecewise rational in x = β/S² where it fits: that approximation is
+    accurate only on its own x interval, and β/S² spans several intervals over a triangle
+    (β grows with |x1 - x0|²), so the system had to be solved once per interval (TT planted:
+    7.2 systems per tuple); the Heron form is one system, and d̃1 has degree 5 instead of 7
+    (numerator β + q² of degree 4 times n1, denominator 2q of degree 2 times the degree-3
+    tangential part), so b has total degree 34 instead of 46 for TT.  Only the part of the
+    triangle with β/S² ≥ HERON_CUT is fitted and checked: near β = 0 (grazing exit, the TIR
+    border) √ is too steep for any smooth fit, and the √ pieces of eq (23) that lie below the
+    cut are still solved as before (each its own system).  ok is False (use every piece as
+    before) where fewer than 12 fit points lie above the cut, q ≤ 0 at a check point above
+    it, or the relative error there exceeds HERON_TOL.  Weighted least squares (weight 1/β:
+    relative error) on a barycentric grid of order HERON_FIT_GRID; M: (6, 7) scratch."""
+    c = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for i in range(6):
+        for j in range(7):
+            M[i, j] = 0.0
+    w = 1.0 + 3.0 * margin
+    G = HERON_FIT_GRID
+    n_fit = 0
+    for i in range(G + 1):
+        for j in range(G + 1 - i):
+            u = -margin + w * i / G
+            v = -margin + w * j / G
+            beta = _beta_local(u, v, geo_l, r)
+            if not beta >= HERON_CUT * S2:
+                continue
+            n_fit += 1
+            y = math.sqrt(beta)
+            wt = 1.0 / beta
+            phi = (1.0, u, v, u * u, u * v, v * v)
+            for k in range(6):
+                for l in range(6):
+                    M[k, l] += wt * phi[k] * phi[l]
+                M[k, 6] += wt * phi[k] * y
+    if n_fit < 12:
+        return False, c
+    # Gaussian elimination with partial pivoting on the 6 x 7 augmented matrix
+    for k in range(6):
+        p = k
+        for i in range(k + 1, 6):
+            if abs(M[i, k]) > abs(M[p, k]):
+                p = i
+        if not abs(M[p, k]) > 1e-300:
+            return False, c
+        if p != k:
+            for j in range(7):
+                t = M[k, j]
+                M[k, j] = M[p, j]
+                M[p, j] = t
+        for i in range(k + 1, 6):
+            f = M[i, k] / M[k, k]
+            for j in range(k, 7):
+                M[i, j] -= f * M[k, j]
+    for k in range(5, -1, -1):
+        acc = M[k, 6]
+        for j in range(k + 1, 6):
+            acc -= M[k, j] * M[j, 6]
+        M[k, 6] = acc / M[k, k]
+    c = (M[0, 6], M[1, 6], M[2, 6], M[3, 6], M[4, 6], M[5, 6])
+    G = HERON_CHECK_GRID
+    for i in range(G + 1):
+        for j in range(G + 1 - i):
+            u = -margin + w * i / G
+            v = -margin + w * j / G
+            beta = _beta_local(u, v, geo_l, r)
+            if not beta >= HERON_CUT * S2:
+                continue
+            q = _quadratic_at(c, u, v)
+            if not q > 0.0:
+                return False, c
+            y = math.sqrt(beta)
+            if not (q - y) * (q - y) <= HERON_TOL * 2.0 * q * y:
+                return False, c
+    return True, c
+
+
 # --- building the bivariate system ---------------------------------------------------------
 
 
 @kernel
-def _build_system(refract1, refract2, orient1, eta1_ratio, piece, S, eta_in2, eta_out2, flat2, c2, geo_l, biv):
+def _build_system(refract1, refract2, orient1, eta1_ratio, piece, S, heron, eta_in2, eta_out2, flat2, c2, geo_l, biv):
     """Fill biv[0] = a (returned da) and biv[1] = b (returned db) in the local frame geo_l.
 
     orient1: ±1, the sign turning n1 to the incoming side (refraction only);
-    eta1_ratio: η' at vertex 1; piece: row of SQRT_PIECES; S: √β scale."""
+    eta1_ratio: η' at vertex 1; piece: row of SQRT_PIECES, S: √β scale; piece < 0: the
+    Heron √ of :func:`heron_sqrt_fit` with the quadratic's coefficients ``heron``."""
     x0 = (geo_l[0, 0], geo_l[0, 1], geo_l[0, 2])
     x3 = (geo_l[1, 0], geo_l[1, 1], geo_l[1, 2])
     e11 = (geo_l[2, 0], geo_l[2, 1], geo_l[2, 2])
@@ -1139,13 +1278,13 @@ def _build_system(refract1, refract2, orient1, eta1_ratio, piece, S, eta_in2, et
     # --- d̃1
     dd0n = _vdot(D0, 1, N1, 1, s1)  # d0·n1
     _vdot(N1, 1, N1, 1, s2)  # |n1|²
+    ddt = 3
     if not refract1:
         # d̃ = -2 (d0·n) n + d0 |n|²
         for c in range(3):
             _bzero(DT[c], 3)
             _bmul_acc(s1, 2, N1[c], 1, DT[c], -2.0)
             _bmul_acc(s2, 2, D0[c], 1, DT[c], 1.0)
-        ddt = 3
     else:
         r = eta1_ratio
         _vdot(D0, 1, D0, 1, s3)  # |d0|²
@@ -1153,27 +1292,45 @@ def _build_system(refract1, refract2, orient1, eta1_ratio, piece, S, eta_in2, et
         _bzero(s4, 4)
         _bmul_acc(s2, 2, s3, 2, s4, 1.0 - r * r)
         _bmul_acc(s1, 2, s1, 2, s4, r * r)
-        c0 = SQRT_PIECES[piece, 2]
-        c1 = SQRT_PIECES[piece, 3]
-        d1 = SQRT_PIECES[piece, 4]
-        # √β ≈ S (c0 + c1 β/S²) / (1 + d1 β/S²) = (S c0 S² + S c1 β) / (S² + d1 β)
-        # Rn -> s5, Rd -> s3 (|d0|² no longer needed)
-        S2 = S * S
-        _bzero(s5, 4)
-        _badd(s5, 4, s4, 4, S * c1)
-        s5[0, 0] += S * c0 * S2
-        _bzero(s3, 4)
-        _badd(s3, 4, s4, 4, d1)
-        s3[0, 0] += S2
-        # d̃ = Rd r (d0 |n|² - (d0·n) n) - orient Rn n       (degree 7)
+        # √β ≈ Rn / Rd: Rn -> s5, Rd -> s3 (|d0|² no longer needed), degrees dn, dd
+        if piece < 0:
+            # Heron step from the fitted quadratic q: Rn = β + q², Rd = 2q
+            Q2 = biv[28]
+            _bzero(Q2, 2)
+            Q2[0, 0] = heron[0]
+            Q2[1, 0] = heron[1]
+            Q2[0, 1] = heron[2]
+            Q2[2, 0] = heron[3]
+            Q2[1, 1] = heron[4]
+            Q2[0, 2] = heron[5]
+            _bzero(s5, 4)
+            _badd(s5, 4, s4, 4, 1.0)
+            _bmul_acc(Q2, 2, Q2, 2, s5, 1.0)
+            _bzero(s3, 2)
+            _badd(s3, 2, Q2, 2, 2.0)
+            dd = 2
+        else:
+            # eq (23): √β ≈ S (c0 + c1 β/S²) / (1 + d1 β/S²) = (S c0 S² + S c1 β) / (S² + d1 β)
+            c0 = SQRT_PIECES[piece, 2]
+            c1 = SQRT_PIECES[piece, 3]
+            d1 = SQRT_PIECES[piece, 4]
+            S2 = S * S
+            _bzero(s5, 4)
+            _badd(s5, 4, s4, 4, S * c1)
+            s5[0, 0] += S * c0 * S2
+            _bzero(s3, 4)
+            _badd(s3, 4, s4, 4, d1)
+            s3[0, 0] += S2
+            dd = 4
+        # d̃ = Rd r (d0 |n|² - (d0·n) n) - orient Rn n       (degree dd + 3: 5 Heron, 7 pieces)
+        ddt = dd + 3
         for c in range(3):
             _bzero(V1[c], 3)
             _bmul_acc(s2, 2, D0[c], 1, V1[c], r)
             _bmul_acc(s1, 2, N1[c], 1, V1[c], -r)
-            _bzero(DT[c], 7)
-            _bmul_acc(s3, 4, V1[c], 3, DT[c], 1.0)
+            _bzero(DT[c], ddt)
+            _bmul_acc(s3, dd, V1[c], 3, DT[c], 1.0)
             _bmul_acc(s5, 4, N1[c], 1, DT[c], -orient1)
-        ddt = 7
     # --- mapping to triangle 2: PV = d̃ × e22, κ = PV·e21, ũ = PV·(x1 - p20), ṽ = d̃·((x1 - p20) × e21)
     _vlin(S1, (-p20[0], -p20[1], -p20[2]), e11, e12)
     _vcross_const(DT, ddt, e22, V1)  # PV
@@ -1527,10 +1684,20 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                 # Gauss-Newton polish in path space removes the error of a piece used
                 # a little outside its interval)
                 mask |= 1 << _sqrt_piece(xc)
-        for piece in range(n_pieces_sqrt):
-            if refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
+        heron_ok = False
+        heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        if refract1 and HERON_SQRT:
+            heron_ok, heron = heron_sqrt_fit(geo_l, r1, margin, S * S, biv[45, 0:6, 0:7])
+        for piece in range(-1, n_pieces_sqrt):
+            # piece -1: the Heron √ (β/S² above HERON_CUT), then the eq (23) pieces (only
+            # those reaching below the cut when the Heron √ is used)
+            if piece < 0 and not heron_ok:
                 continue
-            if refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
+            if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= HERON_CUT:
+                continue
+            if piece >= 0 and refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
+                continue
+            if piece >= 0 and refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
                 continue
             for o2 in range(n_side2):
                 eta_in2 = 1.0
@@ -1544,8 +1711,8 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                     s_in2 = -sigma2 * (1.0 if side3 > 0.0 else -1.0)
                     eta_in2 = 1.0 if s_in2 > 0.0 else eta
                     eta_out2 = eta if s_in2 > 0.0 else 1.0
-                da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, eta_in2, eta_out2,
-                                       flat2, c2, geo_l, biv)
+                da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2,
+                                       eta_out2, flat2, c2, geo_l, biv)
                 count = _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, geo, eta, sc_cf,
                                       sc_mat, sc_scan, sc_work, th, v_roots, u_roots, coeffs, sc_chain, sc_lists, rev, geo_fwd, out_uv, meta,
                                       count, stats)

@@ -8,8 +8,9 @@ Bézout matrix R(v1) (eq 29), evaluated some 10³-10⁵ times per tuple — can 
 device (``opencl/two_bounce.cl``), many systems at once:
 
 A (Numba)   per tuple and orientation (forward, reversed): the side tests, then every
-            bivariate system {a = 0, b = 0} (eq 6 with 10 or 13; √ pieces of eq 23, the
-            refraction's two normal orientations) built by ``_build_system``, normalised
+            bivariate system {a = 0, b = 0} (eq 6 with 10 or 13; the Heron-step √ of
+            ``heron_sqrt_fit`` where it fits and the √ pieces of eq 23 below its cut, or all
+            the pieces; the refraction's two normal orientations) built by ``_build_system``, normalised
             and rejected early (Bernstein test) exactly as ``_solve_system`` does, and
             packed (row i of a total-degree-d polynomial: the coefficients of u^i v^j).
 B (device)  the piecewise sign scan of ``find_v_roots``: det R(v) at the pieces' ends,
@@ -51,7 +52,7 @@ from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
     TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces,
-    _bernstein_has_zero, _bmax, _build_system, _candidates_at,
+    _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_fit, HERON_SQRT, HERON_CUT,
     _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
     refine_flags_one, solve_two_bounce_tuple,
 )
@@ -279,10 +280,20 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 xhi = min(1.0, xhi * 1.25)
             else:
                 mask |= 1 << _sqrt_piece(xc)
-        for piece in range(n_pieces_sqrt):
-            if refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
+        heron_ok = False
+        heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        if refract1 and HERON_SQRT:
+            heron_ok, heron = heron_sqrt_fit(geo_l, r1, V_MARGIN_APPROX, S * S, biv[45, 0:6, 0:7])
+        for piece in range(-1, n_pieces_sqrt):
+            # piece -1: the Heron √ (β/S² above HERON_CUT), then the eq (23) pieces (only
+            # those reaching below the cut when the Heron √ is used)
+            if piece < 0 and not heron_ok:
                 continue
-            if refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
+            if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= HERON_CUT:
+                continue
+            if piece >= 0 and refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
+                continue
+            if piece >= 0 and refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
                 continue
             for o2 in range(n_side2):
                 eta_in2 = 1.0
@@ -294,7 +305,8 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                     s_in2 = -sigma2 * (1.0 if side3 > 0.0 else -1.0)
                     eta_in2 = 1.0 if s_in2 > 0.0 else eta
                     eta_out2 = eta if s_in2 > 0.0 else 1.0
-                da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, eta_in2, eta_out2, flat2, c2, geo_l, biv)
+                da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2, eta_out2,
+                                       flat2, c2, geo_l, biv)
                 status, na, nb, n = _prepare_system(biv, da, db, refract1, stats)
                 if status == 0:
                     continue

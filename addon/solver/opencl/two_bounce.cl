@@ -20,7 +20,7 @@
 #pragma OPENCL FP_CONTRACT OFF
 
 #define MAXN 46            // u-degree of b at most (TT: 46); n < MAXD = 47 in two_bounce.py
-#define ROOT_TOL 1e-7
+#define ROOT_TOL 1e-4   // = two_bounce.ROOT_TOL
 #define LN2 0.6931471805599453
 
 // p_i(v) for i <= n (row i of the packed polynomial p of total degree d), scaled to unit

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..jit import kernel
 from .bernstein import BINOM, clip_hull, sqrt_linearisation
-from .chain1 import P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD, push_children
+from .chain1 import P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD, orientation_mask, push_children
 from .chain1_fast import ratio_bound
 from .chain2 import _stage_one
 
@@ -552,18 +552,7 @@ def _orientations_two(W, E, P1, P2, lo, hi):
                     t = 1.0 * (ng0 * A[ka] + ng1 * B[kb]) + ng2 * C[kc]
                     nlo = min(nlo, t)
                     nhi = max(nhi, t)
-    mask = 0
-    if smax > 0.0:
-        if nhi > 0.0:
-            mask |= 1
-        if nlo < 0.0:
-            mask |= 2
-    if smin < 0.0:
-        if nhi > 0.0:
-            mask |= 2
-        if nlo < 0.0:
-            mask |= 1
-    return mask
+    return orientation_mask(smin, smax, nlo, nhi)
 
 
 @kernel

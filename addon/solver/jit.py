@@ -97,3 +97,22 @@ def set_num_threads(n):
 
 def get_num_threads():
     return numba.get_num_threads()
+
+
+def run_chunks(chunk_kernel, args, n, chunks=256):
+    """Call ``chunk_kernel(*args, a, b)`` over [0, n) cut into about ``chunks`` ranges [a, b),
+    on as many Python threads as numba's thread count.  The kernel must release the GIL
+    (``kernel`` sets nogil): a thread pool costs no compilation, where a ``parallel=True``
+    wrapper takes seconds to compile."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    size = max(1, -(-n // max(1, int(chunks))))
+    ranges = [(a, min(n, a + size)) for a in range(0, n, size)]
+    threads = get_num_threads()
+    if threads <= 1 or len(ranges) <= 1:
+        for a, b in ranges:
+            chunk_kernel(*args, a, b)
+        return
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        for f in [pool.submit(chunk_kernel, *args, a, b) for a, b in ranges]:
+            f.result()

@@ -422,6 +422,18 @@ class TwoBounceBounds:
     report: dict = field(default_factory=dict)
 
 
+def _tuple_uv_boxes(pieces, starts):
+    """UV box of each tuple: the union of its pieces' UV bounds (pieces of a tuple contiguous,
+    starting at ``starts``)."""
+    box = np.empty((starts.shape[0], 4))
+    if starts.shape[0]:
+        box[:, 0] = np.minimum.reduceat(pieces[:, P_X0], starts)
+        box[:, 1] = np.maximum.reduceat(pieces[:, P_X1], starts)
+        box[:, 2] = np.minimum.reduceat(pieces[:, P_Y0], starts)
+        box[:, 3] = np.maximum.reduceat(pieces[:, P_Y1], starts)
+    return box
+
+
 def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=1,
                      sigma=1e-4, capacity=16, engine="fast", irradiance=True, irr_depth=4, irr_ratio=2.0, prune=True):
     """Position bounds of two-bounce tuples (Fan et al. 2025 §4.2–4.3, eq 3–13; subdivision §6.1).
@@ -483,12 +495,7 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
         else np.zeros((0, 3), dtype=np.int64)
     pieces = np.ascontiguousarray(rows[:, :PIECE_FIELDS])
     m = starts.shape[0]
-    box = np.empty((m, 4))
-    if m:
-        box[:, 0] = np.minimum.reduceat(pieces[:, P_X0], starts)
-        box[:, 1] = np.maximum.reduceat(pieces[:, P_X1], starts)
-        box[:, 2] = np.minimum.reduceat(pieces[:, P_Y0], starts)
-        box[:, 3] = np.maximum.reduceat(pieces[:, P_Y1], starts)
+    box = _tuple_uv_boxes(pieces, starts)
     t3 = time.perf_counter()
     total = stats.sum(axis=0)
     report = {
@@ -522,17 +529,11 @@ def drop_pieces_without_paths(bounds):
     used, piece_tuple = np.unique(old_tuple, return_inverse=True)  # old_tuple is sorted: order kept
     tuples = bounds.tuples[used]
     m = tuples.shape[0]
-    box = np.empty((m, 4))
-    if m:
-        starts = np.flatnonzero(np.r_[True, piece_tuple[1:] != piece_tuple[:-1]])
-        box[:, 0] = np.minimum.reduceat(pieces[:, P_X0], starts)
-        box[:, 1] = np.maximum.reduceat(pieces[:, P_X1], starts)
-        box[:, 2] = np.minimum.reduceat(pieces[:, P_Y0], starts)
-        box[:, 3] = np.maximum.reduceat(pieces[:, P_Y1], starts)
+    box = _tuple_uv_boxes(pieces, np.flatnonzero(np.r_[True, piece_tuple[1:] != piece_tuple[:-1]]))
     report = dict(bounds.report)
     report.update({
         "tuples_before_pruning": bounds.report["tuples"], "pieces_before_pruning": bounds.report["pieces"],
-        "pairs_with_tuples": int(np.unique(tuples[:, 0] * (int(tuples[:, 1].max()) + 1 if m else 1) + tuples[:, 1]).shape[0]),
+        "pairs_with_tuples": int(np.unique(tuples[:, :2], axis=0).shape[0]),
         "tuples": int(m), "pieces": int(pieces.shape[0]), "pieces_per_tuple": float(pieces.shape[0] / m) if m else 0.0,
         "memory_mb": (pieces.nbytes + box.nbytes + piece_tuple.nbytes + tuples.nbytes) / 2**20,
     })

@@ -758,25 +758,12 @@ def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, count
 
 
 def batch_fast(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats, chunks=256):
-    """Every pair (rows of ``pairs``), in about ``chunks`` chunks run by as many Python threads as
-    numba's thread count (``jit.set_num_threads``): ``_chunk`` releases the GIL, and a thread
-    pool costs no compilation, where a ``parallel=True`` wrapper took about 14 s to compile."""
-    from concurrent.futures import ThreadPoolExecutor
+    """Every pair (rows of ``pairs``), in about ``chunks`` chunks on Python threads
+    (``jit.run_chunks``: ``_chunk`` releases the GIL; a ``parallel=True`` wrapper took about 14 s
+    to compile)."""
+    from ..jit import run_chunks
 
-    from ..jit import get_num_threads
-
-    n = pairs.shape[0]
-    size = max(1, -(-n // max(1, int(chunks))))
-    bounds = [(a, min(n, a + size)) for a in range(0, n, size)]
-    args = (chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats)
-    threads = get_num_threads()
-    if threads <= 1 or len(bounds) <= 1:
-        for a, b in bounds:
-            _chunk(*args, a, b)
-        return
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        for f in [pool.submit(_chunk, *args, a, b) for a, b in bounds]:
-            f.result()
+    run_chunks(_chunk, (chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats), pairs.shape[0], chunks)
 
 
 @kernel

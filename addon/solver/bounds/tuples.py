@@ -183,25 +183,12 @@ def _pairs_chunk(refract, x0, P, N, eta, levels, first, node_min, node_max, node
 
 def _all_pairs(refract, x0, P, N, eta, levels, first, node_min, node_max, node_child, node_count, node_start, order, out, counts, stats,
                chunks=256):
-    """``_pairs_of`` for every first triangle, in about ``chunks`` chunks run by as many Python
-    threads as numba's thread count (``_pairs_chunk`` releases the GIL; a thread pool costs no
-    compilation, where a ``parallel=True`` wrapper takes seconds to compile)."""
-    from concurrent.futures import ThreadPoolExecutor
+    """``_pairs_of`` for every first triangle, in about ``chunks`` chunks on Python threads
+    (``jit.run_chunks``: ``_pairs_chunk`` releases the GIL)."""
+    from ..jit import run_chunks
 
-    from ..jit import get_num_threads
-
-    n = first.shape[0]
-    size = max(1, -(-n // chunks))
-    args = (refract, x0, P, N, eta, levels, first, node_min, node_max, node_child, node_count, node_start, order, out, counts, stats)
-    bounds = [(a, min(n, a + size)) for a in range(0, n, size)]
-    threads = get_num_threads()
-    if threads <= 1 or len(bounds) <= 1:
-        for a, b in bounds:
-            _pairs_chunk(*args, a, b)
-        return
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        for f in [pool.submit(_pairs_chunk, *args, a, b) for a, b in bounds]:
-            f.result()
+    run_chunks(_pairs_chunk, (refract, x0, P, N, eta, levels, first, node_min, node_max, node_child, node_count, node_start,
+                              order, out, counts, stats), first.shape[0], chunks)
 
 
 def two_bounce_pairs(chain, light, caster_P, caster_N, eta=1.5, levels=1, first=None, capacity=64):

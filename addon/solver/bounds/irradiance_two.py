@@ -94,11 +94,6 @@ def _iabs_range(lo, hi):
 
 
 @kernel
-def _arad(p):
-    return abs(p[1]) + abs(p[2]) + p[3]
-
-
-@kernel
 def _arange(p):
     rad = abs(p[1]) + abs(p[2]) + p[3]
     return p[0] - rad, p[0] + rad
@@ -172,11 +167,6 @@ def _asqrt(p):
 # First-order "dual" affine forms: (value, ∂/∂u1, ∂/∂v1), each an affine form over the box.
 # The derivative forms keep their own linear variation over the box, so the Jacobian entries
 # are enclosed to second order in the box size.
-
-@kernel
-def _dconst(k):
-    return ((k, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0))
-
 
 @kernel
 def _daffine(c0, gu, gv, box):

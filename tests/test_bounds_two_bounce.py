@@ -8,6 +8,9 @@ the two-bounce irradiance bound (eq 14–16, ``irradiance_two``: affine arithmet
   barycentrics and UV) and its irradiance (``path_irradiance``, an independent path-space
   computation) is <= the piece's Ē: zero violations; the bounds are tight (median width and
   median Ē/E asserted) and the share of paths under Ē = ∞ (focal, grazing) is capped.
+* The reach grid (``irradiance_two.receivers_reached``, the quadtree's root test) never drops
+  the cell of a traced path and proves most neighbour tuples on the slab empty; the affine √
+  (Chebyshev form) encloses √x down to ranges that touch 0.
 * Convergence: on a small box the position bound approaches the exact image of the box, and
   [E̲, Ē] shrinks onto the path's geometry term.
 * Analytic: through a flat glass slab (parallel faces) the irradiance on the floor is
@@ -65,6 +68,58 @@ def test_tuples_contain_every_traced_pair(name, chain, n_first, most_per_first):
     assert len(pairs) == len(set(map(tuple, pairs.tolist())))  # no duplicates
     assert rep["pairs_per_first"] <= most_per_first
     assert np.all(pairs[:, 0] != pairs[:, 1])
+
+
+@pytest.mark.parametrize("name,chain,n_first,most_reached", [
+    ("slab10k", "TT", 400, 0.35), ("slab10k", "RR", 400, 0.5), ("ball1280", "TT", 1280, 0.65)])
+def test_reach_grid_keeps_every_traced_path_and_prunes(name, chain, n_first, most_reached):
+    """``receivers_reached`` (the root test of the position quadtree): the grid cell of every
+    forward-traced exact path's (u1, v1) is reached for its pair and receiver; on the slab most
+    (pair, receiver) tuples of neighbouring triangles are proven empty."""
+    from addon.solver.bounds.irradiance_two import receivers_reached
+
+    sc = _scene(name, chain)
+    first = np.random.default_rng(8).choice(sc["caster_P"].shape[0], n_first, replace=False)
+    pairs, _ = two_bounce_pairs(chain, sc["light"], sc["caster_P"], sc["caster_N"], sc["eta"], first=first)
+    reach = receivers_reached(chain, sc["light"], sc["caster_P"], sc["caster_N"], sc["receiver_P"], pairs, sc["eta"], 2)
+    paths = S.trace_two(sc, first, samples_per_triangle=64, seed=9)
+    index = {tuple(p): k for k, p in enumerate(pairs.tolist())}
+    k = np.array([index[(a, b)] for a, b in zip(paths["tri"].tolist(), paths["t2"].tolist())])
+    cells = reach.shape[2]
+    i = np.minimum((paths["uv"][:, 0] * cells).astype(int), cells - 1)
+    j = np.minimum((paths["uv"][:, 1] * cells).astype(int), cells - 1)
+    ok = reach[k, paths["hit"], i, j]
+    share = reach.any(axis=(2, 3)).mean()
+    print(f"\n{name} {chain}: {len(k)} paths, {(~ok).sum()} in unreached cells; {share:.3f} of "
+          f"{reach.shape[0] * reach.shape[1]} (pair, receiver) reached")
+    assert len(k) >= 200
+    assert ok.all()
+    assert share <= most_reached
+
+
+def test_affine_sqrt_encloses_near_zero():
+    """The Chebyshev √ of ``irradiance_two`` contains √x at sampled points of random affine
+    forms whose range reaches down to 1e-9 of its top, and its total radius stays within
+    5/4 of the exact range's half-width (the Taylor form's remainder grew without bound as the
+    range approached 0)."""
+    import addon.solver.bounds.irradiance_two as I
+
+    rng = np.random.default_rng(12)
+    worst = 0.0
+    for _ in range(400):
+        hi = 10.0 ** rng.uniform(-3, 3)
+        lo = hi * 10.0 ** rng.uniform(-9, -0.01)
+        mid, half = 0.5 * (hi + lo), 0.5 * (hi - lo)
+        wa, wb, _ = rng.dirichlet([1.0, 1.0, 1.0]) * half
+        p = (mid, wa * rng.choice([-1, 1]), wb * rng.choice([-1, 1]), half - wa - wb)
+        c, a, b, r = I._asqrt(p)
+        du, dv, e = rng.uniform(-1, 1, (3, 200))
+        x = p[0] + p[1] * du + p[2] * dv + p[3] * e
+        err = np.abs(np.sqrt(x) - (c + a * du + b * dv))
+        assert np.all(err <= r), (p, (c, a, b, r), err.max())
+        # total radius against the exact range's half-width: (√hi - √lo)/2 + δ/2 <= 0.625 (√hi - √lo)
+        worst = max(worst, (abs(a) + abs(b) + r) / (np.sqrt(hi) - np.sqrt(lo)))
+    assert worst < 0.63
 
 
 @pytest.mark.parametrize("name,chain,n_first,widest,unbounded_cap", [

@@ -56,6 +56,7 @@ from .bernstein import _with_extent, add, affine, affine_map, coef_range, elevat
 from .chain1 import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, P_X0, P_X1, P_Y0, P_Y1, PIECE_FIELDS, POS_PAD, _c3, _caster, _d3, _direction,
                      _dot, _eta_ratio, _orientations, _receiver_numerators, barycentric_box, flat_coefficients, orientation_mask, push_children,
                      receiver_box)
+from .irradiance_two import box_reached
 
 N_STATS = 4  # position evaluations, stage-1 misses (light of the piece misses triangle 2), constant-form fallbacks, capacity stops
 
@@ -332,7 +333,7 @@ P_RECEIVER = PIECE_FIELDS  # extra column of the pair-level rows: the receiver t
 
 
 @kernel
-def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma, out, stats):
+def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma, out, stats, reach):
     """Subdivide triangle 1's domain for the pair (triangle 1, triangle 2) and every receiver
     triangle at once (§6.1: split at the midpoint while the position bound's area is >= σ and
     the depth is below the limit; a receiver whose bound misses is dropped from the box and its
@@ -340,9 +341,10 @@ def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma
     a box emits its piece there and is not evaluated in the sub-boxes; the shared work of a box
     (vertex 1 -> 2 and d̃2) is done once for all receivers still splitting.
 
-    Writes rows of chain1's P_* layout plus the receiver index in column P_RECEIVER (Ē = inf,
-    E̲ = 0) and returns their number; when the rows might not fit, boxes stop splitting
-    (stats[3])."""
+    reach[r]: receiver r's ``irradiance_two.receivers_reached`` grid (a box lives for r while
+    ``box_reached``).  Writes rows
+    of chain1's P_* layout plus the receiver index in column P_RECEIVER (Ē = inf, E̲ = 0) and
+    returns their number; when the rows might not fit, boxes stop splitting (stats[3])."""
     nr = Q.shape[0]
     cap = out.shape[0]
     size = 4 * (max_depth + 2)
@@ -362,7 +364,12 @@ def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma
         top -= 1
         lo[0], hi[0], lo[1], hi[1] = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
         depth = int(stack[top, 4])
-        node_alive[:] = alive[top]
+        any_alive = False
+        for r in range(nr):
+            node_alive[r] = alive[top, r] and box_reached(reach[r], lo, hi)
+            any_alive = any_alive or node_alive[r]
+        if not any_alive:
+            continue
         stats[0] += 1
         _box_bounds(chain_code, x0, P1, N1, P2, N2, Q, UV, node_alive, eta, lo, hi, pos, found, stats)
         can_split = depth < max_depth and count + (top + 4) * nr <= cap
@@ -396,11 +403,12 @@ def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma
 
 
 @kernel(parallel=True)
-def _batch_two(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats):
+def _batch_two(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out, counts, stats):
     for t in prange(pairs.shape[0]):
         a = pairs[t, 0]
         b = pairs[t, 1]
-        counts[t] = pair_pieces_two(chain_code, x0, P[a], N[a], P[b], N[b], Q, UV, eta, max_depth, sigma, out[t], stats[t])
+        counts[t] = pair_pieces_two(chain_code, x0, P[a], N[a], P[b], N[b], Q, UV, eta, max_depth, sigma, out[t], stats[t],
+                                    reach[t])
 
 
 CHAIN_CODES = {"RR": 0, "TR": 1, "RT": 2, "TT": 3}
@@ -435,7 +443,8 @@ def _tuple_uv_boxes(pieces, starts):
 
 
 def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=1,
-                     sigma=1e-4, capacity=16, engine="fast", irradiance=True, irr_depth=4, irr_ratio=2.0, prune=True):
+                     sigma=1e-4, capacity=16, engine="fast", irradiance=True, irr_depth=4, irr_ratio=2.0, prune=True,
+                     reach_depth=1):
     """Position bounds of two-bounce tuples (Fan et al. 2025 §4.2–4.3, eq 3–13; subdivision §6.1).
 
     chain: "RR", "RT", "TR" or "TT"; caster_P, caster_N: (n,3,3) corners and corner normals of
@@ -448,7 +457,9 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     the same pieces up to rounding) or "reference" (the functions of this module);
     irradiance: also bound Ē, E̲ per piece (``irradiance_two.bound_irradiance_two`` with
     irr_depth, irr_ratio), else Ē = inf; prune: then drop the pieces (and tuples) that pass
-    proved to hold no path."""
+    proved to hold no path; reach_depth: a box of the position quadtree lives for a receiver
+    only where ``irradiance_two.receivers_reached`` (triangle 1 and its 2^reach_depth grid)
+    does not prove it empty (None: no such test)."""
     if chain not in CHAIN_CODES:
         raise ValueError(f"bound_two_bounce handles chains RR, RT, TR and TT, got {chain!r}")
     t0 = time.perf_counter()
@@ -470,13 +481,20 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
     counts = np.zeros(n, dtype=np.int64)
     stats = np.zeros((n, N_STATS), dtype=np.int64)
     t1 = time.perf_counter()
+    if reach_depth is None or not (n and nr):
+        reach = np.ones((n, nr, 1, 1), dtype=np.bool_)
+    else:
+        from .irradiance_two import receivers_reached
+
+        reach = receivers_reached(chain, light, caster_P, caster_N, receiver_P, pairs, eta, int(reach_depth))
+    t_reach = time.perf_counter()
     if n and nr and engine == "fast":
         from .chain2_fast import batch_fast
 
-        batch_fast(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, int(max_depth),
-                   float(sigma), out, counts, stats)
+        batch_fast(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, reach,
+                   int(max_depth), float(sigma), out, counts, stats)
     elif n and nr:
-        _batch_two(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs,
+        _batch_two(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, reach,
                    int(max_depth), float(sigma), out, counts, stats)
     t2 = time.perf_counter()
     pair_of = np.repeat(np.arange(n), counts)
@@ -502,9 +520,9 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
         "pairs": int(n), "receivers": int(nr), "tuples": int(m), "pieces": int(pieces.shape[0]),
         "pieces_per_tuple": float(pieces.shape[0] / m) if m else 0.0,
         "box_evaluations": int(total[0]), "stage_one_misses": int(total[1]), "constant_forms": int(total[2]),
-        "capacity_stops": int(total[3]),
+        "capacity_stops": int(total[3]), "reach_tuples": int(reach.any(axis=(2, 3)).sum()), "reach_depth": reach_depth,
         "memory_mb": (pieces.nbytes + box.nbytes + piece_tuple.nbytes + tuples.nbytes) / 2**20,
-        "seconds": {"prepare": t1 - t0, "bound": t2 - t1, "compact": t3 - t2},
+        "seconds": {"prepare": t1 - t0, "reach": t_reach - t1, "bound": t2 - t_reach, "compact": t3 - t2},
     }
     result = TwoBounceBounds(chain, tuples, piece_tuple, pieces, box, report)
     if irradiance:

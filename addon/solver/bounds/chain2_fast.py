@@ -41,6 +41,7 @@ from .bernstein import BINOM, clip_hull, sqrt_linearisation
 from .chain1 import P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD, orientation_mask, push_children
 from .chain1_fast import ratio_bound
 from .chain2 import _stage_one
+from .irradiance_two import box_reached
 
 P_RECEIVER = PIECE_FIELDS  # extra column of the pair-level rows (as chain2.P_RECEIVER)
 
@@ -696,10 +697,11 @@ def _box_bounds(W, E, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi,
 
 
 @kernel
-def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats, start, stop):
+def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out, counts, stats, start, stop):
     """``chain2.pair_pieces_two`` (the pair-level quadtree of every receiver, §6.1 stopping rules)
     for pairs start..stop-1 on one workspace (one function: every level of calls above the
-    polynomial kernels costs compilation)."""
+    polynomial kernels costs compilation); a box lives for receiver r while
+    ``box_reached(reach[t, r], ...)`` (``irradiance_two.receivers_reached``)."""
     nr = Q.shape[0]
     W, E = workspace()
     size = 4 * (max_depth + 2)
@@ -724,7 +726,12 @@ def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, count
             top -= 1
             lo[0], hi[0], lo[1], hi[1] = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
             depth = int(stack[top, 4])
-            node_alive[:] = alive[top]
+            any_alive = False
+            for r in range(nr):
+                node_alive[r] = alive[top, r] and box_reached(reach[t, r], lo, hi)
+                any_alive = any_alive or node_alive[r]
+            if not any_alive:
+                continue
             stats[t, 0] += 1
             _box_bounds(W, E, chain_code, x0, P[a], N[a], P[b], N[b], Q, UV, node_alive, eta, lo, hi, pos, found, stats[t])
             can_split = depth < max_depth and count + (top + 4) * nr <= cap
@@ -757,13 +764,14 @@ def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, count
         counts[t] = count
 
 
-def batch_fast(chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats, chunks=256):
-    """Every pair (rows of ``pairs``), in about ``chunks`` chunks on Python threads
-    (``jit.run_chunks``: ``_chunk`` releases the GIL; a ``parallel=True`` wrapper took about 14 s
-    to compile)."""
+def batch_fast(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out, counts, stats, chunks=256):
+    """Every pair (rows of ``pairs``; reach[t, r]: receiver r's reach grid), in about
+    ``chunks`` chunks on Python threads (``jit.run_chunks``: ``_chunk`` releases the GIL; a
+    ``parallel=True`` wrapper took about 14 s to compile)."""
     from ..jit import run_chunks
 
-    run_chunks(_chunk, (chain_code, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, out, counts, stats), pairs.shape[0], chunks)
+    run_chunks(_chunk, (chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out, counts, stats), pairs.shape[0],
+               chunks)
 
 
 @kernel

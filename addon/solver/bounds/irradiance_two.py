@@ -58,7 +58,7 @@ import time
 
 import numpy as np
 
-from ..jit import kernel, prange
+from ..jit import kernel
 from .chain1 import IRR_PAD, P_BU0, P_ELO, P_EHI, P_U0, P_U1, P_V0, P_V1, _eta_ratio, orientation_mask
 
 NO_PATH = 0
@@ -152,15 +152,19 @@ def _arecip(p):
 
 @kernel
 def _asqrt(p):
-    """√x about c (x >= lo > 0 on the box): √c + (x - c)/(2√c) with the Taylor remainder
-    <= rad²/(8 lo^1.5)."""
+    """√x (x >= lo > 0 on the box) by its Chebyshev (min-range) affine approximation on
+    [lo, hi] (Stolfi & de Figueiredo): the chord slope α = 1/(√lo + √hi); √ is concave, so
+    √x - (√lo + α (x - lo)) lies in [0, δ], δ = (√hi - √lo)² / (4 (√lo + √hi)).  Unlike the
+    Taylor form about the centre (remainder rad²/(8 lo^1.5)) the error stays below √hi/4 as lo
+    approaches 0, near total internal reflection."""
     c, a, b, r = p
     rad = abs(a) + abs(b) + r
-    lo = c - rad
-    sc = math.sqrt(c)
-    k = 0.5 / sc
-    rem = r * k + rad * rad / (8.0 * lo * math.sqrt(lo))
-    return (sc, a * k, b * k, rem + ROUND * 4.0 * (sc + rad * k))
+    sl = math.sqrt(c - rad)
+    sh = math.sqrt(c + rad)
+    alpha = 1.0 / (sl + sh)
+    delta = (sh - sl) * (sh - sl) * 0.25 * alpha
+    c2 = alpha * (c - (c - rad)) + sl + 0.5 * delta
+    return (c2, alpha * a, alpha * b, alpha * r + 0.5 * delta + ROUND * 8.0 * (sh + abs(c2)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -265,7 +269,9 @@ def _c3(a, b):
 @kernel
 def _scatter(refract, o, eta_ratio, n, d):
     """Outgoing direction d̃ (eq 10) of incoming d at unnormalised normal n (orientation o),
-    with the exact √β (eq 11).  Returns (status, d̃)."""
+    with the exact √β (eq 11).  Returns (status, d̃): NO_PATH (total internal reflection on
+    the whole box), BOUNDED, or UNBOUNDED_GRAZING (β reaches 0: d̃'s values are enclosed, its
+    derivatives are not)."""
     nn = _vdot(n, n)
     dn = _vdot(d, n)
     if not refract:
@@ -279,12 +285,20 @@ def _scatter(refract, o, eta_ratio, n, d):
     if bhi <= 0.0:
         return NO_PATH, d  # total internal reflection on the whole box
     if blo <= BETA_MIN:
-        return UNBOUNDED_GRAZING, d
-    root = _dscale(_dsqrt(beta), -o)
+        # √β's derivative is unbounded; its value is not: [√max(blo, 0), √bhi].  d̃'s values stay
+        # enclosed (the pair search needs them), its derivative forms are not (infinite radius)
+        slo = math.sqrt(max(blo, 0.0))
+        shi = math.sqrt(bhi)
+        unknown = (0.0, 0.0, 0.0, np.inf)
+        root = ((-o * 0.5 * (slo + shi), 0.0, 0.0, 0.5 * (shi - slo) * (1.0 + 4.0 * ROUND) + ROUND * shi), unknown, unknown)
+        status = UNBOUNDED_GRAZING
+    else:
+        root = _dscale(_dsqrt(beta), -o)
+        status = BOUNDED
     out0 = _dadd(_dscale(_dsub(_dmul(nn, d[0]), _dmul(dn, n[0])), eta_ratio), _dmul(root, n[0]))
     out1 = _dadd(_dscale(_dsub(_dmul(nn, d[1]), _dmul(dn, n[1])), eta_ratio), _dmul(root, n[1]))
     out2 = _dadd(_dscale(_dsub(_dmul(nn, d[2]), _dmul(dn, n[2])), eta_ratio), _dmul(root, n[2]))
-    return BOUNDED, (out0, out1, out2)
+    return status, (out0, out1, out2)
 
 
 @kernel
@@ -419,6 +433,106 @@ def _implicit_last_vertex(d1, n2, x2, Q, rbox, eta_f, b):
 
 
 @kernel
+def _vertex_one(x0, P1, N1, box):
+    """x1 and n1 on triangle 1 over the box of (u1, v1), d0 = x1 - x0 (dual forms), triangle
+    1's geometric normal and its orientation mask (``chain1.orientation_mask``)."""
+    e1 = P1[1] - P1[0]
+    e2 = P1[2] - P1[0]
+    ng1 = _c3(e1, e2)
+    m1 = N1[1] - N1[0]
+    m2 = N1[2] - N1[0]
+    x1 = (_daffine(P1[0, 0], e1[0], e2[0], box), _daffine(P1[0, 1], e1[1], e2[1], box), _daffine(P1[0, 2], e1[2], e2[2], box))
+    n1 = (_daffine(N1[0, 0], m1[0], m2[0], box), _daffine(N1[0, 1], m1[1], m2[1], box), _daffine(N1[0, 2], m1[2], m2[2], box))
+    d0 = (_daddc(x1[0], -x0[0]), _daddc(x1[1], -x0[1]), _daddc(x1[2], -x0[2]))
+    side1 = (x0[0] - P1[0, 0]) * ng1[0] + (x0[1] - P1[0, 1]) * ng1[1] + (x0[2] - P1[0, 2]) * ng1[2]
+    nlo, nhi = _drange(_vdotc(n1, ng1))
+    return x1, n1, d0, ng1, orientation_mask(side1, side1, nlo, nhi)
+
+
+@kernel
+def first_bounce_rays(refract1, x0, P1, N1, eta, box, xlo, xhi, dlo, dhi):
+    """Value enclosures of x1 (xlo, xhi) and of the outgoing direction d̃1 (dlo, dhi; union
+    over the orientations present, unnormalised) over the box of triangle 1's (u1, v1), for
+    the pair search (``tuples``, §6.1).  Returns the bit mask of the orientations that send
+    light out (0: none — x0 in the plane, or total internal reflection on the whole box)."""
+    if box[0] + box[2] > 1.0 + EDGE_TOL:
+        return 0
+    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
+    for i in range(3):
+        xlo[i], xhi[i] = _drange(x1[i])
+        dlo[i] = np.inf
+        dhi[i] = -np.inf
+    bits = 0
+    for k1 in range(2):
+        if not (mask1 >> k1) & 1:
+            continue
+        if not refract1 and k1 == 1 and (mask1 & 1):
+            continue
+        o1 = 1.0 if k1 == 0 else -1.0
+        st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+        if st == NO_PATH:
+            continue
+        bits |= 1 << k1
+        for i in range(3):
+            a, b = _drange(dt1[i])
+            dlo[i] = min(dlo[i], a)
+            dhi[i] = max(dhi[i], b)
+    return bits
+
+
+@kernel
+def _first_hit_status(refract1, x0, P1, N1, P2, eta, box, bits):
+    """NO_PATH when no light leaving the box of triangle 1 (orientations ``bits``) meets
+    triangle 2 forwards, else the status of the first orientation that may (eq 9)."""
+    if box[0] + box[2] > 1.0 + EDGE_TOL:
+        return NO_PATH
+    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
+    for k1 in range(2):
+        if not (bits >> k1) & 1 or not (mask1 >> k1) & 1:
+            continue
+        o1 = 1.0 if k1 == 0 else -1.0
+        st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+        if st == NO_PATH:
+            continue
+        st, u2, v2 = _hit(x1, dt1, P2)
+        if st != NO_PATH:
+            return st
+    return NO_PATH
+
+
+@kernel
+def first_bounce_reaches(refract1, x0, P1, N1, P2, eta, box, bits, depth):
+    """Whether light leaving the box of triangle 1 (orientations ``bits`` of
+    ``first_bounce_rays``) can reach triangle 2: False only where every outgoing ray meets
+    triangle 2's plane backwards or outside the triangle (eq 9 in affine arithmetic), on the
+    box or, where that does not decide, on the sub-boxes of a quadtree at most ``depth`` levels
+    deeper (affine enclosures tighten quadratically as boxes shrink)."""
+    stack = np.empty((3 * depth + 4, 5))
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = box[0], box[1], box[2], box[3], 0.0
+    top = 1
+    sub = np.empty(4)
+    while top > 0:
+        top -= 1
+        for k in range(4):
+            sub[k] = stack[top, k]
+        level = int(stack[top, 4])
+        if _first_hit_status(refract1, x0, P1, N1, P2, eta, sub, bits) == NO_PATH:
+            continue
+        if level >= depth:
+            return True
+        um = 0.5 * (sub[0] + sub[1])
+        vm = 0.5 * (sub[2] + sub[3])
+        for c in range(4):
+            stack[top, 0] = sub[0] if c & 1 == 0 else um
+            stack[top, 1] = um if c & 1 == 0 else sub[1]
+            stack[top, 2] = sub[2] if c & 2 == 0 else vm
+            stack[top, 3] = vm if c & 2 == 0 else sub[3]
+            stack[top, 4] = level + 1
+            top += 1
+    return False
+
+
+@kernel
 def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox):
     """Bound dΩ0/dA_k (eq 15–16) over the box (u_lo, u_hi, v_lo, v_hi) of triangle 1's
     barycentrics; rbox (uk_lo, uk_hi, vk_lo, vk_hi) encloses the receiver barycentrics of its
@@ -431,14 +545,7 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
     bound kept) is used instead."""
     if box[0] + box[2] > 1.0 + EDGE_TOL:
         return NO_PATH, 0.0, 0.0
-    e1 = P1[1] - P1[0]
-    e2 = P1[2] - P1[0]
-    ng1 = _c3(e1, e2)
-    m1 = N1[1] - N1[0]
-    m2 = N1[2] - N1[0]
-    x1 = (_daffine(P1[0, 0], e1[0], e2[0], box), _daffine(P1[0, 1], e1[1], e2[1], box), _daffine(P1[0, 2], e1[2], e2[2], box))
-    n1 = (_daffine(N1[0, 0], m1[0], m2[0], box), _daffine(N1[0, 1], m1[1], m2[1], box), _daffine(N1[0, 2], m1[2], m2[2], box))
-    d0 = (_daddc(x1[0], -x0[0]), _daddc(x1[1], -x0[1]), _daddc(x1[2], -x0[2]))
+    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
     # light factor |d0·(e1×e2)| / |d0|³ (value enclosures only)
     clo, chi = _drange(_vdotc(d0, ng1))
     clo, chi = _iabs_range(clo, chi)
@@ -447,9 +554,6 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
         return UNBOUNDED, np.inf, 0.0
     light_hi = chi / dlo ** 1.5
     light_lo = clo / dhi ** 1.5
-    side1 = (x0[0] - P1[0, 0]) * ng1[0] + (x0[1] - P1[0, 1]) * ng1[1] + (x0[2] - P1[0, 2]) * ng1[2]
-    nlo, nhi = _drange(_vdotc(n1, ng1))
-    mask1 = orientation_mask(side1, side1, nlo, nhi)
     ak = math.sqrt(np.sum(_c3(Q[1] - Q[0], Q[2] - Q[0]) ** 2))
     ng2 = _c3(P2[1] - P2[0], P2[2] - P2[0])
     f1 = P2[1] - P2[0]
@@ -470,10 +574,11 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
             continue  # reflection does not depend on the orientation
         o1 = 1.0 if k1 == 0 else -1.0
         st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
-        if st >= UNBOUNDED:
-            return st, np.inf, 0.0
         if st == NO_PATH:
             continue
+        # grazing at vertex 1: Ē = inf if a path can get through, but d̃1's values are still
+        # enclosed, so the rest of the path can still prove the box empty
+        grazing1 = st == UNBOUNDED_GRAZING
         st, u2, v2 = _hit(x1, dt1, P2)
         if st >= UNBOUNDED:
             return st, np.inf, 0.0
@@ -506,6 +611,10 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
                 st, uk, vk = _hit(x2, dt2, Q)
                 if st == NO_PATH:
                     continue
+            elif _hit(x2, dt2, Q)[0] == NO_PATH:  # grazing: d̃2's values are enclosed all the same
+                continue
+            if grazing1:
+                return UNBOUNDED_GRAZING, np.inf, 0.0
             if st == BOUNDED:
                 # det ∂(uk, vk)/∂(u1, v1) (eq 16)
                 jlo, jhi = _jacobian_abs_det(uk, vk)
@@ -589,15 +698,92 @@ def piece_irradiance_two(chain_code, x0, P1, N1, P2, N2, Q, eta, lo, hi, rbox, i
     return e_hi * (1.0 + IRR_PAD), e_lo * (1.0 - IRR_PAD)
 
 
-@kernel(parallel=True)
-def _batch_irradiance_two(chain_code, x0, P, N, Q, eta, piece_pair, piece_receiver, pieces, irr_depth, irr_ratio, stats):
-    for i in prange(pieces.shape[0]):
+@kernel
+def _reach_chunk(chain_code, x0, P, N, Q, eta, pairs, reach, start, stop):
+    """reach[t, r] for pairs start..stop-1 (``receivers_reached``)."""
+    refract1 = (chain_code & 1) != 0
+    refract2 = (chain_code & 2) != 0
+    box = np.empty(4)
+    rbox = np.empty(4)
+    rbox[0], rbox[1], rbox[2], rbox[3] = 0.0, 1.0, 0.0, 1.0
+    cells = reach.shape[2]
+    h = 1.0 / cells
+    for t in range(start, stop):
+        a = pairs[t, 0]
+        b = pairs[t, 1]
+        for r in range(Q.shape[0]):
+            grid = reach[t, r]
+            grid[:, :] = False
+            box[0], box[1], box[2], box[3] = 0.0, 1.0, 0.0, 1.0
+            st, bh, bl = sub_box_irradiance(refract1, refract2, x0, P[a], N[a], P[b], N[b], Q[r], eta, box, rbox)
+            if st == NO_PATH:
+                continue
+            if cells == 1:
+                grid[0, 0] = True
+                continue
+            for i in range(cells):
+                for j in range(cells - i):  # the cells with u + v < 1 somewhere
+                    box[0], box[1], box[2], box[3] = i * h, (i + 1) * h, j * h, (j + 1) * h
+                    st, bh, bl = sub_box_irradiance(refract1, refract2, x0, P[a], N[a], P[b], N[b], Q[r], eta, box, rbox)
+                    grid[i, j] = st != NO_PATH
+
+
+@kernel
+def box_reached(grid, lo, hi):
+    """Whether any cell of a ``receivers_reached`` grid (cells x cells over [0, 1]²) that
+    overlaps the box lo <= (u1, v1) <= hi was reached."""
+    cells = grid.shape[0]
+    i0 = min(cells - 1, int(math.floor(lo[0] * cells)))
+    i1 = max(i0 + 1, int(math.ceil(hi[0] * cells)))
+    j0 = min(cells - 1, int(math.floor(lo[1] * cells)))
+    j1 = max(j0 + 1, int(math.ceil(hi[1] * cells)))
+    for i in range(i0, min(i1, cells)):
+        for j in range(j0, min(j1, cells)):
+            if grid[i, j]:
+                return True
+    return False
+
+
+def receivers_reached(chain, light, caster_P, caster_N, receiver_P, pairs, eta=1.5, depth=1):
+    """(pairs, receivers, 2^depth, 2^depth) bool: cell [i, j] of triangle 1's barycentric grid
+    (u1 in [i, i+1]/2^depth, v1 in [j, j+1]/2^depth) is False where ``sub_box_irradiance``
+    proves that no admissible path x0 -> triangle 1 -> triangle 2 -> receiver starts in it
+    (backward rays, u2 outside triangle 2, uk outside the receiver, total internal reflection);
+    every cell is False when triangle 1 as a whole is proven empty.  Conservative: a cell
+    holding a path is always True.
+
+    ``chain2.bound_two_bounce`` starts and prunes its position quadtree with it (a box lives
+    for a receiver while ``box_reached``): it removes the (pair, receiver) tuples whose
+    position bound cannot see the emptiness — neighbouring triangles of one surface, whose
+    x2 - x1 relaxation spans the whole receiver (slab10k TT: 55 % of the position tuples proven
+    empty on the whole triangle, 63 % with depth 1)."""
+    from ..jit import run_chunks
+    from .chain2 import CHAIN_CODES
+
+    pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
+    receiver_P = np.ascontiguousarray(receiver_P, dtype=np.float64)
+    cells = 1 << int(depth)
+    reach = np.zeros((pairs.shape[0], receiver_P.shape[0], cells, cells), dtype=np.bool_)
+    if reach.size:
+        run_chunks(_reach_chunk, (CHAIN_CODES[chain], np.ascontiguousarray(light, dtype=np.float64).reshape(3),
+                                  np.ascontiguousarray(caster_P, dtype=np.float64),
+                                  np.ascontiguousarray(caster_N, dtype=np.float64), receiver_P, float(eta), pairs,
+                                  reach), pairs.shape[0])
+    return reach
+
+
+@kernel
+def _irradiance_chunk(chain_code, x0, P, N, Q, eta, piece_pair, piece_receiver, pieces, irr_depth, irr_ratio, stats,
+                      start, stop):
+    """Ē, E̲ of pieces start..stop-1 (``bound_irradiance_two``; on ``jit.run_chunks`` threads,
+    which compile in a fraction of a ``parallel=True`` loop's time)."""
+    lo = np.empty(2)
+    hi = np.empty(2)
+    rbox = np.empty(4)
+    for i in range(start, stop):
         a = piece_pair[i, 0]
         b = piece_pair[i, 1]
-        lo = np.empty(2)
-        hi = np.empty(2)
         lo[0], hi[0], lo[1], hi[1] = pieces[i, P_U0], pieces[i, P_U1], pieces[i, P_V0], pieces[i, P_V1]
-        rbox = np.empty(4)
         for k in range(4):
             rbox[k] = pieces[i, P_BU0 + k]
         eh, el = piece_irradiance_two(chain_code, x0, P[a], N[a], P[b], N[b], Q[piece_receiver[i]], eta, lo, hi, rbox,
@@ -612,6 +798,7 @@ def bound_irradiance_two(bounds, light, caster_P, caster_N, receiver_P, eta=1.5,
 
     irr_depth: most quadtree levels inside a piece for the irradiance bound (0: the piece as
     it is); irr_ratio: split while Ē/E̲ exceeds it.  Returns ``bounds``."""
+    from ..jit import run_chunks
     from .chain2 import CHAIN_CODES
 
     t0 = time.perf_counter()
@@ -620,10 +807,11 @@ def bound_irradiance_two(bounds, light, caster_P, caster_N, receiver_P, eta=1.5,
     receiver = np.ascontiguousarray(tuples[bounds.piece_tuple, 2], dtype=np.int64)
     stats = np.zeros((bounds.pieces.shape[0], N_IRR_STATS), dtype=np.int64)
     if bounds.pieces.shape[0]:
-        _batch_irradiance_two(CHAIN_CODES[bounds.chain], np.ascontiguousarray(light, dtype=np.float64).reshape(3),
-                              np.ascontiguousarray(caster_P, dtype=np.float64), np.ascontiguousarray(caster_N, dtype=np.float64),
-                              np.ascontiguousarray(receiver_P, dtype=np.float64), float(eta), pair, receiver, bounds.pieces,
-                              int(irr_depth), float(irr_ratio), stats)
+        run_chunks(_irradiance_chunk, (CHAIN_CODES[bounds.chain], np.ascontiguousarray(light, dtype=np.float64).reshape(3),
+                                       np.ascontiguousarray(caster_P, dtype=np.float64),
+                                       np.ascontiguousarray(caster_N, dtype=np.float64),
+                                       np.ascontiguousarray(receiver_P, dtype=np.float64), float(eta), pair, receiver,
+                                       bounds.pieces, int(irr_depth), float(irr_ratio), stats), bounds.pieces.shape[0])
     total = stats.sum(axis=0)
     ehi = bounds.pieces[:, P_EHI]
     bounds.report.update({

@@ -9,17 +9,18 @@ Rational formulation (§4.3) in two stages, every non-rational or high-degree pa
 a low-degree expression plus remainder variables (eq 12–13 and the degree reduction of §6.1),
 so the bound stays conservative:
 
-1. Vertex 1 -> 2 (exactly the one-bounce formulation of ``chain1``): x1, n1 affine in (u1, v1)
-   (eq 6–7), d̃1 from eq 10 (refraction: √β1 -> aβ1 + b + ξ1 remainder, eq 11–13), and
-   u2 = pu2/q2, v2 = pv2/q2 by eq 9 with triangle 2 as the "receiver".
-2. Degree reduction (§6.1 "Degree reduction", with a linear approximant): u2 = L_u(u1, v1) + r_u
-   with L_u the least-squares plane through pu2/q2 on a 3×3 grid of the box and r_u in
-   [r_lo, r_hi], the rational Bernstein bound (eq 3) of (pu2 - L_u q2)/q2 over (u1, v1, ξ1);
-   the same for v2.  u2 = L_u + r_lo + ξa (r_hi - r_lo), v2 = L_v + r_lo' + ξb (...) with new
-   remainder variables ξa, ξb in [0, 1]; this eliminates ξ1, as the paper's reduction does.  When
-   q2 can vanish on the box, or the remainder is wider than the clipped bound [u2_lo, u2_hi]
-   itself, the constant form u2 = u2_lo + ξa (u2_hi - u2_lo) is used instead (it drops the
-   correlation of x2 with x1 that the affine part keeps).
+1. Vertex 1 -> 2: x1, n1 affine in (u1, v1) (eq 6–7), d̃1 from eq 10 with the exact √β1 and
+   u2, v2 by eq 9 with triangle 2 as the "receiver", all in affine arithmetic over the box
+   (``irradiance_two.first_bounce_forms``; √ by its Chebyshev enclosure, so no approximation
+   error is left out).
+2. Degree reduction (§6.1 "Degree reduction", with a linear approximant): the affine form of u2,
+   L_u(u1, v1) ± r, becomes u2 = L_u - r + ξa 2r with a new remainder variable ξa in [0, 1]; the
+   same for v2 with ξb.  When the remainder is wider than the clipped range [u2_lo, u2_hi] ∩
+   [0, 1] itself, or the line can be parallel to triangle 2, the constant form
+   u2 = u2_lo + ξa (u2_hi - u2_lo) is used instead (it drops the correlation of x2 with x1 that
+   the affine part keeps).  (Until 2026-11 this stage was the Bernstein form of ``chain1`` with
+   ξ1 for √β1 and a least-squares plane with a rational remainder bound: about 7 % fewer
+   slab10k tuples, but 8 s more compilation on a user's first bake.)
 3. Vertex 2 -> receiver: x2, n2 (eq 6–7) and d1 = x2 - x1 (eq 8) are affine in the four
    variables (u1, v1, ξa, ξb); d̃2 from eq 10 (refraction: √β2 -> aβ2 + b + δ with δ spanning
    [δ_lo, δ_hi] through a remainder variable ξ2) and (uk, vk) by eq 9.  The receiver
@@ -45,74 +46,18 @@ position rules only (σ, depth), not the ratio α of §6.1: the irradiance pass 
 each piece by itself.
 """
 
-import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..jit import kernel, prange
-from .bernstein import _with_extent, add, affine, affine_map, coef_range, elevate, evaluate, lincomb, mul, rational_bound, sqrt_linearisation, sub
-from .chain1 import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, P_X0, P_X1, P_Y0, P_Y1, PIECE_FIELDS, POS_PAD, _c3, _caster, _d3, _direction,
-                     _dot, _eta_ratio, _orientations, _receiver_numerators, barycentric_box, flat_coefficients, orientation_mask, push_children,
-                     receiver_box)
-from .irradiance_two import box_reached
+from .bernstein import _with_extent, add, affine, affine_map, coef_range, elevate, lincomb, mul, sqrt_linearisation
+from .chain1 import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, P_X0, P_X1, P_Y0, P_Y1, PIECE_FIELDS, POS_PAD, _c3, _d3,
+                     _dot, _eta_ratio, _orientations, _receiver_numerators, orientation_mask, push_children, receiver_box)
+from .irradiance_two import box_reached, first_bounce_forms
 
 N_STATS = 4  # position evaluations, stage-1 misses (light of the piece misses triangle 2), constant-form fallbacks, capacity stops
-
-
-@kernel
-def _grid_fit(pu, q):
-    """Least-squares plane c + cs (s - ½) + ct (t - ½) through pu/q at the 3×3 grid of local
-    coordinates s, t in {0, ½, 1} (ξ1 at ½).  Returns (c, cs, ct)."""
-    mean = 0.0
-    cs = 0.0
-    ct = 0.0
-    for i in range(3):
-        for j in range(3):
-            s = 0.5 * i
-            t = 0.5 * j
-            f = evaluate(pu, s, t, 0.5, 0.5) / evaluate(q, s, t, 0.5, 0.5)
-            mean += f
-            cs += (s - 0.5) * f
-            ct += (t - 0.5) * f
-    # Σ(s-½)² over the grid = 3 · (¼ + 0 + ¼) = 1.5
-    return mean / 9.0, cs / 1.5, ct / 1.5
-
-
-@kernel
-def _reduce(p, q, lo4, hi4, clip_lo, clip_hi, form):
-    """Affine form with remainder of the coordinate p/q over the box (module doc, step 2).
-
-    Writes form[0:4] = (c, g_u, g_v, g_xi): p/q lies in c + g_u u1 + g_v v1 + g_xi ξ for some ξ
-    in [0, 1] (global u1, v1).  Returns True when the linear approximant was used, False for the
-    constant form [clip_lo, clip_hi]."""
-    qlo, qhi = coef_range(q)
-    if qlo > 0.0 or qhi < 0.0:
-        c, cs, ct = _grid_fit(p, q)
-        wu = hi4[0] - lo4[0]
-        wv = hi4[1] - lo4[1]
-        gu = cs / wu
-        gv = ct / wv
-        c0 = c - gu * (lo4[0] + 0.5 * wu) - gv * (lo4[1] + 0.5 * wv)
-        g = np.zeros(4)
-        g[0] = gu
-        g[1] = gv
-        lin = affine(c0, g, lo4, hi4)
-        a, b, _, _ = rational_bound(sub(p, mul(lin, q)), q)
-        # The remainder is the part of u2 that loses its correlation with x1 (the affine part
-        # keeps it): prefer the affine form unless its remainder is wider than the whole bound.
-        if a <= b and math.isfinite(a) and math.isfinite(b) and math.isfinite(c0) and b - a < clip_hi - clip_lo:
-            form[0] = c0 + a
-            form[1] = gu
-            form[2] = gv
-            form[3] = b - a
-            return True
-    form[0] = clip_lo
-    form[1] = 0.0
-    form[2] = 0.0
-    form[3] = clip_hi - clip_lo
-    return False
 
 
 @kernel
@@ -225,25 +170,12 @@ def _flat_common(a, b, c, d, e, f):
 
 @kernel
 def _stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
-    """Steps 1–2 of the module doc for orientation o1 at vertex 1: the affine forms with
-    remainder of (u2, v2) in fu, fv.  Returns False when the light of the box misses triangle 2."""
-    lo4 = np.zeros(4)
-    hi4 = np.ones(4)
-    lo4[0], lo4[1], hi4[0], hi4[1] = lo[0], lo[1], hi[0], hi[1]
-    x, n, d = _caster(x0, P1, N1, lo4, hi4)
-    ok, dt = _direction(refract1, o1, _eta_ratio(o1, eta), n, d, lo4, hi4)
-    if not ok:
-        return False
-    pu, pv, q = _receiver_numerators(x, dt, P2)
-    fpu, fpv, fq = flat_coefficients(pu, pv, q)
+    """Steps 1–2 of the module doc for orientation o1 at vertex 1: the forms with remainder of
+    (u2, v2) in fu, fv (``irradiance_two.first_bounce_forms``).  Returns False when the light
+    of the box misses triangle 2."""
     box = np.empty(4)
-    if not barycentric_box(fpu, fpv, fq, box):
-        return False
-    if not _reduce(pu, q, lo4, hi4, box[0], box[1], fu):
-        stats[2] += 1
-    if not _reduce(pv, q, lo4, hi4, box[2], box[3], fv):
-        stats[2] += 1
-    return True
+    box[0], box[1], box[2], box[3] = lo[0], hi[0], lo[1], hi[1]
+    return first_bounce_forms(refract1, o1, x0, P1, N1, P2, eta, box, fu, fv, stats)
 
 
 @kernel
@@ -444,7 +376,7 @@ def _tuple_uv_boxes(pieces, starts):
 
 def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=1,
                      sigma=1e-4, capacity=16, engine="fast", irradiance=True, irr_depth=4, irr_ratio=2.0, prune=True,
-                     reach_depth=1):
+                     reach_depth=2):
     """Position bounds of two-bounce tuples (Fan et al. 2025 §4.2–4.3, eq 3–13; subdivision §6.1).
 
     chain: "RR", "RT", "TR" or "TT"; caster_P, caster_N: (n,3,3) corners and corner normals of

@@ -533,6 +533,61 @@ def first_bounce_reaches(refract1, x0, P1, N1, P2, eta, box, bits, depth):
 
 
 @kernel
+def _linear_form(val, box, form):
+    """The affine value form val = (c, a, b, r) over the box (u1 = u_c + h_u δu, ...) as
+    form[0:4] = (c0, g_u, g_v, g_xi) in global (u1, v1) and a remainder ξ in [0, 1], clipped to
+    the triangle's [0, 1]: the constant form [lo, hi] ∩ [0, 1] when the remainder is wider than
+    that.  Returns False for the constant form."""
+    hu = 0.5 * (box[1] - box[0])
+    hv = 0.5 * (box[3] - box[2])
+    c, a, b, r = val
+    lo = max(c - abs(a) - abs(b) - r, 0.0)
+    hi = min(c + abs(a) + abs(b) + r, 1.0)
+    if hu > 0.0 and hv > 0.0 and 2.0 * r < hi - lo:
+        gu = a / hu
+        gv = b / hv
+        form[0] = c - gu * (box[0] + hu) - gv * (box[2] + hv) - r
+        form[1] = gu
+        form[2] = gv
+        # rounding of the change of variables: the form is evaluated in global coordinates
+        form[3] = 2.0 * r + 8.0 * ROUND * (abs(c) + abs(a) + abs(b) + abs(form[0]))
+        form[0] -= 4.0 * ROUND * (abs(c) + abs(a) + abs(b) + abs(form[0]))
+        return True
+    form[0] = lo
+    form[1] = 0.0
+    form[2] = 0.0
+    form[3] = max(hi - lo, 0.0)
+    return False
+
+
+@kernel
+def first_bounce_forms(refract1, o1, x0, P1, N1, P2, eta, box, fu, fv, stats):
+    """Step 1–2 of ``chain2`` (vertex 1 -> 2) for orientation o1 at vertex 1: u2 and v2 on
+    triangle 2 over the box of (u1, v1) as forms c + g_u u1 + g_v v1 + g_xi ξ (ξ in [0, 1], one
+    remainder variable each; ``_linear_form``), from the exact map x1 -> d̃1 (eq 10, exact √β)
+    -> (u2, v2) (eq 9) in affine arithmetic.  Returns False when no light of the box reaches
+    triangle 2; stats[2] += 1 per constant form (the line can be parallel to triangle 2, or the
+    remainder is wider than the triangle)."""
+    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
+    st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+    if st == NO_PATH:
+        return False
+    st, u2, v2 = _hit(x1, dt1, P2)
+    if st == NO_PATH:
+        return False
+    if st != BOUNDED:  # the line can be parallel to triangle 2: all of it
+        fu[0], fu[1], fu[2], fu[3] = 0.0, 0.0, 0.0, 1.0
+        fv[0], fv[1], fv[2], fv[3] = 0.0, 0.0, 0.0, 1.0
+        stats[2] += 2
+        return True
+    if not _linear_form(u2[0], box, fu):
+        stats[2] += 1
+    if not _linear_form(v2[0], box, fv):
+        stats[2] += 1
+    return True
+
+
+@kernel
 def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox):
     """Bound dΩ0/dA_k (eq 15–16) over the box (u_lo, u_hi, v_lo, v_hi) of triangle 1's
     barycentrics; rbox (uk_lo, uk_hi, vk_lo, vk_hi) encloses the receiver barycentrics of its

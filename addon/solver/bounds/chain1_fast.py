@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from ..jit import kernel, prange
+from ..jit import kernel
 from .bernstein import BINOM, abs_lower, abs_upper, clip_hull, sqrt_linearisation
 from .chain1 import IRR_PAD, MIN_WIDTH, N_STATS, P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD, push_children
 
@@ -1224,23 +1224,33 @@ def workspace():
     return np.zeros((NSLOTS, MAXC)), np.zeros(16), np.zeros(SCR4 + 3 * N4), np.zeros((NU, UW))
 
 
-@kernel(parallel=True)
+@kernel
+def _batch_chunk(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, irr_refine, out, counts, stats,
+                 start, stop):
+    """Tuples start..stop-1 on one workspace (``batch_fast``)."""
+    W, work, scr, U = workspace()
+    stack = np.empty((4 * (max_depth + 2), 5))
+    rstack = np.empty((4 * (irr_refine + 2), 5))
+    last = -1
+    for t in range(start, stop):
+        c = pairs[t, 0]
+        r = pairs[t, 1]
+        if c != last:  # pairs are usually grouped by caster: its polynomials are reused
+            _setup_caster(W, refract, x0, P[c], N[c])
+            last = c
+        counts[t] = tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma,
+                                      alpha, irradiance, irr_refine, out[t], stats[t])
+
+
 def batch_fast(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, irr_refine, out, counts, stats, chunk):
+    """Every (caster, receiver) tuple of ``pairs`` in chunks of ``chunk`` tuples, one workspace
+    per chunk, on ``jit.run_chunks`` threads (``_batch_chunk`` releases the GIL; a
+    ``parallel=True`` loop over the chunks took seconds longer to compile on a cold bake)."""
+    from ..jit import run_chunks
+
     n = pairs.shape[0]
-    nchunks = (n + chunk - 1) // chunk
-    for ci in prange(nchunks):
-        W, work, scr, U = workspace()
-        stack = np.empty((4 * (max_depth + 2), 5))
-        rstack = np.empty((4 * (irr_refine + 2), 5))
-        last = -1
-        for t in range(ci * chunk, min(n, (ci + 1) * chunk)):
-            c = pairs[t, 0]
-            r = pairs[t, 1]
-            if c != last:  # pairs are usually grouped by caster: its polynomials are reused
-                _setup_caster(W, refract, x0, P[c], N[c])
-                last = c
-            counts[t] = tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma,
-                                          alpha, irradiance, irr_refine, out[t], stats[t])
+    run_chunks(_batch_chunk, (refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, irr_refine, out, counts,
+                              stats), n, max(1, -(-n // max(1, int(chunk)))))
 
 
 @kernel

@@ -507,6 +507,19 @@ def _max_abs(c, d):
 
 
 @kernel
+def _pieces_covered(v0, w, margin, h, pieces, live):
+    """True when every piece a leaf inside the box [v0, v0 + w] (in v1) could mark is live
+    already: the box cannot change the result of :func:`live_pieces` (a leaf's marks are a
+    subset of these, floor being monotone)."""
+    k0 = max(0, int(math.floor((v0 + margin) / h)) - 1)
+    k1 = min(pieces - 1, int(math.floor((v0 + w + margin) / h)) + 1)
+    for k in range(k0, k1 + 1):
+        if live[k] == 0:
+            return False
+    return True
+
+
+@kernel
 def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
     """live[k] = 1 for the scan pieces whose v1 range a common zero of a and b with
     u1 ∈ [-m, 1 - v1 + m] can lie in; returns their count.
@@ -518,7 +531,12 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
     beyond u1 + v1 = 1 + m is dropped.  The v1 range of every leaf left, widened by one piece on each side, marks
     its pieces.  Resultant roots elsewhere have their common u1 outside the triangle (or
     complex): most of a planted tuple's ~100 real roots (RT, TT), each of which costs
-    Illinois determinants, refinement of its kinks and candidates that lead nowhere."""
+    Illinois determinants, refinement of its kinks and candidates that lead nowhere.
+
+    Only the v1 pieces are the result, so a box whose pieces are all live already (another
+    box of the same v1 column marked them) is not split further (:func:`_pieces_covered`):
+    the same live pieces for fewer de Casteljau splits of b (the a-curve crosses a column
+    of boxes several times)."""
     h = (1.0 + 2.0 * margin) / pieces
     for k in range(pieces):
         live[k] = 0
@@ -546,6 +564,8 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
         ca = biv[LIVE_SLOT0 + 2 * top]
         cb = biv[LIVE_SLOT0 + 2 * top + 1]
         if level < 0.0 or u0 + v0 > 1.0 + margin:
+            continue
+        if _pieces_covered(v0, w, margin, h, pieces, live):
             continue
         if not _may_vanish(ca, da, tol_a) or not _may_vanish(cb, db, tol_b):
             continue
@@ -575,6 +595,7 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
             for sv in range(2):
                 c = 2 * su + sv
                 if boxes[top + c, 0] + boxes[top + c, 1] > 1.0 + margin or \
+                        _pieces_covered(boxes[top + c, 1], hw, margin, h, pieces, live) or \
                         not _may_vanish(biv[LIVE_SLOT0 + 2 * (top + c)], da, tol_a):
                     boxes[top + c, 3] = -1.0  # dead
                 else:
@@ -800,7 +821,7 @@ def find_v_roots(a, da, b, db, n, lo, hi, pieces, live, cf, mat, scan, out_roots
     stays in scan[0:3] and each root's piece index in scan[4], for :func:`refine_v_roots`.
     Only the pieces with ``live[k]`` (:func:`live_pieces`) are scanned (their samples and
     the neighbours the kink test needs; the others hold sign 2).
-    scan: (8, MAX_PIECES + 1) scratch.  Returns the root count, or -1 when the determinant
+    scan: (9, MAX_PIECES + 1) scratch.  Returns the root count, or -1 when the determinant
     vanishes at most samples (degenerate system)."""
     vs = scan[0]
     sg = scan[1]
@@ -882,7 +903,9 @@ def refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, out_roots, n_fo
         _, g_hi = _det_checked(a, da, b, db, n, vs[pieces] + h, cf, mat, stats)
     g_lo = _deflate(vs[0] - h, g_lo, out_roots, n_found)
     g_hi = _deflate(vs[pieces] + h, g_hi, out_roots, n_found)
+    raw = scan[8]  # the scan's log|det| before deflation: the ends of a refined piece
     for k in range(pieces + 1):
+        raw[k] = lgs[k]
         lgs[k] = _deflate(vs[k], lgs[k], out_roots, n_found)
     refine_flags_one(lgs, g_lo, g_hi, out_roots, n_found, piece_of, productive, pieces, live, flags)
     count = n_found
@@ -896,7 +919,8 @@ def refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, out_roots, n_fo
             continue
         last_of_run = k + 1 >= pieces or flags[k + 1] == 0.0
         count, carry, cv, cs, cl = _refine_interval(a, da, b, db, n, vs[k], vs[k + 1], cf, mat, stack, sub, out_roots,
-                                                     n_found, count, stats, carry, cv, cs, cl, last_of_run)
+                                                     n_found, count, stats, carry, cv, cs, cl, last_of_run,
+                                                     int(sg[k]), raw[k], int(sg[k + 1]), raw[k + 1])
     return count
 
 
@@ -931,7 +955,7 @@ def _deflate(v, lg, roots, n_roots):
 
 @kernel
 def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_scan, count, stats, carry, cv, cs, cl,
-                     last_of_run):
+                     last_of_run, s_lo, l_lo, s_hi, l_hi):
     """Roots in [lo, hi] the uniform scan missed: recursive sub-sampling (explicit stack); a
     sub-piece next to a convex kink of the deflated log|det| is cut again (up to
     REFINE_LEVELS levels); new sign changes (not around one of the n_scan scan roots) are
@@ -945,8 +969,11 @@ def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_
     A flagged piece is one of a run of consecutive flagged pieces: (carry, cv, cs, cl) is
     the previous piece's last sub-sample before lo (v, sign, raw log|det|), so that the dip
     rule sees the sample at lo with both neighbours; the first piece of a run takes one
-    more sample below lo instead, the last one (``last_of_run``) one above hi.  Returns
-    (count, carry, cv, cs, cl) for the next piece."""
+    more sample below lo instead, the last one (``last_of_run``) one above hi.  The ends lo
+    and hi are scan samples: their (sign, raw log|det|) (s_lo, l_lo), (s_hi, l_hi) are
+    taken as they are instead of being evaluated again (the same v, so the same values:
+    2 of the SUB_SAMPLES + 1 determinants per piece).  Returns (count, carry, cv, cs, cl)
+    for the next piece."""
     cap = out_roots.shape[0]
     stack[0, 0] = lo
     stack[0, 1] = hi
@@ -973,7 +1000,12 @@ def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_
             v = lo + k * h
             if k == M:
                 v = hi
-            s, lg = _det_checked(a, da, b, db, n, v, cf, mat, stats)
+            if outer and k == 0 and s_lo != 2:
+                s, lg = s_lo, l_lo
+            elif outer and k == M and s_hi != 2:
+                s, lg = s_hi, l_hi
+            else:
+                s, lg = _det_checked(a, da, b, db, n, v, cf, mat, stats)
             sv[k + 1] = v
             ss[k + 1] = s
             sl[k + 1] = lg
@@ -1915,7 +1947,7 @@ def make_scratch2():
     biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
     cf = np.zeros((2, MAXD + 2))
     mat = np.zeros((MAXD + 1, MAXD + 1))
-    scan = np.zeros((8, MAX_PIECES + 1))
+    scan = np.zeros((9, MAX_PIECES + 1))
     geo = np.zeros((3, 15, 3))
     work = np.zeros((25, 6))
     roots = np.zeros((MAX_PATHS_TWO_BOUNCE + 5, 4 * MAX_PIECES))

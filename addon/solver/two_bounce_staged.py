@@ -778,6 +778,7 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     # stage D: refinement (refine_v_roots / _refine_interval at REFINE_LEVELS = 1)
     M = SUB_SAMPLES
     flags = np.zeros((S, max(pieces, 1)), dtype=np.int64)
+    lg_raw = lg.copy()  # the scan's log|det| before refine_flags deflates it: a refined piece's ends
     if REFINE_LEVELS and S:
         # the ghost samples a piece outside either end of the range (where that end's piece is live)
         ghost = np.zeros((S, 2))
@@ -803,12 +804,20 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     sv[:, M] = b_
     first = np.flatnonzero(~prev_flag)
     last = np.flatnonzero(~next_flag)
-    job_sys = np.concatenate([np.repeat(fs, M + 1), fs[first], fs[last]]).astype(np.int32)
-    job_v = np.concatenate([sv.ravel(), a_[first] - hsub[first], b_[last] + hsub[last]])
+    # the sub-samples inside each piece; its two ends are scan samples, taken as they are
+    # (``_refine_interval``: the same v, so the same values)
+    job_sys = np.concatenate([np.repeat(fs, M - 1), fs[first], fs[last]]).astype(np.int32)
+    job_v = np.concatenate([sv[:, 1:M].ravel(), a_[first] - hsub[first], b_[last] + hsub[last]])
     sign, log, dets = dev.dets(job_sys, np.ascontiguousarray(job_v))
     np.add.at(dets_per_sys, job_sys, dets)
-    ss = sign[:F * (M + 1)].reshape(-1, M + 1).astype(np.int64)
-    sl = log[:F * (M + 1)].reshape(-1, M + 1)
+    ss = np.zeros((F, M + 1), dtype=np.int64)
+    sl = np.zeros((F, M + 1))
+    ss[:, 1:M] = sign[:F * (M - 1)].reshape(-1, M - 1)
+    sl[:, 1:M] = log[:F * (M - 1)].reshape(-1, M - 1)
+    ss[:, 0] = sg[fs, fk]
+    sl[:, 0] = lg_raw[fs, fk]
+    ss[:, M] = sg[fs, fk + 1]
+    sl[:, M] = lg_raw[fs, fk + 1]
     svx = np.zeros((F, M + 3))
     ssx = np.zeros((F, M + 3), dtype=np.int64)
     slx = np.zeros((F, M + 3))
@@ -819,7 +828,7 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     svx[inner, 0] = sv[inner - 1, M - 1]
     ssx[inner, 0] = ss[inner - 1, M - 1]
     slx[inner, 0] = sl[inner - 1, M - 1]
-    o = F * (M + 1)
+    o = F * (M - 1)
     svx[first, 0] = job_v[o:o + first.size]
     ssx[first, 0] = sign[o:o + first.size]
     slx[first, 0] = log[o:o + first.size]

@@ -107,9 +107,28 @@ refraction at the first vertex the system is solved once per √ piece holding �
 of the triangle's sample points (corners, edge thirds, centroid): usually one or two
 (``SQRT_ALL_PIECES`` solves once per piece overlapping the whole sampled β range instead:
 more recall where x0 is close to a curved triangle, several times the cost); the path-space
-polish removes the error of a piece used a little outside its interval.  A candidate from the straight
-line x0 -> x3 covers the normal-incidence path through parallel faces (on-axis slab), where
-the coplanarity polynomial vanishes identically.
+polish removes the error of a piece used a little outside its interval.  Each piece's system
+is solved only where β/S² can lie in the piece's band — its interval and its neighbours'
+(``SQRT_BANDS``, ``SQRT_BAND_REACH``, :func:`_sqrt_band`): the live pre-pass also drops
+the boxes where the tensor Bernstein bounds of β (degree 4) stay outside the band.
+Elsewhere the piece's rational is off by more than its fit error, and a path there is a
+root of the system of its own piece (or of the Heron √).  So that such a piece is solved,
+an orientation whose samples are all clear of TIR also takes every piece from
+BETA_MASK_FROM up that the Bernstein bounds of β on a BETA_GRID² grid reach
+(:func:`_beta_mask`: the samples miss the extremes of β over the triangle; test set TT
+tuple 122 of 300, β/S² = 0.021 on a triangle whose samples start at 0.029).  Orientations
+crossing TIR keep the sampled pieces (bounding them would add most of the 15 pieces: 2x
+the determinants).  When the Heron fit fails (β/S² spanning much of [0, 1] over the
+triangle: ~3 pieces per orientation on planted TT), each of those pieces was scanned over
+the whole triangle.  Measured on the test's first 2,000 tuples per chain (brute force,
+``bench/two_bounce_recall.py``): the same misses as before (TT 7, RT 4, TR 0) with
+determinants TT 1.63M -> 1.13M, RT 1.32M -> 0.95M, TR 0.87M -> 0.68M.  What it costs:
+paths found only from a far root of a piece used outside its band — one well-conditioned
+path of the 190 planted TT tuples of ``bench/solver.py`` (tuple 153: no system's
+pre-pass keeps it, with or without bands; the systems of its own √ piece or Heron √ have
+no root there, which points at the side rule of vertex 2, not investigated).  A candidate
+from the straight line x0 -> x3 covers the normal-incidence path through parallel faces
+(on-axis slab), where the coplanarity polynomial vanishes identically.
 
 One √ for the triangle (``heron_sqrt_fit``, ``HERON_SQRT``).  β/S² spans several of eq
 (23)'s pieces over a triangle (β grows with |x1 - x0|²; planted TT: 3.5 pieces per
@@ -154,7 +173,7 @@ from .roots import MAX_DEGREE, roots_in_interval
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 4  # tuples per parallel work item: a two-bounce tuple costs ~1-200 ms, so small chunks balance threads
 MAXD = 47  # bivariate arrays are (MAXD + 1)²; b has total degree ≤ 46 (TT)
-N_SLOTS = 46  # 0, 1: a, b; 2-36 the system's intermediates, then the live pre-pass's stack (2-33) and its temporaries (34-36, 40-44)
+N_SLOTS = 51  # 0, 1: a, b; 2-36 the system's intermediates, then the live pre-pass's stack (2-33) and its temporaries (34-36, 40-44); 46: β, 47-50 its box conversion
 DEFAULT_PIECES = 100
 MAX_PIECES = 1024
 ROOT_TOL = 1e-4  # v1 brackets are pinned to this; the path-space Newton polish takes it to ~1e-15
@@ -177,6 +196,11 @@ LIVE_STACK = 3 * LIVE_DEPTH + 1
 TWO_PROJECTIONS = False  # also scan the other hidden variable (u1) of each orientation
 BOTH_DIRECTIONS = True  # solve the chain forward and reversed (reciprocity)
 SQRT_ALL_PIECES = False  # solve once per √ piece overlapping the triangle's β range (slow)
+SQRT_BANDS = True  # an eq (23) piece's system only where β/S² can lie in its band (the piece and its neighbours)
+SQRT_BAND_REACH = 1  # ... pieces on each side of it
+BETA_GRID = 8  # boxes per side of the β-range grid that adds the √ pieces a path could need ...
+BETA_MASK_FROM = 5  # ... from this piece up (below: next to TIR, where the bound is loose and pieces many)
+BETA_SLOT = 46  # biv slot of β (eq 22, local frame, degree 4) for the bands
 HERON_SQRT = True  # one system per orientation with √β ≈ Heron step from a fitted quadratic, where it fits
 HERON_TOL = 1e-3  # the Heron √'s largest relative error over the check grid for the fit to be used
 HERON_CUT = 0.03  # ... at the check points with β/S² at least this; the √ pieces below it (eq 23) stay
@@ -426,9 +450,15 @@ def _bernstein_rows(A, d, R, B):
 
 @kernel
 def _tensor_bernstein(p, d, lo, w, R, out, t0, t1):
+    """:func:`_tensor_bernstein_box` over the square [lo, lo + w]²."""
+    _tensor_bernstein_box(p, d, lo, lo, w, R, out, t0, t1)
+
+
+@kernel
+def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
     """p (triangular power basis, p[i, j] u^i v^j, total degree d) -> its tensor Bernstein
-    coefficients of degree (d, d) over the square [lo, lo + w]² (out[i, j]: u index i, v
-    index j).  Taylor shift and scaling along u, then v, then the power -> Bernstein weights
+    coefficients of degree (d, d) over the square [u0, u0 + w] × [v0, v0 + w] (out[i, j]: u
+    index i, v index j).  Taylor shift and scaling along u, then v, then the power -> Bernstein weights
     R (:func:`_binomial_ratios`) along u, then v; every step is a positive combination or an
     exact shift, so the coefficients carry rounding of the size of the polynomial's max-norm
     only.  Each step runs on whole rows (the v steps on the transpose, t0 and t1 scratch);
@@ -436,9 +466,9 @@ def _tensor_bernstein(p, d, lo, w, R, out, t0, t1):
     for i in range(d + 1):
         for j in range(d + 1):
             out[i, j] = p[i, j] if i + j <= d else 0.0
-    _shift_rows(out, d, lo, w)
+    _shift_rows(out, d, u0, w)
     _transpose_square(out, d, t0)
-    _shift_rows(t0, d, lo, w)
+    _shift_rows(t0, d, v0, w)
     _transpose_square(t0, d, out)
     _bernstein_rows(out, d, R, t1)
     _transpose_square(t1, d, t0)
@@ -521,6 +551,38 @@ def _pieces_covered(v0, w, margin, h, pieces, live):
 
 @kernel
 def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
+    """:func:`live_pieces_band` without a β band."""
+    return live_pieces_band(a, da, b, db, margin, pieces, biv, boxes, live, -math.inf, math.inf)
+
+
+@kernel
+def _beta_range(biv, u0, v0, w):
+    """(min, max) of the tensor Bernstein coefficients of β (biv[BETA_SLOT], degree 4) over
+    the box [u0, u0 + w] × [v0, v0 + w]: bounds of β there (convex hull property)."""
+    R = biv[BETA_SLOT + 1]
+    out = biv[BETA_SLOT + 2]
+    _binomial_ratios(4, R)
+    _tensor_bernstein_box(biv[BETA_SLOT], 4, u0, v0, w, R, out, biv[BETA_SLOT + 3], biv[BETA_SLOT + 4])
+    lo = math.inf
+    hi = -math.inf
+    for i in range(5):
+        for j in range(5):
+            lo = min(lo, out[i, j])
+            hi = max(hi, out[i, j])
+    return lo, hi
+
+
+@kernel
+def _out_of_band(biv, u0, v0, w, blo, bhi, tol):
+    """True when β provably stays outside [blo, bhi] (widened by tol) on the box."""
+    if blo == -math.inf and bhi == math.inf:
+        return False
+    lo, hi = _beta_range(biv, u0, v0, w)
+    return hi < blo - tol or lo > bhi + tol
+
+
+@kernel
+def live_pieces_band(a, da, b, db, margin, pieces, biv, boxes, live, blo, bhi):
     """live[k] = 1 for the scan pieces whose v1 range a common zero of a and b with
     u1 ∈ [-m, 1 - v1 + m] can lie in; returns their count.
 
@@ -532,6 +594,11 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
     its pieces.  Resultant roots elsewhere have their common u1 outside the triangle (or
     complex): most of a planted tuple's ~100 real roots (RT, TT), each of which costs
     Illinois determinants, refinement of its kinks and candidates that lead nowhere.
+
+    With a band [blo, bhi] (not ±inf), a box where β (biv[BETA_SLOT]) provably stays
+    outside it is dropped as well (:func:`_out_of_band`): an eq (23) √ piece's system
+    approximates the refraction only where β/S² lies in (or next to) the piece's interval,
+    and the paths elsewhere are the roots of the other pieces' systems (``SQRT_BANDS``).
 
     Only the v1 pieces are the result, so a box whose pieces are all live already (another
     box of the same v1 column marked them) is not split further (:func:`_pieces_covered`):
@@ -549,6 +616,10 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
     _tensor_bernstein(b, db, -margin, 1.0 + 2.0 * margin, R, biv[LIVE_SLOT0 + 1], biv[34], biv[35])
     tol_a = LIVE_TOL * _max_abs(biv[LIVE_SLOT0], da)
     tol_b = LIVE_TOL * _max_abs(biv[LIVE_SLOT0 + 1], db)
+    tol_beta = 0.0
+    if blo != -math.inf or bhi != math.inf:
+        tol_beta = 1e-12 * (_max_abs(biv[BETA_SLOT], 4) + max(abs(blo) if blo != -math.inf else 0.0,
+                                                             abs(bhi) if bhi != math.inf else 0.0))
     boxes[0, 0] = -margin
     boxes[0, 1] = -margin
     boxes[0, 2] = 1.0 + 2.0 * margin
@@ -566,6 +637,8 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
         if level < 0.0 or u0 + v0 > 1.0 + margin:
             continue
         if _pieces_covered(v0, w, margin, h, pieces, live):
+            continue
+        if level == 0.0 and _out_of_band(biv, u0, v0, w, blo, bhi, tol_beta):
             continue
         if not _may_vanish(ca, da, tol_a) or not _may_vanish(cb, db, tol_b):
             continue
@@ -596,6 +669,7 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
                 c = 2 * su + sv
                 if boxes[top + c, 0] + boxes[top + c, 1] > 1.0 + margin or \
                         _pieces_covered(boxes[top + c, 1], hw, margin, h, pieces, live) or \
+                        _out_of_band(biv, boxes[top + c, 0], boxes[top + c, 1], hw, blo, bhi, tol_beta) or \
                         not _may_vanish(biv[LIVE_SLOT0 + 2 * (top + c)], da, tol_a):
                     boxes[top + c, 3] = -1.0  # dead
                 else:
@@ -1263,6 +1337,69 @@ def heron_sqrt_fit(geo_l, r, margin, S2, M):
     return True, c
 
 
+# --- √ pieces: which to solve, and where ----------------------------------------------------
+
+
+@kernel
+def _beta_poly(geo_l, r, biv):
+    """β = |n1|²|d0|²(1 - r²) + r²(d0·n1)² (eq 22) into biv[BETA_SLOT] (local frame, degree
+    4; the same arithmetic as :func:`_build_system`'s; slots 2-4, 7-12 as scratch)."""
+    x0 = (geo_l[0, 0], geo_l[0, 1], geo_l[0, 2])
+    D0 = biv[7:10]
+    N1 = biv[10:13]
+    _vlin(D0, (-x0[0], -x0[1], -x0[2]), (geo_l[2, 0], geo_l[2, 1], geo_l[2, 2]), (geo_l[3, 0], geo_l[3, 1], geo_l[3, 2]))
+    _vlin(N1, (geo_l[4, 0], geo_l[4, 1], geo_l[4, 2]), (geo_l[5, 0], geo_l[5, 1], geo_l[5, 2]),
+          (geo_l[6, 0], geo_l[6, 1], geo_l[6, 2]))
+    _vdot(D0, 1, N1, 1, biv[2])
+    _vdot(N1, 1, N1, 1, biv[3])
+    _vdot(D0, 1, D0, 1, biv[4])
+    beta = biv[BETA_SLOT]
+    _bzero(beta, 4)
+    _bmul_acc(biv[3], 2, biv[4], 2, beta, 1.0 - r * r)
+    _bmul_acc(biv[2], 2, biv[2], 2, beta, r * r)
+
+
+@kernel
+def _sqrt_band(piece, S2):
+    """The β band [blo, bhi] where the system of eq (23)'s piece ``piece`` is solved: the
+    piece's interval and SQRT_BAND_REACH neighbours' on each side (2 tried: the same
+    missed path of the test set as 1; the piece's error grows outside its own
+    interval; a root found there belongs to a neighbour, whose own system holds it more
+    accurately).  Unbounded below for the first piece (β < 0 is TIR: no path) and above for
+    the last; (-inf, inf) for the Heron √ (piece < 0) or without ``SQRT_BANDS``."""
+    if piece < 0 or not SQRT_BANDS:
+        return -math.inf, math.inf
+    K = SQRT_PIECES.shape[0]
+    blo = -math.inf if piece < SQRT_BAND_REACH else S2 * SQRT_PIECES[piece - SQRT_BAND_REACH, 0]
+    bhi = math.inf if piece + SQRT_BAND_REACH >= K else S2 * SQRT_PIECES[piece + SQRT_BAND_REACH, 1]
+    return blo, bhi
+
+
+@kernel
+def _beta_mask(biv, margin, S2):
+    """Bit k set for every eq (23) piece k ≥ BETA_MASK_FROM whose interval β/S² can reach
+    on triangle 1 widened by the margin: bounds of β (biv[BETA_SLOT]) on a BETA_GRID² grid
+    of boxes over [-m, 1 + m]² (boxes beyond u1 + v1 = 1 + m skipped).  With the pieces at
+    the sample points (which can miss the extremes of β over the triangle), a path whose
+    β/S² lies in such a piece has that piece's own system solved (``SQRT_BANDS``)."""
+    mask = 0
+    K = SQRT_PIECES.shape[0]
+    w = (1.0 + 2.0 * margin) / BETA_GRID
+    for i in range(BETA_GRID):
+        for j in range(BETA_GRID):
+            u0 = -margin + i * w
+            v0 = -margin + j * w
+            if u0 + v0 > 1.0 + margin:
+                continue
+            lo, hi = _beta_range(biv, u0, v0, w)
+            lo /= S2
+            hi /= S2
+            for k in range(BETA_MASK_FROM, K):
+                if hi >= SQRT_PIECES[k, 0] and (lo <= SQRT_PIECES[k, 1] or k == K - 1):
+                    mask |= 1 << k
+    return mask
+
+
 # --- building the bivariate system ---------------------------------------------------------
 
 
@@ -1716,6 +1853,10 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                 # Gauss-Newton polish in path space removes the error of a piece used
                 # a little outside its interval)
                 mask |= 1 << _sqrt_piece(xc)
+        if refract1 and SQRT_BANDS:
+            _beta_poly(geo_l, r1, biv)
+            if xlo > 0.0:
+                mask |= _beta_mask(biv, margin, S * S)
         heron_ok = False
         heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if refract1 and HERON_SQRT:
@@ -1745,7 +1886,8 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                     eta_out2 = eta if s_in2 > 0.0 else 1.0
                 da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2,
                                        eta_out2, flat2, c2, geo_l, biv)
-                count = _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, geo, eta, sc_cf,
+                blo, bhi = _sqrt_band(piece if refract1 else -1, S * S)
+                count = _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, stop_after, geo, eta, sc_cf,
                                       sc_mat, sc_scan, sc_work, th, v_roots, u_roots, coeffs, sc_chain, sc_lists, rev, geo_fwd, out_uv, meta,
                                       count, stats)
                 if count < 0:
@@ -1755,10 +1897,11 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
 
 
 @kernel
-def _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
+def _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
                   v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
-    """Roots of {a = 0, b = 0} -> polished paths.  Returns the new count, or -(count + 1)
-    when the system is degenerate (identically vanishing resultant)."""
+    """Roots of {a = 0, b = 0} -> polished paths, where β lies in [blo, bhi] (the √ piece's
+    band, :func:`_sqrt_band`).  Returns the new count, or -(count + 1) when the system is
+    degenerate (identically vanishing resultant)."""
     a = biv[0]
     b = biv[1]
     ma = _bmax(a, da)
@@ -1784,7 +1927,7 @@ def _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, g
     # Hidden variable v1 (u1 eliminated), then hidden u1 (v1 eliminated) on the transposed
     # system: two solutions whose projections on one axis fall within one piece are a root
     # pair no sign scan separates, but they are seldom that close on both axes.
-    count = _eliminate(a, da, b, db, False, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
+    count = _eliminate(a, da, b, db, blo, bhi, False, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
                        work, th, biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
     if count < 0:
         return count
@@ -1794,7 +1937,7 @@ def _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, g
     bt = biv[38]
     _transpose(a, da, at)
     _transpose(b, db, bt)
-    return _eliminate(at, da, bt, db, True, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
+    return _eliminate(at, da, bt, db, -math.inf, math.inf, True, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
                       work, th, biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
 
 
@@ -1806,7 +1949,7 @@ def _transpose(src, d, dst):
 
 
 @kernel
-def _eliminate(a, da, b, db, swapped, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
+def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
                biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
     """Eliminate the first variable (rows of a, b), scan the hidden one (columns), back-solve,
     polish.  ``swapped``: the hidden variable is u1 (the arrays are transposed)."""
@@ -1818,7 +1961,7 @@ def _eliminate(a, da, b, db, swapped, refract1, refract2, margin, pieces, stop_a
     live = scan[7]
     if LIVE_PREPASS:
         boxes = scan[3, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
-        if live_pieces(a, da, b, db, margin, pieces, biv, boxes, live) == 0:
+        if live_pieces_band(a, da, b, db, margin, pieces, biv, boxes, live, blo, bhi) == 0:
             return count
     else:
         for k in range(pieces):

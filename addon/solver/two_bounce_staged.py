@@ -51,7 +51,8 @@ from .path_space2 import pack_geometry
 from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
-    TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces,
+    TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces_band,
+    SQRT_BANDS, _beta_mask, _beta_poly, _sqrt_band,
     _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_fit, HERON_SQRT, HERON_CUT,
     _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
     refine_flags_one, solve_two_bounce_tuple,
@@ -280,6 +281,10 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 xhi = min(1.0, xhi * 1.25)
             else:
                 mask |= 1 << _sqrt_piece(xc)
+        if refract1 and SQRT_BANDS:
+            _beta_poly(geo_l, r1, biv)
+            if xlo > 0.0:
+                mask |= _beta_mask(biv, V_MARGIN_APPROX, S * S)
         heron_ok = False
         heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if refract1 and HERON_SQRT:
@@ -314,8 +319,9 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 if status == 1:
                     if LIVE_PREPASS:
                         boxes = live_work[1, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
-                        if live_pieces(biv[0], da, biv[1], db, V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT, pieces,
-                                       biv, boxes, live) == 0:
+                        blo, bhi = _sqrt_band(piece if refract1 else -1, S * S)
+                        if live_pieces_band(biv[0], da, biv[1], db, V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT,
+                                            pieces, biv, boxes, live, blo, bhi) == 0:
                             continue  # as ``_eliminate``: no common zero near the triangle
                     else:
                         for k in range(pieces):

@@ -108,8 +108,8 @@ of the triangle's sample points (corners, edge thirds, centroid): usually one or
 (``SQRT_ALL_PIECES`` solves once per piece overlapping the whole sampled β range instead:
 more recall where x0 is close to a curved triangle, several times the cost); the path-space
 polish removes the error of a piece used a little outside its interval.  Each piece's system
-is solved only where β/S² can lie in the piece's band — its interval and its neighbours'
-(``SQRT_BANDS``, ``SQRT_BAND_REACH``, :func:`_sqrt_band`): the live pre-pass also drops
+is solved only where β/S² can lie in the piece's band — its interval and its 3 neighbours'
+on each side (``SQRT_BANDS``, ``SQRT_BAND_REACH``, :func:`_sqrt_band`): the live pre-pass also drops
 the boxes where the tensor Bernstein bounds of β (degree 4) stay outside the band.
 Elsewhere the piece's rational is off by more than its fit error, and a path there is a
 root of the system of its own piece (or of the Heron √).  So that such a piece is solved,
@@ -120,13 +120,18 @@ tuple 122 of 300, β/S² = 0.021 on a triangle whose samples start at 0.029).  O
 crossing TIR keep the sampled pieces (bounding them would add most of the 15 pieces: 2x
 the determinants).  When the Heron fit fails (β/S² spanning much of [0, 1] over the
 triangle: ~3 pieces per orientation on planted TT), each of those pieces was scanned over
-the whole triangle.  Measured on the test's first 2,000 tuples per chain (brute force,
-``bench/two_bounce_recall.py``): the same misses as before (TT 7, RT 4, TR 0) with
-determinants TT 1.63M -> 1.13M, RT 1.32M -> 0.95M, TR 0.87M -> 0.68M.  What it costs:
-paths found only from a far root of a piece used outside its band — one well-conditioned
-path of the 190 planted TT tuples of ``bench/solver.py`` (tuple 153: no system's
-pre-pass keeps it, with or without bands; the systems of its own √ piece or Heron √ have
-no root there, which points at the side rule of vertex 2, not investigated).  A candidate
+the whole triangle.  Measured (brute force, ``bench/two_bounce_recall.py``, 2026-11-25):
+TT on the 10,000-tuple acceptance set 38 -> 37 missed (99.529 -> 99.542 %; one near-TIR
+path lost, k_min 4e-3, two gained), determinants 8.17M -> 6.81M; RT and TR on the first
+2,000 tuples the same misses (4, 0), determinants 1.32M -> 1.05M, 0.87M -> 0.80M.  With
+one neighbour each side (reach 1) the determinants were 5.69M, but 42 missed (paths that
+a piece's own system misses, e.g. ill-conditioned or a root pair in one scan piece, and
+the neighbouring pieces' slightly different systems found); reach 2: 6.40M, 38 missed,
+not the same 38.  What it costs: one well-conditioned path of the 190 planted TT tuples of
+``bench/solver.py`` (tuple 153) is lost at every reach: no system's pre-pass keeps it,
+with or without bands — it was found from a far root of a piece used well outside its
+interval; its own √ piece and Heron √ systems have no root there (the side rule at vertex
+2?  not investigated).  A candidate
 from the straight line x0 -> x3 covers the normal-incidence path through parallel faces
 (on-axis slab), where the coplanarity polynomial vanishes identically.
 
@@ -197,7 +202,7 @@ TWO_PROJECTIONS = False  # also scan the other hidden variable (u1) of each orie
 BOTH_DIRECTIONS = True  # solve the chain forward and reversed (reciprocity)
 SQRT_ALL_PIECES = False  # solve once per √ piece overlapping the triangle's β range (slow)
 SQRT_BANDS = True  # an eq (23) piece's system only where β/S² can lie in its band (the piece and its neighbours)
-SQRT_BAND_REACH = 1  # ... pieces on each side of it
+SQRT_BAND_REACH = 3  # ... and this many pieces on each side of it (1 and 2 lose paths: see the module doc)
 BETA_GRID = 8  # boxes per side of the β-range grid that adds the √ pieces a path could need ...
 BETA_MASK_FROM = 5  # ... from this piece up (below: next to TIR, where the bound is loose and pieces many)
 BETA_SLOT = 46  # biv slot of β (eq 22, local frame, degree 4) for the bands
@@ -1362,8 +1367,7 @@ def _beta_poly(geo_l, r, biv):
 @kernel
 def _sqrt_band(piece, S2):
     """The β band [blo, bhi] where the system of eq (23)'s piece ``piece`` is solved: the
-    piece's interval and SQRT_BAND_REACH neighbours' on each side (2 tried: the same
-    missed path of the test set as 1; the piece's error grows outside its own
+    piece's interval and SQRT_BAND_REACH neighbours' on each side (the piece's error grows outside its own
     interval; a root found there belongs to a neighbour, whose own system holds it more
     accurately).  Unbounded below for the first piece (β < 0 is TIR: no path) and above for
     the last; (-inf, inf) for the Heron √ (piece < 0) or without ``SQRT_BANDS``."""

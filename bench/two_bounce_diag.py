@@ -131,7 +131,7 @@ def det(A, da, B, db, n, v):
 def scan_roots(A, da, B, db, n, margin, pieces, productive_v):
     cf = np.zeros((2, tb.MAXD + 2))
     mat = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
-    scan = np.zeros((8, tb.MAX_PIECES + 1))
+    scan = np.zeros((9, tb.MAX_PIECES + 1))
     roots = np.zeros(4 * tb.MAX_PIECES)
     stats = np.zeros(tb.N_STATS, np.int64)
     live = scan[7]  # the solver's live pre-pass (pieces where a and b can vanish together)

@@ -107,9 +107,33 @@ refraction at the first vertex the system is solved once per √ piece holding �
 of the triangle's sample points (corners, edge thirds, centroid): usually one or two
 (``SQRT_ALL_PIECES`` solves once per piece overlapping the whole sampled β range instead:
 more recall where x0 is close to a curved triangle, several times the cost); the path-space
-polish removes the error of a piece used a little outside its interval.  A candidate from the straight
-line x0 -> x3 covers the normal-incidence path through parallel faces (on-axis slab), where
-the coplanarity polynomial vanishes identically.
+polish removes the error of a piece used a little outside its interval.  Each piece's system
+is solved only where β/S² can lie in the piece's band — its interval and its 3 neighbours'
+on each side (``SQRT_BANDS``, ``SQRT_BAND_REACH``, :func:`_sqrt_band`): the live pre-pass also drops
+the boxes where the tensor Bernstein bounds of β (degree 4) stay outside the band.
+Elsewhere the piece's rational is off by more than its fit error, and a path there is a
+root of the system of its own piece (or of the Heron √).  So that such a piece is solved,
+an orientation whose samples are all clear of TIR also takes every piece from
+BETA_MASK_FROM up that the Bernstein bounds of β on a BETA_GRID² grid reach
+(:func:`_beta_mask`: the samples miss the extremes of β over the triangle; test set TT
+tuple 122 of 300, β/S² = 0.021 on a triangle whose samples start at 0.029).  Orientations
+crossing TIR keep the sampled pieces (bounding them would add most of the 15 pieces: 2x
+the determinants).  When the Heron fit fails (β/S² spanning much of [0, 1] over the
+triangle: ~3 pieces per orientation on planted TT), each of those pieces was scanned over
+the whole triangle.  Measured (brute force, ``bench/two_bounce_recall.py``, 2026-11-25):
+TT on the 10,000-tuple acceptance set 38 -> 37 missed (99.529 -> 99.542 %; one near-TIR
+path lost, k_min 4e-3, two gained), determinants 8.17M -> 6.81M; RT and TR on the first
+2,000 tuples the same misses (4, 0), determinants 1.32M -> 1.05M, 0.87M -> 0.80M.  With
+one neighbour each side (reach 1) the determinants were 5.69M, but 42 missed (paths that
+a piece's own system misses, e.g. ill-conditioned or a root pair in one scan piece, and
+the neighbouring pieces' slightly different systems found); reach 2: 6.40M, 38 missed,
+not the same 38.  What it costs: one well-conditioned path of the 190 planted TT tuples of
+``bench/solver.py`` (tuple 153) is lost at every reach: no system's pre-pass keeps it,
+with or without bands — it was found from a far root of a piece used well outside its
+interval; its own √ piece and Heron √ systems have no root there (the side rule at vertex
+2?  not investigated).  A candidate
+from the straight line x0 -> x3 covers the normal-incidence path through parallel faces
+(on-axis slab), where the coplanarity polynomial vanishes identically.
 
 One √ for the triangle (``heron_sqrt_fit``, ``HERON_SQRT``).  β/S² spans several of eq
 (23)'s pieces over a triangle (β grows with |x1 - x0|²; planted TT: 3.5 pieces per
@@ -154,7 +178,7 @@ from .roots import MAX_DEGREE, roots_in_interval
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 4  # tuples per parallel work item: a two-bounce tuple costs ~1-200 ms, so small chunks balance threads
 MAXD = 47  # bivariate arrays are (MAXD + 1)²; b has total degree ≤ 46 (TT)
-N_SLOTS = 46  # 0, 1: a, b; 2-36 the system's intermediates, then the live pre-pass's stack (2-33) and its temporaries (34-36, 40-44)
+N_SLOTS = 51  # 0, 1: a, b; 2-36 the system's intermediates, then the live pre-pass's stack (2-33) and its temporaries (34-36, 40-44); 46: β, 47-50 its box conversion
 DEFAULT_PIECES = 100
 MAX_PIECES = 1024
 ROOT_TOL = 1e-4  # v1 brackets are pinned to this; the path-space Newton polish takes it to ~1e-15
@@ -177,6 +201,11 @@ LIVE_STACK = 3 * LIVE_DEPTH + 1
 TWO_PROJECTIONS = False  # also scan the other hidden variable (u1) of each orientation
 BOTH_DIRECTIONS = True  # solve the chain forward and reversed (reciprocity)
 SQRT_ALL_PIECES = False  # solve once per √ piece overlapping the triangle's β range (slow)
+SQRT_BANDS = True  # an eq (23) piece's system only where β/S² can lie in its band (the piece and its neighbours)
+SQRT_BAND_REACH = 3  # ... and this many pieces on each side of it (1 and 2 lose paths: see the module doc)
+BETA_GRID = 8  # boxes per side of the β-range grid that adds the √ pieces a path could need ...
+BETA_MASK_FROM = 5  # ... from this piece up (below: next to TIR, where the bound is loose and pieces many)
+BETA_SLOT = 46  # biv slot of β (eq 22, local frame, degree 4) for the bands
 HERON_SQRT = True  # one system per orientation with √β ≈ Heron step from a fitted quadratic, where it fits
 HERON_TOL = 1e-3  # the Heron √'s largest relative error over the check grid for the fit to be used
 HERON_CUT = 0.03  # ... at the check points with β/S² at least this; the √ pieces below it (eq 23) stay
@@ -426,9 +455,15 @@ def _bernstein_rows(A, d, R, B):
 
 @kernel
 def _tensor_bernstein(p, d, lo, w, R, out, t0, t1):
+    """:func:`_tensor_bernstein_box` over the square [lo, lo + w]²."""
+    _tensor_bernstein_box(p, d, lo, lo, w, R, out, t0, t1)
+
+
+@kernel
+def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
     """p (triangular power basis, p[i, j] u^i v^j, total degree d) -> its tensor Bernstein
-    coefficients of degree (d, d) over the square [lo, lo + w]² (out[i, j]: u index i, v
-    index j).  Taylor shift and scaling along u, then v, then the power -> Bernstein weights
+    coefficients of degree (d, d) over the square [u0, u0 + w] × [v0, v0 + w] (out[i, j]: u
+    index i, v index j).  Taylor shift and scaling along u, then v, then the power -> Bernstein weights
     R (:func:`_binomial_ratios`) along u, then v; every step is a positive combination or an
     exact shift, so the coefficients carry rounding of the size of the polynomial's max-norm
     only.  Each step runs on whole rows (the v steps on the transpose, t0 and t1 scratch);
@@ -436,9 +471,9 @@ def _tensor_bernstein(p, d, lo, w, R, out, t0, t1):
     for i in range(d + 1):
         for j in range(d + 1):
             out[i, j] = p[i, j] if i + j <= d else 0.0
-    _shift_rows(out, d, lo, w)
+    _shift_rows(out, d, u0, w)
     _transpose_square(out, d, t0)
-    _shift_rows(t0, d, lo, w)
+    _shift_rows(t0, d, v0, w)
     _transpose_square(t0, d, out)
     _bernstein_rows(out, d, R, t1)
     _transpose_square(t1, d, t0)
@@ -507,7 +542,52 @@ def _max_abs(c, d):
 
 
 @kernel
+def _pieces_covered(v0, w, margin, h, pieces, live):
+    """True when every piece a leaf inside the box [v0, v0 + w] (in v1) could mark is live
+    already: the box cannot change the result of :func:`live_pieces` (a leaf's marks are a
+    subset of these, floor being monotone)."""
+    k0 = max(0, int(math.floor((v0 + margin) / h)) - 1)
+    k1 = min(pieces - 1, int(math.floor((v0 + w + margin) / h)) + 1)
+    for k in range(k0, k1 + 1):
+        if live[k] == 0:
+            return False
+    return True
+
+
+@kernel
 def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
+    """:func:`live_pieces_band` without a β band."""
+    return live_pieces_band(a, da, b, db, margin, pieces, biv, boxes, live, -math.inf, math.inf)
+
+
+@kernel
+def _beta_range(biv, u0, v0, w):
+    """(min, max) of the tensor Bernstein coefficients of β (biv[BETA_SLOT], degree 4) over
+    the box [u0, u0 + w] × [v0, v0 + w]: bounds of β there (convex hull property)."""
+    R = biv[BETA_SLOT + 1]
+    out = biv[BETA_SLOT + 2]
+    _binomial_ratios(4, R)
+    _tensor_bernstein_box(biv[BETA_SLOT], 4, u0, v0, w, R, out, biv[BETA_SLOT + 3], biv[BETA_SLOT + 4])
+    lo = math.inf
+    hi = -math.inf
+    for i in range(5):
+        for j in range(5):
+            lo = min(lo, out[i, j])
+            hi = max(hi, out[i, j])
+    return lo, hi
+
+
+@kernel
+def _out_of_band(biv, u0, v0, w, blo, bhi, tol):
+    """True when β provably stays outside [blo, bhi] (widened by tol) on the box."""
+    if blo == -math.inf and bhi == math.inf:
+        return False
+    lo, hi = _beta_range(biv, u0, v0, w)
+    return hi < blo - tol or lo > bhi + tol
+
+
+@kernel
+def live_pieces_band(a, da, b, db, margin, pieces, biv, boxes, live, blo, bhi):
     """live[k] = 1 for the scan pieces whose v1 range a common zero of a and b with
     u1 ∈ [-m, 1 - v1 + m] can lie in; returns their count.
 
@@ -518,7 +598,17 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
     beyond u1 + v1 = 1 + m is dropped.  The v1 range of every leaf left, widened by one piece on each side, marks
     its pieces.  Resultant roots elsewhere have their common u1 outside the triangle (or
     complex): most of a planted tuple's ~100 real roots (RT, TT), each of which costs
-    Illinois determinants, refinement of its kinks and candidates that lead nowhere."""
+    Illinois determinants, refinement of its kinks and candidates that lead nowhere.
+
+    With a band [blo, bhi] (not ±inf), a box where β (biv[BETA_SLOT]) provably stays
+    outside it is dropped as well (:func:`_out_of_band`): an eq (23) √ piece's system
+    approximates the refraction only where β/S² lies in (or next to) the piece's interval,
+    and the paths elsewhere are the roots of the other pieces' systems (``SQRT_BANDS``).
+
+    Only the v1 pieces are the result, so a box whose pieces are all live already (another
+    box of the same v1 column marked them) is not split further (:func:`_pieces_covered`):
+    the same live pieces for fewer de Casteljau splits of b (the a-curve crosses a column
+    of boxes several times)."""
     h = (1.0 + 2.0 * margin) / pieces
     for k in range(pieces):
         live[k] = 0
@@ -531,6 +621,10 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
     _tensor_bernstein(b, db, -margin, 1.0 + 2.0 * margin, R, biv[LIVE_SLOT0 + 1], biv[34], biv[35])
     tol_a = LIVE_TOL * _max_abs(biv[LIVE_SLOT0], da)
     tol_b = LIVE_TOL * _max_abs(biv[LIVE_SLOT0 + 1], db)
+    tol_beta = 0.0
+    if blo != -math.inf or bhi != math.inf:
+        tol_beta = 1e-12 * (_max_abs(biv[BETA_SLOT], 4) + max(abs(blo) if blo != -math.inf else 0.0,
+                                                             abs(bhi) if bhi != math.inf else 0.0))
     boxes[0, 0] = -margin
     boxes[0, 1] = -margin
     boxes[0, 2] = 1.0 + 2.0 * margin
@@ -546,6 +640,10 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
         ca = biv[LIVE_SLOT0 + 2 * top]
         cb = biv[LIVE_SLOT0 + 2 * top + 1]
         if level < 0.0 or u0 + v0 > 1.0 + margin:
+            continue
+        if _pieces_covered(v0, w, margin, h, pieces, live):
+            continue
+        if level == 0.0 and _out_of_band(biv, u0, v0, w, blo, bhi, tol_beta):
             continue
         if not _may_vanish(ca, da, tol_a) or not _may_vanish(cb, db, tol_b):
             continue
@@ -575,6 +673,8 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
             for sv in range(2):
                 c = 2 * su + sv
                 if boxes[top + c, 0] + boxes[top + c, 1] > 1.0 + margin or \
+                        _pieces_covered(boxes[top + c, 1], hw, margin, h, pieces, live) or \
+                        _out_of_band(biv, boxes[top + c, 0], boxes[top + c, 1], hw, blo, bhi, tol_beta) or \
                         not _may_vanish(biv[LIVE_SLOT0 + 2 * (top + c)], da, tol_a):
                     boxes[top + c, 3] = -1.0  # dead
                 else:
@@ -800,7 +900,7 @@ def find_v_roots(a, da, b, db, n, lo, hi, pieces, live, cf, mat, scan, out_roots
     stays in scan[0:3] and each root's piece index in scan[4], for :func:`refine_v_roots`.
     Only the pieces with ``live[k]`` (:func:`live_pieces`) are scanned (their samples and
     the neighbours the kink test needs; the others hold sign 2).
-    scan: (8, MAX_PIECES + 1) scratch.  Returns the root count, or -1 when the determinant
+    scan: (9, MAX_PIECES + 1) scratch.  Returns the root count, or -1 when the determinant
     vanishes at most samples (degenerate system)."""
     vs = scan[0]
     sg = scan[1]
@@ -882,7 +982,9 @@ def refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, out_roots, n_fo
         _, g_hi = _det_checked(a, da, b, db, n, vs[pieces] + h, cf, mat, stats)
     g_lo = _deflate(vs[0] - h, g_lo, out_roots, n_found)
     g_hi = _deflate(vs[pieces] + h, g_hi, out_roots, n_found)
+    raw = scan[8]  # the scan's log|det| before deflation: the ends of a refined piece
     for k in range(pieces + 1):
+        raw[k] = lgs[k]
         lgs[k] = _deflate(vs[k], lgs[k], out_roots, n_found)
     refine_flags_one(lgs, g_lo, g_hi, out_roots, n_found, piece_of, productive, pieces, live, flags)
     count = n_found
@@ -896,7 +998,8 @@ def refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, out_roots, n_fo
             continue
         last_of_run = k + 1 >= pieces or flags[k + 1] == 0.0
         count, carry, cv, cs, cl = _refine_interval(a, da, b, db, n, vs[k], vs[k + 1], cf, mat, stack, sub, out_roots,
-                                                     n_found, count, stats, carry, cv, cs, cl, last_of_run)
+                                                     n_found, count, stats, carry, cv, cs, cl, last_of_run,
+                                                     int(sg[k]), raw[k], int(sg[k + 1]), raw[k + 1])
     return count
 
 
@@ -931,7 +1034,7 @@ def _deflate(v, lg, roots, n_roots):
 
 @kernel
 def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_scan, count, stats, carry, cv, cs, cl,
-                     last_of_run):
+                     last_of_run, s_lo, l_lo, s_hi, l_hi):
     """Roots in [lo, hi] the uniform scan missed: recursive sub-sampling (explicit stack); a
     sub-piece next to a convex kink of the deflated log|det| is cut again (up to
     REFINE_LEVELS levels); new sign changes (not around one of the n_scan scan roots) are
@@ -945,8 +1048,11 @@ def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_
     A flagged piece is one of a run of consecutive flagged pieces: (carry, cv, cs, cl) is
     the previous piece's last sub-sample before lo (v, sign, raw log|det|), so that the dip
     rule sees the sample at lo with both neighbours; the first piece of a run takes one
-    more sample below lo instead, the last one (``last_of_run``) one above hi.  Returns
-    (count, carry, cv, cs, cl) for the next piece."""
+    more sample below lo instead, the last one (``last_of_run``) one above hi.  The ends lo
+    and hi are scan samples: their (sign, raw log|det|) (s_lo, l_lo), (s_hi, l_hi) are
+    taken as they are instead of being evaluated again (the same v, so the same values:
+    2 of the SUB_SAMPLES + 1 determinants per piece).  Returns (count, carry, cv, cs, cl)
+    for the next piece."""
     cap = out_roots.shape[0]
     stack[0, 0] = lo
     stack[0, 1] = hi
@@ -973,7 +1079,12 @@ def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_
             v = lo + k * h
             if k == M:
                 v = hi
-            s, lg = _det_checked(a, da, b, db, n, v, cf, mat, stats)
+            if outer and k == 0 and s_lo != 2:
+                s, lg = s_lo, l_lo
+            elif outer and k == M and s_hi != 2:
+                s, lg = s_hi, l_hi
+            else:
+                s, lg = _det_checked(a, da, b, db, n, v, cf, mat, stats)
             sv[k + 1] = v
             ss[k + 1] = s
             sl[k + 1] = lg
@@ -1229,6 +1340,68 @@ def heron_sqrt_fit(geo_l, r, margin, S2, M):
             if not (q - y) * (q - y) <= HERON_TOL * 2.0 * q * y:
                 return False, c
     return True, c
+
+
+# --- √ pieces: which to solve, and where ----------------------------------------------------
+
+
+@kernel
+def _beta_poly(geo_l, r, biv):
+    """β = |n1|²|d0|²(1 - r²) + r²(d0·n1)² (eq 22) into biv[BETA_SLOT] (local frame, degree
+    4; the same arithmetic as :func:`_build_system`'s; slots 2-4, 7-12 as scratch)."""
+    x0 = (geo_l[0, 0], geo_l[0, 1], geo_l[0, 2])
+    D0 = biv[7:10]
+    N1 = biv[10:13]
+    _vlin(D0, (-x0[0], -x0[1], -x0[2]), (geo_l[2, 0], geo_l[2, 1], geo_l[2, 2]), (geo_l[3, 0], geo_l[3, 1], geo_l[3, 2]))
+    _vlin(N1, (geo_l[4, 0], geo_l[4, 1], geo_l[4, 2]), (geo_l[5, 0], geo_l[5, 1], geo_l[5, 2]),
+          (geo_l[6, 0], geo_l[6, 1], geo_l[6, 2]))
+    _vdot(D0, 1, N1, 1, biv[2])
+    _vdot(N1, 1, N1, 1, biv[3])
+    _vdot(D0, 1, D0, 1, biv[4])
+    beta = biv[BETA_SLOT]
+    _bzero(beta, 4)
+    _bmul_acc(biv[3], 2, biv[4], 2, beta, 1.0 - r * r)
+    _bmul_acc(biv[2], 2, biv[2], 2, beta, r * r)
+
+
+@kernel
+def _sqrt_band(piece, S2):
+    """The β band [blo, bhi] where the system of eq (23)'s piece ``piece`` is solved: the
+    piece's interval and SQRT_BAND_REACH neighbours' on each side (the piece's error grows outside its own
+    interval; a root found there belongs to a neighbour, whose own system holds it more
+    accurately).  Unbounded below for the first piece (β < 0 is TIR: no path) and above for
+    the last; (-inf, inf) for the Heron √ (piece < 0) or without ``SQRT_BANDS``."""
+    if piece < 0 or not SQRT_BANDS:
+        return -math.inf, math.inf
+    K = SQRT_PIECES.shape[0]
+    blo = -math.inf if piece < SQRT_BAND_REACH else S2 * SQRT_PIECES[piece - SQRT_BAND_REACH, 0]
+    bhi = math.inf if piece + SQRT_BAND_REACH >= K else S2 * SQRT_PIECES[piece + SQRT_BAND_REACH, 1]
+    return blo, bhi
+
+
+@kernel
+def _beta_mask(biv, margin, S2):
+    """Bit k set for every eq (23) piece k ≥ BETA_MASK_FROM whose interval β/S² can reach
+    on triangle 1 widened by the margin: bounds of β (biv[BETA_SLOT]) on a BETA_GRID² grid
+    of boxes over [-m, 1 + m]² (boxes beyond u1 + v1 = 1 + m skipped).  With the pieces at
+    the sample points (which can miss the extremes of β over the triangle), a path whose
+    β/S² lies in such a piece has that piece's own system solved (``SQRT_BANDS``)."""
+    mask = 0
+    K = SQRT_PIECES.shape[0]
+    w = (1.0 + 2.0 * margin) / BETA_GRID
+    for i in range(BETA_GRID):
+        for j in range(BETA_GRID):
+            u0 = -margin + i * w
+            v0 = -margin + j * w
+            if u0 + v0 > 1.0 + margin:
+                continue
+            lo, hi = _beta_range(biv, u0, v0, w)
+            lo /= S2
+            hi /= S2
+            for k in range(BETA_MASK_FROM, K):
+                if hi >= SQRT_PIECES[k, 0] and (lo <= SQRT_PIECES[k, 1] or k == K - 1):
+                    mask |= 1 << k
+    return mask
 
 
 # --- building the bivariate system ---------------------------------------------------------
@@ -1684,6 +1857,10 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                 # Gauss-Newton polish in path space removes the error of a piece used
                 # a little outside its interval)
                 mask |= 1 << _sqrt_piece(xc)
+        if refract1 and SQRT_BANDS:
+            _beta_poly(geo_l, r1, biv)
+            if xlo > 0.0:
+                mask |= _beta_mask(biv, margin, S * S)
         heron_ok = False
         heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if refract1 and HERON_SQRT:
@@ -1713,7 +1890,8 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                     eta_out2 = eta if s_in2 > 0.0 else 1.0
                 da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2,
                                        eta_out2, flat2, c2, geo_l, biv)
-                count = _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, geo, eta, sc_cf,
+                blo, bhi = _sqrt_band(piece if refract1 else -1, S * S)
+                count = _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, stop_after, geo, eta, sc_cf,
                                       sc_mat, sc_scan, sc_work, th, v_roots, u_roots, coeffs, sc_chain, sc_lists, rev, geo_fwd, out_uv, meta,
                                       count, stats)
                 if count < 0:
@@ -1723,10 +1901,11 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
 
 
 @kernel
-def _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
+def _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
                   v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
-    """Roots of {a = 0, b = 0} -> polished paths.  Returns the new count, or -(count + 1)
-    when the system is degenerate (identically vanishing resultant)."""
+    """Roots of {a = 0, b = 0} -> polished paths, where β lies in [blo, bhi] (the √ piece's
+    band, :func:`_sqrt_band`).  Returns the new count, or -(count + 1) when the system is
+    degenerate (identically vanishing resultant)."""
     a = biv[0]
     b = biv[1]
     ma = _bmax(a, da)
@@ -1752,7 +1931,7 @@ def _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, g
     # Hidden variable v1 (u1 eliminated), then hidden u1 (v1 eliminated) on the transposed
     # system: two solutions whose projections on one axis fall within one piece are a root
     # pair no sign scan separates, but they are seldom that close on both axes.
-    count = _eliminate(a, da, b, db, False, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
+    count = _eliminate(a, da, b, db, blo, bhi, False, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
                        work, th, biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
     if count < 0:
         return count
@@ -1762,7 +1941,7 @@ def _solve_system(biv, da, db, refract1, refract2, margin, pieces, stop_after, g
     bt = biv[38]
     _transpose(a, da, at)
     _transpose(b, db, bt)
-    return _eliminate(at, da, bt, db, True, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
+    return _eliminate(at, da, bt, db, -math.inf, math.inf, True, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
                       work, th, biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
 
 
@@ -1774,7 +1953,7 @@ def _transpose(src, d, dst):
 
 
 @kernel
-def _eliminate(a, da, b, db, swapped, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
+def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
                biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
     """Eliminate the first variable (rows of a, b), scan the hidden one (columns), back-solve,
     polish.  ``swapped``: the hidden variable is u1 (the arrays are transposed)."""
@@ -1786,7 +1965,7 @@ def _eliminate(a, da, b, db, swapped, refract1, refract2, margin, pieces, stop_a
     live = scan[7]
     if LIVE_PREPASS:
         boxes = scan[3, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
-        if live_pieces(a, da, b, db, margin, pieces, biv, boxes, live) == 0:
+        if live_pieces_band(a, da, b, db, margin, pieces, biv, boxes, live, blo, bhi) == 0:
             return count
     else:
         for k in range(pieces):
@@ -1915,7 +2094,7 @@ def make_scratch2():
     biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
     cf = np.zeros((2, MAXD + 2))
     mat = np.zeros((MAXD + 1, MAXD + 1))
-    scan = np.zeros((8, MAX_PIECES + 1))
+    scan = np.zeros((9, MAX_PIECES + 1))
     geo = np.zeros((3, 15, 3))
     work = np.zeros((25, 6))
     roots = np.zeros((MAX_PATHS_TWO_BOUNCE + 5, 4 * MAX_PIECES))

@@ -51,7 +51,8 @@ from .path_space2 import pack_geometry
 from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
-    TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces,
+    TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces_band,
+    SQRT_BANDS, _beta_mask, _beta_poly, _sqrt_band,
     _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_fit, HERON_SQRT, HERON_CUT,
     _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
     refine_flags_one, solve_two_bounce_tuple,
@@ -280,6 +281,10 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 xhi = min(1.0, xhi * 1.25)
             else:
                 mask |= 1 << _sqrt_piece(xc)
+        if refract1 and SQRT_BANDS:
+            _beta_poly(geo_l, r1, biv)
+            if xlo > 0.0:
+                mask |= _beta_mask(biv, V_MARGIN_APPROX, S * S)
         heron_ok = False
         heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if refract1 and HERON_SQRT:
@@ -314,8 +319,9 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 if status == 1:
                     if LIVE_PREPASS:
                         boxes = live_work[1, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
-                        if live_pieces(biv[0], da, biv[1], db, V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT, pieces,
-                                       biv, boxes, live) == 0:
+                        blo, bhi = _sqrt_band(piece if refract1 else -1, S * S)
+                        if live_pieces_band(biv[0], da, biv[1], db, V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT,
+                                            pieces, biv, boxes, live, blo, bhi) == 0:
                             continue  # as ``_eliminate``: no common zero near the triangle
                     else:
                         for k in range(pieces):
@@ -778,6 +784,7 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     # stage D: refinement (refine_v_roots / _refine_interval at REFINE_LEVELS = 1)
     M = SUB_SAMPLES
     flags = np.zeros((S, max(pieces, 1)), dtype=np.int64)
+    lg_raw = lg.copy()  # the scan's log|det| before refine_flags deflates it: a refined piece's ends
     if REFINE_LEVELS and S:
         # the ghost samples a piece outside either end of the range (where that end's piece is live)
         ghost = np.zeros((S, 2))
@@ -803,12 +810,20 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     sv[:, M] = b_
     first = np.flatnonzero(~prev_flag)
     last = np.flatnonzero(~next_flag)
-    job_sys = np.concatenate([np.repeat(fs, M + 1), fs[first], fs[last]]).astype(np.int32)
-    job_v = np.concatenate([sv.ravel(), a_[first] - hsub[first], b_[last] + hsub[last]])
+    # the sub-samples inside each piece; its two ends are scan samples, taken as they are
+    # (``_refine_interval``: the same v, so the same values)
+    job_sys = np.concatenate([np.repeat(fs, M - 1), fs[first], fs[last]]).astype(np.int32)
+    job_v = np.concatenate([sv[:, 1:M].ravel(), a_[first] - hsub[first], b_[last] + hsub[last]])
     sign, log, dets = dev.dets(job_sys, np.ascontiguousarray(job_v))
     np.add.at(dets_per_sys, job_sys, dets)
-    ss = sign[:F * (M + 1)].reshape(-1, M + 1).astype(np.int64)
-    sl = log[:F * (M + 1)].reshape(-1, M + 1)
+    ss = np.zeros((F, M + 1), dtype=np.int64)
+    sl = np.zeros((F, M + 1))
+    ss[:, 1:M] = sign[:F * (M - 1)].reshape(-1, M - 1)
+    sl[:, 1:M] = log[:F * (M - 1)].reshape(-1, M - 1)
+    ss[:, 0] = sg[fs, fk]
+    sl[:, 0] = lg_raw[fs, fk]
+    ss[:, M] = sg[fs, fk + 1]
+    sl[:, M] = lg_raw[fs, fk + 1]
     svx = np.zeros((F, M + 3))
     ssx = np.zeros((F, M + 3), dtype=np.int64)
     slx = np.zeros((F, M + 3))
@@ -819,7 +834,7 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     svx[inner, 0] = sv[inner - 1, M - 1]
     ssx[inner, 0] = ss[inner - 1, M - 1]
     slx[inner, 0] = sl[inner - 1, M - 1]
-    o = F * (M + 1)
+    o = F * (M - 1)
     svx[first, 0] = job_v[o:o + first.size]
     ssx[first, 0] = sign[o:o + first.size]
     slx[first, 0] = log[o:o + first.size]

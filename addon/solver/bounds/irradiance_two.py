@@ -23,8 +23,8 @@ arithmetic, one shared pair of noise symbols).  Products keep the linear parts e
 only second-order terms into r, so the derivatives — and eq 16's determinant built from them —
 are enclosed up to O(box²): unlike plain interval arithmetic, the correlated terms of eq 9's
 numerators and of the determinant's two products cancel as they do in the exact function.  No
-approximation of √β enters (its Taylor remainder is bounded explicitly), so the bound is
-conservative:
+approximation of √β is left unbounded (``_asqrt``: its Chebyshev affine form carries the error
+in its remainder), so the bound is conservative:
 
 * Ē = max |d0·(e1×e2)| / min |d0|³ / (min |det| · |e_k1 × e_k2|), E̲ with min/max swapped;
 * Ē = inf (status UNBOUNDED_*, counted per reason) where the determinant's enclosure contains
@@ -59,7 +59,7 @@ import time
 import numpy as np
 
 from ..jit import kernel
-from .chain1 import IRR_PAD, P_BU0, P_ELO, P_EHI, P_U0, P_U1, P_V0, P_V1, _eta_ratio, orientation_mask
+from .chain1 import IRR_PAD, P_BU0, P_ELO, P_EHI, P_U0, P_U1, P_V0, P_V1, _eta_ratio, orientation_mask, push_children
 
 NO_PATH = 0
 BOUNDED = 1
@@ -159,11 +159,12 @@ def _asqrt(p):
     approaches 0, near total internal reflection."""
     c, a, b, r = p
     rad = abs(a) + abs(b) + r
-    sl = math.sqrt(c - rad)
+    lo = c - rad
+    sl = math.sqrt(lo)
     sh = math.sqrt(c + rad)
     alpha = 1.0 / (sl + sh)
     delta = (sh - sl) * (sh - sl) * 0.25 * alpha
-    c2 = alpha * (c - (c - rad)) + sl + 0.5 * delta
+    c2 = sl + alpha * (c - lo) + 0.5 * delta  # the chord at x = c, lifted by half the gap
     return (c2, alpha * a, alpha * b, alpha * r + 0.5 * delta + ROUND * 8.0 * (sh + abs(c2)))
 
 
@@ -511,6 +512,8 @@ def first_bounce_reaches(refract1, x0, P1, N1, P2, eta, box, bits, depth):
     stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = box[0], box[1], box[2], box[3], 0.0
     top = 1
     sub = np.empty(4)
+    lo = np.empty(2)
+    hi = np.empty(2)
     while top > 0:
         top -= 1
         for k in range(4):
@@ -520,15 +523,8 @@ def first_bounce_reaches(refract1, x0, P1, N1, P2, eta, box, bits, depth):
             continue
         if level >= depth:
             return True
-        um = 0.5 * (sub[0] + sub[1])
-        vm = 0.5 * (sub[2] + sub[3])
-        for c in range(4):
-            stack[top, 0] = sub[0] if c & 1 == 0 else um
-            stack[top, 1] = um if c & 1 == 0 else sub[1]
-            stack[top, 2] = sub[2] if c & 2 == 0 else vm
-            stack[top, 3] = vm if c & 2 == 0 else sub[3]
-            stack[top, 4] = level + 1
-            top += 1
+        lo[0], hi[0], lo[1], hi[1] = sub[0], sub[1], sub[2], sub[3]
+        top = push_children(stack, top, lo, hi, level)
     return False
 
 
@@ -720,6 +716,8 @@ def piece_irradiance_two(chain_code, x0, P1, N1, P2, N2, Q, eta, lo, hi, rbox, i
     stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = lo[0], hi[0], lo[1], hi[1], 0.0
     top = 1
     box = np.empty(4)
+    sub_lo = np.empty(2)
+    sub_hi = np.empty(2)
     e_hi = 0.0
     e_lo = np.inf
     while top > 0:
@@ -733,15 +731,8 @@ def piece_irradiance_two(chain_code, x0, P1, N1, P2, N2, Q, eta, lo, hi, rbox, i
             stats[1] += 1
             continue
         if level < irr_depth and (st >= UNBOUNDED or bh > irr_ratio * bl):
-            um = 0.5 * (box[0] + box[1])
-            vm = 0.5 * (box[2] + box[3])
-            for c in range(4):
-                stack[top, 0] = box[0] if c & 1 == 0 else um
-                stack[top, 1] = um if c & 1 == 0 else box[1]
-                stack[top, 2] = box[2] if c & 2 == 0 else vm
-                stack[top, 3] = vm if c & 2 == 0 else box[3]
-                stack[top, 4] = level + 1
-                top += 1
+            sub_lo[0], sub_hi[0], sub_lo[1], sub_hi[1] = box[0], box[1], box[2], box[3]
+            top = push_children(stack, top, sub_lo, sub_hi, level)
             continue
         if st >= UNBOUNDED:
             stats[st] += 1

@@ -12,7 +12,7 @@ becomes a tuple when light leaving some sub-box can meet T2 forwards and inside 
 kept.  The work per T1 is a BVH traversal, so tuples grow with the triangles reached, not with
 the square of the mesh.  (The affine tests replaced chain1's Bernstein position bound here:
 fewer pairs — slab10k TT 146,217 -> 144,757, ball1280 13,823 -> 10,553 — in a third of the
-time, and 8 s less compilation, as they share irradiance_two's compiled kernels.)
+time, and ~5 s less compilation, as they share irradiance_two's compiled kernels.)
 """
 
 import time

@@ -279,9 +279,9 @@ def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma
     (vertex 1 -> 2 and d̃2) is done once for all receivers still splitting.
 
     reach[r]: receiver r's ``irradiance_two.receivers_reached`` grid (a box lives for r while
-    ``box_reached``).  Writes rows
-    of chain1's P_* layout plus the receiver index in column P_RECEIVER (Ē = inf, E̲ = 0) and
-    returns their number; when the rows might not fit, boxes stop splitting (stats[3])."""
+    ``box_reached``).  Writes rows of chain1's P_* layout plus the receiver index in column
+    P_RECEIVER (Ē = inf, E̲ = 0) and returns their number; when the rows might not fit, boxes
+    stop splitting (stats[3])."""
     nr = Q.shape[0]
     cap = out.shape[0]
     size = 4 * (max_depth + 2)

@@ -133,15 +133,17 @@ def test_sqrt_fit():
 
 
 def test_heron_sqrt_fit():
-    """The one-system √ (``heron_sqrt_fit``): where the fit is accepted, the Heron step
-    (β + q²) / (2q) errs by at most ~HERON_TOL relative to √β at random points of the widened
-    triangle with β/S² above HERON_CUT (the check grid is finite: 3x slack), and the TT system
-    built with it has total degrees (12, 34) instead of the √ pieces' (16, 46)."""
-    from addon.solver.two_bounce import (HERON_CUT, HERON_TOL, MAXD, N_SLOTS, V_MARGIN_APPROX, _beta_local,
-                                         _build_system, heron_sqrt_fit)
+    """The one-system √ (``heron_sqrt_fit`` at the cut ``heron_sqrt_cut`` picks): where the
+    fit is accepted, the Heron step (β + q²) / (2q) errs by at most ~HERON_TOL relative to √β
+    at random points of the widened triangle with β/S² above the cut (the check grid is
+    finite: 3x slack), the cut is the first of HERON_CUTS where the fit is accepted, and the
+    TT system built with it has total degrees (12, 34) instead of the √ pieces' (16, 46)."""
+    from addon.solver.two_bounce import (HERON_CUTS, HERON_TOL, MAXD, N_SLOTS, V_MARGIN_APPROX, _beta_local,
+                                         _build_system, heron_sqrt_cut, heron_sqrt_fit)
 
     rng = np.random.default_rng(7)
     accepted = 0
+    above_first = 0
     worst = 0.0
     m = V_MARGIN_APPROX
     for _ in range(200):
@@ -158,15 +160,19 @@ def test_heron_sqrt_fit():
         geo_l[11], geo_l[12] = 0.1 * rng.normal(size=3), 0.1 * rng.normal(size=3)
         r = 1 / 1.5
         S2 = max(np.sum(nc ** 2, 1)) * max(np.sum((np.array([[0, 0, 0], geo_l[2], geo_l[3]]) - geo_l[0]) ** 2, 1))
-        ok, c = heron_sqrt_fit(geo_l, r, m, S2, np.zeros((6, 7)))
+        ok, cut, c = heron_sqrt_cut(geo_l, r, m, S2, np.zeros((6, 7)))
+        first_ok = [heron_sqrt_fit(geo_l, r, m, S2, k, np.zeros((6, 7)))[0] for k in HERON_CUTS]
+        assert ok == any(first_ok)
         if not ok:
             continue
+        assert cut == HERON_CUTS[first_ok.index(True)]
         accepted += 1
+        above_first += cut > HERON_CUTS[0]
         uv = rng.uniform(-m, 1 + 2 * m, size=(400, 2))
         uv = uv[uv.sum(1) <= 1 + m]
         for u, v in uv:
             beta = _beta_local(u, v, geo_l, r)
-            if beta < HERON_CUT * S2:
+            if beta < cut * S2:
                 continue
             q = c[0] + u * c[1] + v * c[2] + u * u * c[3] + u * v * c[4] + v * v * c[5]
             worst = max(worst, abs((beta + q * q) / (2 * q) / np.sqrt(beta) - 1))
@@ -177,7 +183,8 @@ def test_heron_sqrt_fit():
             heron_deg = _build_system(True, True, 1.0, r, -1, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
             piece_deg = _build_system(True, True, 1.0, r, 12, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
             assert heron_deg == (12, 34) and piece_deg == (16, 46)
-    print(f"\n[heron sqrt] accepted {accepted}/200 configurations; worst relative error {worst:.3g} (HERON_TOL {HERON_TOL})")
+    print(f"\n[heron sqrt] accepted {accepted}/200 configurations ({above_first} above the first cut); worst relative "
+          f"error {worst:.3g} (HERON_TOL {HERON_TOL})")
     assert accepted >= 50
     assert worst <= 3 * HERON_TOL
 

@@ -144,7 +144,13 @@ to √β (weighted least squares on a grid of the widened triangle) makes the He
 (grazing exit, next to TIR, where √ is too steep for a smooth fit) are solved as before.
 d̃1 then has degree 5 instead of 7 and TT's (a, b) degrees are (12, 34) instead of (16, 46),
 so each determinant is ~2x cheaper.  The path-space polish removes the approximation error as
-it does the pieces'.
+it does the pieces'.  Where the fit fails above HERON_CUT (β/S² spanning much of [0, 1]: √ is
+steep at the low end; ~40 % of planted TT orientations), the next of HERON_CUTS (the starts of
+pieces 10-14) is tried (``heron_sqrt_cut``): the fit then leaves out the steep part, whose eq
+(23) pieces are solved on their own, instead of solving every piece.  With the fit grid 10
+instead of 6 (more points above a high cut), measured 2026-11-25: TT on the 10,000-tuple
+acceptance set 37 -> 36 missed, solve 39.9 -> 29.4 s (2 threads); RT and TR on the first 2,000
+tuples the same misses (4, 0), determinants 1.05M -> 0.97M and 0.80M -> 0.74M.
 
 Path phase (§4.3): at each root v1*, u1 are the roots of a(·, v1*) in the triangle whose
 b(u1, v1*) is relatively small (the smallest always); (u1, v1) is mapped to (u2, v2) by the
@@ -209,8 +215,8 @@ BETA_SLOT = 46  # biv slot of β (eq 22, local frame, degree 4) for the bands
 HERON_SQRT = True  # one system per orientation with √β ≈ Heron step from a fitted quadratic, where it fits
 HERON_TOL = 1e-3  # the Heron √'s largest relative error over the check grid for the fit to be used
 HERON_CUT = 0.03  # ... at the check points with β/S² at least this; the √ pieces below it (eq 23) stay
-HERON_FIT_GRID = 6  # fit points: barycentric grid of this order on the triangle widened by the v margin
-HERON_CHECK_GRID = 10  # check points (a finer grid of the same triangle)
+HERON_FIT_GRID = 10  # fit points: barycentric grid of this order on the triangle widened by the v margin
+HERON_CHECK_GRID = 12  # check points (a finer grid of the same triangle)
 PRODUCTIVE_RADIUS = 0.02  # a root is productive when a path it polished into lies this close (hidden variable)
 B_RELATIVE = 1e-2  # a u-root of a(·, v*) is a candidate when |b| / Σ|b_i u^i| is below this
 POLISH_STEPS = 40
@@ -247,6 +253,11 @@ SQRT_PIECES = np.array([
     [0.4288701802945861, 0.6647475381741225, 0.24332536975163052, 1.365797818199514, 0.6199467885521434],
     [0.6647475381741225, 1.0, 0.30072051142615275, 1.1055615503450655, 0.4063663121380604],
 ])
+
+
+# where the Heron √ does not fit above HERON_CUT, higher cuts in turn (the starts of eq (23)'s
+# pieces 10-14): the fit then covers less of the triangle, and the pieces below it are solved
+HERON_CUTS = np.concatenate((np.array([HERON_CUT]), SQRT_PIECES[10:, 0]))
 
 
 @kernel
@@ -1261,7 +1272,7 @@ def _quadratic_at(c, u, v):
 
 
 @kernel
-def heron_sqrt_fit(geo_l, r, margin, S2, M):
+def heron_sqrt_fit(geo_l, r, margin, S2, cut, M):
     """A quadratic q(u1, v1) ≈ √β over triangle 1 widened by the v margin, for the Heron
     step √β ≈ (β + q²) / (2q) (exact where q = √β; relative error (q - √β)² / (2 q √β), the
     square of the fit's); returns (ok, q's coefficients (1, u, v, u², uv, v²)).
@@ -1272,12 +1283,13 @@ def heron_sqrt_fit(geo_l, r, margin, S2, M):
     7.2 systems per tuple); the Heron form is one system, and d̃1 has degree 5 instead of 7
     (numerator β + q² of degree 4 times n1, denominator 2q of degree 2 times the degree-3
     tangential part), so b has total degree 34 instead of 46 for TT.  Only the part of the
-    triangle with β/S² ≥ HERON_CUT is fitted and checked: near β = 0 (grazing exit, the TIR
+    triangle with β/S² ≥ ``cut`` is fitted and checked: near β = 0 (grazing exit, the TIR
     border) √ is too steep for any smooth fit, and the √ pieces of eq (23) that lie below the
-    cut are still solved as before (each its own system).  ok is False (use every piece as
-    before) where fewer than 12 fit points lie above the cut, q ≤ 0 at a check point above
-    it, or the relative error there exceeds HERON_TOL.  Weighted least squares (weight 1/β:
-    relative error) on a barycentric grid of order HERON_FIT_GRID; M: (6, 7) scratch."""
+    cut are still solved as before (each its own system; :func:`heron_sqrt_cut` picks the
+    cut).  ok is False where fewer than 12 fit points lie above the cut, q ≤ 0 at a check
+    point above it, or the relative error there exceeds HERON_TOL.  Weighted least squares
+    (weight 1/β: relative error) on a barycentric grid of order HERON_FIT_GRID; M: (6, 7)
+    scratch."""
     c = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for i in range(6):
         for j in range(7):
@@ -1290,7 +1302,7 @@ def heron_sqrt_fit(geo_l, r, margin, S2, M):
             u = -margin + w * i / G
             v = -margin + w * j / G
             beta = _beta_local(u, v, geo_l, r)
-            if not beta >= HERON_CUT * S2:
+            if not beta >= cut * S2:
                 continue
             n_fit += 1
             y = math.sqrt(beta)
@@ -1331,7 +1343,7 @@ def heron_sqrt_fit(geo_l, r, margin, S2, M):
             u = -margin + w * i / G
             v = -margin + w * j / G
             beta = _beta_local(u, v, geo_l, r)
-            if not beta >= HERON_CUT * S2:
+            if not beta >= cut * S2:
                 continue
             q = _quadratic_at(c, u, v)
             if not q > 0.0:
@@ -1340,6 +1352,28 @@ def heron_sqrt_fit(geo_l, r, margin, S2, M):
             if not (q - y) * (q - y) <= HERON_TOL * 2.0 * q * y:
                 return False, c
     return True, c
+
+
+@kernel
+def heron_sqrt_cut(geo_l, r, margin, S2, M):
+    """:func:`heron_sqrt_fit` above the first cut of HERON_CUTS where it fits; returns (ok,
+    cut, q's coefficients).  The eq (23) pieces starting at or above the cut are replaced by
+    the one Heron system, those below it are solved each on its own.
+
+    At HERON_CUT alone the fit failed for ~40 % of the planted TT orientations (β/S² spanning
+    much of [0, 1] over the triangle: √ is steep at its low end), which then solved ~3 eq
+    (23) pieces of degree 46 instead; a higher cut drops that steep part from the fit (measured
+    2026-11-25, 1 thread: TT planted 6.8 -> 4.8 ms, random 564 -> 436 µs per tuple; with the
+    finer fit grid, 10 instead of 6)."""
+    ok = False
+    cut = HERON_CUTS[0]
+    c = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for k in range(HERON_CUTS.shape[0]):
+        cut = HERON_CUTS[k]
+        ok, c = heron_sqrt_fit(geo_l, r, margin, S2, cut, M)
+        if ok:
+            break
+    return ok, cut, c
 
 
 # --- √ pieces: which to solve, and where ----------------------------------------------------
@@ -1862,15 +1896,16 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
             if xlo > 0.0:
                 mask |= _beta_mask(biv, margin, S * S)
         heron_ok = False
+        heron_cut = HERON_CUT
         heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if refract1 and HERON_SQRT:
-            heron_ok, heron = heron_sqrt_fit(geo_l, r1, margin, S * S, biv[45, 0:6, 0:7])
+            heron_ok, heron_cut, heron = heron_sqrt_cut(geo_l, r1, margin, S * S, biv[45, 0:6, 0:7])
         for piece in range(-1, n_pieces_sqrt):
-            # piece -1: the Heron √ (β/S² above HERON_CUT), then the eq (23) pieces (only
+            # piece -1: the Heron √ (β/S² above its cut), then the eq (23) pieces (only
             # those reaching below the cut when the Heron √ is used)
             if piece < 0 and not heron_ok:
                 continue
-            if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= HERON_CUT:
+            if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= heron_cut:
                 continue
             if piece >= 0 and refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
                 continue

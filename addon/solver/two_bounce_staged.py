@@ -53,7 +53,7 @@ from .two_bounce import (
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
     TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces_band,
     SQRT_BANDS, _beta_mask, _beta_poly, _sqrt_band,
-    _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_fit, HERON_SQRT, HERON_CUT,
+    _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_cut, HERON_SQRT, HERON_CUT,
     _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
     refine_flags_one, solve_two_bounce_tuple,
 )
@@ -286,15 +286,16 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
             if xlo > 0.0:
                 mask |= _beta_mask(biv, V_MARGIN_APPROX, S * S)
         heron_ok = False
+        heron_cut = HERON_CUT
         heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if refract1 and HERON_SQRT:
-            heron_ok, heron = heron_sqrt_fit(geo_l, r1, V_MARGIN_APPROX, S * S, biv[45, 0:6, 0:7])
+            heron_ok, heron_cut, heron = heron_sqrt_cut(geo_l, r1, V_MARGIN_APPROX, S * S, biv[45, 0:6, 0:7])
         for piece in range(-1, n_pieces_sqrt):
-            # piece -1: the Heron √ (β/S² above HERON_CUT), then the eq (23) pieces (only
+            # piece -1: the Heron √ (β/S² above its cut), then the eq (23) pieces (only
             # those reaching below the cut when the Heron √ is used)
             if piece < 0 and not heron_ok:
                 continue
-            if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= HERON_CUT:
+            if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= heron_cut:
                 continue
             if piece >= 0 and refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
                 continue

@@ -22,7 +22,8 @@ from addon.solver.roots import MAX_DEGREE, roots_in_interval
 
 
 def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
-    """Yield (label, a, da, b, db, margin) for every system _solve_oriented would solve."""
+    """Yield (label, a, da, b, db, margin, geo, (blo, bhi, β)) for every system
+    _solve_oriented would solve: the √ piece's β band and β's polynomial for the pre-pass."""
     geo = np.zeros((15, 3))
     if not pack_geometry(x0, x3, PA, NA, PB, NB, geo):
         return
@@ -60,6 +61,7 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
         s_in1 = sigma1 * (1.0 if side0 > 0 else -1.0)
         r1 = (1.0 / eta) if s_in1 > 0 else eta
         mask = 0
+        xs = [1.0]
         if refract1:
             xs = []
             pts = [(iu / 3.0, iv / 3.0) for iu in range(4) for iv in range(4 - iu)] + [(1 / 3.0, 1 / 3.0)]
@@ -75,8 +77,23 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
                     mask |= 1 << int(tb._sqrt_piece(x))
             if max(xs[:-1]) <= 0:
                 continue
-        for piece in range(tb.SQRT_PIECES.shape[0] if refract1 else 1):
-            if refract1 and not (mask >> piece) & 1:
+        biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
+        if refract1 and tb.SQRT_BANDS:
+            tb._beta_poly(geo_l, r1, biv)
+            if min(xs[:-1]) > 0.0:
+                mask |= int(tb._beta_mask(biv, margin, S * S))
+        beta_poly = biv[tb.BETA_SLOT].copy()
+        heron_ok, heron_cut, heron = False, tb.HERON_CUT, (0.0,) * 6
+        if refract1 and tb.HERON_SQRT:
+            heron_ok, heron_cut, heron = tb.heron_sqrt_cut(geo_l, r1, margin, S * S, np.zeros((6, 7)))
+        for piece in range(-1, tb.SQRT_PIECES.shape[0] if refract1 else 1):
+            # as _solve_oriented: the Heron √ (piece -1) where it fits, the eq (23) pieces
+            # below its cut (all of them without it) held by the mask
+            if piece < 0 and not heron_ok:
+                continue
+            if piece >= 0 and heron_ok and tb.SQRT_PIECES[piece, 0] >= heron_cut:
+                continue
+            if piece >= 0 and refract1 and not (mask >> piece) & 1:
                 continue
             for o2 in range(2 if refract2 else 1):
                 eta_in2 = eta_out2 = 1.0
@@ -88,7 +105,7 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
                     eta_in2 = 1.0 if s_in2 > 0 else eta
                     eta_out2 = eta if s_in2 > 0 else 1.0
                 biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
-                da, db = tb._build_system(refract1, refract2, s_in1, r1, piece, S, eta_in2, eta_out2, flat2,
+                da, db = tb._build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2, eta_out2, flat2,
                                           (c2[0], c2[1], c2[2]), geo_l, biv)
                 a = biv[0, :da + 1, :da + 1].copy()
                 b = biv[1, :db + 1, :db + 1].copy()
@@ -100,8 +117,9 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
                 B = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
                 A[:da + 1, :da + 1] = a
                 B[:db + 1, :db + 1] = b
-                label = f"o1={o1} piece={piece} o2={o2}"
-                yield label, A, da, B, db, margin, geo
+                blo, bhi = tb._sqrt_band(piece if refract1 else -1, S * S)
+                label = f"o1={o1} piece={'heron>=%.3g' % heron_cut if piece < 0 else piece} o2={o2}"
+                yield label, A, da, B, db, margin, geo, (blo, bhi, beta_poly)
 
 
 def _rel(p, d, u, v):
@@ -128,7 +146,7 @@ def det(A, da, B, db, n, v):
     return tb.det_bezout(A, da, B, db, n, v, cf, mat)
 
 
-def scan_roots(A, da, B, db, n, margin, pieces, productive_v):
+def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, math.inf, None)):
     cf = np.zeros((2, tb.MAXD + 2))
     mat = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
     scan = np.zeros((9, tb.MAX_PIECES + 1))
@@ -138,7 +156,10 @@ def scan_roots(A, da, B, db, n, margin, pieces, productive_v):
     live[:pieces] = 1
     if tb.LIVE_PREPASS:
         biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
-        if tb.live_pieces(A, da, B, db, margin, pieces, biv, np.zeros((tb.LIVE_STACK, 4)), live) == 0:
+        blo, bhi, beta_poly = band
+        if beta_poly is not None:
+            biv[tb.BETA_SLOT] = beta_poly
+        if tb.live_pieces_band(A, da, B, db, margin, pieces, biv, np.zeros((tb.LIVE_STACK, 4)), live, blo, bhi) == 0:
             return None, None, "no live piece (the pre-pass excluded the whole square)"
     nv = tb.find_v_roots(A, da, B, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, roots, stats)
     if nv < 0:
@@ -201,19 +222,19 @@ def diagnose_path(chain, d, t, uv_missed, pieces=None, all_uv=None):
             prod_v = list(same[:, 1])
         r1o, r2o = args[0], args[1]
         best = None
-        for label, A, da, B, db, margin, geo_or in systems(*args):
+        for label, A, da, B, db, margin, geo_or, band in systems(*args):
             ra, rb = _rel(A, da, us, vs), _rel(B, db, us, vs)
             if best is None or max(ra, rb) < best[0]:
-                best = (max(ra, rb), label, A, da, B, db, margin, geo_or.copy(), ra, rb)
+                best = (max(ra, rb), label, A, da, B, db, margin, geo_or.copy(), ra, rb, band)
         name = "reversed" if rev else "forward"
         if best is None:
             out.append(f"  [{name}] no system")
             continue
-        _, label, A, da, B, db, margin, geo_or, ra, rb = best
+        _, label, A, da, B, db, margin, geo_or, ra, rb, band = best
         na = int(tb._u_degree(A.copy(), da, 1e-14))
         nb = int(tb._u_degree(B.copy(), db, 1e-15))
         n = max(na, nb)
-        sr, rr, grid = scan_roots(A, da, B, db, n, margin, pieces, prod_v)
+        sr, rr, grid = scan_roots(A, da, B, db, n, margin, pieces, prod_v, band)
         head = f"  [{name}] system {label} (rel |a|={ra:.2g}, |b|={rb:.2g}) n={n}; hidden v*={vs:.12f} u*={us:.9f}"
         if sr is None:
             out.append(head + ": " + (grid or "degenerate (det zero at most samples)"))
@@ -321,7 +342,7 @@ def exact_check(chain, d, t, uv_path, rev=False, width=0.004, npts=7):
         args = (refract1, refract2, x0, x3, P[0], N[0], P[1], N[1], eta)
         us, vs = uv_path[0], uv_path[1]
     best = None
-    for label, A, da, B, db, margin, geo in systems(*args):
+    for label, A, da, B, db, margin, geo, _band in systems(*args):
         r = max(_rel(A, da, us, vs), _rel(B, db, us, vs))
         if best is None or r < best[0]:
             best = (r, A, da, B, db)

@@ -148,9 +148,11 @@ it does the pieces'.  Where the fit fails above HERON_CUT (β/S² spanning much 
 steep at the low end; ~40 % of planted TT orientations), the next of HERON_CUTS (the starts of
 pieces 10-14) is tried (``heron_sqrt_cut``): the fit then leaves out the steep part, whose eq
 (23) pieces are solved on their own, instead of solving every piece.  With the fit grid 10
-instead of 6 (more points above a high cut), measured 2026-11-25: TT on the 10,000-tuple
-acceptance set 37 -> 36 missed, solve 39.9 -> 29.4 s (2 threads); RT and TR on the first 2,000
-tuples the same misses (4, 0), determinants 1.05M -> 0.97M and 0.80M -> 0.74M.
+instead of 6 (more points above a high cut), measured 2026-11-25 on the 10,000-tuple
+acceptance sets: TT 37 -> 36 missed (99.554 %), RT 4 -> 5 (99.939 %), TR 0 -> 1 (99.988 %), RR
+unchanged (100 %); the two new RT/TR misses are ill-conditioned root pairs (sigma_min 2e-3 and
+5e-5, the other path of the pair 1e-3 away, found); 1 thread, planted TT 18 % faster, random
+TT 10 % (:func:`heron_sqrt_cut`).
 
 Path phase (§4.3): at each root v1*, u1 are the roots of a(·, v1*) in the triangle whose
 b(u1, v1*) is relatively small (the smallest always); (u1, v1) is mapped to (u2, v2) by the
@@ -1362,9 +1364,10 @@ def heron_sqrt_cut(geo_l, r, margin, S2, M):
 
     At HERON_CUT alone the fit failed for ~40 % of the planted TT orientations (β/S² spanning
     much of [0, 1] over the triangle: √ is steep at its low end), which then solved ~3 eq
-    (23) pieces of degree 46 instead; a higher cut drops that steep part from the fit (measured
-    2026-11-25, 1 thread: TT planted 6.8 -> 4.8 ms, random 564 -> 436 µs per tuple; with the
-    finer fit grid, 10 instead of 6)."""
+    (23) pieces of degree 46 instead; a higher cut drops that steep part from the fit.  With
+    the finer fit grid (10 instead of 6), measured 2026-11-25 against the code before,
+    interleaved, 1 thread: µs per tuple TT planted 6,090 -> 4,977, random 502 -> 453; RT
+    3,922 -> 3,176 and 175 -> 158; TR 1,803 -> 1,526 and 351 -> 315; RR unchanged."""
     ok = False
     cut = HERON_CUTS[0]
     c = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)

@@ -998,7 +998,8 @@ def refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, out_roots, n_fo
     raw = scan[8]  # the scan's log|det| before deflation: the ends of a refined piece
     for k in range(pieces + 1):
         raw[k] = lgs[k]
-        lgs[k] = _deflate(vs[k], lgs[k], out_roots, n_found)
+        if sg[k] != 2:  # unsampled (no live piece needs it): never read by the kink test
+            lgs[k] = _deflate(vs[k], lgs[k], out_roots, n_found)
     refine_flags_one(lgs, g_lo, g_hi, out_roots, n_found, piece_of, productive, pieces, live, flags)
     count = n_found
     carry = False
@@ -1292,6 +1293,14 @@ def heron_sqrt_fit(geo_l, r, margin, S2, cut, M):
     point above it, or the relative error there exceeds HERON_TOL.  Weighted least squares
     (weight 1/β: relative error) on a barycentric grid of order HERON_FIT_GRID; M: (6, 7)
     scratch."""
+    ok, _, c = _heron_fit(geo_l, r, margin, S2, cut, M)
+    return ok, c
+
+
+@kernel
+def _heron_fit(geo_l, r, margin, S2, cut, M):
+    """:func:`heron_sqrt_fit`, also returning whether enough fit points lie above the cut
+    (ok, enough, c): with too few, every higher cut has too few as well."""
     c = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for i in range(6):
         for j in range(7):
@@ -1315,7 +1324,7 @@ def heron_sqrt_fit(geo_l, r, margin, S2, cut, M):
                     M[k, l] += wt * phi[k] * phi[l]
                 M[k, 6] += wt * phi[k] * y
     if n_fit < 12:
-        return False, c
+        return False, False, c
     # Gaussian elimination with partial pivoting on the 6 x 7 augmented matrix
     for k in range(6):
         p = k
@@ -1323,7 +1332,7 @@ def heron_sqrt_fit(geo_l, r, margin, S2, cut, M):
             if abs(M[i, k]) > abs(M[p, k]):
                 p = i
         if not abs(M[p, k]) > 1e-300:
-            return False, c
+            return False, True, c
         if p != k:
             for j in range(7):
                 t = M[k, j]
@@ -1349,11 +1358,11 @@ def heron_sqrt_fit(geo_l, r, margin, S2, cut, M):
                 continue
             q = _quadratic_at(c, u, v)
             if not q > 0.0:
-                return False, c
+                return False, True, c
             y = math.sqrt(beta)
             if not (q - y) * (q - y) <= HERON_TOL * 2.0 * q * y:
-                return False, c
-    return True, c
+                return False, True, c
+    return True, True, c
 
 
 @kernel
@@ -1373,8 +1382,8 @@ def heron_sqrt_cut(geo_l, r, margin, S2, M):
     c = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for k in range(HERON_CUTS.shape[0]):
         cut = HERON_CUTS[k]
-        ok, c = heron_sqrt_fit(geo_l, r, margin, S2, cut, M)
-        if ok:
+        ok, enough, c = _heron_fit(geo_l, r, margin, S2, cut, M)
+        if ok or not enough:
             break
     return ok, cut, c
 

@@ -265,6 +265,88 @@ def test_live_prepass():
     assert tb.live_pieces(a, da, b, db, m, pieces, biv, boxes, live) == 0
 
 
+@pytest.mark.parametrize("refract1", [False, True])
+def test_prepass_hit_test(refract1):
+    """The pre-pass's test that a box of (u1, v1) cannot reach triangle 2 (``_misses_second``,
+    on the map x1 -> x2 of eq 14-17 that ``_build_system`` stores): at 12 x 12 points of every
+    box it drops, the exact scattered ray (numpy, exact √ for refraction) either points away
+    from triangle 2's plane or meets it outside triangle 2 widened by the margin — the whole
+    margin for the exact reflected map, half of it for the √-approximated refracted one (the
+    rest is the approximation's allowance) — and it drops a good share of boxes of random
+    configurations (not vacuous)."""
+    from addon.solver import two_bounce as tb
+
+    rng = np.random.default_rng(11)
+    m = tb.V_MARGIN_APPROX if refract1 else tb.V_MARGIN_EXACT
+    margin2 = tb.HIT_MARGIN_APPROX if refract1 else tb.HIT_MARGIN_EXACT
+    allowed = 0.5 * margin2 if refract1 else margin2 - 1e-9
+    dropped = tested = configs = 0
+    for _ in range(60):
+        geo_l = np.zeros((13, 3))
+        geo_l[2], geo_l[3] = rng.normal(size=3), rng.normal(size=3)
+        ng = np.cross(geo_l[2], geo_l[3])
+        ng /= np.linalg.norm(ng)
+        nc = ng + 0.3 * rng.normal(size=(3, 3))
+        geo_l[4], geo_l[5], geo_l[6] = nc[0], nc[1] - nc[0], nc[2] - nc[0]
+        geo_l[0] = (geo_l[2] + geo_l[3]) / 3 + ng * rng.uniform(1.0, 4.0) + rng.normal(size=3)  # x0
+        geo_l[1] = rng.normal(size=3) * 3  # x3
+        side = -1.0 if refract1 else 1.0  # triangle 2 on the far side for refraction, the near side for reflection
+        geo_l[7] = ng * side * rng.uniform(0.5, 3.0) + rng.normal(size=3)
+        geo_l[8], geo_l[9] = rng.normal(size=3), rng.normal(size=3)
+        geo_l[10] = rng.normal(size=3)
+        r = 1 / 1.5
+        S2 = max(np.sum(nc ** 2, 1)) * max(np.sum((np.array([[0, 0, 0], geo_l[2], geo_l[3]]) - geo_l[0]) ** 2, 1))
+        heron = (0.0,) * 6
+        piece = 0
+        if refract1:
+            ok, cut, heron = tb.heron_sqrt_cut(geo_l, r, m, S2, np.zeros((6, 7)))
+            if not ok:
+                continue
+            piece = -1
+        biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
+        c2 = np.cross(geo_l[1], geo_l[10])
+        c2 /= np.linalg.norm(c2)
+        tb._build_system(refract1, False, 1.0, r, piece, np.sqrt(S2), heron, 1.0, 1.0, True, c2, geo_l, biv)
+        configs += 1
+        e21, e22, p20 = geo_l[8], geo_l[9], geo_l[7]
+        for level in (1, 2, 3):
+            w = (1 + 2 * m) / 2 ** level
+            for iu in range(2 ** level):
+                for iv in range(2 ** level - iu):
+                    u0, v0 = -m + iu * w, -m + iv * w
+                    tested += 1
+                    if not tb._misses_second(biv, u0, v0, w, (0.0, 0.0, 0.0, 0.0)):
+                        continue
+                    dropped += 1
+                    for u in np.linspace(u0, u0 + w, 12):
+                        for v in np.linspace(v0, v0 + w, 12):
+                            x1 = u * geo_l[2] + v * geo_l[3]
+                            n = geo_l[4] + u * geo_l[5] + v * geo_l[6]
+                            d0 = x1 - geo_l[0]
+                            if refract1:
+                                beta = (n @ n) * (d0 @ d0) * (1 - r * r) + r * r * (d0 @ n) ** 2
+                                if beta < 0:
+                                    continue  # total internal reflection: no ray at all
+                                d = r * (d0 * (n @ n) - (d0 @ n) * n) - np.sqrt(beta) * n
+                            else:
+                                d = -2 * (d0 @ n) * n + d0 * (n @ n)
+                            # Möller-Trumbore against triangle 2's plane
+                            pv = np.cross(d, e22)
+                            det = pv @ e21
+                            if abs(det) < 1e-12 * np.linalg.norm(d) * np.linalg.norm(e21) * np.linalg.norm(e22):
+                                continue
+                            tv = x1 - p20
+                            u2 = (tv @ pv) / det
+                            qv = np.cross(tv, e21)
+                            v2 = (d @ qv) / det
+                            t = (e22 @ qv) / det
+                            hits = t > 0 and u2 >= -allowed and v2 >= -allowed and u2 + v2 <= 1 + allowed
+                            assert not hits, (u0, v0, w, u, v, u2, v2, t)
+    print(f"\n[pre-pass hit test] refract1={refract1}: {dropped} of {tested} boxes of {configs} configurations dropped")
+    assert configs >= 30
+    assert dropped >= 0.2 * tested
+
+
 @pytest.mark.parametrize("chain", CHAINS)
 def test_path_space_jacobian(chain):
     """Analytic Jacobian of the two-vertex residual against central differences."""

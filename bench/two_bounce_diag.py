@@ -22,8 +22,9 @@ from addon.solver.roots import MAX_DEGREE, roots_in_interval
 
 
 def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
-    """Yield (label, a, da, b, db, margin, geo, (blo, bhi, β)) for every system
-    _solve_oriented would solve: the √ piece's β band and β's polynomial for the pre-pass."""
+    """Yield (label, a, da, b, db, margin, geo, (blo, bhi, β, hit)) for every system
+    _solve_oriented would solve: the √ piece's β band, β's polynomial and the map to
+    triangle 2 (``HIT_SLOT``) for the pre-pass."""
     geo = np.zeros((15, 3))
     if not pack_geometry(x0, x3, PA, NA, PB, NB, geo):
         return
@@ -119,7 +120,8 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
                 B[:db + 1, :db + 1] = b
                 blo, bhi = tb._sqrt_band(piece if refract1 else -1, S * S)
                 label = f"o1={o1} piece={'heron>=%.3g' % heron_cut if piece < 0 else piece} o2={o2}"
-                yield label, A, da, B, db, margin, geo, (blo, bhi, beta_poly)
+                hit = biv[tb.HIT_SLOT:tb.HIT_SLOT + 4].copy()  # the map to triangle 2 for the pre-pass's hit test
+                yield label, A, da, B, db, margin, geo, (blo, bhi, beta_poly, hit)
 
 
 def _rel(p, d, u, v):
@@ -146,7 +148,7 @@ def det(A, da, B, db, n, v):
     return tb.det_bezout(A, da, B, db, n, v, cf, mat)
 
 
-def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, math.inf, None)):
+def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, math.inf, None, None)):
     cf = np.zeros((2, tb.MAXD + 2))
     mat = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
     scan = np.zeros((9, tb.MAX_PIECES + 1))
@@ -156,9 +158,11 @@ def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, m
     live[:pieces] = 1
     if tb.LIVE_PREPASS:
         biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
-        blo, bhi, beta_poly = band
+        blo, bhi, beta_poly, hit = band
         if beta_poly is not None:
             biv[tb.BETA_SLOT] = beta_poly
+        if hit is not None:
+            biv[tb.HIT_SLOT:tb.HIT_SLOT + 4] = hit
         if tb.live_pieces_band(A, da, B, db, margin, pieces, biv, np.zeros((tb.LIVE_STACK, 4)), live, blo, bhi) == 0:
             return None, None, "no live piece (the pre-pass excluded the whole square)"
     nv = tb.find_v_roots(A, da, B, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, roots, stats)

@@ -118,7 +118,7 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
                 B = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
                 A[:da + 1, :da + 1] = a
                 B[:db + 1, :db + 1] = b
-                blo, bhi = tb._sqrt_band(piece if refract1 else -1, S * S)
+                blo, bhi = tb._sqrt_band(piece, S * S, refract1)
                 label = f"o1={o1} piece={'heron>=%.3g' % heron_cut if piece < 0 else piece} o2={o2}"
                 hit = biv[tb.HIT_SLOT:tb.HIT_SLOT + 4].copy()  # the map to triangle 2 for the pre-pass's hit test
                 yield label, A, da, B, db, margin, geo, (blo, bhi, beta_poly, hit)

@@ -320,7 +320,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 if status == 1:
                     if LIVE_PREPASS:
                         boxes = live_work[1, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
-                        blo, bhi = _sqrt_band(piece if refract1 else -1, S * S)
+                        blo, bhi = _sqrt_band(piece, S * S, refract1)
                         if live_pieces_band(biv[0], da, biv[1], db, V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT,
                                             pieces, biv, boxes, live, blo, bhi) == 0:
                             continue  # as ``_eliminate``: no common zero near the triangle

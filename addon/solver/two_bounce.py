@@ -141,11 +141,10 @@ path lost, k_min 4e-3, two gained), determinants 8.17M -> 6.81M; RT and TR on th
 one neighbour each side (reach 1) the determinants were 5.69M, but 42 missed (paths that
 a piece's own system misses, e.g. ill-conditioned or a root pair in one scan piece, and
 the neighbouring pieces' slightly different systems found); reach 2: 6.40M, 38 missed,
-not the same 38.  What it costs: one well-conditioned path of the 190 planted TT tuples of
-``bench/solver.py`` (tuple 153) is lost at every reach: no system's pre-pass keeps it,
-with or without bands — it was found from a far root of a piece used well outside its
-interval; its own √ piece and Heron √ systems have no root there (the side rule at vertex
-2?  not investigated).  A candidate
+not the same 38.  What it cost then: one well-conditioned path of the 190 planted TT tuples
+of ``bench/solver.py`` (tuple 153) was lost at every reach — it had been found from a far
+root of a piece used well outside its interval; since the Heron √ is tried at higher cuts
+(:func:`heron_sqrt_cut`) it is found again (201 paths, planted recall 100 %).  A candidate
 from the straight line x0 -> x3 covers the normal-incidence path through parallel faces
 (on-axis slab), where the coplanarity polynomial vanishes identically.
 
@@ -573,12 +572,20 @@ def _max_abs(c, d):
 
 
 @kernel
+def _piece_span(v0, w, margin, h, pieces):
+    """The scan pieces (k0 .. k1) a leaf [v0, v0 + w] in v1 marks: its own, widened by one
+    piece on each side."""
+    k0 = max(0, int(math.floor((v0 + margin) / h)) - 1)
+    k1 = min(pieces - 1, int(math.floor((v0 + w + margin) / h)) + 1)
+    return k0, k1
+
+
+@kernel
 def _pieces_covered(v0, w, margin, h, pieces, live):
     """True when every piece a leaf inside the box [v0, v0 + w] (in v1) could mark is live
     already: the box cannot change the result of :func:`live_pieces` (a leaf's marks are a
     subset of these, floor being monotone)."""
-    k0 = max(0, int(math.floor((v0 + margin) / h)) - 1)
-    k1 = min(pieces - 1, int(math.floor((v0 + w + margin) / h)) + 1)
+    k0, k1 = _piece_span(v0, w, margin, h, pieces)
     for k in range(k0, k1 + 1):
         if live[k] == 0:
             return False
@@ -592,17 +599,18 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
 
 
 @kernel
-def _beta_range(biv, u0, v0, w):
-    """(min, max) of the tensor Bernstein coefficients of β (biv[BETA_SLOT], degree 4) over
-    the box [u0, u0 + w] × [v0, v0 + w]: bounds of β there (convex hull property)."""
+def _box_range(biv, src, d, u0, v0, w):
+    """(min, max) of the tensor Bernstein coefficients of biv[src] (degree d) over the box
+    [u0, u0 + w] × [v0, v0 + w]: bounds of the polynomial there (convex hull property);
+    slots BETA_SLOT + 1 .. + 4 as scratch."""
     R = biv[BETA_SLOT + 1]
     out = biv[BETA_SLOT + 2]
-    _binomial_ratios(4, R)
-    _tensor_bernstein_box(biv[BETA_SLOT], 4, u0, v0, w, R, out, biv[BETA_SLOT + 3], biv[BETA_SLOT + 4])
+    _binomial_ratios(d, R)
+    _tensor_bernstein_box(biv[src], d, u0, v0, w, R, out, biv[BETA_SLOT + 3], biv[BETA_SLOT + 4])
     lo = math.inf
     hi = -math.inf
-    for i in range(5):
-        for j in range(5):
+    for i in range(d + 1):
+        for j in range(d + 1):
             lo = min(lo, out[i, j])
             hi = max(hi, out[i, j])
     return lo, hi
@@ -613,22 +621,15 @@ def _out_of_band(biv, u0, v0, w, blo, bhi, tol):
     """True when β provably stays outside [blo, bhi] (widened by tol) on the box."""
     if blo == -math.inf and bhi == math.inf:
         return False
-    lo, hi = _beta_range(biv, u0, v0, w)
+    lo, hi = _box_range(biv, BETA_SLOT, 4, u0, v0, w)
     return hi < blo - tol or lo > bhi + tol
 
 
 @kernel
 def _box_max(biv, src, d, u0, v0, w, sign):
-    """max over the box's tensor Bernstein coefficients of sign * biv[src] (degree d)."""
-    R = biv[BETA_SLOT + 1]
-    out = biv[BETA_SLOT + 2]
-    _binomial_ratios(d, R)
-    _tensor_bernstein_box(biv[src], d, u0, v0, w, R, out, biv[BETA_SLOT + 3], biv[BETA_SLOT + 4])
-    hi = -math.inf
-    for i in range(d + 1):
-        for j in range(d + 1):
-            hi = max(hi, sign * out[i, j])
-    return hi
+    """Upper bound of sign * biv[src] (degree d, sign ±1) on the box (:func:`_box_range`)."""
+    lo, hi = _box_range(biv, src, d, u0, v0, w)
+    return hi if sign > 0.0 else -lo
 
 
 @kernel
@@ -642,8 +643,7 @@ def _misses_second(biv, u0, v0, w, tol):
     m = biv[HIT_SLOT, MAXD, 1]
     if dk <= 0:
         return False
-    k_hi = _box_max(biv, HIT_SLOT, dk, u0, v0, w, 1.0)
-    k_lo = -_box_max(biv, HIT_SLOT, dk, u0, v0, w, -1.0)
+    k_lo, k_hi = _box_range(biv, HIT_SLOT, dk, u0, v0, w)
     if k_lo > tol[0]:
         sg = 1.0
     elif k_hi < -tol[0]:
@@ -743,8 +743,7 @@ def live_pieces_band(a, da, b, db, margin, pieces, biv, boxes, live, blo, bhi):
         if not _may_vanish(ca, da, tol_a) or not _may_vanish(cb, db, tol_b):
             continue
         if level >= depth:
-            k0 = max(0, int(math.floor((v0 + margin) / h)) - 1)
-            k1 = min(pieces - 1, int(math.floor((v0 + w + margin) / h)) + 1)
+            k0, k1 = _piece_span(v0, w, margin, h, pieces)
             for k in range(k0, k1 + 1):
                 if live[k] == 0:
                     live[k] = 1
@@ -1529,7 +1528,7 @@ def _beta_mask(biv, margin, S2):
             v0 = -margin + j * w
             if u0 + v0 > 1.0 + margin:
                 continue
-            lo, hi = _beta_range(biv, u0, v0, w)
+            lo, hi = _box_range(biv, BETA_SLOT, 4, u0, v0, w)
             lo /= S2
             hi /= S2
             for k in range(BETA_MASK_FROM, K):

@@ -33,6 +33,19 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
     L1 = max(np.linalg.norm(e11), np.linalg.norm(e12))
     side0 = geo[0] @ ng1
     side3 = (geo[1] - p20) @ ng2
+    # _solve_oriented's cheap side tests: x0 and x3 off the planes, each triangle reaching
+    # the side of the other's plane that the chain needs
+    L2 = max(np.linalg.norm(e21), np.linalg.norm(e22))
+    if abs(side0) <= 1e-12 * L1 or abs(side3) <= 1e-12 * L2:
+        return
+    sd2 = [(q @ ng1) * side0 for q in (p20, p20 + e21, p20 + e22)]
+    tol1 = 1e-9 * (L1 + L2) * abs(side0)
+    if (not refract1 and max(sd2) <= tol1) or (refract1 and min(sd2) >= -tol1):
+        return
+    sd1 = [((q - p20) @ ng2) * side3 for q in (np.zeros(3), e11, e12)]
+    tol2 = 1e-9 * (L1 + L2) * abs(side3)
+    if (not refract2 and max(sd1) <= tol2) or (refract2 and min(sd1) >= -tol2):
+        return
     inv = 1.0 / L1
     geo_l = geo.copy()
     for r in range(13):

@@ -148,6 +148,18 @@ root of a piece used well outside its interval; since the Heron √ is tried at 
 from the straight line x0 -> x3 covers the normal-incidence path through parallel faces
 (on-axis slab), where the coplanarity polynomial vanishes identically.
 
+The TIR fallback.  The centroid's sample is clamped to β/S² ≥ 0, so an orientation whose
+centroid is in total internal reflection (and some sample is not) also takes piece 0, whose
+band reaches β = 0: the paths next to the TIR curve.  That system is the noisiest of all
+(piece 0's rational has its pole at β/S² = -5e-8, on the TIR curve the pre-pass keeps) and
+on random TT tuples it was 45 % of the determinants (kink refinement of its noise), for
+paths the other systems found as well: it is solved for its sign changes only
+(``TIR_FALLBACK_REFINE``; piece 0 as a sampled piece is refined as before).  Measured on the
+10,000-tuple acceptance set (2026-11-26): TT determinants 5.26M -> 4.70M, 37 -> 42 missed
+(99.542 -> 99.480 %; the fallback not solved at all: 4.45M, 46 missed); TR 3.20M -> 3.03M,
+1 -> 2 missed (99.988 -> 99.976 %); 1 thread, random TT tuples 1.27x faster, planted 1.10x
+(interleaved runs).
+
 One √ for the triangle (``heron_sqrt_fit``, ``HERON_SQRT``).  β/S² spans several of eq
 (23)'s pieces over a triangle (β grows with |x1 - x0|²; planted TT: 3.5 pieces per
 orientation), and each piece is a full system to solve.  Where a quadratic q(u1, v1) fitted
@@ -195,6 +207,7 @@ from .path_space import line_crossing_barycentrics
 from .path_space2 import pack_geometry, polish_and_validate2, trace_to_second
 from .vec3 import row
 from .roots import MAX_DEGREE, roots_in_interval
+from .simd import lanes_sub_scaled
 
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 4  # tuples per parallel work item: a two-bounce tuple costs ~1-200 ms, so small chunks balance threads
@@ -220,8 +233,11 @@ LIVE_PREPASS = True
 HIT_TEST = True  # the pre-pass also drops boxes whose x1 cannot reach triangle 2 (``_misses_second``)
 LIVE_SLOT0 = 2  # first biv slot of the pre-pass's box stack (two slots per box: a, b)
 LIVE_STACK = 3 * LIVE_DEPTH + 1
+LANES = 16  # det_bezout's sliding window: g's u-degree m at most this (a: 16 at most); the lane tuple below has 16
+WINDOW_FROM = 24  # ... for matrices at least this large (below, the dense elimination is as fast)
 TWO_PROJECTIONS = False  # also scan the other hidden variable (u1) of each orientation
 BOTH_DIRECTIONS = True  # solve the chain forward and reversed (reciprocity)
+TIR_FALLBACK_REFINE = False  # refine the TIR fallback's system (eq (23) piece 0, centroid in TIR) like the others
 SQRT_ALL_PIECES = False  # solve once per √ piece overlapping the triangle's β range (slow)
 SQRT_BANDS = True  # an eq (23) piece's system only where β/S² can lie in its band (the piece and its neighbours)
 SQRT_BAND_REACH = 3  # ... and this many pieces on each side of it (1 and 2 lose paths: see the module doc)
@@ -843,6 +859,9 @@ def det_bezout(a, da, b, db, n, v, cf, mat):
     those 126 samples; median log error 8e-8 instead of 1.5).  RT recall at 10,000 tuples:
     99.756 % -> 99.866 % with half the determinant evaluations (sign noise made roots).
 
+    The elimination (:func:`_det_hybrid_window` for n ≥ WINDOW_FROM, else
+    :func:`_det_hybrid_dense`) gives the same numbers bit for bit either way.
+
     cf: (2, MAXD + 1) scratch, mat: (MAXD, MAXD) scratch.  Returns (sign, log|det|); sign 0
     when the elimination meets an exactly zero column (or a coefficient vector vanishes)."""
     A = cf[0]
@@ -866,17 +885,35 @@ def det_bezout(a, da, b, db, n, v, cf, mat):
     n = nf
     if n == 0:
         return 1, 0.0
-    for r in range(n):
-        for j in range(n):
-            mat[r, j] = 0.0
-    for r in range(n - m):
-        for i in range(m + 1):
-            mat[r, r + i] = G[i]
-    # row n - c: Σ_l G_l u^l Σ_(i >= c) F_i u^(i-c) - Σ_l F_l u^l Σ_(i >= c) G_i u^(i-c), l < c
-    # (on 1-D slices: the same arithmetic in the same order as the element-wise loops, but
-    # it vectorises — the matrix set-up was half of a determinant's time)
+    if m == 0:
+        # n shift rows of the constant g: G_0^n
+        if G[0] == 0.0:
+            return 0, -math.inf
+        return (-1 if G[0] < 0.0 and n % 2 == 1 else 1), n * math.log(abs(G[0]))
+    if m <= LANES and n >= WINDOW_FROM:
+        return _det_hybrid_window(F, G, n, m, mat)
+    return _det_hybrid_dense(F, G, n, m, A, mat)
+
+
+@kernel
+def _bezoutian_rows(F, G, n, m, out, stride_rows):
+    """The m Bézoutian rows φ_c (c = m … 1) of the hybrid Bézout matrix of (f, g) (u-degrees
+    n, m ≤ n; F, G their coefficient vectors): φ_c = F_hi G_lo - G_hi F_lo with
+    F_hi = Σ_(i ≥ c) F_i u^(i-c), G_lo = Σ_(l < c) G_l u^l (G_hi, F_lo alike), as direct
+    sums: the G_lo terms by ascending l, then the F_lo ones.  (The recurrence
+    φ_c[k] = φ_(c+1)[k - 1] + F_c G_k - G_c F_k is O(n m) instead of O(n m²) but rounds
+    differently; on the resultants that are rounding noise over whole ranges — grazing
+    tuples — that moved which lucky root lands next to a path: RT lost a path of the
+    300-tuple acceptance set, TT 10,000 tuples 3 net.)  φ_c[k] goes to out[k, m - c]
+    (stride_rows: the rows are columns of out) or out[n - c, k]."""
     for c in range(m, 0, -1):
-        row = mat[n - c]
+        # stride_rows: built in the spare last row of out (the lanes use rows < n < MAXD),
+        # then copied into lane m - c
+        row = out[MAXD - 1] if stride_rows else out[n - c]
+        for k in range(n):
+            row[k] = 0.0
+        # on 1-D slices: the same arithmetic in the same order as the element-wise loops,
+        # but it vectorises
         F_hi = F[c:n + 1]
         for l in range(c):
             g = G[l]
@@ -889,6 +926,113 @@ def det_bezout(a, da, b, db, n, v, cf, mat):
             dst = row[l:l + m + 1 - c]
             for i in range(m + 1 - c):
                 dst[i] -= f * G_hi[i]
+        if stride_rows:
+            lane = m - c
+            for k in range(n):
+                out[k, lane] = row[k]
+
+
+@kernel
+def _det_hybrid_window(F, G, n, m, mat):
+    """det of the hybrid Bézout matrix (shift rows u^r g, r < n - m, then the Bézoutian rows
+    φ_m … φ_1) by Gaussian elimination with partial pivoting on a sliding window.
+
+    Column k of the elimination involves only m + 1 rows: the m that are not yet pivots among
+    the Bézoutian rows and the shift rows reached so far, and the shift row u^k g, whose
+    first nonzero is column k (the others are zero there: the dense loop skips them).  The m
+    rows live column-major in LANES lanes, W[j, lane] = mat[j, lane], so one column update
+    is a fixed-length vector operation; the shift row enters untouched (g's coefficients) and
+    takes the place of the pivot when that is not it itself.  The arithmetic on every entry
+    is the dense elimination's (f = x_ik / pivot, x_ij -= f x_kj), the pivot the largest in
+    the column (ties may pick another row than the dense order), so the result is the
+    dense elimination's (tests/test_solver_two_bounce.py, bit for bit).  The sign is that of
+    the pivots and of the permutation (original row of each pivot, parity by cycles).
+    Per determinant, µs on one core (2026-11-26): (m, n) = (16, 34) 7.1 -> 6.8, (16, 46)
+    10.8 -> 9.1, (8, 46) 7.3 -> 6.9; TT random tuples ~6 % less time.  F is overwritten
+    (the multipliers)."""
+    L = LANES
+    perm = mat[:, L]  # original row of the k-th pivot
+    ids = mat[:, L + 1]  # original row in each lane
+    seen = mat[:, L + 2]
+    for j in range(n):
+        for i in range(L):
+            mat[j, i] = 0.0
+    _bezoutian_rows(F, G, n, m, mat, True)
+    f = F  # no longer needed: the multipliers
+    for i in range(L):
+        ids[i] = n - m + i if i < m else -1.0
+    sign = 1
+    logm = 0.0
+    n_shift = n - m
+    for k in range(n):
+        entering = k < n_shift
+        # pivot: the largest |x_ik| over the lanes and the entering row (g's constant term)
+        p = -1
+        big = abs(G[0]) if entering else 0.0
+        row = mat[k]
+        for i in range(L):
+            x = abs(row[i])
+            if x > big:
+                big = x
+                p = i
+        if big == 0.0 or not np.isfinite(big):
+            return 0, -math.inf
+        piv = G[0] if p < 0 else row[p]
+        if piv < 0.0:
+            sign = -sign
+        logm += math.log(abs(piv))
+        inv = 1.0 / piv
+        for i in range(L):
+            f[i] = row[i] * inv
+        if p >= 0:
+            f[p] = 0.0  # the pivot lane is not updated (it is replaced or retired)
+        fv = (f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7], f[8], f[9], f[10], f[11], f[12], f[13], f[14], f[15])
+        if p < 0:
+            # the entering shift row is the pivot: g's coefficients, zero beyond column k + m
+            perm[k] = k
+            for j in range(k + 1, min(n, k + m + 1)):
+                lanes_sub_scaled(mat[j], fv, G[j - k])
+        else:
+            perm[k] = ids[p]
+            fs = G[0] * inv if entering else 0.0
+            for j in range(k + 1, n):
+                row = mat[j]
+                x = row[p]
+                lanes_sub_scaled(row, fv, x)
+                # lane p: the entering row (updated by the pivot row) takes its place
+                if entering:
+                    row[p] = (G[j - k] if j - k <= m else 0.0) - fs * x
+                else:
+                    row[p] = 0.0
+            ids[p] = k if entering else -1.0
+    # the permutation's parity: n minus its number of cycles
+    for k in range(n):
+        seen[k] = 0.0
+    cycles = 0
+    for k in range(n):
+        if seen[k] == 0.0:
+            cycles += 1
+            q = k
+            while seen[q] == 0.0:
+                seen[q] = 1.0
+                q = int(perm[q])
+    if (n - cycles) % 2 == 1:
+        sign = -sign
+    return sign, logm
+
+
+@kernel
+def _det_hybrid_dense(F, G, n, m, A, mat):
+    """det of the hybrid Bézout matrix built in full (m > LANES: not met by the systems of
+    this module; kept for any degree up to MAXD): dense Gaussian elimination with partial
+    pivoting, skipping the rows with a zero in the pivot column.  A: scratch (MAXD)."""
+    for r in range(n - m):
+        for j in range(n):
+            mat[r, j] = 0.0
+    for r in range(n - m):
+        for i in range(m + 1):
+            mat[r, r + i] = G[i]
+    _bezoutian_rows(F, G, n, m, mat, False)
     sign = 1
     logm = 0.0
     for k in range(n):
@@ -913,8 +1057,7 @@ def det_bezout(a, da, b, db, n, v, cf, mat):
         logm += math.log(abs(piv))
         inv = 1.0 / piv
         # the pivot row's tail in a separate buffer (A: the coefficients are in the matrix
-        # now): the row updates then provably do not alias it and vectorise (2-5x faster
-        # at n = 22-46, the same arithmetic in the same order)
+        # now): the row updates then provably do not alias it and vectorise
         w = n - k - 1
         for j in range(w):
             A[j] = mat[k, k + 1 + j]
@@ -1971,6 +2114,7 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
         # x = β/S² range: sample the triangle
         xlo = math.inf
         xhi = -math.inf
+        fallback_piece = -2  # the √ piece solved only as the TIR fallback (piece -1 is Heron)
         mask = 0  # √ pieces holding β/S² at the sample points
         if refract1:
             for iu in range(4):
@@ -2003,7 +2147,16 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                 # the pieces holding x at the corners, edge thirds and centroid (the
                 # Gauss-Newton polish in path space removes the error of a piece used
                 # a little outside its interval)
-                mask |= 1 << _sqrt_piece(xc)
+                if xc > 0.0 or mask & 1 or TIR_FALLBACK_REFINE:
+                    mask |= 1 << _sqrt_piece(xc)
+                else:
+                    # the centroid in total internal reflection: piece 0 (its band reaches
+                    # β = 0) is solved for the paths next to the TIR curve, its sign changes
+                    # only: that system is the noisiest of all (the √'s pole sits at the TIR
+                    # curve) and its kink refinement cost 45 % of random TT's determinants
+                    # for ~0.05 % of the paths (``TIR_FALLBACK_REFINE``; module doc)
+                    mask |= 1
+                    fallback_piece = 0
         if refract1 and SQRT_BANDS:
             _beta_poly(geo_l, r1, biv)
             if xlo > 0.0:
@@ -2039,7 +2192,8 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                 da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2,
                                        eta_out2, flat2, c2, geo_l, biv)
                 blo, bhi = _sqrt_band(piece, S * S, refract1)
-                count = _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, stop_after, geo, eta, sc_cf,
+                count = _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, stop_after,
+                                      piece != fallback_piece, geo, eta, sc_cf,
                                       sc_mat, sc_scan, sc_work, th, v_roots, u_roots, coeffs, sc_chain, sc_lists, rev, geo_fwd, out_uv, meta,
                                       count, stats)
                 if count < 0:
@@ -2049,10 +2203,11 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
 
 
 @kernel
-def _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
+def _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, stop_after, refine, geo, eta, cf, mat, scan, work, th,
                   v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
     """Roots of {a = 0, b = 0} -> polished paths, where β lies in [blo, bhi] (the √ piece's
-    band, :func:`_sqrt_band`).  Returns the new count, or -(count + 1) when the system is
+    band, :func:`_sqrt_band`); ``refine``: refine the scan (:func:`refine_v_roots`) or take
+    its sign changes only.  Returns the new count, or -(count + 1) when the system is
     degenerate (identically vanishing resultant)."""
     a = biv[0]
     b = biv[1]
@@ -2079,7 +2234,7 @@ def _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, sto
     # Hidden variable v1 (u1 eliminated), then hidden u1 (v1 eliminated) on the transposed
     # system: two solutions whose projections on one axis fall within one piece are a root
     # pair no sign scan separates, but they are seldom that close on both axes.
-    count = _eliminate(a, da, b, db, blo, bhi, False, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
+    count = _eliminate(a, da, b, db, blo, bhi, False, refract1, refract2, margin, pieces, stop_after, refine, geo, eta, cf, mat, scan,
                        work, th, biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
     if count < 0:
         return count
@@ -2089,7 +2244,7 @@ def _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, sto
     bt = biv[38]
     _transpose(a, da, at)
     _transpose(b, db, bt)
-    return _eliminate(at, da, bt, db, -math.inf, math.inf, True, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan,
+    return _eliminate(at, da, bt, db, -math.inf, math.inf, True, refract1, refract2, margin, pieces, stop_after, refine, geo, eta, cf, mat, scan,
                       work, th, biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
 
 
@@ -2101,7 +2256,7 @@ def _transpose(src, d, dst):
 
 
 @kernel
-def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, pieces, stop_after, geo, eta, cf, mat, scan, work, th,
+def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, pieces, stop_after, refine, geo, eta, cf, mat, scan, work, th,
                biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
     """Eliminate the first variable (rows of a, b), scan the hidden one (columns), back-solve,
     polish.  ``swapped``: the hidden variable is u1 (the arrays are transposed)."""
@@ -2132,6 +2287,9 @@ def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, piec
         count = _candidates_at(v_roots[iv], a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta,
                                work, th, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
         productive[iv] = 1.0 if stats[STAT_NEAR] > near else 0.0
+    if not refine:
+        stats[STAT_ROOTS] += nv
+        return count
     nv_all = refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, v_roots, nv, productive, stats)
 
     for iv in range(nv, nv_all):

@@ -52,7 +52,7 @@ from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
     TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces_band,
-    SQRT_BANDS, _beta_mask, _beta_poly, _sqrt_band,
+    SQRT_BANDS, TIR_FALLBACK_REFINE, _beta_mask, _beta_poly, _sqrt_band,
     _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_cut, HERON_SQRT, HERON_CUT,
     _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
     refine_flags_one, solve_two_bounce_tuple,
@@ -252,6 +252,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
         xlo = math.inf
         xhi = -math.inf
         mask = 0
+        fallback_piece = -2  # the √ piece solved only as the TIR fallback (piece -1 is Heron)
         if refract1:
             for iu in range(4):
                 for iv in range(4 - iu):
@@ -279,8 +280,11 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
             if SQRT_ALL_PIECES:
                 xlo = max(0.0, xlo * 0.8)
                 xhi = min(1.0, xhi * 1.25)
-            else:
+            elif xc > 0.0 or mask & 1 or TIR_FALLBACK_REFINE:
                 mask |= 1 << _sqrt_piece(xc)
+            else:
+                mask |= 1  # as _solve_oriented: the TIR fallback, its sign changes only
+                fallback_piece = 0
         if refract1 and SQRT_BANDS:
             _beta_poly(geo_l, r1, biv)
             if xlo > 0.0:
@@ -328,7 +332,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                         for k in range(pieces):
                             live[k] = 1
                 if nsys < sysint.shape[0]:
-                    sysint[nsys, 0] = rev
+                    sysint[nsys, 0] = rev + (2 if piece == fallback_piece else 0)  # bit 1: not refined
                     sysint[nsys, 1] = status
                     sysint[nsys, 2] = da
                     sysint[nsys, 3] = db
@@ -421,7 +425,7 @@ def _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef
     for s in range(sys_first[t], sys_first[t + 1]):
         if sysint[s, 1] != 1:
             continue
-        rev = sysint[s, 0] == 1
+        rev = (sysint[s, 0] & 1) == 1
         r1, r2 = _oriented(refract1, refract2, rev)
         da = sysint[s, 2]
         db = sysint[s, 3]
@@ -474,7 +478,7 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
     count = out_count[t]
     straight = False
     for s in range(sys_first[t], sys_first[t + 1]):
-        rev = sysint[s, 0] == 1
+        rev = (sysint[s, 0] & 1) == 1
         if rev and not straight:
             count = _straight_candidate(geo[0], refract1, refract2, eta[t], work, th, out_uv[t], meta[t], count,
                                         stats[t])
@@ -734,7 +738,7 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     dev.load(coef, sysint3, b_offset)
 
     # stage B: the sign scan (find_v_roots) ...
-    r1_oriented = np.where(sysint[:, 0] == 1, refract2, refract1) if S else np.zeros(0, dtype=bool)
+    r1_oriented = np.where((sysint[:, 0] & 1) == 1, refract2, refract1) if S else np.zeros(0, dtype=bool)
     margin = np.where(r1_oriented, V_MARGIN_APPROX, V_MARGIN_EXACT)
     lo = -margin
     hi = 1.0 + margin
@@ -789,14 +793,15 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     if REFINE_LEVELS and S:
         # the ghost samples a piece outside either end of the range (where that end's piece is live)
         ghost = np.zeros((S, 2))
+        refined = live & ((sysint[:, 0] & 2) == 0)  # the TIR fallback's system is not refined
         for end, piece, v_end, sgn in ((0, 0, 0, -1.0), (1, pieces - 1, pieces, 1.0)):
-            ls = np.flatnonzero(live & (live_mask[:, piece] != 0))
+            ls = np.flatnonzero(refined & (live_mask[:, piece] != 0))
             hh = vs[ls, 1] - vs[ls, 0]
             sign, log, dets = dev.dets(ls.astype(np.int32), np.ascontiguousarray(vs[ls, v_end] + sgn * hh))
             ghost[ls, end] = log
             np.add.at(dets_per_sys, ls, dets)
         refine_flags(vs, lg, ghost, roots, nv, piece_of, productive, pieces, live_mask, flags)
-        flags[~live] = 0
+        flags[~refined] = 0
     fs, fk = np.nonzero(flags)
     F = fs.shape[0]
     flag_first = np.concatenate([[0], np.cumsum(np.count_nonzero(flags, axis=1))]).astype(np.int64)

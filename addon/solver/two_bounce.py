@@ -157,8 +157,9 @@ paths the other systems found as well: it is solved for its sign changes only
 (``TIR_FALLBACK_REFINE``; piece 0 as a sampled piece is refined as before).  Measured on the
 10,000-tuple acceptance set (2026-11-26): TT determinants 5.26M -> 4.70M, 37 -> 42 missed
 (99.542 -> 99.480 %; the fallback not solved at all: 4.45M, 46 missed); TR 3.20M -> 3.03M,
-1 -> 2 missed (99.988 -> 99.976 %); 1 thread, random TT tuples 1.27x faster, planted 1.10x
-(interleaved runs).
+1 -> 2 missed (99.988 -> 99.976 %); RT (its reversed orientation refracts first) 4.22M ->
+3.51M, 5 -> 7 missed (99.939 -> 99.915 %); 1 thread, random TT tuples 1.27x faster, planted
+1.10x (interleaved runs).
 
 One √ for the triangle (``heron_sqrt_fit``, ``HERON_SQRT``).  β/S² spans several of eq
 (23)'s pieces over a triangle (β grows with |x1 - x0|²; planted TT: 3.5 pieces per

@@ -351,7 +351,8 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
 @kernel(parallel=True)
 def stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, pieces, live_mask):
     """Stage A over a batch: systems per tuple into coef (n, cap, stride) and sysint
-    (n, cap, 7) = (rev, status, da, db, na, nb, n), their count nsys (n,), and state (n,):
+    (n, cap, 7) = (rev + 2 · not refined, status, da, db, na, nb, n) (bit 1: the TIR fallback's
+    system, sign changes only, as ``_solve_oriented``), their count nsys (n,), and state (n,):
     0 nothing to solve, 1 staged, 2 more than cap systems (solved by the one-kernel path in
     stage E); live_mask (n, cap, pieces): the scan pieces of each system ``live_pieces`` keeps."""
     n = x_start.shape[0]

@@ -297,6 +297,19 @@ HERON_CUTS = np.concatenate((np.array([HERON_CUT]), SQRT_PIECES[10:, 0]))
 
 
 @kernel
+def _centroid_piece(xc, mask):
+    """(mask with the √ piece of the centroid's β/S² = xc (clamped to ≥ 0) added, the piece
+    solved only as the TIR fallback or -2).  With the centroid in total internal reflection
+    (xc ≤ 0) and piece 0 not sampled already, piece 0 (its band reaches β = 0) is solved for
+    the paths next to the TIR curve, its sign changes only: that system is the noisiest of
+    all (the √'s pole sits at the TIR curve) and its kink refinement cost 45 % of random TT's
+    determinants for ~0.05 % of the paths (``TIR_FALLBACK_REFINE``; module doc)."""
+    if xc > 0.0 or mask & 1 or TIR_FALLBACK_REFINE:
+        return mask | (1 << _sqrt_piece(xc)), -2
+    return mask | 1, 0
+
+
+@kernel
 def _sqrt_piece(x):
     k = 0
     while k < SQRT_PIECES.shape[0] - 1 and x > SQRT_PIECES[k, 1]:
@@ -1024,9 +1037,10 @@ def _det_hybrid_window(F, G, n, m, mat):
 
 @kernel
 def _det_hybrid_dense(F, G, n, m, A, mat):
-    """det of the hybrid Bézout matrix built in full (m > LANES: not met by the systems of
-    this module; kept for any degree up to MAXD): dense Gaussian elimination with partial
-    pivoting, skipping the rows with a zero in the pivot column.  A: scratch (MAXD)."""
+    """det of the hybrid Bézout matrix built in full (n < WINDOW_FROM, where the window does
+    not pay, or m > LANES, not met by the systems of this module): dense Gaussian elimination
+    with partial pivoting, skipping the rows with a zero in the pivot column.  A: scratch
+    (MAXD)."""
     for r in range(n - m):
         for j in range(n):
             mat[r, j] = 0.0
@@ -2148,16 +2162,7 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                 # the pieces holding x at the corners, edge thirds and centroid (the
                 # Gauss-Newton polish in path space removes the error of a piece used
                 # a little outside its interval)
-                if xc > 0.0 or mask & 1 or TIR_FALLBACK_REFINE:
-                    mask |= 1 << _sqrt_piece(xc)
-                else:
-                    # the centroid in total internal reflection: piece 0 (its band reaches
-                    # β = 0) is solved for the paths next to the TIR curve, its sign changes
-                    # only: that system is the noisiest of all (the √'s pole sits at the TIR
-                    # curve) and its kink refinement cost 45 % of random TT's determinants
-                    # for ~0.05 % of the paths (``TIR_FALLBACK_REFINE``; module doc)
-                    mask |= 1
-                    fallback_piece = 0
+                mask, fallback_piece = _centroid_piece(xc, mask)
         if refract1 and SQRT_BANDS:
             _beta_poly(geo_l, r1, biv)
             if xlo > 0.0:
@@ -2288,10 +2293,7 @@ def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, piec
         count = _candidates_at(v_roots[iv], a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta,
                                work, th, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
         productive[iv] = 1.0 if stats[STAT_NEAR] > near else 0.0
-    if not refine:
-        stats[STAT_ROOTS] += nv
-        return count
-    nv_all = refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, v_roots, nv, productive, stats)
+    nv_all = refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, v_roots, nv, productive, stats) if refine else nv
 
     for iv in range(nv, nv_all):
         count = _candidates_at(v_roots[iv], a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta,

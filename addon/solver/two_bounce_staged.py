@@ -52,7 +52,7 @@ from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
     TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces_band,
-    SQRT_BANDS, TIR_FALLBACK_REFINE, _beta_mask, _beta_poly, _sqrt_band,
+    SQRT_BANDS, _beta_mask, _beta_poly, _centroid_piece, _sqrt_band,
     _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_cut, HERON_SQRT, HERON_CUT,
     _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
     refine_flags_one, solve_two_bounce_tuple,
@@ -280,11 +280,8 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
             if SQRT_ALL_PIECES:
                 xlo = max(0.0, xlo * 0.8)
                 xhi = min(1.0, xhi * 1.25)
-            elif xc > 0.0 or mask & 1 or TIR_FALLBACK_REFINE:
-                mask |= 1 << _sqrt_piece(xc)
             else:
-                mask |= 1  # as _solve_oriented: the TIR fallback, its sign changes only
-                fallback_piece = 0
+                mask, fallback_piece = _centroid_piece(xc, mask)
         if refract1 and SQRT_BANDS:
             _beta_poly(geo_l, r1, biv)
             if xlo > 0.0:

@@ -208,7 +208,7 @@ from .path_space import line_crossing_barycentrics
 from .path_space2 import pack_geometry, polish_and_validate2, trace_to_second
 from .vec3 import row
 from .roots import MAX_DEGREE, roots_in_interval
-from .simd import lanes_sub_scaled
+from .simd import lanes_sub_scaled, shifted_products_difference, transpose_blocks, rows_add_scaled, rows_add_scaled_exact, rows_copy, rows_mean, rows_scale
 
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 4  # tuples per parallel work item: a two-bounce tuple costs ~1-200 ms, so small chunks balance threads
@@ -347,16 +347,14 @@ def _bmul_acc(p, dp, q, dq, out, coef):
                 continue
             c *= coef
             for i2 in range(dq + 1):
-                for j2 in range(dq + 1 - i2):
-                    out[i1 + i2, j1 + j2] += c * q[i2, j2]
+                rows_add_scaled_exact(out[i1 + i2, j1:], q[i2], c, dq + 1 - i2)
 
 
 @kernel
 def _badd(out, d, a, da, ca):
     """out += ca a (da ≤ d)."""
     for i in range(da + 1):
-        for j in range(da + 1 - i):
-            out[i, j] += ca * a[i, j]
+        rows_add_scaled_exact(out[i], a[i], ca, da + 1 - i)
 
 
 @kernel
@@ -489,28 +487,27 @@ def _binomial_ratios(d, R):
 @kernel
 def _shift_rows(A, d, lo, w):
     """A[i, :] are the coefficients of s^i along the first axis: substitute s = lo + w t
-    (Taylor shift, then scaling), whole rows at a time so the inner loop vectorises."""
+    (Taylor shift, then scaling), whole rows at a time (simd row operations).  A is
+    triangular (row i zero beyond column d - i; the shift keeps it so): each row operation
+    covers the columns where its source row may be nonzero (the others would add zeros)."""
     for k in range(d):
         for i in range(d - 1, k - 1, -1):
-            for q in range(d + 1):
-                A[i, q] += lo * A[i + 1, q]
+            rows_add_scaled(A[i], A[i + 1], lo, d - i)
     f = 1.0
     for i in range(d + 1):
-        for q in range(d + 1):
-            A[i, q] *= f
+        rows_scale(A[i], f, d + 1 - i)
         f *= w
 
 
 @kernel
-def _bernstein_rows(A, d, R, B):
-    """B[k, :] = Σ_(i ≤ k) R[k, i] A[i, :]: power -> Bernstein along the first axis."""
+def _bernstein_rows(A, d, R, B, triangular):
+    """B[k, :] = Σ_(i ≤ k) R[k, i] A[i, :]: power -> Bernstein along the first axis
+    (triangular: row i of A is zero beyond column d - i, so its operations stop there)."""
     for k in range(d + 1):
         for q in range(d + 1):
             B[k, q] = 0.0
         for i in range(k + 1):
-            r = R[k, i]
-            for q in range(d + 1):
-                B[k, q] += r * A[i, q]
+            rows_add_scaled(B[k], A[i], R[k, i], d + 1 - i if triangular else d + 1)
 
 
 @kernel
@@ -535,9 +532,9 @@ def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
     _transpose_square(out, d, t0)
     _shift_rows(t0, d, v0, w)
     _transpose_square(t0, d, out)
-    _bernstein_rows(out, d, R, t1)
+    _bernstein_rows(out, d, R, t1, True)
     _transpose_square(t1, d, t0)
-    _bernstein_rows(t0, d, R, t1)
+    _bernstein_rows(t0, d, R, t1, False)
     _transpose_square(t1, d, out)
 
 
@@ -545,23 +542,27 @@ def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
 def _split_u(src, d, left, right):
     """de Casteljau at the midpoint of the u axis (rows i) of the tensor Bernstein form src,
     in place in ``left`` (a copy of src): after step r its rows 0 .. r are the left half's
-    and row d the right half's row d - r.  Whole rows at a time: the inner loop runs along
-    the contiguous v index, so it vectorises."""
+    and row d the right half's row d - r.  Whole rows at a time along the contiguous v
+    index (simd row operations)."""
     for k in range(d + 1):
-        for q in range(d + 1):
-            left[k, q] = src[k, q]
-    for q in range(d + 1):
-        right[d, q] = left[d, q]
+        rows_copy(left[k], src[k], d + 1)
+    rows_copy(right[d], left[d], d + 1)
     for r in range(1, d + 1):
         for k in range(d, r - 1, -1):
-            for q in range(d + 1):
-                left[k, q] = 0.5 * (left[k - 1, q] + left[k, q])
-        for q in range(d + 1):
-            right[d - r, q] = left[d, q]
+            rows_mean(left[k], left[k - 1], left[k], d + 1)
+        rows_copy(right[d - r], left[d], d + 1)
 
 
 @kernel
 def _transpose_square(src, d, dst):
+    """dst[j, i] = src[i, j] for i, j ≤ d; by 8 x 8 blocks in registers where both arrays
+    hold whole blocks (the biv slots: 48 x 48), which also moves the elements up to the
+    block edge (never read)."""
+    blocks = (d + 8) // 8
+    w = 8 * blocks
+    if min(src.shape[0], src.shape[1], dst.shape[0], dst.shape[1]) >= w:
+        transpose_blocks(src, dst, blocks)
+        return
     for i in range(d + 1):
         for j in range(d + 1):
             dst[j, i] = src[i, j]
@@ -924,22 +925,9 @@ def _bezoutian_rows(F, G, n, m, out, stride_rows):
         # stride_rows: built in the spare last row of out (the lanes use rows < n < MAXD),
         # then copied into lane m - c
         row = out[MAXD - 1] if stride_rows else out[n - c]
-        for k in range(n):
-            row[k] = 0.0
-        # on 1-D slices: the same arithmetic in the same order as the element-wise loops,
-        # but it vectorises
-        F_hi = F[c:n + 1]
-        for l in range(c):
-            g = G[l]
-            dst = row[l:l + n + 1 - c]
-            for i in range(n + 1 - c):
-                dst[i] += g * F_hi[i]
-        G_hi = G[c:m + 1]
-        for l in range(c):
-            f = F[l]
-            dst = row[l:l + m + 1 - c]
-            for i in range(m + 1 - c):
-                dst[i] -= f * G_hi[i]
+        # φ_c[k] = Σ_(l < c) G_l F_(c + k - l) - Σ_(l < c) F_l G_(c + k - l), the terms that
+        # exist, in this order, eight k at a time in a register
+        shifted_products_difference(row, G, F[c:], n - c, F, G[c:], m - c, c, n)
         if stride_rows:
             lane = m - c
             for k in range(n):
@@ -984,11 +972,18 @@ def _det_hybrid_window(F, G, n, m, mat):
         p = -1
         big = abs(G[0]) if entering else 0.0
         row = mat[k]
+        # (branch-free: the running maximum, then the first lane holding it, as the
+        # compare-and-branch loop picks)
+        top = big
         for i in range(L):
             x = abs(row[i])
-            if x > big:
-                big = x
-                p = i
+            top = x if x > top else top
+        if top > big:
+            big = top
+            for i in range(L):
+                if abs(row[i]) == top:
+                    p = i
+                    break
         if big == 0.0 or not np.isfinite(big):
             return 0, -math.inf
         piv = G[0] if p < 0 else row[p]

@@ -1,12 +1,21 @@
-"""Fixed-width vector operations for the hot loops that LLVM will not vectorise on its own.
+"""Vector operations for the hot loops that LLVM will not vectorise on its own.
 
 Numba runs LLVM's loop vectoriser but not its SLP vectoriser (off by default since numba
 0.57 after miscompilations), and a loop whose trip count is a small constant is unrolled
 before the loop vectoriser sees it: ``for i in range(16): row[i] -= f[i] * x`` becomes 16
 scalar multiply-subtracts, and with ``f`` in another array LLVM cannot prove the two do
-not overlap.  The intrinsics here emit the vector instructions directly.  They do the
-same IEEE operations element by element as the scalar loop (a multiply, then a subtract:
-no fused multiply-add, no reassociation), so results are identical bit for bit.
+not overlap.  Where it does vectorise (rows of a runtime length), it adds runtime overlap
+checks and a scalar remainder, and a row that the next operation reads right after a
+store stalls on store forwarding.  The intrinsics here emit the vector instructions
+directly, as generic LLVM vector IR (any x86-64 or other target lowers it; CHUNK = 8
+doubles is one AVX-512 register or two AVX ones): whole-row updates, an 8 x 8 block
+transpose, a min/max reduction, the de Casteljau halves and the Bézoutian's convolutions.
+
+Each does the scalar loop's IEEE operations on each element (a multiply, then an add: no
+fused multiply-add, no reassociation), so results are the scalar loop's bit for bit; the
+exceptions are named where they occur (the order of a min/max reduction, which can only
+change the sign of a zero; the de Casteljau halvings deferred, exact short of subnormals).
+two_bounce's users are checked against their scalar forms on random cases.
 """
 
 from llvmlite import ir
@@ -125,21 +134,8 @@ def _row_codegen(n_rows, body, exact):
 # element, so the results are the scalar loop's bit for bit.
 
 
-_HALF = ir.Constant(ir.DoubleType(), 0.5)
-
-
-def _mean(b, v, s):
-    return b.fmul(_splat(b, _HALF), b.fadd(v[1], v[2]))
-
-
 def _add_scaled(b, v, s):
     return b.fadd(v[0], b.fmul(s[0], v[1]))
-
-
-@intrinsic
-def rows_mean(typingctx, dst, x, y, n):
-    """dst[i] = 0.5 * (x[i] + y[i]) for i < n rounded up to a multiple of CHUNK."""
-    return _row_signature((dst, x, y), (), n), _row_codegen(3, _mean, False)
 
 
 @intrinsic
@@ -158,12 +154,6 @@ def rows_add_scaled_exact(typingctx, dst, x, s, n):
 def rows_scale(typingctx, dst, s, n):
     """dst[i] *= s for i < n rounded up to a multiple of CHUNK."""
     return _row_signature((dst,), (s,), n), _row_codegen(1, lambda b, v, s: b.fmul(v[0], s[0]), False)
-
-
-@intrinsic
-def rows_copy(typingctx, dst, x, n):
-    """dst[i] = x[i] for i < n rounded up to a multiple of CHUNK."""
-    return _row_signature((dst, x), (), n), _row_codegen(2, lambda b, v, s: v[1], False)
 
 
 @intrinsic
@@ -272,6 +262,142 @@ def transpose_blocks(typingctx, src, dst, blocks):
                         for r in range(8)]
                 for c, column in enumerate(_transpose8(builder, rows)):
                     builder.store(column, pointer(dst_a, dst_cols, builder.add(c0, ir.Constant(i64, c)), r0), align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def square_min_max_abs(typingctx, c, d):
+    """(min, max, max |.|) of c[i, j] for i, j ≤ d (c: C-contiguous 2-D float64, at least
+    d + 1 rows and columns, not checked): each row by vectors of CHUNK elements, the tail
+    masked.  The loop's comparisons (x < lo, x > hi: a NaN is skipped); the order of the
+    elements differs, which changes nothing but the sign of a zero result."""
+    if not (isinstance(c, types.Array) and c.ndim == 2 and c.dtype == types.float64 and c.layout == "C"
+            and isinstance(d, types.Integer)):
+        return None
+    result = types.UniTuple(types.float64, 3)
+    sig = result(c, d)
+
+    def codegen(context, builder, signature, args):
+        i64 = ir.IntType(64)
+        array = context.make_array(signature.args[0])(context, builder, args[0])
+        cols = cgutils.unpack_tuple(builder, array.shape, 2)[1]
+        n = builder.add(builder.sext(args[1], i64) if args[1].type.width < 64 else args[1], ir.Constant(i64, 1))
+        inf = float("inf")
+        lo_ptr = cgutils.alloca_once_value(builder, ir.Constant(_VEC, [inf] * CHUNK))
+        hi_ptr = cgutils.alloca_once_value(builder, ir.Constant(_VEC, [-inf] * CHUNK))
+        big_ptr = cgutils.alloca_once_value(builder, ir.Constant(_VEC, [0.0] * CHUNK))
+        fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_VEC, [_VEC]), "llvm.fabs.v8f64")
+        chunks = builder.sdiv(builder.add(n, ir.Constant(i64, CHUNK - 1)), ir.Constant(i64, CHUNK))
+        iota = ir.Constant(ir.VectorType(i64, CHUNK), list(range(CHUNK)))
+        with cgutils.for_range(builder, n) as row_loop:
+            base = builder.mul(row_loop.index, cols)
+            with cgutils.for_range(builder, chunks) as chunk_loop:
+                j0 = builder.mul(chunk_loop.index, ir.Constant(i64, CHUNK))
+                valid = builder.icmp_signed("<", builder.add(_splat(builder, j0), iota), _splat(builder, n))
+                pointer = builder.bitcast(builder.gep(array.data, [builder.add(base, j0)]), _VEC.as_pointer())
+                x = _masked_load(builder, pointer, valid)
+                lo, hi, big = builder.load(lo_ptr), builder.load(hi_ptr), builder.load(big_ptr)
+                take_lo = builder.and_(valid, builder.fcmp_ordered("<", x, lo))
+                take_hi = builder.and_(valid, builder.fcmp_ordered(">", x, hi))
+                ax = builder.call(fabs, [x])
+                take_big = builder.and_(valid, builder.fcmp_ordered(">", ax, big))
+                builder.store(builder.select(take_lo, x, lo), lo_ptr)
+                builder.store(builder.select(take_hi, x, hi), hi_ptr)
+                builder.store(builder.select(take_big, ax, big), big_ptr)
+        lo, hi, big = builder.load(lo_ptr), builder.load(hi_ptr), builder.load(big_ptr)
+        lo_s = builder.extract_element(lo, ir.Constant(ir.IntType(32), 0))
+        hi_s = builder.extract_element(hi, ir.Constant(ir.IntType(32), 0))
+        big_s = builder.extract_element(big, ir.Constant(ir.IntType(32), 0))
+        for i in range(1, CHUNK):
+            index = ir.Constant(ir.IntType(32), i)
+            x = builder.extract_element(lo, index)
+            lo_s = builder.select(builder.fcmp_ordered("<", x, lo_s), x, lo_s)
+            x = builder.extract_element(hi, index)
+            hi_s = builder.select(builder.fcmp_ordered(">", x, hi_s), x, hi_s)
+            x = builder.extract_element(big, index)
+            big_s = builder.select(builder.fcmp_ordered(">", x, big_s), x, big_s)
+        return context.make_tuple(builder, result, [lo_s, hi_s, big_s])
+
+    return sig, codegen
+
+
+@intrinsic
+def casteljau_halves(typingctx, src, d, left, right):
+    """The de Casteljau halves at the midpoint along the rows of src (rows 0 .. d, columns
+    0 .. d rounded up to whole CHUNKs: all three arrays C-contiguous 2-D float64 with at
+    least that many rows and columns, distinct, not checked): left[k] = Σ_i C(k, i) src[i] / 2^k
+    over i ≤ k, right[d - r] likewise from the other end.
+
+    The level-r rows 0.5 (x[k - 1] + x[k]) are kept unscaled, S_r[k] = S_(r-1)[k - 1] +
+    S_(r-1)[k], and each output row is multiplied by 2^-r once at the end: a power of two
+    commutes with rounding, so this is the halving loop's result bit for bit (short of
+    subnormal values), with one addition per element and level instead of an addition and
+    a multiplication.  Column chunks one at a time, two levels per sweep with the rows in
+    flight carried in registers (one load and one store per step of two levels).  d = 42:
+    3.8 -> 1.9 µs.""" 
+    if not (all(isinstance(a, types.Array) and a.ndim == 2 and a.dtype == types.float64 and a.layout == "C"
+                for a in (src, left, right)) and isinstance(d, types.Integer)):
+        return None
+    sig = types.void(src, d, left, right)
+
+    def codegen(context, builder, signature, args):
+        i64 = ir.IntType(64)
+        src_a = context.make_array(signature.args[0])(context, builder, args[0])
+        left_a = context.make_array(signature.args[2])(context, builder, args[2])
+        right_a = context.make_array(signature.args[3])(context, builder, args[3])
+        d_v = builder.sext(args[1], i64) if args[1].type.width < 64 else args[1]
+        one = ir.Constant(i64, 1)
+
+        def at(array, row, col):
+            cols = cgutils.unpack_tuple(builder, array.shape, 2)[1]
+            return builder.bitcast(builder.gep(array.data, [builder.add(builder.mul(row, cols), col)]), _VEC.as_pointer())
+
+        chunks = builder.sdiv(builder.add(d_v, ir.Constant(i64, CHUNK)), ir.Constant(i64, CHUNK))
+        carry_ptr = cgutils.alloca_once(builder, _VEC)
+        with cgutils.for_range(builder, chunks) as chunk_loop:
+            col = builder.mul(chunk_loop.index, ir.Constant(i64, CHUNK))
+            with cgutils.for_range(builder, builder.add(d_v, one)) as copy_loop:
+                builder.store(builder.load(at(src_a, copy_loop.index, col), align=8), at(left_a, copy_loop.index, col), align=8)
+            builder.store(builder.load(at(left_a, d_v, col), align=8), at(right_a, d_v, col), align=8)
+            # levels two at a time (r, r + 1): a step loads one row, adds twice and stores
+            # the level-(r + 1) row; S_r[k] and the row below are carried in registers
+            prev_ptr = cgutils.alloca_once(builder, _VEC)
+            with cgutils.for_range(builder, builder.sdiv(d_v, ir.Constant(i64, 2))) as pair_loop:
+                r = builder.add(builder.mul(pair_loop.index, ir.Constant(i64, 2)), one)
+                top = builder.load(at(left_a, d_v, col), align=8)
+                below = builder.load(at(left_a, builder.sub(d_v, one), col), align=8)
+                s_top = builder.fadd(below, top)  # S_r[d]
+                builder.store(s_top, at(right_a, builder.sub(d_v, r), col), align=8)
+                builder.store(s_top, prev_ptr)
+                builder.store(below, carry_ptr)
+                with cgutils.for_range(builder, builder.sub(d_v, r)) as row_loop:
+                    k = builder.sub(builder.sub(d_v, one), row_loop.index)  # d - 1 .. r
+                    below = builder.load(at(left_a, builder.sub(k, one), col), align=8)
+                    s_k = builder.fadd(below, builder.load(carry_ptr))  # S_r[k]
+                    s_up = builder.fadd(s_k, builder.load(prev_ptr))  # S_(r+1)[k + 1]
+                    builder.store(s_up, at(left_a, builder.add(k, one), col), align=8)
+                    with builder.if_then(builder.icmp_signed("==", row_loop.index, ir.Constant(i64, 0))):
+                        builder.store(s_up, at(right_a, builder.sub(builder.sub(d_v, r), one), col), align=8)
+                    builder.store(s_k, prev_ptr)
+                    builder.store(below, carry_ptr)
+                builder.store(builder.load(prev_ptr), at(left_a, r, col), align=8)  # S_r[r]
+            # d odd: the last level (r = d) alone
+            with builder.if_then(builder.icmp_signed("==", builder.srem(d_v, ir.Constant(i64, 2)), one)):
+                last = builder.fadd(builder.load(at(left_a, builder.sub(d_v, one), col), align=8),
+                                    builder.load(at(left_a, d_v, col), align=8))
+                builder.store(last, at(left_a, d_v, col), align=8)
+                builder.store(last, at(right_a, ir.Constant(i64, 0), col), align=8)
+            # the halvings: left row k and right row d - k by 2^-k
+            scale_ptr = cgutils.alloca_once_value(builder, ir.Constant(ir.DoubleType(), 1.0))
+            with cgutils.for_range(builder, builder.add(d_v, one)) as k_loop:
+                k = k_loop.index
+                s = _splat(builder, builder.load(scale_ptr))
+                for array, row in ((left_a, k), (right_a, builder.sub(d_v, k))):
+                    pointer = at(array, row, col)
+                    builder.store(builder.fmul(builder.load(pointer, align=8), s), pointer, align=8)
+                builder.store(builder.fmul(builder.load(scale_ptr), ir.Constant(ir.DoubleType(), 0.5)), scale_ptr)
         return context.get_dummy_value()
 
     return sig, codegen

@@ -208,7 +208,8 @@ from .path_space import line_crossing_barycentrics
 from .path_space2 import pack_geometry, polish_and_validate2, trace_to_second
 from .vec3 import row
 from .roots import MAX_DEGREE, roots_in_interval
-from .simd import lanes_sub_scaled, shifted_products_difference, transpose_blocks, rows_add_scaled, rows_add_scaled_exact, rows_copy, rows_mean, rows_scale
+from .simd import (casteljau_halves, lanes_sub_scaled, rows_add_scaled, rows_add_scaled_exact, rows_scale,
+                   shifted_products_difference, square_min_max_abs, transpose_blocks)
 
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 4  # tuples per parallel work item: a two-bounce tuple costs ~1-200 ms, so small chunks balance threads
@@ -540,17 +541,10 @@ def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
 
 @kernel
 def _split_u(src, d, left, right):
-    """de Casteljau at the midpoint of the u axis (rows i) of the tensor Bernstein form src,
-    in place in ``left`` (a copy of src): after step r its rows 0 .. r are the left half's
-    and row d the right half's row d - r.  Whole rows at a time along the contiguous v
-    index (simd row operations)."""
-    for k in range(d + 1):
-        rows_copy(left[k], src[k], d + 1)
-    rows_copy(right[d], left[d], d + 1)
-    for r in range(1, d + 1):
-        for k in range(d, r - 1, -1):
-            rows_mean(left[k], left[k - 1], left[k], d + 1)
-        rows_copy(right[d - r], left[d], d + 1)
+    """de Casteljau at the midpoint of the u axis (rows i) of the tensor Bernstein form src
+    into left and right (:func:`simd.casteljau_halves`: whole rows, the arrays hold 48 x 48,
+    the columns up to the block edge are computed on and never read)."""
+    casteljau_halves(src, d, left, right)
 
 
 @kernel
@@ -583,23 +577,13 @@ def _may_vanish(c, d, tol):
     """False when the tensor Bernstein coefficients c all exceed tol or all lie below -tol
     (tol absolute: the rounding of the conversion is relative to the whole polynomial's
     scale, not to a small box's, where |p| may be far below it)."""
-    lo = math.inf
-    hi = -math.inf
-    for i in range(d + 1):
-        for j in range(d + 1):
-            x = c[i, j]
-            lo = min(lo, x)
-            hi = max(hi, x)
+    lo, hi, _ = square_min_max_abs(c, d)
     return not (lo > tol or hi < -tol)
 
 
 @kernel
 def _max_abs(c, d):
-    big = 0.0
-    for i in range(d + 1):
-        for j in range(d + 1):
-            big = max(big, abs(c[i, j]))
-    return big
+    return square_min_max_abs(c, d)[2]
 
 
 @kernel
@@ -638,12 +622,7 @@ def _box_range(biv, src, d, u0, v0, w):
     out = biv[BETA_SLOT + 2]
     _binomial_ratios(d, R)
     _tensor_bernstein_box(biv[src], d, u0, v0, w, R, out, biv[BETA_SLOT + 3], biv[BETA_SLOT + 4])
-    lo = math.inf
-    hi = -math.inf
-    for i in range(d + 1):
-        for j in range(d + 1):
-            lo = min(lo, out[i, j])
-            hi = max(hi, out[i, j])
+    lo, hi, _ = square_min_max_abs(out, d)
     return lo, hi
 
 

@@ -186,8 +186,15 @@ def shifted_products_difference(typingctx, out, a, x, nx, b, y, ny, terms, n_out
             in_out = builder.icmp_signed("<", k_vec, _splat(builder, n_v))
             builder.store(zero_vec, acc_ptr)
             for coef_d, src_d, n_src, subtract in ((a_d, x_d, nx_v, False), (b_d, y_d, ny_v, True)):
-                with cgutils.for_range(builder, terms_v) as term_loop:
-                    l = term_loop.index
+                # the terms that reach this chunk: 0 ≤ k - l ≤ n_src for some k in k0 .. k0 + 7
+                first = builder.sub(k0, n_src)
+                first = builder.select(builder.icmp_signed(">", first, ir.Constant(i64, 0)), first, ir.Constant(i64, 0))
+                stop = builder.add(k0, ir.Constant(i64, CHUNK))
+                stop = builder.select(builder.icmp_signed("<", stop, terms_v), stop, terms_v)
+                count = builder.sub(stop, first)
+                count = builder.select(builder.icmp_signed(">", count, ir.Constant(i64, 0)), count, ir.Constant(i64, 0))
+                with cgutils.for_range(builder, count) as term_loop:
+                    l = builder.add(first, term_loop.index)
                     offset = builder.sub(k0, l)  # x index of lane 0
                     idx = builder.add(_splat(builder, offset), iota)
                     valid = builder.and_(in_out, builder.and_(

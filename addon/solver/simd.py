@@ -408,3 +408,51 @@ def casteljau_halves(typingctx, src, d, left, right):
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@intrinsic
+def lanes_abs_argmax(typingctx, row, floor, lanes):
+    """(top, p): top the largest of floor and |row[i]| (i < lanes, a compile-time constant
+    given as a literal), p the first lane holding it, -1 when no |row[i]| exceeds floor —
+    what ``for i: x = abs(row[i]); if x > top: top, p = x, i`` returns (NaN lanes skipped),
+    without its serial chain of compares and its mispredicted branches: a tree of vector
+    maxima and the first set bit of a vector compare."""
+    if not (_is_row(row) and floor == types.float64 and isinstance(lanes, types.IntegerLiteral)):
+        return None
+    width = lanes.literal_value
+    result = types.Tuple((types.float64, types.int64))
+    sig = result(row, floor, lanes)
+
+    def codegen(context, builder, signature, args):
+        i64 = ir.IntType(64)
+        vec_type = ir.VectorType(ir.DoubleType(), width)
+        data = context.make_array(signature.args[0])(context, builder, args[0]).data
+        values = builder.load(builder.bitcast(data, vec_type.as_pointer()), align=8)
+        fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(vec_type, [vec_type]), f"llvm.fabs.v{width}f64")
+        magnitude = builder.call(fabs, [values])
+        floor_vec = ir.Constant(vec_type, ir.Undefined)
+        for i in range(width):
+            floor_vec = builder.insert_element(floor_vec, args[1], ir.Constant(ir.IntType(32), i))
+        # lanes not above the floor (NaN included) count as the floor
+        clipped = builder.select(builder.fcmp_ordered(">", magnitude, floor_vec), magnitude, floor_vec)
+        top = clipped
+        size = width
+        while size > 1:
+            half = size // 2
+            lo = builder.shuffle_vector(top, top, ir.Constant(ir.VectorType(ir.IntType(32), half), list(range(half))))
+            hi = builder.shuffle_vector(top, top, ir.Constant(ir.VectorType(ir.IntType(32), half), list(range(half, size))))
+            top = builder.select(builder.fcmp_ordered(">", hi, lo), hi, lo)
+            size = half
+        top = builder.extract_element(top, ir.Constant(ir.IntType(32), 0))
+        top_vec = ir.Constant(vec_type, ir.Undefined)
+        for i in range(width):
+            top_vec = builder.insert_element(top_vec, top, ir.Constant(ir.IntType(32), i))
+        hits = builder.bitcast(builder.fcmp_ordered("==", magnitude, top_vec), ir.IntType(width))
+        cttz = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.IntType(width), [ir.IntType(width), ir.IntType(1)]),
+                                              f"llvm.cttz.i{width}")
+        first = builder.zext(builder.call(cttz, [hits, ir.Constant(ir.IntType(1), 0)]), i64)
+        above = builder.fcmp_ordered(">", top, args[1])
+        index = builder.select(above, first, ir.Constant(i64, -1))
+        return context.make_tuple(builder, result, [top, index])
+
+    return sig, codegen

@@ -208,7 +208,7 @@ from .path_space import line_crossing_barycentrics
 from .path_space2 import pack_geometry, polish_and_validate2, trace_to_second
 from .vec3 import row
 from .roots import MAX_DEGREE, roots_in_interval
-from .simd import (casteljau_halves, lanes_sub_scaled, rows_add_scaled, rows_add_scaled_exact, rows_scale,
+from .simd import (casteljau_halves, lanes_abs_argmax, lanes_sub_scaled, rows_add_scaled, rows_add_scaled_exact, rows_scale,
                    shifted_products_difference, square_min_max_abs, transpose_blocks)
 
 MAX_PATHS_TWO_BOUNCE = 8
@@ -948,21 +948,9 @@ def _det_hybrid_window(F, G, n, m, mat):
     for k in range(n):
         entering = k < n_shift
         # pivot: the largest |x_ik| over the lanes and the entering row (g's constant term)
-        p = -1
-        big = abs(G[0]) if entering else 0.0
         row = mat[k]
-        # (branch-free: the running maximum, then the first lane holding it, as the
-        # compare-and-branch loop picks)
-        top = big
-        for i in range(L):
-            x = abs(row[i])
-            top = x if x > top else top
-        if top > big:
-            big = top
-            for i in range(L):
-                if abs(row[i]) == top:
-                    p = i
-                    break
+        # the first lane whose |x| exceeds g's constant term (entering) and every other lane
+        big, p = lanes_abs_argmax(row, abs(G[0]) if entering else 0.0, LANES)
         if big == 0.0 or not np.isfinite(big):
             return 0, -math.inf
         piv = G[0] if p < 0 else row[p]

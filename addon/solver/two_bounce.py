@@ -525,7 +525,11 @@ def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
     R (:func:`_binomial_ratios`) along u, then v; every step is a positive combination or an
     exact shift, so the coefficients carry rounding of the size of the polynomial's max-norm
     only.  Each step runs on whole rows (the v steps on the transpose, t0 and t1 scratch);
-    the zeros above the triangle stay zero."""
+    the zeros above the triangle stay zero.  Below degree 8 (one vector) the same steps run
+    as scalar loops in place, along the columns for v (no transposes)."""
+    if d < 8:
+        _tensor_bernstein_small(p, d, u0, v0, w, R, out, t1)
+        return
     for i in range(d + 1):
         for j in range(d + 1):
             out[i, j] = p[i, j] if i + j <= d else 0.0
@@ -537,6 +541,49 @@ def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
     _transpose_square(t1, d, t0)
     _bernstein_rows(t0, d, R, t1, False)
     _transpose_square(t1, d, out)
+
+
+@kernel
+def _tensor_bernstein_small(p, d, u0, v0, w, R, out, B):
+    """:func:`_tensor_bernstein_box` for small d as scalar loops: each element takes the same
+    operations in the same order (the vector rows' extra lanes only added zeros), so the
+    result is the same bit for bit.  B: scratch."""
+    for i in range(d + 1):
+        for j in range(d + 1):
+            out[i, j] = p[i, j] if i + j <= d else 0.0
+    # Taylor shift and scaling along u (rows), then along v (columns): triangular
+    for k in range(d):
+        for i in range(d - 1, k - 1, -1):
+            for q in range(d - i):
+                out[i, q] += u0 * out[i + 1, q]
+    f = 1.0
+    for i in range(d + 1):
+        for q in range(d + 1 - i):
+            out[i, q] *= f
+        f *= w
+    for k in range(d):
+        for j in range(d - 1, k - 1, -1):
+            for q in range(d - j):
+                out[q, j] += v0 * out[q, j + 1]
+    f = 1.0
+    for j in range(d + 1):
+        for q in range(d + 1 - j):
+            out[q, j] *= f
+        f *= w
+    # power -> Bernstein along u (triangular rows), then along v
+    for k in range(d + 1):
+        for q in range(d + 1):
+            B[k, q] = 0.0
+        for i in range(k + 1):
+            r = R[k, i]
+            for q in range(d + 1 - i):
+                B[k, q] += r * out[i, q]
+    for q in range(d + 1):
+        for k in range(d + 1):
+            acc = 0.0
+            for i in range(k + 1):
+                acc += R[k, i] * B[q, i]
+            out[q, k] = acc
 
 
 @kernel

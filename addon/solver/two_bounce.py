@@ -180,6 +180,18 @@ unchanged (100 %); the two new RT/TR misses are ill-conditioned root pairs (sigm
 5e-5, the other path of the pair 1e-3 away, found); 1 thread, planted TT 18 % faster, random
 TT 10 % (:func:`heron_sqrt_cut`).
 
+Vector kernels (``simd.py``, 2026-11-26).  The live pre-pass's Bernstein conversions and
+de Casteljau splits (whole rows as vector operations, the halvings deferred to one power of
+two per output row, 8 x 8 block transposes, a vector min/max), the system build's
+polynomial products (rows with a masked tail) and det_bezout's Bézoutian rows (eight outputs
+per register) and pivot search (a tree of vector maxima) do the scalar loops' operations on
+each element in their order: paths, roots, candidates and determinants are unchanged bit
+for bit (the 300-tuple bench workloads of all four chains; the 10,000-tuple acceptance
+sets: TT 4,695,243 determinants and 42 missed, RT 3,513,457 and 7, TR 3,027,047 and 2, as
+before), and tests/test_solver_simd.py holds each kernel to its scalar loop.  1 thread,
+interleaved with the code before: random TT ~350 -> ~250 µs per tuple, per determinant
+(m, n) = (16, 34) 5.7 -> 3.8 µs.
+
 Path phase (§4.3): at each root v1*, u1 are the roots of a(·, v1*) in the triangle whose
 b(u1, v1*) is relatively small (the smallest always); (u1, v1) is mapped to (u2, v2) by the
 exact scattered ray (no √ approximation, TIR rejected), and the whole path is Gauss–Newton
@@ -486,6 +498,14 @@ def _binomial_ratios(d, R):
 
 
 @kernel
+def _check_whole_vectors(A, d):
+    """The simd row operations below run on whole vectors: d + 1 rounded up to a multiple
+    of 8 elements of a row (they do not check; the biv slots are 48 x 48)."""
+    if A.shape[0] < d + 1 or A.shape[1] < 8 * ((d + 8) // 8):
+        raise ValueError("tensor Bernstein arrays must hold whole 8-element vectors")
+
+
+@kernel
 def _shift_rows(A, d, lo, w):
     """A[i, :] are the coefficients of s^i along the first axis: substitute s = lo + w t
     (Taylor shift, then scaling), whole rows at a time (simd row operations).  A is
@@ -530,6 +550,9 @@ def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
     if d < 8:
         _tensor_bernstein_small(p, d, u0, v0, w, R, out, t1)
         return
+    _check_whole_vectors(out, d)
+    _check_whole_vectors(t0, d)
+    _check_whole_vectors(t1, d)
     for i in range(d + 1):
         for j in range(d + 1):
             out[i, j] = p[i, j] if i + j <= d else 0.0
@@ -591,6 +614,9 @@ def _split_u(src, d, left, right):
     """de Casteljau at the midpoint of the u axis (rows i) of the tensor Bernstein form src
     into left and right (:func:`simd.casteljau_halves`: whole rows, the arrays hold 48 x 48,
     the columns up to the block edge are computed on and never read)."""
+    _check_whole_vectors(src, d)
+    _check_whole_vectors(left, d)
+    _check_whole_vectors(right, d)
     casteljau_halves(src, d, left, right)
 
 
@@ -976,8 +1002,9 @@ def _det_hybrid_window(F, G, n, m, mat):
     dense elimination's (tests/test_solver_two_bounce.py, bit for bit).  The sign is that of
     the pivots and of the permutation (original row of each pivot, parity by cycles).
     Per determinant, µs on one core (2026-11-26): (m, n) = (16, 34) 7.1 -> 6.8, (16, 46)
-    10.8 -> 9.1, (8, 46) 7.3 -> 6.9; TT random tuples ~6 % less time.  F is overwritten
-    (the multipliers)."""
+    10.8 -> 9.1, (8, 46) 7.3 -> 6.9; TT random tuples ~6 % less time; with the Bézoutian
+    rows in registers and the vector pivot search (simd.py) the whole det_bezout is ~3.8,
+    ~5.4 and ~4.5.  F is overwritten (the multipliers)."""
     L = LANES
     perm = mat[:, L]  # original row of the k-th pivot
     ids = mat[:, L + 1]  # original row in each lane

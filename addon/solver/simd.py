@@ -54,7 +54,6 @@ def lanes_sub_scaled(typingctx, row, coefs, x):
     return sig, codegen
 
 
-
 _VEC = ir.VectorType(ir.DoubleType(), CHUNK)
 _MASK = ir.VectorType(ir.IntType(1), CHUNK)
 

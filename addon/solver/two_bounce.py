@@ -220,6 +220,7 @@ from .path_space import line_crossing_barycentrics
 from .path_space2 import pack_geometry, polish_and_validate2, trace_to_second
 from .vec3 import row
 from .roots import MAX_DEGREE, roots_in_interval
+from .simd import CHUNK as SIMD_CHUNK
 from .simd import (casteljau_halves, lanes_abs_argmax, lanes_sub_scaled, rows_add_scaled, rows_add_scaled_exact, rows_scale,
                    shifted_products_difference, square_min_max_abs, transpose_blocks)
 
@@ -500,9 +501,9 @@ def _binomial_ratios(d, R):
 @kernel
 def _check_whole_vectors(A, d):
     """The simd row operations below run on whole vectors: d + 1 rounded up to a multiple
-    of 8 elements of a row (they do not check; the biv slots are 48 x 48)."""
-    if A.shape[0] < d + 1 or A.shape[1] < 8 * ((d + 8) // 8):
-        raise ValueError("tensor Bernstein arrays must hold whole 8-element vectors")
+    of SIMD_CHUNK elements of a row (they do not check; the biv slots are 48 x 48)."""
+    if A.shape[0] < d + 1 or A.shape[1] < SIMD_CHUNK * ((d + SIMD_CHUNK) // SIMD_CHUNK):
+        raise ValueError("tensor Bernstein arrays must hold whole vectors of simd.CHUNK elements")
 
 
 @kernel
@@ -545,11 +546,7 @@ def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
     R (:func:`_binomial_ratios`) along u, then v; every step is a positive combination or an
     exact shift, so the coefficients carry rounding of the size of the polynomial's max-norm
     only.  Each step runs on whole rows (the v steps on the transpose, t0 and t1 scratch);
-    the zeros above the triangle stay zero.  Below degree 8 (one vector) the same steps run
-    as scalar loops in place, along the columns for v (no transposes)."""
-    if d < 8:
-        _tensor_bernstein_small(p, d, u0, v0, w, R, out, t1)
-        return
+    the zeros above the triangle stay zero."""
     _check_whole_vectors(out, d)
     _check_whole_vectors(t0, d)
     _check_whole_vectors(t1, d)
@@ -564,49 +561,6 @@ def _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1):
     _transpose_square(t1, d, t0)
     _bernstein_rows(t0, d, R, t1, False)
     _transpose_square(t1, d, out)
-
-
-@kernel
-def _tensor_bernstein_small(p, d, u0, v0, w, R, out, B):
-    """:func:`_tensor_bernstein_box` for small d as scalar loops: each element takes the same
-    operations in the same order (the vector rows' extra lanes only added zeros), so the
-    result is the same bit for bit.  B: scratch."""
-    for i in range(d + 1):
-        for j in range(d + 1):
-            out[i, j] = p[i, j] if i + j <= d else 0.0
-    # Taylor shift and scaling along u (rows), then along v (columns): triangular
-    for k in range(d):
-        for i in range(d - 1, k - 1, -1):
-            for q in range(d - i):
-                out[i, q] += u0 * out[i + 1, q]
-    f = 1.0
-    for i in range(d + 1):
-        for q in range(d + 1 - i):
-            out[i, q] *= f
-        f *= w
-    for k in range(d):
-        for j in range(d - 1, k - 1, -1):
-            for q in range(d - j):
-                out[q, j] += v0 * out[q, j + 1]
-    f = 1.0
-    for j in range(d + 1):
-        for q in range(d + 1 - j):
-            out[q, j] *= f
-        f *= w
-    # power -> Bernstein along u (triangular rows), then along v
-    for k in range(d + 1):
-        for q in range(d + 1):
-            B[k, q] = 0.0
-        for i in range(k + 1):
-            r = R[k, i]
-            for q in range(d + 1 - i):
-                B[k, q] += r * out[i, q]
-    for q in range(d + 1):
-        for k in range(d + 1):
-            acc = 0.0
-            for i in range(k + 1):
-                acc += R[k, i] * B[q, i]
-            out[q, k] = acc
 
 
 @kernel
@@ -625,8 +579,8 @@ def _transpose_square(src, d, dst):
     """dst[j, i] = src[i, j] for i, j ≤ d; by 8 x 8 blocks in registers where both arrays
     hold whole blocks (the biv slots: 48 x 48), which also moves the elements up to the
     block edge (never read)."""
-    blocks = (d + 8) // 8
-    w = 8 * blocks
+    blocks = (d + SIMD_CHUNK) // SIMD_CHUNK
+    w = SIMD_CHUNK * blocks
     if min(src.shape[0], src.shape[1], dst.shape[0], dst.shape[1]) >= w:
         transpose_blocks(src, dst, blocks)
         return

@@ -155,10 +155,17 @@ def _list_roots(rel):
     return ", ".join(f"{r:+.3g}" for r in rel) or "none"
 
 
+def v_major(P, d):
+    """P in the layout the determinant family reads (``tb.v_major``)."""
+    out = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
+    tb.v_major(np.ascontiguousarray(P), d, out)
+    return out
+
+
 def det(A, da, B, db, n, v):
     cf = np.zeros((2, tb.MAXD + 2))
     mat = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
-    return tb.det_bezout(A, da, B, db, n, v, cf, mat)
+    return tb.det_bezout(v_major(A, da), da, v_major(B, db), db, n, v, cf, mat)
 
 
 def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, math.inf, None, None)):
@@ -178,7 +185,8 @@ def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, m
             biv[tb.HIT_SLOT:tb.HIT_SLOT + 4] = hit
         if tb.live_pieces_band(A, da, B, db, margin, pieces, biv, np.zeros((tb.LIVE_STACK, 4)), live, blo, bhi) == 0:
             return None, None, "no live piece (the pre-pass excluded the whole square)"
-    nv = tb.find_v_roots(A, da, B, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, roots, stats)
+    At, Bt = v_major(A, da), v_major(B, db)
+    nv = tb.find_v_roots(At, da, Bt, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, roots, stats)
     if nv < 0:
         return None, None, None
     grid = (scan[0, :pieces + 1].copy(), scan[1, :pieces + 1].copy(), scan[2, :pieces + 1].copy(), live[:pieces].copy())
@@ -186,7 +194,7 @@ def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, m
     for i in range(nv):
         productive[i] = 1.0 if any(abs(roots[i] - pv) < 1e-5 for pv in productive_v) else 0.0
     scan[5] = productive
-    nall = tb.refine_v_roots(A, da, B, db, n, pieces, live, cf, mat, scan, roots, nv, scan[5], stats)
+    nall = tb.refine_v_roots(At, da, Bt, db, n, pieces, live, cf, mat, scan, roots, nv, scan[5], stats)
     return roots[:nv].copy(), roots[nv:nall].copy(), grid
 
 
@@ -336,8 +344,8 @@ def _padded_bezout(A, B, n, zero):
 
 
 def _coeff_vectors(A, da, B, db, n, v):
-    na = int(tb._top_row(A, da, n))
-    nb = int(tb._top_row(B, db, n))
+    na = int(tb._top_row(v_major(A, da), da, n))
+    nb = int(tb._top_row(v_major(B, db), db, n))
     a = np.array([sum(A[i, j] * v ** j for j in range(da - i, -1, -1)) if i <= na else 0.0 for i in range(n + 1)])
     b = np.array([sum(B[i, j] * v ** j for j in range(db - i, -1, -1)) if i <= nb else 0.0 for i in range(n + 1)])
     return a / np.abs(a).max(), b / np.abs(b).max(), na, nb

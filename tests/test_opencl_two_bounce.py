@@ -120,7 +120,7 @@ def test_opencl_determinant_equals_det_bezout():
     index = _opencl_device_or_skip()
     from addon.solver.opencl_backend import OpenCLDeterminants
     from addon.solver.two_bounce import MAXD, N_STATS, det_bezout
-    from addon.solver.two_bounce_staged import SYS_CAP, _unpack, layout, stage_a
+    from addon.solver.two_bounce_staged import SYS_CAP, _unpack_v_major, layout, stage_a
 
     x0, x3, P, N, eta = _tuples("TT", 6)
     n = x0.shape[0]
@@ -148,8 +148,8 @@ def test_opencl_determinant_equals_det_bezout():
     compared = 0
     for j, (s, v) in enumerate(zip(job_sys, job_v)):
         da, db, nn = sysint[s, 2], sysint[s, 3], sysint[s, 6]
-        _unpack(coef[s], 0, da, a)
-        _unpack(coef[s], b_offset, db, b)
+        _unpack_v_major(coef[s], 0, da, a)
+        _unpack_v_major(coef[s], b_offset, db, b)
         s_nb, lg_nb = det_bezout(a, da, b, db, nn, v, cf, mat)
         if s_nb == 0:
             continue  # an exact zero is re-checked a hair away by both back ends

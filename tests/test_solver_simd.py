@@ -13,7 +13,7 @@ import pytest
 from numba import njit
 
 from addon.solver.simd import (casteljau_halves, lanes_abs_argmax, rows_add_scaled, rows_add_scaled_exact,
-                               rows_scale, shifted_products_difference, square_min_max_abs, transpose_blocks)
+                               rows_scale, rows_scale_add, shifted_products_difference, square_min_max_abs, transpose_blocks)
 
 RNG_SEED = 20261126
 
@@ -31,8 +31,10 @@ def _rows_ops(dst, x, s, n, which):
         rows_add_scaled(dst, x, s, n)
     elif which == 1:
         rows_add_scaled_exact(dst, x, s, n)
-    else:
+    elif which == 2:
         rows_scale(dst, s, n)
+    else:
+        rows_scale_add(dst, x, s, n)
 
 
 def test_row_operations_are_the_scalar_loops():
@@ -41,13 +43,16 @@ def test_row_operations_are_the_scalar_loops():
         n = int(rng.integers(0, 41))
         dst, x = _graded(rng, 48), _graded(rng, 48)
         s = float(_graded(rng, 1)[0])
-        for which in range(3):
+        for which in range(4):
             got = dst.copy()
             _rows_ops(got, x, s, n, which)
             want = dst.copy()
             if which == 2:
                 width = -(-n // 8) * 8
                 want[:width] = want[:width] * s
+            elif which == 3:
+                width = -(-n // 8) * 8
+                want[:width] = want[:width] * s + x[:width]
             else:
                 width = n if which == 1 else -(-n // 8) * 8
                 want[:width] = want[:width] + s * x[:width]

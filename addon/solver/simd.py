@@ -169,6 +169,13 @@ def rows_scale(typingctx, dst, s, n):
 
 
 @intrinsic
+def rows_scale_add(typingctx, dst, x, s, n):
+    """dst[i] = dst[i] * s + x[i] for i < n rounded up to a multiple of CHUNK (one Horner
+    step on a whole coefficient vector)."""
+    return _row_signature((dst, x), (s,), n), _row_codegen(2, lambda b, v, s: b.fadd(b.fmul(v[0], s[0]), v[1]), False)
+
+
+@intrinsic
 def shifted_products_difference(typingctx, out, a, x, nx, b, y, ny, terms, n_out):
     """out[k] = Σ_l a[l] x[k - l] - Σ_l b[l] y[k - l] for k < n_out, l < terms, the first sum
     over 0 ≤ k - l ≤ nx and the second over 0 ≤ k - l ≤ ny: two truncated convolutions.

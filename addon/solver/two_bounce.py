@@ -222,12 +222,12 @@ from .vec3 import row
 from .roots import MAX_DEGREE, roots_in_interval
 from .simd import CHUNK as SIMD_CHUNK
 from .simd import (casteljau_halves, lanes_abs_argmax, lanes_sub_scaled, rows_add_scaled, rows_add_scaled_exact, rows_scale,
-                   shifted_products_difference, square_min_max_abs, transpose_blocks)
+                   rows_scale_add, shifted_products_difference, square_min_max_abs, transpose_blocks)
 
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 4  # tuples per parallel work item: a two-bounce tuple costs ~1-200 ms, so small chunks balance threads
 MAXD = 47  # bivariate arrays are (MAXD + 1)²; b has total degree ≤ 46 (TT)
-N_SLOTS = 56  # 0, 1: a, b; 2-36 the system's intermediates, then the live pre-pass's stack (2-33) and its temporaries (34-36, 40-44); 46: β, 47-50 its box conversion; 51-55: the map to triangle 2
+N_SLOTS = 56  # 0, 1: a, b; 2-36 the system's intermediates, then the live pre-pass's stack (2-33) and its temporaries (34-36, 40-44), then a, b v-major (2, 3); 46: β, 47-50 its box conversion; 51-55: the map to triangle 2
 DEFAULT_PIECES = 100
 MAX_PIECES = 1024
 ROOT_TOL = 1e-4  # v1 brackets are pinned to this; the path-space Newton polish takes it to ~1e-15
@@ -245,6 +245,7 @@ LIVE_DEPTH_LOW = 3  # ... where b's degree is at most LIVE_LOW_DEGREE (RR): its 
 LIVE_LOW_DEGREE = 16
 LIVE_TOL = 1e-11  # Bernstein coefficients within this fraction of the polynomial's largest count as either sign
 LIVE_PREPASS = True
+V_MAJOR_SLOT = 2  # biv slots 2, 3: a, b v-major for the determinants (after the pre-pass, whose stack they were)
 HIT_TEST = True  # the pre-pass also drops boxes whose x1 cannot reach triangle 2 (``_misses_second``)
 LIVE_SLOT0 = 2  # first biv slot of the pre-pass's box stack (two slots per box: a, b)
 LIVE_STACK = 3 * LIVE_DEPTH + 1
@@ -825,16 +826,35 @@ def live_pieces_band(a, da, b, db, margin, pieces, biv, boxes, live, blo, bhi):
 
 
 @kernel
-def _coeffs_at(p, d, n, v, out):
-    """out[i] = p_i(v) (coefficient of u^i) for i ≤ n, scaled to unit max-norm; returns the scale.
+def v_major(p, d, out):
+    """out[j, i] = p[i, j] for i + j ≤ d and 0 beyond, in rows j ≤ d up to the block edge:
+    a bivariate polynomial (p[i, j] u^i v^j, total degree d) in the layout the determinant
+    family reads (``det_bezout`` and its callers: their ``at``, ``bt``).  There one Horner
+    step in v of all the u-coefficients at once is one vector operation on a row, where
+    on p it gathers a column (:func:`_coeffs_at`)."""
+    _check_whole_vectors(out, d)
+    _transpose_square(p, d, out)
+    w = SIMD_CHUNK * ((d + SIMD_CHUNK) // SIMD_CHUNK)
+    for j in range(d + 1):
+        for i in range(d - j + 1, w):
+            out[j, i] = 0.0
 
-    Horner in v for all rows at once (column j of p enters every row i ≤ d - j): the same
-    operations per row as one Horner loop per row, without its serial dependency chain."""
-    for i in range(n + 1):
+
+@kernel
+def _coeffs_at(pt, d, n, v, out):
+    """out[i] = p_i(v) (coefficient of u^i) for i ≤ n, scaled to unit max-norm; returns the scale.
+    pt: p in the v-major layout (:func:`v_major`).
+
+    Horner in v for all rows at once: step j is out = out v + pt[j], a vector operation on
+    whole vectors (rows_scale_add; pt's zeros beyond the triangle keep each out[i] at 0
+    until its first term, so every out[i] for i ≤ n gets exactly one Horner loop's
+    operations; out[n + 1 ..] up to the block edge is scratch).  Gathering the column p[:, j]
+    instead was ~0.5 µs of a ~4 µs (16, 34) determinant."""
+    w = SIMD_CHUNK * ((n + SIMD_CHUNK) // SIMD_CHUNK)
+    for i in range(w):
         out[i] = 0.0
     for j in range(d, -1, -1):
-        for i in range(min(n, d - j) + 1):
-            out[i] = out[i] * v + p[i, j]
+        rows_scale_add(out, pt[j], v, min(n, d - j) + 1)
     m = 0.0
     for i in range(n + 1):
         m = max(m, abs(out[i]))
@@ -846,19 +866,20 @@ def _coeffs_at(p, d, n, v, out):
 
 
 @kernel
-def _top_row(p, d, n):
-    """The u-degree of p, at most n (rows above it were zeroed by ``_u_degree``)."""
+def _top_row(pt, d, n):
+    """The u-degree of p, at most n (rows above it were zeroed by ``_u_degree``); pt: p
+    v-major (:func:`v_major`)."""
     i = min(n, d)
     while i > 0:
         for j in range(d - i + 1):
-            if p[i, j] != 0.0:
+            if pt[j, i] != 0.0:
                 return i
         i -= 1
     return 0
 
 
 @kernel
-def det_bezout(a, da, b, db, n, v, cf, mat):
+def det_bezout(at, da, bt, db, n, v, cf, mat):
     """Sign and log|det| of the hybrid Bézout matrix of (a(·, v), b(·, v)): the resultant
     in u1 at v1 (eq 29), up to a sign that is constant for the system.
 
@@ -883,14 +904,15 @@ def det_bezout(a, da, b, db, n, v, cf, mat):
     The elimination (:func:`_det_hybrid_window` for n ≥ WINDOW_FROM, else
     :func:`_det_hybrid_dense`) gives the same numbers bit for bit either way.
 
-    cf: (2, MAXD + 1) scratch, mat: (MAXD, MAXD) scratch.  Returns (sign, log|det|); sign 0
-    when the elimination meets an exactly zero column (or a coefficient vector vanishes)."""
+    at, bt: a and b in the v-major layout (:func:`v_major`).  cf: (2, MAXD + 2) scratch, mat:
+    (MAXD, MAXD) scratch.  Returns (sign, log|det|); sign 0 when the elimination meets an
+    exactly zero column (or a coefficient vector vanishes)."""
     A = cf[0]
     B = cf[1]
-    na = _top_row(a, da, n)
-    nb = _top_row(b, db, n)
-    ma = _coeffs_at(a, da, na, v, A)
-    mb = _coeffs_at(b, db, nb, v, B)
+    na = _top_row(at, da, n)
+    nb = _top_row(bt, db, n)
+    ma = _coeffs_at(at, da, na, v, A)
+    mb = _coeffs_at(bt, db, nb, v, B)
     if not (ma > 0.0 and mb > 0.0) or not (np.isfinite(ma) and np.isfinite(mb)):
         return 0, -math.inf
     # f: the polynomial of the larger u-degree nf, g: the other one (degree m)
@@ -1075,23 +1097,23 @@ def _det_hybrid_dense(F, G, n, m, A, mat):
 
 
 @kernel
-def _det_checked(a, da, b, db, n, v, cf, mat, stats):
+def _det_checked(at, da, bt, db, n, v, cf, mat, stats):
     """det_bezout, with an exact zero re-checked a hair away (never taken as a root as is)."""
     stats[STAT_DETS] += 1
-    s, lg = det_bezout(a, da, b, db, n, v, cf, mat)
+    s, lg = det_bezout(at, da, bt, db, n, v, cf, mat)
     if s != 0:
         return s, lg
     for k in range(1, 4):
         h = 1e-13 * (10.0 ** k)
         stats[STAT_DETS] += 1
-        s, lg = det_bezout(a, da, b, db, n, v + h, cf, mat)
+        s, lg = det_bezout(at, da, bt, db, n, v + h, cf, mat)
         if s != 0:
             return s, lg
     return 0, -math.inf
 
 
 @kernel
-def _illinois(a, da, b, db, n, lo, hi, slo, llo, shi, lhi, cf, mat, stats):
+def _illinois(at, da, bt, db, n, lo, hi, slo, llo, shi, lhi, cf, mat, stats):
     """Root of det in [lo, hi] (opposite signs at the ends) pinned to ROOT_TOL."""
     side = 0
     width_before = hi - lo
@@ -1116,7 +1138,7 @@ def _illinois(a, da, b, db, n, lo, hi, slo, llo, shi, lhi, cf, mat, stats):
             x = lo + 0.5 * w
             if not (x > lo and x < hi):
                 break
-        s, lg = _det_checked(a, da, b, db, n, x, cf, mat, stats)
+        s, lg = _det_checked(at, da, bt, db, n, x, cf, mat, stats)
         if s == 0:
             return x
         if s == slo:
@@ -1135,7 +1157,7 @@ def _illinois(a, da, b, db, n, lo, hi, slo, llo, shi, lhi, cf, mat, stats):
 
 
 @kernel
-def find_v_roots(a, da, b, db, n, lo, hi, pieces, live, cf, mat, scan, out_roots, stats):
+def find_v_roots(at, da, bt, db, n, lo, hi, pieces, live, cf, mat, scan, out_roots, stats):
     """Real roots of det R(v) in [lo, hi] seen by the piecewise sign scan, pinned by Illinois.
 
     The range is cut into ``pieces``; every sign change is pinned to ROOT_TOL (the path-space
@@ -1165,7 +1187,7 @@ def find_v_roots(a, da, b, db, n, lo, hi, pieces, live, cf, mat, scan, out_roots
             sg[k] = 2  # not sampled
             lgs[k] = 0.0
             continue
-        s, lg = _det_checked(a, da, b, db, n, v, cf, mat, stats)
+        s, lg = _det_checked(at, da, bt, db, n, v, cf, mat, stats)
         sg[k] = s
         lgs[k] = lg
         sampled += 1
@@ -1179,7 +1201,7 @@ def find_v_roots(a, da, b, db, n, lo, hi, pieces, live, cf, mat, scan, out_roots
         if live[k] == 0:
             continue
         if sg[k] != sg[k + 1] and sg[k] != 0 and sg[k + 1] != 0 and count < cap:
-            out_roots[count] = _illinois(a, da, b, db, n, vs[k], vs[k + 1], sg[k], lgs[k], sg[k + 1], lgs[k + 1], cf, mat, stats)
+            out_roots[count] = _illinois(at, da, bt, db, n, vs[k], vs[k + 1], sg[k], lgs[k], sg[k + 1], lgs[k + 1], cf, mat, stats)
             piece_of[count] = k
             count += 1
         elif sg[k] == 0 and count < cap:
@@ -1190,7 +1212,7 @@ def find_v_roots(a, da, b, db, n, lo, hi, pieces, live, cf, mat, scan, out_roots
 
 
 @kernel
-def refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, out_roots, n_found, productive, stats):
+def refine_v_roots(at, da, bt, db, n, pieces, live, cf, mat, scan, out_roots, n_found, productive, stats):
     """Roots the uniform scan of :func:`find_v_roots` missed; returns the new root count.
 
     Solutions cluster (all paths through a small or distant second triangle lie in a small
@@ -1220,9 +1242,9 @@ def refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, out_roots, n_fo
     g_lo = 0.0
     g_hi = 0.0
     if live[0] != 0:
-        _, g_lo = _det_checked(a, da, b, db, n, vs[0] - h, cf, mat, stats)
+        _, g_lo = _det_checked(at, da, bt, db, n, vs[0] - h, cf, mat, stats)
     if live[pieces - 1] != 0:
-        _, g_hi = _det_checked(a, da, b, db, n, vs[pieces] + h, cf, mat, stats)
+        _, g_hi = _det_checked(at, da, bt, db, n, vs[pieces] + h, cf, mat, stats)
     g_lo = _deflate(vs[0] - h, g_lo, out_roots, n_found)
     g_hi = _deflate(vs[pieces] + h, g_hi, out_roots, n_found)
     raw = scan[8]  # the scan's log|det| before deflation: the ends of a refined piece
@@ -1241,7 +1263,7 @@ def refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, out_roots, n_fo
             carry = False
             continue
         last_of_run = k + 1 >= pieces or flags[k + 1] == 0.0
-        count, carry, cv, cs, cl = _refine_interval(a, da, b, db, n, vs[k], vs[k + 1], cf, mat, stack, sub, out_roots,
+        count, carry, cv, cs, cl = _refine_interval(at, da, bt, db, n, vs[k], vs[k + 1], cf, mat, stack, sub, out_roots,
                                                      n_found, count, stats, carry, cv, cs, cl, last_of_run,
                                                      int(sg[k]), raw[k], int(sg[k + 1]), raw[k + 1])
     return count
@@ -1277,7 +1299,7 @@ def _deflate(v, lg, roots, n_roots):
 
 
 @kernel
-def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_scan, count, stats, carry, cv, cs, cl,
+def _refine_interval(at, da, bt, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_scan, count, stats, carry, cv, cs, cl,
                      last_of_run, s_lo, l_lo, s_hi, l_hi):
     """Roots in [lo, hi] the uniform scan missed: recursive sub-sampling (explicit stack); a
     sub-piece next to a convex kink of the deflated log|det| is cut again (up to
@@ -1328,7 +1350,7 @@ def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_
             elif outer and k == M and s_hi != 2:
                 s, lg = s_hi, l_hi
             else:
-                s, lg = _det_checked(a, da, b, db, n, v, cf, mat, stats)
+                s, lg = _det_checked(at, da, bt, db, n, v, cf, mat, stats)
             sv[k + 1] = v
             ss[k + 1] = s
             sl[k + 1] = lg
@@ -1340,13 +1362,13 @@ def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_
                 ss[0] = cs
                 sl[0] = cl
             else:
-                s, lg = _det_checked(a, da, b, db, n, lo - h, cf, mat, stats)
+                s, lg = _det_checked(at, da, bt, db, n, lo - h, cf, mat, stats)
                 sv[0] = lo - h
                 ss[0] = s
                 sl[0] = lg
             has_left = True
             if last_of_run:
-                s, lg = _det_checked(a, da, b, db, n, hi + h, cf, mat, stats)
+                s, lg = _det_checked(at, da, bt, db, n, hi + h, cf, mat, stats)
                 sv[M + 2] = hi + h
                 ss[M + 2] = s
                 sl[M + 2] = lg
@@ -1372,7 +1394,7 @@ def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_
                     if out_roots[i] >= sv[k] and out_roots[i] <= sv[k + 1]:
                         known = True
                 if not known:
-                    out_roots[count] = _illinois(a, da, b, db, n, sv[k], sv[k + 1], ss[k], sl[k], ss[k + 1], sl[k + 1], cf, mat, stats)
+                    out_roots[count] = _illinois(at, da, bt, db, n, sv[k], sv[k + 1], ss[k], sl[k], ss[k + 1], sl[k + 1], cf, mat, stats)
                     count += 1
         k_lo = 0 if has_left else 1
         k_hi = M + 2 if has_right else M + 1
@@ -1395,7 +1417,7 @@ def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_
             if count < cap and sl[k - 1] + sl[k + 1] - 2.0 * sl[k] > KINK and ss[k] == ss[k - 1] \
                     and ss[k] == ss[k + 1] and ss[k] != 0 and sl[k] < sl[k - 1] and sl[k] < sl[k + 1]:
                 if (k - 2 < k_lo or sl[k - 2] >= sl[k - 1]) and (k + 2 > k_hi or sl[k + 2] >= sl[k + 1]):
-                    count = _resolve_dip(a, da, b, db, n, sv[k - 1], sv[k], sv[k + 1], ss[k], sl[k - 1], sl[k],
+                    count = _resolve_dip(at, da, bt, db, n, sv[k - 1], sv[k], sv[k + 1], ss[k], sl[k - 1], sl[k],
                                          sl[k + 1], cf, mat, out_roots, count, stats)
                 else:
                     # not monotone over the next samples: log|det| at its rounding floor, where a
@@ -1406,7 +1428,7 @@ def _refine_interval(a, da, b, db, n, lo, hi, cf, mat, stack, sub, out_roots, n_
 
 
 @kernel
-def _resolve_dip(a, da, b, db, n, xl, xm, xr, sgn, fl, fm, fr, cf, mat, out_roots, count, stats):
+def _resolve_dip(at, da, bt, db, n, xl, xm, xr, sgn, fl, fm, fr, cf, mat, out_roots, count, stats):
     """A one-signed dip of the deflated log|det| at xm (fm below fl at xl and fr at xr, one
     sign at all three): a root pair closer than the samples, or a complex pair next to the
     real axis.  The issue's "refine pieces where |det| dips towards zero without a sign
@@ -1447,18 +1469,18 @@ def _resolve_dip(a, da, b, db, n, xl, xm, xr, sgn, fl, fm, fr, cf, mat, out_root
                 x = xm + 0.3819660112501051 * (xr - xm)
             else:
                 x = xm - 0.3819660112501051 * (xm - xl)
-        s, lg = _det_checked(a, da, b, db, n, x, cf, mat, stats)
+        s, lg = _det_checked(at, da, bt, db, n, x, cf, mat, stats)
         if s == 0:
             break
         if s != sgn:
             # the pair straddles x: (xl or xm) .. x .. (xm or xr), all of sign sgn but x
             p = xm if x > xm else xl
             q = xr if x > xm else xm
-            sp, lp = _det_checked(a, da, b, db, n, p, cf, mat, stats)
-            sq, lq = _det_checked(a, da, b, db, n, q, cf, mat, stats)
+            sp, lp = _det_checked(at, da, bt, db, n, p, cf, mat, stats)
+            sq, lq = _det_checked(at, da, bt, db, n, q, cf, mat, stats)
             if count + 2 <= cap and sp == sgn and sq == sgn:
-                out_roots[count] = _illinois(a, da, b, db, n, p, x, sp, lp, s, lg, cf, mat, stats)
-                out_roots[count + 1] = _illinois(a, da, b, db, n, x, q, s, lg, sq, lq, cf, mat, stats)
+                out_roots[count] = _illinois(at, da, bt, db, n, p, x, sp, lp, s, lg, cf, mat, stats)
+                out_roots[count + 1] = _illinois(at, da, bt, db, n, x, q, s, lg, sq, lq, cf, mat, stats)
                 return count + 2
             break
         f = _deflate(x, lg, out_roots, count)
@@ -2271,7 +2293,12 @@ def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, piec
     else:
         for k in range(pieces):
             live[k] = 1
-    nv = find_v_roots(a, da, b, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, v_roots, stats)
+    # the determinant family reads the system v-major (the pre-pass's slots are free now)
+    at = biv[V_MAJOR_SLOT]
+    bt = biv[V_MAJOR_SLOT + 1]
+    v_major(a, da, at)
+    v_major(b, db, bt)
+    nv = find_v_roots(at, da, bt, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, v_roots, stats)
     if nv < 0:
         return -(count + 1)
     if stop_after == 2:
@@ -2283,7 +2310,7 @@ def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, piec
         count = _candidates_at(v_roots[iv], a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta,
                                work, th, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
         productive[iv] = 1.0 if stats[STAT_NEAR] > near else 0.0
-    nv_all = refine_v_roots(a, da, b, db, n, pieces, live, cf, mat, scan, v_roots, nv, productive, stats) if refine else nv
+    nv_all = refine_v_roots(at, da, bt, db, n, pieces, live, cf, mat, scan, v_roots, nv, productive, stats) if refine else nv
 
     for iv in range(nv, nv_all):
         count = _candidates_at(v_roots[iv], a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta,

@@ -48,6 +48,7 @@ import numpy as np
 
 from .jit import kernel, prange
 from .path_space2 import pack_geometry
+from .simd import CHUNK as SIMD_CHUNK
 from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
@@ -92,6 +93,21 @@ def _unpack(src, off, d, p):
     for i in range(d + 1):
         for j in range(d + 1 - i):
             p[i, j] = src[k]
+            k += 1
+
+
+@kernel
+def _unpack_v_major(src, off, d, pt):
+    """``_unpack`` into the v-major layout the determinants read (two_bounce.v_major: pt[j, i]
+    = p[i, j], zeros beyond the triangle up to the block edge)."""
+    w = SIMD_CHUNK * ((d + SIMD_CHUNK) // SIMD_CHUNK)
+    for j in range(d + 1):
+        for i in range(w):
+            pt[j, i] = 0.0
+    k = off
+    for i in range(d + 1):
+        for j in range(d + 1 - i):
+            pt[j, i] = src[k]
             k += 1
 
 
@@ -595,8 +611,8 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
                         and ssx[f, k] == ssx[f, k + 1] and ssx[f, k] != 0 and lg[k] < lg[k - 1] and lg[k] < lg[k + 1]:
                     if (k - 2 < 0 or lg[k - 2] >= lg[k - 1]) and (k + 2 > k_hi or lg[k + 2] >= lg[k + 1]):
                         if not loaded:
-                            _unpack(coef[s], 0, sysint3[s, 0], a)
-                            _unpack(coef[s], b_offset, sysint3[s, 1], b)
+                            _unpack_v_major(coef[s], 0, sysint3[s, 0], a)
+                            _unpack_v_major(coef[s], b_offset, sysint3[s, 1], b)
                             loaded = True
                         count = _resolve_dip(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], svx[f, k - 1], svx[f, k],
                                              svx[f, k + 1], ssx[f, k], lg[k - 1], lg[k], lg[k + 1], cf, mat, out, count, st)
@@ -627,8 +643,8 @@ def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, 
         for t in range(c * chunk, min(n_jobs, (c + 1) * chunk)):
             s = job_sys[t]
             if s != loaded:
-                _unpack(coef[s], 0, sysint3[s, 0], a)
-                _unpack(coef[s], b_offset, sysint3[s, 1], b)
+                _unpack_v_major(coef[s], 0, sysint3[s, 0], a)
+                _unpack_v_major(coef[s], b_offset, sysint3[s, 1], b)
                 loaded = s
             before = st[STAT_DETS]
             sg, lg = _det_checked(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_v[t], cf, mat, st)
@@ -652,8 +668,8 @@ def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_roo
         for t in range(c * chunk, min(n_jobs, (c + 1) * chunk)):
             s = job_sys[t]
             if s != loaded:
-                _unpack(coef[s], 0, sysint3[s, 0], a)
-                _unpack(coef[s], b_offset, sysint3[s, 1], b)
+                _unpack_v_major(coef[s], 0, sysint3[s, 0], a)
+                _unpack_v_major(coef[s], b_offset, sysint3[s, 1], b)
                 loaded = s
             before = st[STAT_DETS]
             out_root[t] = _illinois(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_f[t, 0], job_f[t, 1],

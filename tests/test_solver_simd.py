@@ -13,7 +13,7 @@ import pytest
 from numba import njit
 
 from addon.solver.simd import (casteljau_halves, lanes_abs_argmax, rows_add_scaled, rows_add_scaled_exact,
-                               rows_scale, rows_scale_add, shifted_products_difference, square_min_max_abs, transpose_blocks)
+                               rows_scale, rows_scale_add, square_min_max_abs, transpose_blocks)
 
 RNG_SEED = 20261126
 
@@ -129,35 +129,6 @@ def test_casteljau_halves_are_the_halving_loop():
     left, right = np.zeros((48, 48)), np.zeros((48, 48))
     _halves(src, d, left, right)
     assert np.allclose(left[:4, 0], [0.0, 0.0, 0.0, 0.125]) and np.allclose(right[:4, 0], [0.125, 0.25, 0.5, 1.0])
-
-
-@njit
-def _shifted(out, a, x, nx, b, y, ny, terms, n_out):
-    shifted_products_difference(out, a, x, nx, b, y, ny, terms, n_out)
-
-
-def test_shifted_products_difference_is_the_scalar_sums():
-    rng = np.random.default_rng(RNG_SEED + 4)
-    for _ in range(400):
-        n_out = int(rng.integers(1, 48))
-        nx, ny = int(rng.integers(0, 48)), int(rng.integers(0, 48))
-        terms = int(rng.integers(0, 20))
-        a, b, x, y = (_graded(rng, 64) for _ in range(4))
-        out = _graded(rng, 56)
-        keep = out.copy()
-        _shifted(out, a, x, nx, b, y, ny, terms, n_out)
-        want = np.zeros(n_out)
-        for k in range(n_out):
-            acc = 0.0
-            for l in range(terms):
-                if 0 <= k - l <= nx:
-                    acc += a[l] * x[k - l]
-            for l in range(terms):
-                if 0 <= k - l <= ny:
-                    acc -= b[l] * y[k - l]
-            want[k] = acc
-        assert np.array_equal(out[:n_out], want)
-        assert np.array_equal(out[n_out:], keep[n_out:])
 
 
 @njit

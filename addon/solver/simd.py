@@ -9,7 +9,7 @@ checks and a scalar remainder, and a row that the next operation reads right aft
 store stalls on store forwarding.  The intrinsics here emit the vector instructions
 directly, as generic LLVM vector IR (any x86-64 or other target lowers it; CHUNK = 8
 doubles is one AVX-512 register or two AVX ones): whole-row updates, an 8 x 8 block
-transpose, a min/max reduction, the de Casteljau halves and the Bézoutian's convolutions.
+transpose, a min/max reduction, the de Casteljau halves, a pivot search.
 
 Each does the scalar loop's IEEE operations on each element (a multiply, then an add: no
 fused multiply-add, no reassociation), so results are the scalar loop's bit for bit; the
@@ -173,63 +173,6 @@ def rows_scale_add(typingctx, dst, x, s, n):
     """dst[i] = dst[i] * s + x[i] for i < n rounded up to a multiple of CHUNK (one Horner
     step on a whole coefficient vector)."""
     return _row_signature((dst, x), (s,), n), _row_codegen(2, lambda b, v, s: b.fadd(b.fmul(v[0], s[0]), v[1]), False)
-
-
-@intrinsic
-def shifted_products_difference(typingctx, out, a, x, nx, b, y, ny, terms, n_out):
-    """out[k] = Σ_l a[l] x[k - l] - Σ_l b[l] y[k - l] for k < n_out, l < terms, the first sum
-    over 0 ≤ k - l ≤ nx and the second over 0 ≤ k - l ≤ ny: two truncated convolutions.
-    Per element the scalar loops' operations in their order (0.0, then the a-terms added by
-    ascending l, then the b-terms subtracted), CHUNK elements of out at a time in a
-    register; x and y are read with masked loads (nothing outside x[0 .. nx], y[0 .. ny]),
-    so no store lands on a row that the next operation loads (the row-by-row form, one
-    vector operation per l on the output row at offset l, stalled on store forwarding)."""
-    if not (_is_row(out) and _is_row(a) and _is_row(x) and _is_row(b) and _is_row(y)
-            and all(isinstance(t, types.Integer) for t in (nx, ny, terms, n_out))):
-        return None
-    sig = types.void(out, a, x, nx, b, y, ny, terms, n_out)
-
-    def codegen(context, builder, signature, args):
-        i64 = ir.IntType(64)
-        data = [context.make_array(signature.args[i])(context, builder, args[i]).data for i in (0, 1, 2, 4, 5)]
-        out_d, a_d, x_d, b_d, y_d = data
-        nx_v, ny_v, terms_v, n_v = (_as_i64(builder, v) for v in (args[3], args[6], args[7], args[8]))
-        iota = ir.Constant(ir.VectorType(i64, CHUNK), list(range(CHUNK)))
-        zero_vec = ir.Constant(_VEC, [0.0] * CHUNK)
-        acc_ptr = cgutils.alloca_once(builder, _VEC)
-        chunks = builder.sdiv(builder.add(n_v, ir.Constant(i64, CHUNK - 1)), ir.Constant(i64, CHUNK))
-        with cgutils.for_range(builder, chunks) as chunk_loop:
-            k0 = builder.mul(chunk_loop.index, ir.Constant(i64, CHUNK))
-            k_vec = builder.add(_splat(builder, k0), iota)
-            in_out = builder.icmp_signed("<", k_vec, _splat(builder, n_v))
-            builder.store(zero_vec, acc_ptr)
-            for coef_d, src_d, n_src, subtract in ((a_d, x_d, nx_v, False), (b_d, y_d, ny_v, True)):
-                # the terms that reach this chunk: 0 ≤ k - l ≤ n_src for some k in k0 .. k0 + 7
-                first = builder.sub(k0, n_src)
-                first = builder.select(builder.icmp_signed(">", first, ir.Constant(i64, 0)), first, ir.Constant(i64, 0))
-                stop = builder.add(k0, ir.Constant(i64, CHUNK))
-                stop = builder.select(builder.icmp_signed("<", stop, terms_v), stop, terms_v)
-                count = builder.sub(stop, first)
-                count = builder.select(builder.icmp_signed(">", count, ir.Constant(i64, 0)), count, ir.Constant(i64, 0))
-                with cgutils.for_range(builder, count) as term_loop:
-                    l = builder.add(first, term_loop.index)
-                    offset = builder.sub(k0, l)  # x index of lane 0
-                    idx = builder.add(_splat(builder, offset), iota)
-                    valid = builder.and_(in_out, builder.and_(
-                        builder.icmp_signed(">=", idx, ir.Constant(ir.VectorType(i64, CHUNK), [0] * CHUNK)),
-                        builder.icmp_signed("<=", idx, _splat(builder, n_src))))
-                    pointer = builder.bitcast(builder.gep(src_d, [offset]), _VEC.as_pointer())
-                    values = _masked_load(builder, pointer, valid)
-                    coef = _splat(builder, builder.load(builder.gep(coef_d, [l])))
-                    acc = builder.load(acc_ptr)
-                    product = builder.fmul(coef, values)
-                    new = builder.fsub(acc, product) if subtract else builder.fadd(acc, product)
-                    builder.store(builder.select(valid, new, acc), acc_ptr)
-            out_pointer = builder.bitcast(builder.gep(out_d, [k0]), _VEC.as_pointer())
-            _masked_store(builder, builder.load(acc_ptr), out_pointer, in_out)
-        return context.get_dummy_value()
-
-    return sig, codegen
 
 
 def _transpose8(builder, rows):

@@ -184,13 +184,21 @@ Vector kernels (``simd.py``, 2026-11-26).  The live pre-pass's Bernstein convers
 de Casteljau splits (whole rows as vector operations, the halvings deferred to one power of
 two per output row, 8 x 8 block transposes, a vector min/max), the system build's
 polynomial products (rows with a masked tail) and det_bezout's Bézoutian rows (eight outputs
-per register) and pivot search (a tree of vector maxima) do the scalar loops' operations on
+per register; a recurrence since) and pivot search (a tree of vector maxima) do the scalar loops' operations on
 each element in their order: paths, roots, candidates and determinants are unchanged bit
 for bit (the 300-tuple bench workloads of all four chains; the 10,000-tuple acceptance
 sets: TT 4,695,243 determinants and 42 missed, RT 3,513,457 and 7, TR 3,027,047 and 2, as
 before), and tests/test_solver_simd.py holds each kernel to its scalar loop.  1 thread,
 interleaved with the code before: random TT ~350 -> ~250 µs per tuple, per determinant
 (m, n) = (16, 34) 5.7 -> 3.8 µs.
+
+Then (2026-11-26, session 13): the determinants read the system v-major (``v_major``: one
+vector Horner step per column of v instead of a strided gather), the pivots' logs one per
+~100 orders of magnitude of their product (``_log_accumulate``), the Bézoutian rows by a
+recurrence, O(n m) (``_bezoutian_rows``), and 16 tuples per parallel work item (each zeroes
+~1.5 MB of scratch): a (16, 34) determinant 4.3 -> 3.8 µs in alternating runs.  The last
+two change the rounding; the acceptance sets moved by a few paths (TT 42 -> 49 missed,
+99.393 %; RT 7 -> 4; TR 2 -> 1; see ``_bezoutian_rows``).
 
 Path phase (§4.3): at each root v1*, u1 are the roots of a(·, v1*) in the triangle whose
 b(u1, v1*) is relatively small (the smallest always); (u1, v1) is mapped to (u2, v2) by the
@@ -222,7 +230,7 @@ from .vec3 import row
 from .roots import MAX_DEGREE, roots_in_interval
 from .simd import CHUNK as SIMD_CHUNK
 from .simd import (casteljau_halves, lanes_abs_argmax, lanes_sub_scaled, rows_add_scaled, rows_add_scaled_exact, rows_scale,
-                   rows_scale_add, shifted_products_difference, square_min_max_abs, transpose_blocks)
+                   rows_scale_add, square_min_max_abs, transpose_blocks)
 
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 16  # tuples per parallel work item (and per ~1.5 MB of zeroed scratch: at 4 its allocation was ~8 µs per tuple)

@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 from numba import njit
 
-from addon.solver.simd import (casteljau_halves, lanes_abs_argmax, rows_add_scaled, rows_add_scaled_exact,
-                               rows_scale, rows_scale_add, square_min_max_abs, transpose_blocks)
+from addon.solver.simd import (SMALL_BOX_DEGREE, casteljau_halves, lanes_abs_argmax, rows_add_scaled,
+                               rows_add_scaled_exact, rows_scale, rows_scale_add, small_box_range, square_min_max_abs,
+                               transpose_blocks)
+from addon.solver.two_bounce import _binomial_ratios, _tensor_bernstein_box
 
 RNG_SEED = 20261126
 
@@ -157,3 +159,35 @@ def test_lanes_abs_argmax_all_below_floor(n):
     row = np.zeros(16)
     row[:n] = 0.5
     assert _argmax(row, 1.0) == (1.0, -1)
+
+
+@njit
+def _small_box(p, d, u0, v0, w, R):
+    return small_box_range(p, d, u0, v0, w, R)
+
+
+@njit
+def _box_by_rows(p, d, u0, v0, w, R, out, t0, t1):
+    _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1)
+    lo, hi, _ = square_min_max_abs(out, d)
+    return lo, hi
+
+
+def test_small_box_range_is_the_row_by_row_conversion():
+    """small_box_range against two_bounce's row-by-row tensor Bernstein conversion and the
+    min/max of its coefficients: the same (min, max) for every degree it takes (the sign of
+    a zero aside), junk beyond the triangle ignored; (nan, nan) outside its degrees."""
+
+    rng = np.random.default_rng(RNG_SEED + 7)
+    R = np.zeros((48, 48))
+    out, t0, t1 = (np.zeros((48, 48)) for _ in range(3))
+    for _ in range(1500):
+        d = int(rng.integers(1, SMALL_BOX_DEGREE + 1))
+        p = _graded(rng, (48, 48))
+        u0, v0 = rng.uniform(-0.1, 1.0, 2)
+        w = float(rng.uniform(1e-3, 1.1))
+        _binomial_ratios(d, R)
+        got = _small_box(p, d, u0, v0, w, R)
+        want = _box_by_rows(p, d, u0, v0, w, R, out, t0, t1)
+        assert got == want, (d, got, want)
+    assert all(math.isnan(x) for x in _small_box(p, SMALL_BOX_DEGREE + 1, 0.0, 0.0, 1.0, R))

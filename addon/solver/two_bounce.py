@@ -229,8 +229,9 @@ from .path_space2 import pack_geometry, polish_and_validate2, trace_to_second
 from .vec3 import row
 from .roots import MAX_DEGREE, roots_in_interval
 from .simd import CHUNK as SIMD_CHUNK
+from .simd import SMALL_BOX_DEGREE
 from .simd import (casteljau_halves, lanes_abs_argmax, lanes_sub_scaled, rows_add_scaled, rows_add_scaled_exact, rows_scale,
-                   rows_scale_add, square_min_max_abs, transpose_blocks)
+                   rows_scale_add, small_box_range, square_min_max_abs, transpose_blocks)
 
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 16  # tuples per parallel work item (and per ~1.5 MB of zeroed scratch: at 4 its allocation was ~8 µs per tuple)
@@ -653,10 +654,13 @@ def live_pieces(a, da, b, db, margin, pieces, biv, boxes, live):
 def _box_range(biv, src, d, u0, v0, w):
     """(min, max) of the tensor Bernstein coefficients of biv[src] (degree d) over the box
     [u0, u0 + w] × [v0, v0 + w]: bounds of the polynomial there (convex hull property);
-    slots BETA_SLOT + 1 .. + 4 as scratch."""
+    slots BETA_SLOT + 1 .. + 4 as scratch.  Degrees up to simd.SMALL_BOX_DEGREE in registers
+    (:func:`simd.small_box_range`: the same numbers, ~5x faster)."""
     R = biv[BETA_SLOT + 1]
     out = biv[BETA_SLOT + 2]
     _binomial_ratios(d, R)
+    if 1 <= d <= SMALL_BOX_DEGREE:
+        return small_box_range(biv[src], d, u0, v0, w, R)
     _tensor_bernstein_box(biv[src], d, u0, v0, w, R, out, biv[BETA_SLOT + 3], biv[BETA_SLOT + 4])
     lo, hi, _ = square_min_max_abs(out, d)
     return lo, hi

@@ -195,8 +195,9 @@ interleaved with the code before: random TT ~350 -> ~250 µs per tuple, per dete
 Then (2026-11-26, session 13): the determinants read the system v-major (``v_major``: one
 vector Horner step per column of v instead of a strided gather), the pivots' logs one per
 ~100 orders of magnitude of their product (``_log_accumulate``), the Bézoutian rows by a
-recurrence, O(n m) (``_bezoutian_rows``), and 16 tuples per parallel work item (each zeroes
-~1.5 MB of scratch): a (16, 34) determinant 4.3 -> 3.8 µs in alternating runs.  The last
+recurrence, O(n m) (``_bezoutian_rows``), the pre-pass's box ranges of degree ≤ 7 in
+registers (``simd.small_box_range``, bit for bit, ~5x), and 16 tuples per parallel work item
+(each zeroes ~1.5 MB of scratch): a (16, 34) determinant 4.3 -> 3.8 µs in alternating runs.  The last
 two change the rounding; the acceptance sets moved by a few paths (TT 42 -> 49 missed,
 99.393 %; RT 7 -> 4; TR 2 -> 1; see ``_bezoutian_rows``).
 

@@ -79,20 +79,20 @@ static int det_bezout(__global const double *a, int da, __global const double *b
     for (int r = 0; r < n * n; ++r) mat[r] = 0.0;
     for (int r = 0; r < n - m; ++r)
         for (int i = 0; i <= m; ++i) mat[r * n + r + i] = G[i];
-    // row n - c: sum_l G_l u^l sum_(i >= c) F_i u^(i-c) - sum_l F_l u^l sum_(i >= c) G_i u^(i-c), l < c
-    for (int c = m; c >= 1; --c) {
+    // row n - c: φ_c by the recurrence up from φ_0 = 0 (as _bezoutian_rows):
+    // φ_c[k] = φ_(c-1)[k + 1] + (G_(c-1) F_(k+1) - F_(c-1) G_(k+1))
+    for (int c = 1; c <= m; ++c) {
         int r = n - c;
-        for (int l = 0; l < c; ++l) {
-            double g = G[l];
-            for (int i = c; i <= n; ++i) mat[r * n + i - c + l] += g * F[i];
+        double fc = F[c - 1], gc = G[c - 1];
+        for (int k = 0; k < n - 1; ++k) {
+            double gk = k + 1 <= m ? G[k + 1] : 0.0;
+            double t = gc * F[k + 1] - fc * gk;
+            mat[r * n + k] = c > 1 ? mat[(r + 1) * n + k + 1] + t : t;
         }
-        for (int l = 0; l < c; ++l) {
-            double f = F[l];
-            for (int i = c; i <= m; ++i) mat[r * n + i - c + l] -= f * G[i];
-        }
+        mat[r * n + n - 1] = gc * F[n] - fc * (n <= m ? G[n] : 0.0);
     }
     int sign = 1;
-    double logm = 0.0;
+    double logm = 0.0, prod = 1.0;  // log|det| = logm + log(prod) (as _log_accumulate)
     for (int k = 0; k < n; ++k) {
         int p = k;
         double big = fabs(mat[k * n + k]);
@@ -111,7 +111,13 @@ static int det_bezout(__global const double *a, int da, __global const double *b
         }
         double piv = mat[k * n + k];
         if (piv < 0.0) sign = -sign;
-        logm += log(fabs(piv));
+        double x = fabs(piv);
+        if (x > 1e-100 && x < 1e100) {
+            prod *= x;
+            if (prod < 1e-150 || prod > 1e150) { logm += log(prod); prod = 1.0; }
+        } else {
+            logm += log(x);
+        }
         double inv = 1.0 / piv;
         for (int i = k + 1; i < n; ++i) {
             double f = mat[i * n + k] * inv;
@@ -119,7 +125,7 @@ static int det_bezout(__global const double *a, int da, __global const double *b
                 for (int j = k + 1; j < n; ++j) mat[i * n + j] -= f * mat[k * n + j];
         }
     }
-    *logdet = logm;
+    *logdet = logm + log(prod);
     return sign;
 }
 

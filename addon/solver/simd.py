@@ -227,6 +227,16 @@ def transpose_blocks(typingctx, src, dst, blocks):
     return sig, codegen
 
 
+def _fold_lanes(builder, vec, op):
+    """The lane of vec that wins ``fcmp_ordered(op, lane, best)`` from lane 0 up (op "<": the
+    minimum, ">": the maximum; a NaN lane never wins over a number)."""
+    best = builder.extract_element(vec, ir.Constant(ir.IntType(32), 0))
+    for i in range(1, CHUNK):
+        x = builder.extract_element(vec, ir.Constant(ir.IntType(32), i))
+        best = builder.select(builder.fcmp_ordered(op, x, best), x, best)
+    return best
+
+
 SMALL_BOX_DEGREE = CHUNK - 1  # the largest degree small_box_range takes (its rows fit one vector)
 
 
@@ -310,16 +320,8 @@ def small_box_range(typingctx, p, d, u0, v0, w, R):
             for k in range(deg + 1):
                 lo = builder.select(builder.and_(valid, builder.fcmp_ordered("<", C[k], lo)), C[k], lo)
                 hi = builder.select(builder.and_(valid, builder.fcmp_ordered(">", C[k], hi)), C[k], hi)
-            lo_s = builder.extract_element(lo, ir.Constant(ir.IntType(32), 0))
-            hi_s = builder.extract_element(hi, ir.Constant(ir.IntType(32), 0))
-            for i in range(1, CHUNK):
-                index = ir.Constant(ir.IntType(32), i)
-                x = builder.extract_element(lo, index)
-                lo_s = builder.select(builder.fcmp_ordered("<", x, lo_s), x, lo_s)
-                x = builder.extract_element(hi, index)
-                hi_s = builder.select(builder.fcmp_ordered(">", x, hi_s), x, hi_s)
-            builder.store(lo_s, lo_ptr)
-            builder.store(hi_s, hi_ptr)
+            builder.store(_fold_lanes(builder, lo, "<"), lo_ptr)
+            builder.store(_fold_lanes(builder, hi, ">"), hi_ptr)
             builder.branch(end)
         builder.position_at_end(end)
         return context.make_tuple(builder, result, [builder.load(lo_ptr), builder.load(hi_ptr)])
@@ -363,17 +365,7 @@ def square_min_max_abs(typingctx, c, d):
                 builder.store(builder.select(take_hi, x, hi), hi_ptr)
                 builder.store(builder.select(take_big, ax, big), big_ptr)
         lo, hi, big = builder.load(lo_ptr), builder.load(hi_ptr), builder.load(big_ptr)
-        lo_s = builder.extract_element(lo, ir.Constant(ir.IntType(32), 0))
-        hi_s = builder.extract_element(hi, ir.Constant(ir.IntType(32), 0))
-        big_s = builder.extract_element(big, ir.Constant(ir.IntType(32), 0))
-        for i in range(1, CHUNK):
-            index = ir.Constant(ir.IntType(32), i)
-            x = builder.extract_element(lo, index)
-            lo_s = builder.select(builder.fcmp_ordered("<", x, lo_s), x, lo_s)
-            x = builder.extract_element(hi, index)
-            hi_s = builder.select(builder.fcmp_ordered(">", x, hi_s), x, hi_s)
-            x = builder.extract_element(big, index)
-            big_s = builder.select(builder.fcmp_ordered(">", x, big_s), x, big_s)
+        lo_s, hi_s, big_s = _fold_lanes(builder, lo, "<"), _fold_lanes(builder, hi, ">"), _fold_lanes(builder, big, ">")
         return context.make_tuple(builder, result, [lo_s, hi_s, big_s])
 
     return sig, codegen

@@ -229,7 +229,8 @@ def transpose_blocks(typingctx, src, dst, blocks):
 
 def _fold_lanes(builder, vec, op):
     """The lane of vec that wins ``fcmp_ordered(op, lane, best)`` from lane 0 up (op "<": the
-    minimum, ">": the maximum; a NaN lane never wins over a number)."""
+    minimum, ">": the maximum; a NaN lane never wins, and a NaN in lane 0 is never replaced:
+    the callers' lanes start at ±inf or 0 and take only ordered winners, so hold none)."""
     best = builder.extract_element(vec, ir.Constant(ir.IntType(32), 0))
     for i in range(1, CHUNK):
         x = builder.extract_element(vec, ir.Constant(ir.IntType(32), i))

@@ -967,29 +967,17 @@ def _bezoutian_rows(F, G, n, m, out, stride_rows):
     for c in range(1, m + 1):
         fc = F[c - 1]
         gc = G[c - 1]
-        last = min(m, n) - 1  # G_(k+1) exists for k ≤ m - 1
-        if stride_rows:
-            lane = m - c
-            if c == 1:
-                for k in range(last):
-                    out[k, lane] = gc * F[k + 1] - fc * G[k + 1]
-                for k in range(last, n - 1):
-                    out[k, lane] = gc * F[k + 1] - fc * (G[k + 1] if k + 1 <= m else 0.0)
+        lane = m - c  # stride_rows: φ_c in column lane of out, φ_(c-1) in lane + 1
+        r = n - c  # else: φ_c in row r, φ_(c-1) in row r + 1
+        for k in range(n):
+            gk = G[k + 1] if k + 1 <= m else 0.0
+            t = gc * F[k + 1] - fc * gk
+            if c > 1 and k < n - 1:  # φ_(c-1)[n] = 0
+                t = (out[k + 1, lane + 1] if stride_rows else out[r + 1, k + 1]) + t
+            if stride_rows:
+                out[k, lane] = t
             else:
-                for k in range(last):
-                    out[k, lane] = out[k + 1, lane + 1] + (gc * F[k + 1] - fc * G[k + 1])
-                for k in range(last, n - 1):
-                    out[k, lane] = out[k + 1, lane + 1] + (gc * F[k + 1] - fc * (G[k + 1] if k + 1 <= m else 0.0))
-            out[n - 1, lane] = gc * F[n] - fc * (G[n] if n <= m else 0.0)
-        else:
-            r = n - c
-            for k in range(n - 1):
-                gk = G[k + 1] if k + 1 <= m else 0.0
-                if c == 1:
-                    out[r, k] = gc * F[k + 1] - fc * gk
-                else:
-                    out[r, k] = out[r + 1, k + 1] + (gc * F[k + 1] - fc * gk)
-            out[r, n - 1] = gc * F[n] - fc * (G[n] if n <= m else 0.0)
+                out[r, k] = t
 
 
 @kernel

@@ -142,14 +142,15 @@ def test_opencl_determinant_equals_det_bezout():
     job_v = rng.uniform(-0.02, 1.02, job_sys.size)
     sign, log, _ = dev.dets(job_sys, job_v)
     a = np.zeros((MAXD + 1, MAXD + 1))
+    scratch = np.zeros((MAXD + 1, MAXD + 1))
     b = np.zeros((MAXD + 1, MAXD + 1))
     cf = np.zeros((2, MAXD + 2))
     mat = np.zeros((MAXD + 1, MAXD + 1))
     compared = 0
     for j, (s, v) in enumerate(zip(job_sys, job_v)):
         da, db, nn = sysint[s, 2], sysint[s, 3], sysint[s, 6]
-        _unpack_v_major(coef[s], 0, da, a)
-        _unpack_v_major(coef[s], b_offset, db, b)
+        _unpack_v_major(coef[s], 0, da, scratch, a)
+        _unpack_v_major(coef[s], b_offset, db, scratch, b)
         s_nb, lg_nb = det_bezout(a, da, b, db, nn, v, cf, mat)
         if s_nb == 0:
             continue  # an exact zero is re-checked a hair away by both back ends

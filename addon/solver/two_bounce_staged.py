@@ -48,7 +48,6 @@ import numpy as np
 
 from .jit import kernel, prange
 from .path_space2 import pack_geometry
-from .simd import CHUNK as SIMD_CHUNK
 from .two_bounce import (
     BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
     SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
@@ -56,7 +55,7 @@ from .two_bounce import (
     SQRT_BANDS, _beta_mask, _beta_poly, _centroid_piece, _sqrt_band,
     _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_cut, HERON_SQRT, HERON_CUT,
     _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
-    refine_flags_one, solve_two_bounce_tuple,
+    refine_flags_one, solve_two_bounce_tuple, v_major,
 )
 
 SYS_CAP = 24  # systems per tuple held by stage A; a tuple with more is solved by the one-kernel path
@@ -97,18 +96,11 @@ def _unpack(src, off, d, p):
 
 
 @kernel
-def _unpack_v_major(src, off, d, pt):
-    """``_unpack`` into the v-major layout the determinants read (two_bounce.v_major: pt[j, i]
-    = p[i, j], zeros beyond the triangle up to the block edge)."""
-    w = SIMD_CHUNK * ((d + SIMD_CHUNK) // SIMD_CHUNK)
-    for j in range(d + 1):
-        for i in range(w):
-            pt[j, i] = 0.0
-    k = off
-    for i in range(d + 1):
-        for j in range(d + 1 - i):
-            pt[j, i] = src[k]
-            k += 1
+def _unpack_v_major(src, off, d, scratch, pt):
+    """``_unpack`` into pt in the layout the determinants read (two_bounce.v_major), by way
+    of scratch (48 x 48)."""
+    _unpack(src, off, d, scratch)
+    v_major(scratch, d, pt)
 
 
 @kernel
@@ -584,6 +576,7 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
         out = buf[:cap]
         lg = np.empty(M + 3)
         a = np.empty((MAXD + 1, MAXD + 1))
+        scratch = np.empty((MAXD + 1, MAXD + 1))
         b = np.empty((MAXD + 1, MAXD + 1))
         cf = np.empty((2, MAXD + 2))
         mat = np.empty((MAXD + 1, MAXD + 1))
@@ -611,8 +604,8 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
                         and ssx[f, k] == ssx[f, k + 1] and ssx[f, k] != 0 and lg[k] < lg[k - 1] and lg[k] < lg[k + 1]:
                     if (k - 2 < 0 or lg[k - 2] >= lg[k - 1]) and (k + 2 > k_hi or lg[k + 2] >= lg[k + 1]):
                         if not loaded:
-                            _unpack_v_major(coef[s], 0, sysint3[s, 0], a)
-                            _unpack_v_major(coef[s], b_offset, sysint3[s, 1], b)
+                            _unpack_v_major(coef[s], 0, sysint3[s, 0], scratch, a)
+                            _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
                             loaded = True
                         count = _resolve_dip(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], svx[f, k - 1], svx[f, k],
                                              svx[f, k + 1], ssx[f, k], lg[k - 1], lg[k], lg[k + 1], cf, mat, out, count, st)
@@ -635,6 +628,7 @@ def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, 
     chunk = 32
     for c in prange((n_jobs + chunk - 1) // chunk):
         a = np.zeros((MAXD + 1, MAXD + 1))
+        scratch = np.empty((MAXD + 1, MAXD + 1))
         b = np.zeros((MAXD + 1, MAXD + 1))
         cf = np.zeros((2, MAXD + 2))
         mat = np.zeros((MAXD + 1, MAXD + 1))
@@ -643,8 +637,8 @@ def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, 
         for t in range(c * chunk, min(n_jobs, (c + 1) * chunk)):
             s = job_sys[t]
             if s != loaded:
-                _unpack_v_major(coef[s], 0, sysint3[s, 0], a)
-                _unpack_v_major(coef[s], b_offset, sysint3[s, 1], b)
+                _unpack_v_major(coef[s], 0, sysint3[s, 0], scratch, a)
+                _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
                 loaded = s
             before = st[STAT_DETS]
             sg, lg = _det_checked(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_v[t], cf, mat, st)
@@ -660,6 +654,7 @@ def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_roo
     chunk = 8
     for c in prange((n_jobs + chunk - 1) // chunk):
         a = np.zeros((MAXD + 1, MAXD + 1))
+        scratch = np.empty((MAXD + 1, MAXD + 1))
         b = np.zeros((MAXD + 1, MAXD + 1))
         cf = np.zeros((2, MAXD + 2))
         mat = np.zeros((MAXD + 1, MAXD + 1))
@@ -668,8 +663,8 @@ def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_roo
         for t in range(c * chunk, min(n_jobs, (c + 1) * chunk)):
             s = job_sys[t]
             if s != loaded:
-                _unpack_v_major(coef[s], 0, sysint3[s, 0], a)
-                _unpack_v_major(coef[s], b_offset, sysint3[s, 1], b)
+                _unpack_v_major(coef[s], 0, sysint3[s, 0], scratch, a)
+                _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
                 loaded = s
             before = st[STAT_DETS]
             out_root[t] = _illinois(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_f[t, 0], job_f[t, 1],

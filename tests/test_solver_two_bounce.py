@@ -169,6 +169,39 @@ def test_det_bezout_is_the_resultant(m, n):
     assert len(ratio) == 1
 
 
+@pytest.mark.parametrize("m,n", [(8, 15), (8, 22), (16, 31), (12, 34), (16, 46)])
+def test_det_bezout_depends_on_v_as_the_resultant(m, n):
+    """det_bezout on bivariate a(u, v), b(u, v) of total degrees (m, n) (the chains' systems),
+    read v-major (``v_major``): at random v the same log|det| as numpy's LU of the Sylvester
+    matrix of the coefficient vectors a_i(v), b_i(v) evaluated here with numpy's polyval,
+    and a sign that differs from the Sylvester determinant's by one constant per (m, n) —
+    the layout, the Horner in v and the elimination against an independent evaluation."""
+    from addon.solver import two_bounce as tb
+
+    rng = np.random.default_rng([m, n, 1])
+    MAXD = tb.MAXD
+    ratio = set()
+    for trial in range(30):
+        A = np.zeros((MAXD + 1, MAXD + 1))
+        B = np.zeros((MAXD + 1, MAXD + 1))
+        for P, d in ((A, m), (B, n)):
+            for i in range(d + 1):
+                P[i, :d + 1 - i] = rng.normal(size=d + 1 - i) * 10.0 ** rng.uniform(-4, 0, d + 1 - i)
+            P[:, :] = np.where(np.add.outer(np.arange(MAXD + 1), np.arange(MAXD + 1)) <= d, P, 0.0)
+        At, Bt = np.zeros_like(A), np.zeros_like(B)
+        tb.v_major(A, m, At)
+        tb.v_major(B, n, Bt)
+        v = float(rng.uniform(-0.02, 1.02))
+        sign, logdet = tb.det_bezout(At, m, Bt, n, n, v, np.zeros((2, MAXD + 2)), np.zeros((MAXD, MAXD)))
+        G = np.array([np.polyval(A[i, :m + 1 - i][::-1], v) for i in range(m + 1)])
+        F = np.array([np.polyval(B[i, :n + 1 - i][::-1], v) for i in range(n + 1)])
+        s_ref, l_ref = _sylvester_slogdet(F / np.abs(F).max(), G / np.abs(G).max())
+        assert sign != 0 and s_ref != 0
+        assert abs(logdet - l_ref) <= 1e-8 * max(1.0, abs(l_ref)), (trial, v, logdet, l_ref)
+        ratio.add(int(sign * s_ref))
+    assert len(ratio) == 1
+
+
 def test_sqrt_fit():
     """The piecewise rational √ (eq 23) errs by < 1e-4 on [0, 1], including next to 0."""
     from addon.solver.two_bounce import SQRT_PIECES, sqrt_approx

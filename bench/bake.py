@@ -25,13 +25,13 @@ ONE = """
 import json, sys, time
 t0 = time.perf_counter()
 sys.path.insert(0, {root!r})
-from addon.bake.driver import BakeSettings, bake
+from addon.bake.pipeline import BakeSettings, bake
 from addon.bake.extract import extract_scene, open_blend
 open_blend({blend!r})
 t1 = time.perf_counter()
 scene = extract_scene(resolution={res})
 t2 = time.perf_counter()
-settings = BakeSettings(resolution={res}, samples={samples}, bounces={bounces})
+settings = BakeSettings(resolution={res}, samples={samples}, bounces={bounces!r})
 cold = bake(scene, settings)
 t3 = time.perf_counter()
 warm = bake(scene, settings)
@@ -54,10 +54,11 @@ def main(argv=None):
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--resolutions", default="512,1024")
     ap.add_argument("--samples", type=int, default=4)
-    ap.add_argument("--bounces", type=int, default=1, choices=(1, 2),
-                    help="1 (default) or 2; two-bounce chains are far slower until the Bernstein bounds land")
+    ap.add_argument("--bounces", default="auto", choices=("auto", "1", "2"),
+                    help="auto (default: the planner's chains), or force 1 or 2")
     ap.add_argument("--no-write", action="store_true", help="print only, do not touch BENCHMARKS.md")
     args = ap.parse_args(argv)
+    args.bounces = args.bounces if args.bounces == "auto" else int(args.bounces)
     rows = []
     for scene in args.scenes.split(","):
         for res in (int(r) for r in args.resolutions.split(",")):

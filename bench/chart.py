@@ -1,23 +1,26 @@
-"""Speed against accuracy: every bake method on every sample scene, error against time.
+"""Speed against accuracy: every estimator (and path-points solver) on every sample scene,
+error against time.
 
     .venv/bin/python bench/chart.py [--quick] [--scenes metal_ring,water_pool] [--limit 60] [--no-write]
 
 Each sample scene (sample_blends/*.blend, read with addon/bake/extract.py) is baked with each
-method over a sweep of its speed knob:
+estimator over a sweep of its speed knob (the names as ``--estimator`` / ``--solver`` take them):
 
-- spoly, newton, curve: supersamples per texel (the tuple loop's cost is linear in them);
-  spoly here is one_bounce="points" (every exact path at every supersample); its two-bounce
-  chains use the flux default (the samples only set coverage);
-- spoly-flux: spoly's default since 2026-11-22, the forward-image flux estimator for every
-  chain (one_bounce and two_bounce "flux"), knob = the sub-triangles' deepest subdivision
-  level (image_depth, default 6);
-- sms: random Newton seeds per tuple (at 4 supersamples);
+- path-points/spoly, path-points/newton, path-points/curve: supersamples per texel (the tuple
+  loop's cost is linear in them); the one-bounce chains' exact paths at every supersample, the
+  two-bounce chains by forward-flux (the samples only set coverage);
+- forward-flux: the default estimator for every chain, knob = the sub-triangles' deepest
+  subdivision level (image_depth, default 6);
+- path-points/sms: random Newton seeds per tuple (at 4 supersamples);
 - photon: photons traced;
 - cycles: Cycles' own shadow caustics (MNEE) baked by bpy (bench/cycles_bake.py: two Cycles
   bakes per knob, casters on and off, the difference x pi in W/m²; x IOR² under an open water
   surface), knob = Cycles samples.  MNEE refracts only: it renders the T / TT chains, the
   reflection scenes get a row saying so and no numbers.  Its bake cannot be cancelled: one
   that takes longer than the limit is measured to the end and marked too slow.
+
+Every bake forces the scene's bounces (1, or 2 for the glass scenes), so that each row bakes
+the chains of the reference.
 
 Error: relMSE against a high-count photon reference of the same scene and settings (the
 texel-averaged irradiance, every chain the scene has), all receivers and RGB channels, with
@@ -58,7 +61,7 @@ sys.path[:0] = [ROOT, HERE]
 RESULTS = os.path.join(HERE, "results")
 SCENES = ("mirror_plane", "metal_ring", "water_pool", "glass_sphere", "glass_slab")
 TWO_BOUNCE_SCENES = ("glass_sphere", "glass_slab")  # their main caustic is TT
-METHODS = ("spoly", "spoly-flux", "newton", "sms", "curve", "photon", "cycles")
+METHODS = ("path-points/spoly", "forward-flux", "path-points/newton", "path-points/sms", "path-points/curve", "photon", "cycles")
 
 
 def rel_mse(b, r):
@@ -108,19 +111,18 @@ def reference(scene, name, digest, res, bounces, photons, force=False):
 
 
 def settings_for(method, knob, res, bounces):
-    from addon.bake.driver import BakeSettings
+    """BakeSettings of chart row ``method`` (an estimator, or path-points/SOLVER) at ``knob``."""
+    from addon.bake.settings import BakeSettings
 
-    kw = dict(resolution=res, bounces=bounces, margin=0, method=method, seed=1, batch_tuples=1 << 14)
-    if method == "spoly-flux":
-        kw.update(method="spoly", samples=1, one_bounce="flux", two_bounce="flux", image_depth=knob)
-    elif method == "sms":
-        kw.update(samples=4, sms_seeds=knob)
-    elif method == "photon":
-        kw.update(photons=knob)
-    elif method == "spoly":  # exact paths at every supersample (R, T); two bounces: the flux default
-        kw.update(samples=knob, one_bounce="points")
-    else:
-        kw.update(samples=knob)
+    estimator, _, solver = method.partition("/")
+    kw = dict(resolution=res, bounces=bounces, margin=0, seed=1, batch_tuples=1 << 14)
+    if estimator == "forward-flux":
+        kw.update(estimator="forward-flux", samples=1, image_depth=knob)
+    elif estimator == "photon":
+        kw.update(estimator="photon", photons=knob)
+    else:  # exact paths at every supersample (R, T); two bounces: forward-flux
+        kw.update(estimator="path-points", solver=solver, one_bounce="points", two_bounce="flux")
+        kw.update(dict(samples=4, sms_seeds=knob) if solver == "sms" else dict(samples=knob))
     return BakeSettings(**kw)
 
 
@@ -146,10 +148,11 @@ def timed_bake(scene, settings, limit):
 
 def sweep(quick):
     if quick:
-        return {"spoly": [1, 4, 16], "spoly-flux": [2, 4, 6], "newton": [1, 4, 16], "curve": [1, 4, 16], "sms": [1, 4, 16],
+        return {"path-points/spoly": [1, 4, 16], "forward-flux": [2, 4, 6], "path-points/newton": [1, 4, 16],
+                "path-points/curve": [1, 4, 16], "path-points/sms": [1, 4, 16],
                 "photon": [100_000, 400_000, 1_600_000], "cycles": [16, 64, 256]}
-    return {"spoly": [1, 4, 16, 64], "spoly-flux": [2, 3, 4, 5, 6, 7], "newton": [1, 4, 16, 64], "curve": [1, 4, 16, 64],
-            "sms": [1, 4, 16, 64],
+    return {"path-points/spoly": [1, 4, 16, 64], "forward-flux": [2, 3, 4, 5, 6, 7], "path-points/newton": [1, 4, 16, 64],
+            "path-points/curve": [1, 4, 16, 64], "path-points/sms": [1, 4, 16, 64],
             "photon": [100_000, 1_000_000, 4_000_000, 16_000_000], "cycles": [16, 64, 256, 1024]}
 
 
@@ -209,10 +212,9 @@ def run_scene(name, args, rows, notes):
         # Warm-up: load / compile the method's kernels on a tiny bake (not timed).
         from addon.bake.driver import BakeSettings, bake
 
-        base = method.split("-")[0]
-        warm = bake(scene, BakeSettings(resolution=8, samples=1, bounces=bounces, margin=0, method=base, photons=1000,
-                                        sms_seeds=1, batch_tuples=1 << 14,
-                                        one_bounce="flux" if method == "spoly-flux" else "points"), progress=None)
+        warm_settings = settings_for(method, sweep(True)[method][0], 8, bounces)
+        warm_settings.photons = min(warm_settings.photons, 1000)
+        bake(scene, warm_settings, progress=None)
         slow = False
         for knob in knobs:
             if slow:
@@ -260,7 +262,8 @@ def plot(rows, notes, scene, path, knob_label):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=100)
-    markers = dict(spoly="o", newton="s", **{"spoly-flux": "P"}, sms="^", curve="D", photon="v", cycles="x")
+    markers = {"path-points/spoly": "o", "path-points/newton": "s", "forward-flux": "P", "path-points/sms": "^",
+               "path-points/curve": "D", "photon": "v", "cycles": "x"}
     any_point = False
     for method in METHODS:
         pts = [r for r in rows if r["scene"] == scene and r["method"] == method and r["relmse"] is not None]
@@ -291,9 +294,9 @@ def plot(rows, notes, scene, path, knob_label):
 def knob_label(method, knob):
     if method == "photon":
         return f"{knob / 1e6:g}M" if knob >= 1e6 else f"{knob / 1e3:g}k"
-    if method == "sms":
+    if method == "path-points/sms":
         return f"{knob} seeds"
-    if method == "spoly-flux":
+    if method == "forward-flux":
         return f"depth {knob}"
     return f"{knob} spp"
 
@@ -305,10 +308,10 @@ def section(rows, notes, args):
              f"with other jobs: timings are noisy), Python {platform.python_version()}; {args.res}² textures, one light "
              f"sample, date {time.strftime('%Y-%m-%d')}; {'`--quick`' if args.quick else 'full'} sweep.",
              "",
-             "Knobs: supersamples per texel (spoly, newton, curve; spoly here solves every exact R/T path at every "
-             "supersample (one_bounce='points'), its two-bounce chains use the flux estimator), subdivision depth of "
-             "the forward-image sub-triangles (spoly-flux: one_bounce and two_bounce 'flux', **the default bake**), "
-             "random seeds per tuple at 4 supersamples (sms), photons (photon), Cycles samples (cycles: "
+             "Knobs: supersamples per texel (path-points with the spoly, newton, curve solvers: every exact R/T path "
+             "the solver finds at every supersample; the two-bounce chains by forward-flux), subdivision depth of "
+             "the forward-image sub-triangles (forward-flux, **the default estimator**), "
+             "random seeds per tuple at 4 supersamples (path-points/sms), photons (photon), Cycles samples (cycles: "
              "Cycles' MNEE shadow caustics baked by bpy, two bakes per point, see bench/cycles_bake.py; refraction "
              "chains only). Error: relMSE (tests/test_bake_caustics.py's definition, all receivers and channels) against a "
              f"{args.ref_photons:,}-photon reference of every chain the scene has (bounces 2 for the glass scenes: TT); "
@@ -320,7 +323,7 @@ def section(rows, notes, args):
         lines.append(f"**{scene}** (bounces {n['bounces']}; reference floor relMSE {n['floor']:.1e}) "
                      f"![{scene}](bench/results/chart_{scene}.png)")
         lines.append("")
-        lines.append("| method | knob | seconds | relMSE | note |")
+        lines.append("| estimator | knob | seconds | relMSE | note |")
         lines.append("|---|---|---|---|---|")
         for r in rows:
             if r["scene"] != scene:
@@ -331,9 +334,9 @@ def section(rows, notes, args):
         for method, sk in n["skipped"].items():
             lines.append(f"\n{method}: " + "; ".join(sorted(set(sk))))
         lines.append("")
-    lines.append("Reading the chart: the tuple methods are deterministic, so their error is the supersample (aliasing) "
-                 "error of the texel average (spoly-flux: the density of each sub-triangle's image taken linear, its "
-                 "border approximated) plus whatever paths they miss (newton, sms) or chains they skip (newton/sms: "
+    lines.append("Reading the chart: path-points and forward-flux are deterministic, so their error is the supersample "
+                 "(aliasing) error of the texel average (forward-flux: the density of each sub-triangle's image taken linear, "
+                 "its border approximated) plus whatever paths the solver misses (newton, sms) or chains it skips (newton/sms: "
                  "R and T only; curve: T only), which no knob recovers; photon's error is noise, falling as 1/photons. "
                  "cycles (Cycles' MNEE) is nearly noise-free here from 16 spp on and its error is bias: light its seeding "
                  "misses (the caustic ends at the caster's straight-line silhouette, one path per sample, a failed "

@@ -5,7 +5,7 @@
     open_blend(path)                         # the bpy scene is modified: reopen it afterwards
 
 ``images[receiver]`` is an (H, W, 3) float64 array of caustic irradiance in W/m² with the
-layout of ``addon.bake.driver.BakeResult.raw`` (row 0 = v = 0, as Blender stores pixels; the
+layout of ``addon.bake.pipeline.BakeResult.raw`` (row 0 = v = 0, as Blender stores pixels; the
 texel order is checked against our bakes in tests/test_cycles_caustics.py), i.e. directly
 comparable with our bakes and the chart's photon reference.
 

@@ -70,7 +70,7 @@ def flicker(frames, ref):
 
 
 def main(argv=None):
-    from addon.bake.driver import BakeSettings, bake
+    from addon.bake.pipeline import BakeSettings, bake
     from chart import load_scene, stack
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

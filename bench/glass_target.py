@@ -46,7 +46,7 @@ def main(argv=None):
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
 
-    from addon.bake.driver import BakeSettings, bake
+    from addon.bake.pipeline import BakeSettings, bake
     from addon.bake.extract import extract_scene, open_blend
 
     open_blend(os.path.join(ROOT, "sample_blends", "glass_sphere.blend"))
@@ -82,7 +82,8 @@ def main(argv=None):
         lines.append(f"| photon {args.photons:,} (seed {k + 1}) | {sec:.1f} | — | {e:.2e} (vs the other seed) | "
                      f"{e / 2:.2e} (its own noise) | {img.sum() / refs[1 - k][1].sum():.4f} | — |")
     rep = rows[0]["report"] if rows else {}
-    img_rep = rep.get("two_bounce_image", {})
+    estimators = rep.get("estimators", {})
+    img_rep = estimators.get("forward-flux") or estimators.get("path-seeded") or {}
     text = (f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
             f"{args.resolution}² texels, chain TT only, date {time.strftime('%Y-%m-%d')}; load average "
             f"{os.getloadavg()[0]:.1f} at the end.  Cold: the first bake in this process (it includes Numba "

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from addon.bake.driver import BakeSettings, bake
+from addon.bake.pipeline import BakeSettings, bake
 from addon.bake.scene import Light, build_scene
 from addon.demo import wavy_water
 

@@ -11,7 +11,7 @@ images overlap it divided by its area (a texel average too).
 import numpy as np
 import pytest
 
-from addon.bake.driver import BakeSettings, bake
+from addon.bake.pipeline import BakeSettings, bake
 from addon.bake.scene import Light, build_scene
 from addon.demo import wavy_water
 
@@ -40,7 +40,7 @@ def test_metal_ring_cardioid_matches_photon_tracing(estimator):
     res_, half = 32, 1.6
     sc = ring_scene(resolution=res_, segments=48, half=half)
     light = sc.lights[0]
-    out = bake(sc, BakeSettings(samples=64 if estimator == "points" else 1, seed=3, margin=0, one_bounce=estimator))
+    out = bake(sc, BakeSettings(samples=64 if estimator == "points" else 1, seed=3, margin=0, one_bounce=estimator, bounces=1))
     ref = trace_caustic(light.position, light.intensity, sc.tri_p, sc.tri_n, _kinds(sc, KIND_REFLECT), sc.tri_ior,
                         (-half, -half), (2 * half, 2 * half), (res_, res_), 3_000_000, seed=5,
                         target_centre=(0.0, 0.0, 0.25), target_radius=1.2)
@@ -58,7 +58,7 @@ def test_metal_ring_cardioid_matches_photon_tracing(estimator):
     if estimator == "points":
         assert counts["paths_visible"] > 10_000 and counts["tuples"] < 0.2 * counts["tuples_naive"]
     else:
-        assert out.report["two_bounce_image"]["passes"][0]["sub_triangles"] > 10_000
+        assert out.report["estimators"]["forward-flux"]["passes"][0]["sub_triangles"] > 10_000
 
 
 def test_water_surface_refraction_matches_photon_tracing():
@@ -112,5 +112,5 @@ def test_glass_sphere_focus_matches_photon_tracing(mode):
         focus[max(0, j - 1):j + 2, max(0, i - 1):i + 2] = True
         assert rel_mse(np.where(focus, ref, b), ref) <= 1e-2
         assert abs(b[~focus].sum() / ref[~focus].sum() - 1) <= 0.02
-        c = out.report["two_bounce_image"]["counts"]
+        c = out.report["estimators"]["path-seeded"]["counts"]
         assert c["paths"] > 1000 and c["seeds"] < 30 * c["paths"]

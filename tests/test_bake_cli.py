@@ -11,7 +11,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from addon.__main__ import main  # noqa: E402
-from addon.bake.driver import BakeSettings, bake  # noqa: E402
+from addon.bake.pipeline import BakeSettings, bake  # noqa: E402
 from addon.bake.exr import read_exr  # noqa: E402
 from addon.bake.extract import extract_scene, open_blend  # noqa: E402
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from addon.bake.cull import OneBounceCull, scatter_caps
-from addon.bake.driver import BakeSettings, bake
+from addon.bake.pipeline import BakeSettings, bake
 from addon.solver import solve_tuples
 
 from bake_scenes import ring_scene

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from addon.bake.driver import BakeSettings, bake
+from addon.bake.pipeline import BakeSettings, bake
 from addon.bake.lights import emission_factor, sample_light, spot_factor
 from addon.bake.raster import rasterise
 from addon.bake.scene import Light, build_scene

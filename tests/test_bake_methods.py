@@ -17,7 +17,7 @@ Tolerances:
 import numpy as np
 import pytest
 
-from addon.bake.driver import BakeSettings, bake
+from addon.bake.pipeline import BakeSettings, bake
 from addon.bake.raster import rasterise
 from addon.bake.scene import Light, build_scene
 from addon.demo import wavy_water
@@ -26,7 +26,7 @@ from bake_scenes import floor, mirror_scene, ring_scene
 from photon_reference import KIND_REFLECT, KIND_REFRACT, trace_caustic
 from test_bake_caustics import _kinds, rel_mse
 
-PH = dict(samples=4, margin=0, method="photon")
+PH = dict(samples=4, margin=0, method="photon", bounces=1)
 
 
 def _water_scene(res_=32, half=2.0):
@@ -52,7 +52,7 @@ def test_photon_ring_matches_photon_reference():
         assert rel_mse(b, ref * tint[c]) <= 5e-3
         assert abs(b.sum() / (ref.sum() * tint[c]) - 1) <= 0.01
     rep = out.report
-    assert rep["method"] == "photon" and rep["chains"][0]["status"] == "baked"
+    assert rep["estimator"] == "photon" and rep["chains"][0]["status"] == "baked"
     assert rep["counts"]["photons"] >= 3_000_000 and rep["counts"]["photons_deposited"] > 500_000
 
 
@@ -119,14 +119,15 @@ def test_photon_is_deterministic_for_any_thread_count():
 
 def test_baselines_bake_the_ring_and_never_add_energy():
     sc = ring_scene(resolution=24)
-    s = dict(samples=4, seed=3, margin=0)
+    s = dict(samples=4, seed=3, margin=0, bounces=1)
     # every path at the same samples as the baselines (which can only miss some of them)
     ref = bake(sc, BakeSettings(**s, one_bounce="points"))
     e_ref = ref.raw["floor"].sum()
-    assert ref.report["method"] == "spoly"
+    assert (ref.report["estimator"], ref.report["solver"]) == ("path-points", "spoly")
     for method, kw in (("newton", {}), ("sms", {"sms_seeds": 4})):
         out = bake(sc, BakeSettings(method=method, **s, **kw))
-        assert out.report["method"] == method and out.report["chains"][0]["status"] == "baked"
+        assert (out.report["estimator"], out.report["solver"]) == ("path-points", method)
+        assert out.report["chains"][0]["status"] == "baked"
         e = out.raw["floor"].sum()
         assert 0.2 * e_ref < e <= e_ref * (1 + 1e-9), (method, e / e_ref)
         # they miss paths, they never invent them: no texel brighter than the full solution
@@ -138,9 +139,9 @@ def test_methods_skip_chains_they_cannot_solve():
     out = bake(sc, BakeSettings(samples=1, method="newton", chains=("T",), bounces=1))
     assert out.report["chains"][0]["status"] == "baked"
     sc2 = ring_scene(resolution=8)
-    out = bake(sc2, BakeSettings(samples=1, method="curve"))
+    out = bake(sc2, BakeSettings(samples=1, method="curve", bounces=1))
     st = out.report["chains"][0]["status"]
-    assert st.startswith("skipped:") and ("curve method does not solve R" in st or "not available" in st)
+    assert st.startswith("skipped:") and ("curve solver does not solve R" in st or "not available" in st)
     assert any("chain R skipped" in w for w in out.report["warnings"])
     assert np.all(out.raw["floor"] == 0.0)
 
@@ -166,7 +167,7 @@ def test_cli_method_flag_writes_the_method_into_report(tmp_path, capsys):
     out = tmp_path / "ph"
     assert main(["bake", blend, "--out", str(out), "--resolution", "16", "--method", "photon", "--photons", "20000"]) == 0
     rep = json.load(open(out / "report.json"))
-    assert rep["method"] == "photon" and rep["settings"]["photons"] == 20000 and rep["counts"]["photons_deposited"] > 0
-    assert "[photon]" in capsys.readouterr().out
+    assert rep["estimator"] == "photon" and rep["settings"]["photons"] == 20000 and rep["counts"]["photons_deposited"] > 0
+    assert "[photon (" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         main(["bake", blend, "--out", str(out), "--method", "bogus"])

@@ -9,7 +9,7 @@ left are the solver's and the light's (the sun is a far point: error about 2 L /
 import numpy as np
 import pytest
 
-from addon.bake.driver import BakeSettings, bake
+from addon.bake.pipeline import BakeSettings, bake
 from addon.bake.lights import spot_factor
 from addon.bake.raster import rasterise
 from addon.bake.scene import ROLE_BOTH, Light
@@ -188,5 +188,5 @@ def test_flux_estimator_matches_image_source_texel_average():
     assert abs(got.sum() / ref.sum() - 1) <= 5e-3
     assert np.all(got[~lit & ~np.pad(lit, 1)[1:-1, 2:] & ~np.pad(lit, 1)[1:-1, :-2] & ~np.pad(lit, 1)[2:, 1:-1]
                       & ~np.pad(lit, 1)[:-2, 1:-1]] == 0.0)
-    rep = res.report["two_bounce_image"]["passes"][0]
+    rep = res.report["estimators"]["forward-flux"]["passes"][0]
     assert rep["chain"] == "R" and rep["sub_triangles"] > 0

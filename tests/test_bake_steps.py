@@ -1,9 +1,9 @@
-"""The resumable bake (driver.bake_steps) that the Blender operator drives from a timer."""
+"""The resumable bake (pipeline.bake_steps) that the Blender operator drives from a timer."""
 
 import numpy as np
 import pytest
 
-from addon.bake.driver import BakeCancelled, BakeSettings, bake, bake_steps
+from addon.bake.pipeline import BakeCancelled, BakeSettings, bake, bake_steps
 from addon.bake.scene import SceneError
 
 from bake_scenes import mirror_scene

@@ -6,8 +6,9 @@ solver (``test_real_solver_matches_double_image_when_available``)."""
 import numpy as np
 import pytest
 
-import addon.bake.driver as driver
-from addon.bake.driver import BakeSettings, bake, chain_supported
+import addon.bake.estimators.path_points as path_points
+from addon.bake.estimators.path_points import chain_supported
+from addon.bake.pipeline import BakeSettings, bake
 from addon.bake.raster import rasterise
 from addon.bake.scene import Light, build_scene
 from addon.solver.irradiance import PathIrradiance
@@ -112,9 +113,9 @@ def _texel_mean(band, values):
 
 
 def test_two_bounce_plumbing_with_a_double_image_solver(monkeypatch):
-    monkeypatch.setattr(driver, "solve_tuples", _mock_solve)
-    monkeypatch.setattr(driver, "path_irradiance", _mock_irradiance)
-    monkeypatch.setitem(driver._SUPPORT, "RR", True)
+    monkeypatch.setattr(path_points, "solve_tuples", _mock_solve)
+    monkeypatch.setattr(path_points, "path_irradiance", _mock_irradiance)
+    monkeypatch.setitem(path_points._SUPPORT, "RR", True)
     sc, planes = _periscope()
     settings = BakeSettings(samples=4, seed=2, bounces=2, chains=("RR",), margin=0, two_bounce="exact")
     res = bake(sc, settings)
@@ -170,7 +171,7 @@ def test_real_solver_matches_double_image(mode):
     np.testing.assert_allclose(res.raw["floor"][:, :, 0][lit], ref[lit] * tint, rtol=1e-3)
     assert np.all(res.raw["floor"][:, :, 0][~lit] == 0)
     if mode == "seeded":
-        c = res.report["two_bounce_image"]["counts"]
+        c = res.report["estimators"]["path-seeded"]["counts"]
         assert c["paths"] == res.report["counts"]["paths"] > 0 and c["seeds"] < 40 * c["paths"]
 
 
@@ -204,7 +205,7 @@ def test_flux_estimator_matches_double_image_texel_average():
 def test_flux_pass_can_be_cancelled_and_is_deterministic():
     """The forward-image pass yields to the progress callback (Esc in Blender) before each
     light sample and chain; two bakes give the same texture bit for bit."""
-    from addon.bake.driver import BakeCancelled
+    from addon.bake.pipeline import BakeCancelled
 
     sc, _ = _periscope()
     settings = BakeSettings(samples=1, bounces=2, chains=("RR",), margin=0, two_bounce="flux")

@@ -17,7 +17,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from addon.bake.apply import apply_bake, clear_bake, receivers_uv_maps  # noqa: E402
-from addon.bake.driver import BakeSettings, bake  # noqa: E402
+from addon.bake.pipeline import BakeSettings, bake  # noqa: E402
 from addon.bake.exr import read_exr  # noqa: E402
 from addon.bake.extract import extract_scene  # noqa: E402
 

@@ -32,7 +32,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, os.path.join(ROOT, "bench"))
 
-from addon.bake.driver import BakeSettings, bake  # noqa: E402
+from addon.bake.pipeline import BakeSettings, bake  # noqa: E402
 from addon.bake.extract import extract_scene, open_blend  # noqa: E402
 from cycles_bake import CyclesCaustics  # noqa: E402
 

@@ -75,25 +75,27 @@ def test_registered_classes_and_properties():
     bpy.ops.wm.read_factory_settings(use_empty=True)
     props = bpy.context.scene.caustic_bake
     assert props.resolution == 256 and props.solver == "spoly" and props.device == "numba"
-    # Only options the driver really uses: its bake methods.
-    from addon.bake.driver import METHODS
+    # Only options the bake really has: its estimators and solvers.
+    from addon.bake.settings import ESTIMATORS, SOLVERS
 
-    solver_items = {e.identifier for e in props.bl_rna.properties["solver"].enum_items}
-    assert solver_items == set(METHODS)
+    assert {e.identifier for e in props.bl_rna.properties["solver"].enum_items} == set(SOLVERS)
+    assert {e.identifier for e in props.bl_rna.properties["estimator"].enum_items} == set(ESTIMATORS)
     assert {e.identifier for e in props.bl_rna.properties["device"].enum_items} == {"numba", "opencl"}
     from addon.ui.properties import bake_settings
 
-    props.samples, props.light_samples, props.bounces, props.device = 9, 5, 2, "opencl"
+    s = bake_settings(props)
+    assert (s.bounces, s.estimator) == ("auto", "forward-flux") and s.plan_threshold == pytest.approx(0.005)
+    props.samples, props.light_samples, props.bounces, props.device = 9, 5, "2", "opencl"
     s = bake_settings(props)
     assert (s.samples, s.light_samples, s.bounces, s.device, s.resolution) == (9, 5, 2, "opencl", 0)
-    assert (s.method, s.sms_seeds, s.photons) == ("spoly", 16, 1_000_000)
-    props.solver, props.sms_seeds, props.photons = "photon", 8, 12345
+    assert (s.estimator, s.solver, s.sms_seeds, s.photons) == ("forward-flux", "spoly", 16, 1_000_000)
+    props.estimator, props.solver, props.sms_seeds, props.photons = "path-points", "sms", 8, 12345
     s = bake_settings(props)
-    assert (s.method, s.sms_seeds, s.photons) == ("photon", 8, 12345)
-    props.solver = "spoly"
+    assert (s.estimator, s.solver, s.sms_seeds, s.photons) == ("path-points", "sms", 8, 12345)
+    props.estimator, props.solver = "forward-flux", "spoly"
     props.quality = "PREVIEW"
     s = bake_settings(props)
-    assert (s.samples, s.light_samples, s.bounces) == (1, 1, 1)
+    assert (s.samples, s.light_samples, s.bounces) == (1, 1, 2)
 
 
 def test_object_properties_drive_extraction(tmp_path):
@@ -196,7 +198,8 @@ def _slow_scene(tmp_path):
     estimator (its bands are the modal steps; the flux estimator is one step per light sample
     and chain)."""
     _open_copy(tmp_path, "metal_ring", resolution=64, samples=4)
-    bpy.context.scene.caustic_bake.one_bounce = "points"
+    bpy.context.scene.caustic_bake.estimator = "path-points"
+    bpy.context.scene.caustic_bake.bounces = "1"  # the exact two-bounce chains would take minutes
 
 
 def test_modal_steps_then_cancel_leave_the_scene_unchanged(tmp_path):
@@ -303,7 +306,7 @@ def test_unexpected_errors_are_reported_briefly(tmp_path, monkeypatch, capsys):
     def boom(*a, **k):
         raise ZeroDivisionError("simulated bug")
 
-    monkeypatch.setattr("addon.bake.driver.bake_steps", boom)
+    monkeypatch.setattr("addon.bake.pipeline.bake_steps", boom)
     msg = _poll_error()
     assert "ZeroDivisionError: simulated bug" in msg and "Traceback" not in msg
     assert "Traceback" in capsys.readouterr().err  # the details go to the console

@@ -10,6 +10,8 @@ import re
 import sys
 import time
 
+from .settings import DEFAULT_PLAN_THRESHOLD, ESTIMATORS, SOLVERS
+
 
 class UserError(Exception):
     """Bad input: reported as one line, exit code 2."""
@@ -20,7 +22,12 @@ def add_arguments(parser):
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--resolution", type=int, default=None, help="texels per side for every receiver (default: 256, or the object's caustic_resolution)")
     parser.add_argument("--samples", type=int, default=4, help="supersamples per texel (default 4)")
-    parser.add_argument("--bounces", type=int, default=1, choices=(1, 2), help="specular bounces (default 1)")
+    parser.add_argument("--bounces", default="auto", choices=("auto", "1", "2"),
+                        help="specular bounces: auto (default: the planner bakes the chains of up to 2 bounces that "
+                        "carry at least --plan-threshold of a receiver's caustic energy), or 1 / 2 to force every chain "
+                        "of up to that many bounces")
+    parser.add_argument("--plan-threshold", type=float, default=DEFAULT_PLAN_THRESHOLD, metavar="SHARE",
+                        help="--bounces auto: skip chains below this share of a receiver's caustic energy (default 0.005)")
     parser.add_argument("--frames", default=None, help="frame range A:B (inclusive); default: the current frame")
     parser.add_argument("--seed", type=int, default=0, help="random seed (supersample jitter, light samples)")
     parser.add_argument("--light-samples", type=int, default=1, help="samples of light radius / area / sun angle (default 1: point lights)")
@@ -30,18 +37,23 @@ def add_arguments(parser):
                         help="solver device: numba (CPU, default), opencl (first OpenCL device) or opencl:N; OpenCL "
                         "solves every chain (two bounces: the resultant's determinants on the device, the rest on "
                         "the CPU); a missing pyopencl / device runs on Numba with a warning")
-    parser.add_argument("--method", default="spoly", choices=("spoly", "newton", "sms", "curve", "photon"),
-                        help="spoly (Specular Polynomials, default), newton (MNEE from Path Cuts seeds: R, T), sms "
-                        "(Specular Manifold Sampling: R, T), curve (dimension-reduction MNEE: T) or photon (light "
-                        "tracing, every chain); chains a method cannot solve are skipped with a warning")
-    parser.add_argument("--two-bounce", default="flux", choices=("flux", "seeded", "exact"),
-                        help="method spoly, --bounces 2: flux (forward-traced sub-triangles, their flux spread over "
-                        "their images: texel averages, finite at focal points; default), seeded (exact paths at the "
-                        "supersamples, Newton from forward-image seeds) or exact (every path of every candidate tuple "
-                        "by the two-bounce Specular Polynomials: complete but very slow)")
-    parser.add_argument("--one-bounce", default="flux", choices=("points", "flux"),
-                        help="method spoly, chains R and T: flux (default) or points (every path at every supersample) "
-                        "(forward-image sub-triangles as --two-bounce flux: texel averages)")
+    parser.add_argument("--estimator", default=None, choices=ESTIMATORS,
+                        help="forward-flux (default: forward-traced sub-triangles, their flux spread over their images: "
+                        "texel averages, noise-free), path-points (every exact path at every texel supersample, solved by "
+                        "--solver), path-seeded (exact two-bounce paths by Newton from forward-image seeds) or photon "
+                        "(light tracing)")
+    parser.add_argument("--solver", default=None, choices=SOLVERS,
+                        help="path-points: spoly (Specular Polynomials, every chain; default), newton (MNEE from Path "
+                        "Cuts seeds: R, T), sms (Specular Manifold Sampling: R, T) or curve (dimension-reduction MNEE: "
+                        "T); chains a solver cannot solve are skipped with a warning")
+    parser.add_argument("--method", default=None, choices=SOLVERS + ("photon",),
+                        help="alias: spoly/newton/sms/curve = --estimator path-points --solver NAME (spoly alone "
+                        "keeps the default estimator), photon = --estimator photon")
+    parser.add_argument("--one-bounce", default=None, choices=("flux", "points"),
+                        help="alias: the estimator of R and T (flux = forward-flux, points = path-points)")
+    parser.add_argument("--two-bounce", default=None, choices=("flux", "seeded", "exact"),
+                        help="alias: the estimator of RR, RT, TR, TT (flux = forward-flux, seeded = path-seeded, "
+                        "exact = path-points)")
     parser.add_argument("--sms-seeds", type=int, default=16, help="method sms: random Newton seeds per tuple (default 16)")
     parser.add_argument("--photons", type=int, default=1_000_000, help="method photon: photons traced (default 1,000,000)")
     parser.add_argument("--preview", default=None, metavar="PNG",
@@ -85,6 +97,8 @@ def _run(args):
         raise UserError("--light-samples must be >= 1, --margin and --threads >= 0")
     if not 1 <= args.sms_seeds <= 4096 or args.photons < 1:
         raise UserError("--sms-seeds must be in [1, 4096] and --photons at least 1")
+    if not 0.0 <= args.plan_threshold < 1.0:
+        raise UserError("--plan-threshold must be in [0, 1)")
     if not re.fullmatch(r"numba|opencl(:\d+)?", args.device or ""):
         raise UserError(f"--device must be numba, opencl or opencl:N, got {args.device!r}")
     frames = _frames(args.frames)
@@ -98,7 +112,8 @@ def _run(args):
         magic = fh.read(7)
     if magic != b"BLENDER" and magic[:2] not in (b"\x1f\x8b", b"\x28\xb5"):  # plain, gzip or zstd
         raise UserError(f"not a .blend file: {args.blend}")
-    from .driver import BakeSettings, bake
+    from .pipeline import bake
+    from .settings import BakeSettings
     from .extract import extract_scene, open_blend
 
     try:
@@ -107,10 +122,7 @@ def _run(args):
         raise UserError(f"could not open {args.blend}: {str(ex).strip().splitlines()[-1]}") from None
     import bpy
 
-    settings = BakeSettings(resolution=args.resolution or 0, samples=args.samples, bounces=args.bounces, seed=args.seed,
-                            light_samples=args.light_samples, margin=args.margin, threads=args.threads,
-                            device=args.device, method=args.method, sms_seeds=args.sms_seeds, photons=args.photons,
-                            two_bounce=args.two_bounce, one_bounce=args.one_bounce)
+    settings = settings_from_args(args)
     default_res = args.resolution or 256
     for frame in frames or [None]:
         t0 = time.perf_counter()
@@ -128,21 +140,50 @@ def _run(args):
             result.write(out_dir)
         except OSError as ex:
             raise UserError(f"cannot write to {out_dir}: {ex.strerror or ex}") from None
-        c = result.report["counts"]
-        work = (f"{c['photons']:,} photons, {c['photons_deposited']:,} deposited" if args.method == "photon"
-                else f"{c['tuples']:,} tuples, {c['paths_visible']:,} paths")
-        passes = (result.report.get("two_bounce_image") or {}).get("passes") or []
-        if passes:  # the flux / seeded estimators: forward-traced sub-triangles
-            work += f", {sum(p['sub_triangles'] for p in passes):,} forward-image sub-triangles"
-        print(f"{'frame ' + str(frame) + ': ' if frame is not None else ''}baked {len(result.images)} receiver(s) "
-              f"[{args.method}] in {result.report['timings']['bake_total']:.2f} s: {work}, "
-              f"{c['texels_touched']:,} texels lit -> {out_dir}")
+        print(f"{'frame ' + str(frame) + ': ' if frame is not None else ''}{summary_line(result.report)} -> {out_dir}")
         for w in result.report["warnings"]:
             print(f"warning: {w}")
         if args.preview:
             render_preview(scene, result, out_dir, args.preview, args.preview_samples)
             print(f"preview -> {args.preview}")
     return 0
+
+
+def settings_from_args(args):
+    """The BakeSettings of the parsed command line (the aliases resolved by the pipeline)."""
+    from .settings import BakeSettings, resolve_aliases
+
+    settings = resolve_aliases(BakeSettings(resolution=args.resolution or 0, samples=args.samples,
+                            bounces=args.bounces if args.bounces == "auto" else int(args.bounces),
+                            plan_threshold=args.plan_threshold, seed=args.seed, light_samples=args.light_samples,
+                            margin=args.margin, threads=args.threads, device=args.device, sms_seeds=args.sms_seeds,
+                            photons=args.photons, method=args.method, one_bounce=args.one_bounce, two_bounce=args.two_bounce))
+    if args.estimator:  # explicit names win over the aliases
+        settings.estimator = args.estimator
+    if args.solver:
+        settings.solver = args.solver
+    return settings
+
+
+def summary_line(report):
+    """One line: receivers, time, what ran (estimators and their work) and the plan per receiver,
+    e.g. ``baked 1 receiver(s) in 3.1 s [forward-flux: 52,110 sub-triangles]: Floor: TT 95.5 %, R 4.5 %
+    (skipped: RR, RT, TR)``."""
+    c = report["counts"]
+    work = []
+    for name, est in report.get("estimators", {}).items():
+        if name == "forward-flux":
+            what = f"{est['sub_triangles']:,} sub-triangles"
+        elif name == "photon":
+            what = f"{est['photons']:,} photons, {est['photons_deposited']:,} deposited"
+        else:
+            what = f"{c['tuples']:,} tuples, {c['paths_visible']:,} paths"
+            if name == "path-points":
+                name = f"path-points/{est['solver']}"
+        work.append(f"{name} ({'/'.join(est['chains'])}): {what}")
+    plan = "; ".join(report.get("plan", {}).get("summary", []))
+    return (f"baked {len(report['receivers'])} receiver(s) in {report['timings']['bake_total']:.2f} s "
+            f"[{'; '.join(work) or 'nothing'}]: {plan}")
 
 
 def render_preview(scene_model, result, out_dir, png, samples):

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .cull import vertex_cap
+
 PROFILE_ISOTROPIC = 0
 PROFILE_LAMBERT = 1  # max(0, axis . w)
 
@@ -148,3 +150,30 @@ def zlib_hash(text):
     import zlib
 
     return zlib.crc32(text.encode("utf-8"))
+
+
+def light_points(ls, m, tri_p, extent, sun_distance):
+    """x0 per caster triangle for light sample ``m``: the sample's point, or for the sun a far
+    point ``sun_distance`` x ``extent`` behind each triangle's centroid (the solvers take points;
+    the relative error of the stand-in is the beam's divergence, about 2 L / D)."""
+    if ls.kind == "sun":
+        c = tri_p.mean(axis=1)
+        return c - sun_distance * extent * ls.direction[m]
+    return np.broadcast_to(ls.position[m], (tri_p.shape[0], 3)).copy()
+
+
+def lit_casters(ls, m, x0, tri_p):
+    """Mask of caster triangles that light sample ``m`` can reach (spot cone, Lambertian lobe;
+    conservative: the cap of the triangle's vertex directions must meet the emitting cone)."""
+    keep = np.ones(tri_p.shape[0], dtype=bool)
+    if ls.kind == "sun":
+        return keep
+    a, alpha = vertex_cap(x0, tri_p)
+    lobe = ls.lobe[m]
+    if np.any(lobe != 0):
+        ang = np.arccos(np.clip(a @ lobe, -1, 1))
+        keep &= ang - alpha < 0.5 * math.pi
+    if np.any(ls.spot_axis != 0):
+        ang = np.arccos(np.clip(a @ ls.spot_axis, -1, 1))
+        keep &= ang - alpha < math.acos(max(-1.0, min(1.0, ls.spot_cos))) + 1e-9
+    return keep

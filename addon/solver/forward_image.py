@@ -33,7 +33,7 @@ the same with a *forward-traced image* instead of the Bernstein bound:
 
 Every returned path is a validated exact path; completeness is measured, not assumed: the
 tests compare the paths with the exact solver's and the bake with a photon reference.
-No bpy here; the bake (``addon.bake.image``) orchestrates.
+No bpy here; the bake (``addon.bake.estimators``) orchestrates.
 """
 
 import math

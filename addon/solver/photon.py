@@ -7,7 +7,7 @@ of whichever receiver triangle they land on (hit triangle -> barycentrics -> UV 
 Dividing a texel's flux by the world area the texel covers on the receiver gives the
 *texel-averaged* irradiance E (W/m²), an unbiased estimate of the mean of the bake's
 per-point irradiance over the texel.  This module never imports bpy; the bake side
-(``addon.bake.photons``) builds the arrays and the texel areas.
+(``addon.bake.estimators.photon``) builds the arrays and the texel areas.
 
 Emission (``Emitters``, built by :func:`point_emitter` / :func:`sun_emitter`):
 

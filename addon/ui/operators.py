@@ -2,7 +2,7 @@
 
 - ``caustics.prepare_solver``: compile (or load) the solver kernels ahead of the first bake.
 - ``caustics.bake``: from the UI (invoke) a modal operator that runs the bake in short chunks
-  from a window-manager timer (``addon.bake.driver.bake_steps``; no Python threads), with a
+  from a window-manager timer (``addon.bake.pipeline.bake_steps``; no Python threads), with a
   progress bar and status text; Esc / right-click cancels and leaves the scene exactly as it
   was (nothing is applied before the bake is complete).  From scripts and in background mode
   (``blender -b``) execute() bakes synchronously; in background mode it then saves the .blend
@@ -69,7 +69,7 @@ def _report_failure(op, ex, what):
 
 
 class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
-    """Compile (or load from the cache) the solver kernels now, so that the first bake starts at once"""
+    """Compile (or load from the cache) the kernels the bake settings use now, so that the next bake starts at once"""
 
     bl_idname = "caustics.prepare_solver"
     bl_label = "Prepare Caustic Solver"
@@ -77,8 +77,12 @@ class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
 
     def execute(self, context):
         try:
-            solver = load_solver()
-            seconds = solver.warm_up()
+            load_solver()
+            from ..bake.warm_up import warm_up
+            from .properties import bake_settings
+
+            settings = bake_settings(context.scene.caustic_bake)
+            seconds = warm_up(settings)
         except UserError as ex:
             self.report({"ERROR"}, str(ex))
             return {"CANCELLED"}
@@ -91,7 +95,7 @@ class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
             self.report({"ERROR"}, "Caustic Bake: preparing the solver failed: {}".format(ex))
             return {"CANCELLED"}
 
-        self.report({"INFO"}, "Caustic solver ready ({:.1f} s)".format(seconds))
+        self.report({"INFO"}, "Caustic solver ready for {} ({:.1f} s)".format(settings.estimator, seconds))
         return {"FINISHED"}
 
 
@@ -106,11 +110,11 @@ def output_directory(props):
 
 class BakeJob:
     """One bake of the active scene, in steps: :meth:`start` (extract, check), :meth:`step`
-    (bounded chunks of the driver's generator), :meth:`finish` (apply to the scene) or
+    (bounded chunks of the pipeline's generator), :meth:`finish` (apply to the scene) or
     :meth:`cancel`.  Nothing in Blender changes before :meth:`finish`.  The modal operator
     drives it from a timer; execute() and tests drive it directly."""
 
-    #: Smaller chunks than the driver's defaults, so that one timer tick stays short.
+    #: Smaller chunks than the pipeline's defaults, so that one timer tick stays short.
     MODAL_BATCH_TUPLES = 1 << 16
     MODAL_BAND_SAMPLES = 1 << 18
 
@@ -126,7 +130,7 @@ class BakeJob:
     def start(self, context):
         load_solver()
         from ..bake.apply import foreign_files
-        from ..bake.driver import bake_steps
+        from ..bake.pipeline import bake_steps
         from ..bake.extract import extract_scene
         from .properties import bake_settings
 
@@ -181,9 +185,12 @@ class BakeJob:
         clear_bake()  # a new bake replaces every earlier one
         done = apply_bake(result.images, receivers_uv_maps(self.model), directory=self.directory, pack=self.pack)
         self.warnings = list(result.report.get("warnings", [])) + self.warnings
-        c = result.report["counts"]
-        return "Caustic Bake: {} receiver(s) in {:.1f} s, {:,} paths, {:,} texels lit".format(
-            len(done), time.perf_counter() - self.t0, c["paths_visible"], c["texels_touched"])
+        plan = result.report.get("plan", {}).get("summary", [])
+        props = context.scene.caustic_bake
+        props.last_plan = "\n".join(plan)
+        return "Caustic Bake: {} receiver(s) in {:.1f} s ({}): {}".format(
+            len(done), time.perf_counter() - self.t0, ", ".join(result.report.get("estimators", {})) or "nothing",
+            "; ".join(plan))
 
 
 class CAUSTICS_OT_bake(bpy.types.Operator):
@@ -364,5 +371,7 @@ class CAUSTICS_OT_clear(bpy.types.Operator):
         except Exception as ex:
             _report_failure(self, ex, "clearing")
             return {"CANCELLED"}
+        if hasattr(context.scene, "caustic_bake"):
+            context.scene.caustic_bake.last_plan = ""
         self.report({"INFO"}, "Caustic Bake: cleared {} texture(s)".format(n))
         return {"FINISHED"}

@@ -57,6 +57,9 @@ class RENDER_PT_caustic_bake(bpy.types.Panel):
                 box.label(text=name, icon="IMAGE_DATA")
             if len(images) > 8:
                 box.label(text="... and {} more".format(len(images) - 8))
+            for line in (props.last_plan or "").split("\n")[:8]:
+                if line:
+                    box.label(text=line, icon="LIGHT")
 
         col = layout.column()
         col.enabled = not STATE.running
@@ -66,19 +69,18 @@ class RENDER_PT_caustic_bake(bpy.types.Panel):
         sub.active = props.quality == "FINAL"
         sub.prop(props, "samples")
         sub.prop(props, "light_samples")
-        sub.prop(props, "bounces")
+        col.prop(props, "bounces")
+        if props.bounces == "auto":
+            col.prop(props, "plan_threshold")
         col.separator()
-        col.prop(props, "solver")
-        if props.solver == "sms":
-            col.prop(props, "sms_seeds")
-        elif props.solver == "photon":
-            col.prop(props, "photons")
-        if props.solver == "spoly":
-            col.prop(props, "one_bounce")
-        if props.solver == "spoly" and props.bounces > 1 and props.quality == "FINAL":
-            col.prop(props, "two_bounce")
-        if props.solver in ("spoly", "newton", "sms", "curve"):
+        col.prop(props, "estimator")
+        if props.estimator == "path-points":
+            col.prop(props, "solver")
+            if props.solver == "sms":
+                col.prop(props, "sms_seeds")
             col.prop(props, "device")
+        elif props.estimator == "photon":
+            col.prop(props, "photons")
         col.prop(props, "seed")
         col.prop(props, "margin")
         col.separator()

@@ -8,16 +8,28 @@ back to the custom properties ``caustic_role`` / ``caustic_receiver`` / ``causti
 """
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-# The bake methods of addon.bake.driver.METHODS (the chains each solves: driver.METHOD_CHAINS;
-# the others are skipped with a warning).
+# addon.bake.settings.ESTIMATORS and SOLVERS (what each computes: that module's doc).
+ESTIMATOR_ITEMS = (
+    ("forward-flux", "Forward Flux", "Caster triangles traced forward in sub-triangles whose flux is spread over their "
+     "images: texel-averaged irradiance, noise-free, every chain (default)"),
+    ("path-points", "Exact Paths", "Every exact specular path at every texel supersample, found by the solver below"),
+    ("path-seeded", "Seeded Paths", "Exact two-bounce paths at the supersamples by Newton from forward-image seeds "
+     "(one-bounce chains: exact paths)"),
+    ("photon", "Photon Tracing", "Light tracing into the texture (texel-averaged, noisy); every chain"),
+)
 SOLVER_ITEMS = (
-    ("spoly", "Specular Polynomials", "Deterministic: every specular path of each triangle tuple (Fan et al. 2024)"),
+    ("spoly", "Specular Polynomials", "Deterministic: every specular path of each triangle tuple (Fan et al. 2024); every chain"),
     ("newton", "Newton (MNEE)", "Newton from one or two deterministic seeds per tuple; misses paths. Chains R and T"),
     ("sms", "Specular Manifold Sampling", "Newton from random seeds per tuple (biased SMS); misses paths. Chains R and T"),
     ("curve", "Curve Walk (MNEE)", "Dimension-reduction MNEE: walks the coplanarity curve. Chain T only"),
-    ("photon", "Photon Tracing", "Light tracing into the texture (texel-averaged, noisy); every chain"),
+)
+BOUNCE_ITEMS = (
+    ("auto", "Auto", "Bake the chains of up to two bounces that carry at least the threshold's share of a receiver's "
+     "caustic energy (estimated by a quick forward probe); the rest is skipped and listed after the bake"),
+    ("1", "1", "Every one-bounce chain the materials allow (R, T)"),
+    ("2", "2", "Every chain of up to two bounces the materials allow (R, T, RR, RT, TR, TT)"),
 )
 DEVICE_ITEMS = (
     ("numba", "CPU", "Solve on the CPU with Numba"),
@@ -27,8 +39,8 @@ DEVICE_ITEMS = (
      "back to the CPU with a warning"),
 )
 QUALITY_ITEMS = (
-    ("PREVIEW", "Preview", "Fast look: 1 sample per texel, 1 light sample, 1 bounce (the fields below are ignored)"),
-    ("FINAL", "Final", "The samples, light samples and bounces set below"),
+    ("PREVIEW", "Preview", "Fast look: 1 sample per texel, 1 light sample (the fields below are ignored)"),
+    ("FINAL", "Final", "The samples and light samples set below"),
 )
 ROLE_ITEMS = (
     ("auto", "Auto", "From the material: glass = reflect + refract, metal / glossy = reflect, "
@@ -37,17 +49,6 @@ ROLE_ITEMS = (
     ("refract", "Refract", "A single refracting interface (water surface)"),
     ("both", "Reflect & Refract", "Glass: Fresnel-weighted reflection and refraction"),
     ("none", "None", "Casts no caustics (still blocks light)"),
-)
-TWO_BOUNCE_ITEMS = (
-    ("flux", "Flux", "Forward-traced sub-triangles spread their flux over their images: texel averages, "
-     "finite at focal points (default)"),
-    ("seeded", "Seeded Paths", "Exact paths at the supersamples, Newton from forward-image seeds"),
-    ("exact", "Exact (slow)", "Every path of every candidate tuple by the two-bounce Specular Polynomials"),
-)
-ONE_BOUNCE_ITEMS = (
-    ("flux", "Flux", "Forward-traced sub-triangles spread their flux over their images: texel averages, "
-     "noise- and alias-free (default)"),
-    ("points", "Exact Paths", "Every exact path at every supersample (the OpenCL device solves these)"),
 )
 RECEIVER_ITEMS = (
     ("auto", "Auto", "A receiver if it has a UV map and casts no caustics"),
@@ -63,16 +64,17 @@ class CausticBakeSceneSettings(bpy.types.PropertyGroup):
                          default=4, min=1, max=256, soft_max=64)
     light_samples: IntProperty(name="Light Samples", description="Samples over the size of sized lights "
                                "(soft caustics); 1 treats every light as a point", default=1, min=1, max=4096, soft_max=64)
-    bounces: IntProperty(name="Max Bounces", description="Specular bounces: 1 (R, T) or 2 (also RR, RT, TR, TT)",
-                         default=1, min=1, max=2)
+    bounces: EnumProperty(name="Max Bounces", items=BOUNCE_ITEMS, default="auto")
+    plan_threshold: FloatProperty(name="Skip Below", description="Auto bounces: skip chains that carry less than this "
+                                  "share of a receiver's caustic energy", default=0.005, min=0.0, max=0.5, soft_max=0.1,
+                                  precision=3, step=0.1, subtype="FACTOR")
     quality: EnumProperty(name="Quality", items=QUALITY_ITEMS, default="FINAL")
+    estimator: EnumProperty(name="Estimator", items=ESTIMATOR_ITEMS, default="forward-flux")
     solver: EnumProperty(name="Solver", items=SOLVER_ITEMS, default="spoly")
     sms_seeds: IntProperty(name="Seeds per Tuple", description="Specular Manifold Sampling: random Newton seeds per tuple",
                            default=16, min=1, max=4096, soft_max=256)
     photons: IntProperty(name="Photons", description="Photon Tracing: photons traced over all lights",
                          default=1_000_000, min=1, soft_max=100_000_000)
-    one_bounce: EnumProperty(name="One Bounce", items=ONE_BOUNCE_ITEMS, default="flux")
-    two_bounce: EnumProperty(name="Two Bounces", items=TWO_BOUNCE_ITEMS, default="flux")
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="numba")
     seed: IntProperty(name="Seed", description="Seed of the supersample jitter and light samples", default=0, min=0)
     margin: IntProperty(name="Margin", description="Texels of padding over UV seams", default=16, min=0, max=256)
@@ -80,6 +82,8 @@ class CausticBakeSceneSettings(bpy.types.PropertyGroup):
                                "(// = next to the .blend); an unsaved file packs them", default="//caustics/",
                                subtype="DIR_PATH")
     pack: BoolProperty(name="Pack Textures", description="Pack the baked textures into the .blend", default=False)
+    last_plan: StringProperty(name="Last Plan", description="What the last bake modelled: per receiver, the chains "
+                              "baked with their share of its caustic energy, and the chains skipped", default="")
 
 
 class CausticBakeObjectSettings(bpy.types.PropertyGroup):
@@ -105,23 +109,24 @@ def unregister_properties():
 
 
 def bake_settings(props):
-    """The driver's BakeSettings for the scene settings ``props`` (a CausticBakeSceneSettings,
-    or anything with the same attributes).  ``resolution`` stays 0: every receiver brings its
-    own (its override, or the scene's resolution given to extract_scene)."""
-    from ..bake.driver import BakeSettings
+    """The BakeSettings for the scene settings ``props`` (a CausticBakeSceneSettings, or
+    anything with the same attributes).  ``resolution`` stays 0: every receiver brings its own
+    (its override, or the scene's resolution given to extract_scene)."""
+    from ..bake.settings import BakeSettings
 
     preview = props.quality == "PREVIEW"
+    bounces = str(props.bounces)
     return BakeSettings(
         resolution=0,
         samples=1 if preview else int(props.samples),
         light_samples=1 if preview else int(props.light_samples),
-        bounces=1 if preview else int(props.bounces),
+        bounces=bounces if bounces == "auto" else int(bounces),
+        plan_threshold=float(props.plan_threshold),
+        estimator=str(props.estimator),
+        solver=str(props.solver),
         seed=int(props.seed),
         margin=int(props.margin),
         device=str(props.device),
-        method=str(props.solver),
         sms_seeds=int(props.sms_seeds),
         photons=int(props.photons),
-        two_bounce=str(getattr(props, "two_bounce", "flux")),
-        one_bounce=str(getattr(props, "one_bounce", "flux")),
     )

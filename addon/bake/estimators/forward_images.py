@@ -1,0 +1,137 @@
+"""Forward images: a chain's caster triangles cut into sub-triangles traced forward exactly
+(the maths is in :mod:`addon.solver.forward_image`), shared by the ``forward-flux`` and
+``path-seeded`` estimators.
+
+For one light sample and chain, the first-vertex casters the light reaches are cut into
+adaptive sub-triangles whose forward-traced images on the receivers are straight to within
+half a texel (:func:`prepare`), once per light sample and chain, for every receiver and band.
+"""
+
+import time
+
+import numpy as np
+
+from ...solver.forward_image import light_area_density, refine_image_triangles, trace_chain_points
+from ..lights import light_points, lit_casters
+
+IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
+IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to within this
+IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
+
+
+class ImageState:
+    """The refined sub-triangles of one (light sample, chain) and what the solve needs."""
+
+    def __init__(self, chain, emit_tri, x0, tris, arrays, report):
+        self.chain = chain
+        self.emit_tri = emit_tri  # (n,) global first-triangle id per emitter
+        self.x0 = x0  # (n, 3) light point per emitter
+        self.tris = tris  # dict of refine_image_triangles
+        self.arrays = arrays
+        self.report = report
+
+
+def scene_arrays(scene, receivers, second, only=None):
+    """Receiver index and UVs per scene triangle (receivers not in ``only``, when given, count
+    as occluders), and the mask of valid second vertices."""
+    n = scene.n_triangles
+    tri_rec = np.full(n, -1, dtype=np.int64)
+    tri_uv = np.zeros((n, 3, 2))
+    for r, rec in enumerate(receivers):
+        if only is None or r in only:
+            tri_rec[rec.tri_index] = r
+            tri_uv[rec.tri_index] = rec.uv
+    second_ok = np.zeros(n, dtype=np.bool_)
+    second_ok[second] = True
+    return tri_rec, tri_uv, second_ok
+
+
+def _bvh_args(bvh):
+    return (bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_start, bvh.node_count, bvh.order, bvh.v0, bvh.e1, bvh.e2)
+
+
+def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False, only=None):
+    """Refine the sub-triangles of the emitters (first triangles ``emit_tri`` lit from ``x0``)
+    for ``chain`` (one or two vertices; "seeded" needs two); ``second`` the global ids of
+    the chain's second-vertex casters (ignored for one vertex); ``receivers`` the receivers at
+    the bake's resolution; ``mode`` "flux" or "seeded" (how finely to refine); ``parallel``:
+    a sun (the same flux per area all over a first triangle); ``only`` the receiver indices
+    the chain is baked onto (None: all).  Returns an ImageState."""
+    t0 = time.perf_counter()
+    tri_rec, tri_uv, second_ok = scene_arrays(scene, receivers, second, only)
+    refract1, refract2 = chain[0] == "T", chain[-1] == "T"
+    bounces = len(chain)
+    emit_tri = np.ascontiguousarray(emit_tri, dtype=np.int64)
+    x0 = np.ascontiguousarray(x0, dtype=np.float64)
+    tri_p = np.ascontiguousarray(scene.tri_p, dtype=np.float64)
+    tri_n = np.ascontiguousarray(scene.tri_n, dtype=np.float64)
+    tri_ior = np.ascontiguousarray(scene.tri_ior, dtype=np.float64)
+    tri_role = np.ascontiguousarray(scene.tri_role, dtype=np.int64)
+    bvh_args = _bvh_args(bvh)
+
+    def trace(e, u, v):
+        """(second triangle, receiver triangle, UV, transport factor) of the points."""
+        m = e.shape[0]
+        t2 = np.empty(m, dtype=np.int64)
+        rec = np.empty(m, dtype=np.int64)
+        uv = np.empty((m, 2))
+        fac = np.empty(m)
+        if m:
+            trace_chain_points(np.ascontiguousarray(e), np.ascontiguousarray(u), np.ascontiguousarray(v), x0, emit_tri,
+                               bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *bvh_args,
+                               float(eps), t2, rec, uv, fac)
+        return t2, rec, uv, fac
+
+    def weight(e, bary):
+        if parallel:
+            return np.ones(bary.shape[:2])
+        return light_area_density(x0[e], tri_p[emit_tri[e]], bary)
+
+    texel = np.array([1.0 / max(r.resolution) for r in receivers]) if receivers else np.ones(1)
+    # "seeded" needs images straight to the margin only (Newton does the rest); "flux" also a
+    # near-uniform density and a finely resolved border of what lands.
+    extra = dict(weight=weight) if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
+    tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
+                                  tolerance=IMAGE_TOLERANCE, **extra)
+    r = tris["receiver"]
+    tris["margin"] = IMAGE_MARGIN * texel[r] + 2.0 * tris["deviation"] if r.size else np.zeros(0)
+    arrays = dict(tri_rec=tri_rec, second_ok=second_ok, refract1=refract1, refract2=refract2, tri_p=tri_p, tri_n=tri_n,
+                  tri_ior=tri_ior, tri_role=tri_role, bvh=bvh_args, eps=float(eps), trace=trace)
+    report = {"emitters": int(emit_tri.size), "points_traced": int(tris["traced"]), "sub_triangles": int(r.size),
+              "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "border": int(tris["border"]), "final_per_depth": tris["final_per_depth"],
+              "seconds": time.perf_counter() - t0}
+    return ImageState(chain, emit_tri, x0, tris, arrays, report)
+
+
+def image_state(ctx, item, ls, m, mode):
+    """The refined sub-triangles (:func:`prepare`) of planned chain ``item`` for light sample
+    ``m``, or None when the light reaches none of its first casters."""
+    scene = ctx.scene
+    cast1 = item.vertices[0]
+    x0_all = light_points(ls, m, scene.tri_p[cast1], ctx.extent, ctx.settings.sun_distance)
+    keep = lit_casters(ls, m, x0_all, scene.tri_p[cast1])
+    if not keep.any():
+        return None
+    second = item.vertices[1] if len(item.vertices) > 1 else np.zeros(0, dtype=np.int64)
+    return prepare(scene, ctx.bvh, ctx.eps, item.chain, cast1[keep], x0_all[keep], second, ctx.receivers,
+                   max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers)
+
+
+class ImageCache:
+    """:func:`image_state` once per (planned chain, light sample), with its report."""
+
+    def __init__(self, ctx, mode):
+        self.ctx, self.mode = ctx, mode
+        self.states = {}
+        self.reports = []
+
+    def get(self, item_index, item, ls, m):
+        key = (item_index, m)
+        if key not in self.states:
+            t0 = time.perf_counter()
+            state = image_state(self.ctx, item, ls, m, self.mode)
+            self.states[key] = state
+            if state is not None:
+                self.reports.append({"light": item.light, "light_sample": m, "chain": item.chain, **state.report})
+            self.ctx.timer.add("image", time.perf_counter() - t0)
+        return self.states[key]

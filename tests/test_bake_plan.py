@@ -221,6 +221,15 @@ def test_default_bake_of_each_sample_keeps_the_forced_two_bounce_energy(name):
     for rec in ef:
         assert ef[rec] > 0
         assert 0.99 <= ea[rec] / ef[rec] <= 1 + 1e-9, (rec, ea[rec] / ef[rec], auto.report["plan"]["summary"])
+    # the shares of each receiver (every light, caster and chain) add up to the whole
+    import re
+
+    for line in auto.report["plan"]["summary"]:
+        assert abs(sum(float(x) for x in re.findall(r"([0-9.]+) %", line.split("(skipped")[0])) - 100.0) < 0.3, line
+    for rec in ef:
+        rows = [r for r in auto.report["plan"]["chains"] if r["receiver"] == rec]
+        assert abs(sum(r["baked_share"] for r in rows) - 1.0) < 1e-9
+        assert abs(auto.report["receivers"][rec]["caustic_power"] / ea[rec] - 1) < 0.02
     baked = {c["chain"] for c in auto.report["chains"] if c["status"] == "baked"}
     expected = {"mirror_plane": {"R"}, "metal_ring": {"R", "RR"}, "water_pool": {"T"}, "glass_sphere": {"R", "TT"},
                 "glass_slab": {"TT"}}[name]

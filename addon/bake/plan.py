@@ -123,7 +123,7 @@ class Plan:
             baked, skipped = {}, []
             for it in self.items:
                 if it.status == "baked" and r in it.receivers:
-                    baked[it.chain] = baked.get(it.chain, 0.0) + ledger.total(chain=it.chain, receiver=r)
+                    baked[it.chain] = ledger.total(chain=it.chain, receiver=r)  # every light's
             for it in self.items:
                 if it.chain not in baked and it.chain not in skipped:
                     skipped.append(it.chain)

@@ -42,10 +42,15 @@ print("RESULT" + json.dumps(dict(start=t1 - t0, extract=t2 - t1, cold=t3 - t2, w
 
 def run_one(scene, res, samples, bounces):
     code = ONE.format(root=ROOT, blend=os.path.join(ROOT, "sample_blends", scene + ".blend"), res=res, samples=samples, bounces=bounces)
+    return run_script(code, f"{scene} {res}")
+
+
+def run_script(code, what):
+    """Run ``code`` in a fresh interpreter; returns the JSON it printed after "RESULT"."""
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     line = next((ln for ln in out.stdout.splitlines() if ln.startswith("RESULT")), None)
     if out.returncode != 0 or line is None:
-        raise RuntimeError(f"{scene} {res}: {out.stderr.strip().splitlines()[-1] if out.stderr.strip() else 'no result'}")
+        raise RuntimeError(f"{what}: {out.stderr.strip().splitlines()[-1] if out.stderr.strip() else 'no result'}")
     return json.loads(line[len("RESULT"):])
 
 

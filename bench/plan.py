@@ -13,7 +13,6 @@ section of BENCHMARKS.md.
 """
 
 import argparse
-import json
 import os
 import platform
 import subprocess
@@ -22,6 +21,8 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
+sys.path.insert(0, HERE)
+from bake import run_script, write_section  # noqa: E402
 SCENES = ("mirror_plane", "metal_ring", "water_pool", "glass_sphere", "glass_slab")
 
 ONE = """
@@ -49,11 +50,7 @@ print("RESULT" + json.dumps(out))
 
 def run_one(scene, res, samples):
     code = ONE.format(root=ROOT, blend=os.path.join(ROOT, "sample_blends", scene + ".blend"), res=res, samples=samples)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    line = next((ln for ln in out.stdout.splitlines() if ln.startswith("RESULT")), None)
-    if out.returncode != 0 or line is None:
-        raise RuntimeError(f"{scene}: {out.stderr.strip().splitlines()[-1] if out.stderr.strip() else 'no result'}")
-    return json.loads(line[len("RESULT"):])
+    return run_script(code, scene)
 
 
 def main(argv=None):
@@ -74,16 +71,11 @@ def main(argv=None):
     section = _table(rows, args.resolution, args.samples)
     print(section)
     if not args.no_write:
-        sys.path.insert(0, HERE)
-        from bake import write_section
-
         write_section(os.path.join(ROOT, "BENCHMARKS.md"), "plan", "Planner: automatic bounces (`bench/plan.py`)", section)
 
 
 def _table(rows, res, samples):
-    import subprocess as sp
-
-    commit = sp.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     lines = ["Question: what does the default plan (bounces auto) bake, what does it cost next to a bake forced to one "
              "bounce, and how much of the two-bounce caustic does it keep?", "",
              f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; commit {commit}, "

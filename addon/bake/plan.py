@@ -152,7 +152,7 @@ def chain_casters(scene, chain, closed):
 def structural_chains(scene, max_bounces=2):
     """The chains of up to ``max_bounces`` that the scene's roles and topology allow (step 1)."""
     refracting = np.isin(scene.tri_role, CHAIN_ROLES["T"])
-    closed = scene.closed_objects() if refracting.any() else set()
+    closed = scene.closed_objects(np.unique(scene.tri_object[refracting]))
     return [c for c in CHAINS if len(c) <= max_bounces and all(v.size for v in chain_casters(scene, c, closed))]
 
 
@@ -164,7 +164,7 @@ def make_plan(ctx):
     if not settings.caustics:
         return Plan("none", settings.plan_threshold, items, notes)
     refracting = np.isin(scene.tri_role, CHAIN_ROLES["T"])
-    closed = scene.closed_objects() if refracting.any() else set()
+    closed = scene.closed_objects(np.unique(scene.tri_object[refracting]))
     all_receivers = tuple(range(len(ctx.receivers)))
     for chain in candidate_chains(settings):
         verts = chain_casters(scene, chain, closed)

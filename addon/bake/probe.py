@@ -3,8 +3,8 @@ receiver, per light and caster objects.
 
 For one light (its centre: one sample) and one chain, the first-vertex casters the light
 reaches are sampled at the centroids of a g x g grid of sub-triangles each (at most
-``PROBE_POINTS`` points per light and chain: large meshes take every s-th triangle, weighted
-s), and each point is traced forward exactly through the chain
+``PROBE_POINTS`` points per light and chain: meshes with more triangles than that take every
+s-th triangle, weighted s), and each point is traced forward exactly through the chain
 (:func:`addon.solver.forward_image.trace_chain_points`: shadow ray from the light, scattering
 with the interpolated normal and the contract's side rules, closest hits, Fresnel).  A point
 that lands on a receiver carries its sub-triangle's flux, as the forward-flux estimator
@@ -47,13 +47,13 @@ def probe_chain(ctx, light_index, ls, chain, first, second, tri_rec, tri_uv, led
     first = np.asarray(first, dtype=np.int64)
     if first.size == 0:
         return 0
+    stride = max(1, math.ceil(first.size / budget))
+    first = first[::stride]  # every s-th caster, weighted s (mesh order is spatially coherent: a stratification)
     x0 = light_points(ls, 0, scene.tri_p[first], ctx.extent, ctx.settings.sun_distance)
     keep = lit_casters(ls, 0, x0, scene.tri_p[first])
-    first, x0 = first[keep], x0[keep]
+    first, x0 = first[keep], np.ascontiguousarray(x0[keep])
     if first.size == 0:
         return 0
-    stride = max(1, math.ceil(first.size / budget))
-    first, x0 = first[::stride], np.ascontiguousarray(x0[::stride])
     g = int(min(PROBE_GRID_MAX, max(1, math.isqrt(budget // first.size))))
     base = _grid_centroids(g)
     k = base.shape[0]

@@ -144,19 +144,28 @@ class Scene:
         """Indices of the triangles whose role is in ``roles``."""
         return np.flatnonzero(np.isin(self.tri_role, roles))
 
-    def closed_objects(self):
-        """Object indices whose triangles form a closed surface (every edge shared by exactly two
-        triangles, vertices matched by position to 1e-9 of the object's size): a solid such as a
-        glass sphere or slab."""
+    def closed_objects(self, objects=None):
+        """Object indices (of ``objects``, default all) whose triangles form a closed surface
+        (every edge shared by exactly two triangles, vertices matched by position to 1e-9 of the
+        object's size): a solid such as a glass sphere or slab."""
         out = set()
-        for oi in np.unique(self.tri_object):
+        for oi in np.unique(self.tri_object) if objects is None else np.unique(np.asarray(list(objects), dtype=np.int64)):
             p = self.tri_p[self.tri_object == oi].reshape(-1, 3)
+            if p.size == 0:
+                continue
             size = float(np.max(p.max(0) - p.min(0))) or 1.0
             q = np.round((p - p.min(0)) / (size * 1e-9)).astype(np.int64)
-            _, vid = np.unique(q, axis=0, return_inverse=True)
+            # vertex ids: runs of equal rows in lexicographic order (np.unique(axis=0) sorts the same, slower)
+            order = np.lexsort((q[:, 2], q[:, 1], q[:, 0]))
+            qs = q[order]
+            new = np.ones(qs.shape[0], dtype=bool)
+            new[1:] = np.any(qs[1:] != qs[:-1], axis=1)
+            vid = np.empty(q.shape[0], dtype=np.int64)
+            vid[order] = np.cumsum(new) - 1
             vid = vid.reshape(-1, 3)
-            edges = np.sort(np.concatenate([vid[:, [0, 1]], vid[:, [1, 2]], vid[:, [2, 0]]]), axis=1)
-            _, counts = np.unique(edges, axis=0, return_counts=True)
+            a = np.concatenate([vid[:, 0], vid[:, 1], vid[:, 2]])
+            b = np.concatenate([vid[:, 1], vid[:, 2], vid[:, 0]])
+            _, counts = np.unique(np.minimum(a, b) * (int(vid.max()) + 1) + np.maximum(a, b), return_counts=True)
             if counts.size and np.all(counts == 2):
                 out.add(int(oi))
         return out

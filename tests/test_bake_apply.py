@@ -53,7 +53,7 @@ def _principled(name, color=(0.5, 0.4, 0.3, 1.0), linked=False):
     return mat
 
 
-def _setup():
+def make_context():
     bpy.ops.wm.read_factory_settings(use_empty=True)
     shared = _principled("Shared", (0.9, 0.8, 0.7, 1.0))
     solo = _principled("Solo", linked=True)
@@ -71,7 +71,7 @@ def _images(names, rng):
 
 
 def test_apply_wires_the_node_group_and_clear_restores_exactly(tmp_path):
-    s = _setup()
+    s = make_context()
     before = snapshot()
     rng = np.random.default_rng(0)
     names = ["Floor", "Ramp", "SoloOb", "Bare"]
@@ -119,7 +119,7 @@ def test_apply_wires_the_node_group_and_clear_restores_exactly(tmp_path):
 
 
 def test_clear_only_named_objects_and_packing():
-    s = _setup()
+    s = make_context()
     before = snapshot()
     rng = np.random.default_rng(1)
     images, uvs = _images(["Floor", "SoloOb"], rng)

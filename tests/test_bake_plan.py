@@ -6,7 +6,7 @@ import pytest
 
 from addon.bake.context import BakeContext
 from addon.bake.estimators.path_points import chain_supported
-from addon.bake.pipeline import BakeSettings, _setup, bake, texel_areas
+from addon.bake.pipeline import BakeSettings, bake, make_context, texel_areas
 from addon.bake.plan import make_plan
 from addon.bake.scene import Light, build_scene
 
@@ -28,7 +28,7 @@ def _scene():
 
 
 def _plan(sc, **kw):
-    ctx = _setup(sc, BakeSettings(**kw))
+    ctx = make_context(sc, BakeSettings(**kw))
     return make_plan(ctx)
 
 
@@ -239,7 +239,7 @@ def test_default_bake_of_each_sample_keeps_the_forced_two_bounce_energy(name):
 def test_context_sample_area_is_the_texel_area_per_sample():
     """The ledger's per-sample area (ctx.sample_area) x samples per texel = texel_areas on a flat floor."""
     sc = _sphere_scene()
-    ctx = _setup(sc, BakeSettings(samples=4))
+    ctx = make_context(sc, BakeSettings(samples=4))
     assert isinstance(ctx, BakeContext)
     rec = ctx.receivers[0]
     per_sample = ctx.sample_area(0)[rec.tri_index]

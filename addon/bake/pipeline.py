@@ -34,8 +34,8 @@ from .raster import bands, grid_side, pad, rasterise
 from .scene import SceneError, triangle_areas, uv_areas
 from .settings import BakeSettings, check_settings, resolve_aliases
 
-__all__ = ["BakeSettings", "BakeResult", "BakeCancelled", "bake", "bake_steps", "safe_filename", "direct_light",
-           "VISIBILITY_OFFSET"]
+__all__ = ["BakeSettings", "BakeResult", "BakeCancelled", "bake", "bake_steps", "make_context", "safe_filename",
+           "direct_light", "texel_areas", "VISIBILITY_OFFSET"]
 
 
 @dataclass
@@ -115,7 +115,9 @@ def bake_steps(scene, settings=None):
     return _bake_gen(scene, settings)
 
 
-def _setup(scene, settings):
+def make_context(scene, settings):
+    """The :class:`BakeContext` of a bake: threads, the BVH over every triangle, the scene
+    extent and visibility offset, the receivers at the bake's resolution, the light samples."""
     if settings.threads:
         from ..solver.jit import set_num_threads
 
@@ -133,7 +135,7 @@ def _setup(scene, settings):
 
 def _bake_gen(scene, settings):
     t_start = time.perf_counter()
-    ctx = _setup(scene, settings)
+    ctx = make_context(scene, settings)
     timer = ctx.timer
     yield 0.0, "planning"
     t0 = time.perf_counter()

@@ -473,7 +473,7 @@ def _setup_tuple(W, refract, x0, P, Q):
 
 
 @kernel
-def _setup(W, refract, irradiance, x0, P, N, Q):
+def make_context(W, refract, irradiance, x0, P, N, Q):
     """Per-tuple polynomials on the unit box of (u1, v1) (slots S_PU.., S_TB..)."""
     _setup_caster(W, refract, x0, P, N)
     _setup_tuple(W, refract, x0, P, Q)
@@ -1258,7 +1258,7 @@ def eval_box(refract, x0, P, N, Q, UV, eta, lo, hi, pos):
     """One box of one tuple, for tests: writes the position bound into pos[0:8] and returns
     (inside, Ē, E̲) as chain1.piece_position / piece_irradiance_* would."""
     W, work, scr, U = workspace()
-    _setup(W, refract, False, x0, P, N, Q)
+    make_context(W, refract, False, x0, P, N, Q)
     res = np.zeros(8)
     if not box_position(W, work, refract, x0, P, N, UV, eta, lo, hi, pos, res):
         return False, 0.0, 0.0

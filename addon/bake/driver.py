@@ -685,8 +685,11 @@ def _accumulate(scene, bvh, extent, eps, chain, ls, m, band, sums, timer, tri, x
 
 def _bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec, emitters):
     """A :class:`BoundsCull` when ``settings.cull == "bounds"`` applies (one-bounce chain, one
-    light point for every caster, i.e. not the sun), else None.  Bounds are cached per
-    receiver on the chain's emitters (shared by every band)."""
+    light point for every caster), ``bounds_select.bounds_cull`` for two bounces and the sun,
+    else None.  Bounds are cached per receiver on the chain's emitters (shared by every band)."""
+    if settings.cull == "bounds" and rec is not None and em.size and (len(chain) == 2 or not np.all(x0_of == x0_of[:1])):
+        from .bounds_select import bounds_cull  # two bounces, and one bounce from a light point per caster (sun)
+        return bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec)
     if settings.cull != "bounds" or len(chain) != 1 or ls.kind == "sun" or rec is None or em.size == 0:
         return None
     if not np.all(x0_of == x0_of[:1]):

@@ -44,7 +44,9 @@ from ..solver.bounds.chain1_fast import workspace as workspace1
 from ..solver.bounds.chain2 import CHAIN_CODES
 from ..solver.bounds.chain2_fast import _box_bounds
 from ..solver.bounds.chain2_fast import workspace as workspace2
-from ..solver.bounds.irradiance_two import NO_PATH, box_reached, piece_irradiance_two, sub_box_irradiance
+from ..solver.bounds.chain1 import POS_PAD, _eta_ratio, orientation_mask
+from ..solver.bounds.irradiance_two import (BOUNDED, EDGE_TOL, NO_PATH, UNBOUNDED, _c3, _dadd, _daddc, _drange, _dscale, _hit, _scatter,
+                                            _vdotc, _vertex_one, box_reached, piece_irradiance_two, sub_box_irradiance)
 from ..solver.bounds.tuples import _pairs_of
 from ..solver.jit import kernel, run_chunks
 from .cull import (BOUNDS_SETTINGS, Emitters, PieceCull, _pairs_count, _pairs_fill, one_bounce_emitters, tri_spheres,
@@ -53,7 +55,7 @@ from .cull import (BOUNDS_SETTINGS, Emitters, PieceCull, _pairs_count, _pairs_fi
 P_RECEIVER = PIECE_FIELDS  # the receiver column of the two-bounce rows (as chain2.P_RECEIVER)
 
 TWO_BOUNCE_SETTINGS = dict(max_depth=3, sigma=1e-4, reach_depth=2, levels=1, refine=2, capacity=64, prune=True,
-                           irr_depth=1, irr_ratio=2.0)
+                           irr_depth=1, irr_ratio=2.0, image_split=4)
 """Two-bounce bounds of the bake: quadtree depth and σ (§6.1 stopping rules: 4 x 4 x 4 pieces of
 t1 at most), the reach grid's 2^reach_depth cells, the BVH pair search's quadtree (levels,
 refine; ``tuples.two_bounce_pairs``), most pieces per (pair, receiver), and the irradiance pass
@@ -216,6 +218,140 @@ def _irr_chunk(chain_code, x0, P, N, Q, eta, piece_pair, piece_receiver, pieces,
                                       irr_depth, irr_ratio, stats[i])
         pieces[i, P_EHI] = eh
         pieces[i, P_ELO] = el
+
+
+IMAGE_NONE, IMAGE_BOX, IMAGE_UNKNOWN = 0, 1, 2
+
+
+@kernel
+def _image_box(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, out):
+    """Enclosure of the receiver barycentrics (uk, vk) of every admissible path x0 -> x1 -> x2
+    -> receiver Q with x1 in the box (u_lo, u_hi, v_lo, v_hi) of triangle 1 and x2 on triangle
+    2's plane: the exact map of eq 6–11 and eq 9 (exact √β) in the affine arithmetic of
+    ``irradiance_two`` (the forward map ``sub_box_irradiance`` bounds eq 15 with), value forms
+    only, the union over the orientations CONTRACT.md allows.  Writes out[0:4] = (uk_lo,
+    uk_hi, vk_lo, vk_hi) and returns IMAGE_BOX; IMAGE_NONE when no admissible path of the box
+    reaches the receiver triangle (total internal reflection, backward rays, u2 or uk
+    enclosures outside their triangles); IMAGE_UNKNOWN where a ray can be parallel to a plane
+    (no enclosure).  Conservative: where d̃ is grazing (√β's derivative unbounded) its value
+    forms still enclose it."""
+    if box[0] + box[2] > 1.0 + EDGE_TOL:
+        return IMAGE_NONE
+    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
+    f1 = P2[1] - P2[0]
+    f2 = P2[2] - P2[0]
+    g1 = N2[1] - N2[0]
+    g2 = N2[2] - N2[0]
+    ng2 = _c3(f1, f2)
+    out[0] = np.inf
+    out[1] = -np.inf
+    out[2] = np.inf
+    out[3] = -np.inf
+    found = False
+    for k1 in range(2):
+        if not (mask1 >> k1) & 1:
+            continue
+        if not refract1 and k1 == 1 and (mask1 & 1):
+            continue
+        o1 = 1.0 if k1 == 0 else -1.0
+        st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+        if st == NO_PATH:
+            continue
+        st, u2, v2 = _hit(x1, dt1, P2)
+        if st == NO_PATH:
+            continue
+        if st >= UNBOUNDED:
+            return IMAGE_UNKNOWN
+        x2 = (_daddc(_dadd(_dscale(u2, f1[0]), _dscale(v2, f2[0])), P2[0, 0]),
+              _daddc(_dadd(_dscale(u2, f1[1]), _dscale(v2, f2[1])), P2[0, 1]),
+              _daddc(_dadd(_dscale(u2, f1[2]), _dscale(v2, f2[2])), P2[0, 2]))
+        n2 = (_daddc(_dadd(_dscale(u2, g1[0]), _dscale(v2, g2[0])), N2[0, 0]),
+              _daddc(_dadd(_dscale(u2, g1[1]), _dscale(v2, g2[1])), N2[0, 1]),
+              _daddc(_dadd(_dscale(u2, g1[2]), _dscale(v2, g2[2])), N2[0, 2]))
+        slo, shi = _drange(_vdotc(dt1, ng2))
+        nlo2, nhi2 = _drange(_vdotc(n2, ng2))
+        mask2 = orientation_mask(-shi, -slo, nlo2, nhi2)
+        for k2 in range(2):
+            if not (mask2 >> k2) & 1:
+                continue
+            if not refract2 and k2 == 1 and (mask2 & 1):
+                continue
+            o2 = 1.0 if k2 == 0 else -1.0
+            st, dt2 = _scatter(refract2, o2, _eta_ratio(o2, eta), n2, dt1)
+            if st == NO_PATH:
+                continue
+            st, uk, vk = _hit(x2, dt2, Q)
+            if st == NO_PATH:
+                continue
+            if st != BOUNDED:  # the last ray can be parallel to the receiver
+                return IMAGE_UNKNOWN
+            ulo, uhi = _drange(uk)
+            vlo, vhi = _drange(vk)
+            if not (math.isfinite(ulo) and math.isfinite(uhi) and math.isfinite(vlo) and math.isfinite(vhi)):
+                return IMAGE_UNKNOWN
+            out[0] = min(out[0], ulo)
+            out[1] = max(out[1], uhi)
+            out[2] = min(out[2], vlo)
+            out[3] = max(out[3], vhi)
+            found = True
+    return IMAGE_BOX if found else IMAGE_NONE
+
+
+@kernel
+def _split_chunk(chain_code, x0, P, N, Q, UV, eta, pairs, piece_pair, piece_receiver, pieces, split, rows, counts, start, stop):
+    """Cut the (u1, v1) box of pieces start..stop-1 into split x split sub-boxes and give each the
+    intersection of its piece's Bernstein bound (eq 3–5) with the affine image of the sub-box
+    (:func:`_image_box`); sub-boxes without an admissible path are dropped.  Piece i's rows go
+    to rows[i * split², ...], counts[i] of them; Ē and E̲ stay the piece's (they bound every
+    sub-box of it)."""
+    refract1 = (chain_code & 1) != 0
+    refract2 = (chain_code & 2) != 0
+    box = np.empty(4)
+    img = np.empty(4)
+    for i in range(start, stop):
+        t = piece_pair[i]
+        a = pairs[t, 0]
+        b = pairs[t, 1]
+        r = piece_receiver[i]
+        pc = pieces[i]
+        hu = (pc[P_U1] - pc[P_U0]) / split
+        hv = (pc[P_V1] - pc[P_V0]) / split
+        c = 0
+        for ia in range(split):
+            for ib in range(split):
+                box[0] = pc[P_U0] + ia * hu
+                box[1] = pc[P_U0] + (ia + 1) * hu if ia + 1 < split else pc[P_U1]
+                box[2] = pc[P_V0] + ib * hv
+                box[3] = pc[P_V0] + (ib + 1) * hv if ib + 1 < split else pc[P_V1]
+                st = _image_box(refract1, refract2, x0[t], P[a], N[a], P[b], N[b], Q[r], eta[t], box, img)
+                if st == IMAGE_NONE:
+                    continue
+                row = rows[i * split * split + c]
+                for k in range(PIECE_FIELDS):
+                    row[k] = pc[k]
+                row[P_U0], row[P_U1], row[P_V0], row[P_V1] = box[0], box[1], box[2], box[3]
+                if st == IMAGE_BOX:
+                    row[4] = max(row[4], img[0] - POS_PAD)
+                    row[5] = min(row[5], img[1] + POS_PAD)
+                    row[6] = max(row[6], img[2] - POS_PAD)
+                    row[7] = min(row[7], img[3] + POS_PAD)
+                    if row[4] > row[5] or row[6] > row[7]:
+                        continue
+                    # UV box of the barycentric box (UV is affine in (uk, vk): extremes at the corners)
+                    for d in range(2):
+                        lo = np.inf
+                        hi = -np.inf
+                        for cu in range(2):
+                            for cv in range(2):
+                                uu = row[4 + cu]
+                                vv = row[6 + cv]
+                                x = UV[r, 0, d] + uu * (UV[r, 1, d] - UV[r, 0, d]) + vv * (UV[r, 2, d] - UV[r, 0, d])
+                                lo = min(lo, x)
+                                hi = max(hi, x)
+                        row[8 + 2 * d] = max(row[8 + 2 * d], lo - POS_PAD)
+                        row[9 + 2 * d] = min(row[9 + 2 * d], hi + POS_PAD)
+                c += 1
+        counts[i] = c
 
 
 # ---------------------------------------------------------------------------------------
@@ -408,6 +544,17 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
             keep = ~((pieces[:, P_EHI] == 0.0) & (pieces[:, P_ELO] == 0.0))
             owner, receiver, pieces = owner[keep], receiver[keep], np.ascontiguousarray(pieces[keep])
             rep["seconds"]["irradiance"] += time.perf_counter() - t2
+        split = int(s["image_split"])
+        if split > 1 and pieces.shape[0]:
+            t3 = time.perf_counter()
+            k = split * split
+            srows = np.empty((pieces.shape[0] * k, PIECE_FIELDS))
+            scount = np.zeros(pieces.shape[0], dtype=np.int64)
+            run_chunks(_split_chunk, (code, xs, P, N, Q, UV, es, pr, np.ascontiguousarray(owner), np.ascontiguousarray(receiver),
+                                      pieces, split, srows, scount), pieces.shape[0], 256)
+            idx = np.repeat(np.arange(pieces.shape[0]) * k, scount) + (np.arange(int(scount.sum())) - np.repeat(np.cumsum(scount) - scount, scount))
+            owner, receiver, pieces = np.repeat(owner, scount), np.repeat(receiver, scount), np.ascontiguousarray(srows[idx])
+            rep["seconds"]["split"] = rep["seconds"].get("split", 0.0) + time.perf_counter() - t3
         order = np.lexsort((receiver, owner))
         owner, receiver, pieces = owner[order] + a, receiver[order], pieces[order]
         key = owner * max(nr, 1) + receiver

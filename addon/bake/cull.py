@@ -793,18 +793,16 @@ class PieceCull:
         while q < n:
             base = csum[q - 1] if q else 0
             q1 = max(q + 1, int(np.searchsorted(csum, base + max_tuples, side="right")))
-            cnt = np.zeros(n, dtype=np.int64)
-            sel = np.zeros(n, dtype=np.int64)
-            sel[q:q1] = self.count[q:q1]
+            cnt = np.zeros(q1 - q, dtype=np.int64)
+            sel = self.count[q:q1]
             offset = np.concatenate([[0], np.cumsum(sel)[:-1]]).astype(np.int64)
             total = int(sel.sum())
             out_e = np.empty(total, dtype=np.int64)
             out_s = np.empty(total, dtype=np.int64)
             out_E = np.empty(total)
             if total:
-                a = self._args
-                ps, pc = self._restrict_starts(q, q1)  # tuples outside [q, q1) emit nothing
-                _bounds_pairs(True, a[0], a[1], ps, pc, *a[4:], offset, cnt, out_e, out_s, out_E)
+                a = self._args  # the tuples [q, q1) only (their piece rows are absolute)
+                _bounds_pairs(True, a[0][q:q1], a[1][q:q1], a[2][q:q1 + 1], a[3], *a[4:], offset, cnt, out_e, out_s, out_E)
             q = q1
             if not total:
                 continue
@@ -815,15 +813,6 @@ class PieceCull:
             keep = self.rng.random(p.shape[0]) < p
             if keep.any():
                 yield out_e[keep], out_s[keep], 1.0 / p[keep]
-
-    def _restrict_starts(self, q, q1):
-        """piece_start / pieces with the tuples outside [q, q1) emptied (so they emit nothing)."""
-        start = self._args[2].copy()
-        ps = start.copy()
-        ps[:q] = start[q]
-        ps[q1 + 1:] = start[q1]
-        # tuple t has pieces [ps[t], ps[t+1]): empty for t < q and t >= q1
-        return ps, self._args[3]
 
 
 class BoundsCull(PieceCull):

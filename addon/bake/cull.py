@@ -744,30 +744,19 @@ def _bounds_pairs(fill, tup_e, tup_r, piece_start, pieces, tex_start, tex_order,
         count[t] = c
 
 
-class BoundsCull:
-    """Candidate (caster, sample) tuples of a one-bounce chain from the Bernstein position
-    bounds (see above).  ``emitters``: the chain's :class:`Emitters` (one per caster, its cone
-    used as an extra test); ``x0``: the light point (one for all casters); ``tri_p, tri_n,
-    eta``: the casters in emitter order; ``rec_tri`` (r,) global receiver triangle ids and
-    ``rec_uv`` (r,3,2) their UVs; the band as for :class:`TupleCull`.  ``gamma``: inf
-    enumerates, else each tuple is kept with P = min(γ Ẽ, 1) (eq 28); :meth:`batches` yields
-    (emitter index, sample index, 1/P).  ``cache``: a dict to keep the bounds in between bands.
-    """
+class PieceCull:
+    """Candidate (emitter, sample) tuples of one band from bound pieces (Fan et al. 2025 §4.2,
+    eq 4–5; the position bounds of :func:`one_bounce_bounds`, or of the two-bounce bounds of
+    ``addon.bake.bounds_select``): a sample of receiver triangle r is kept for emitter e when
+    the tuple (e, r) has a piece whose receiver-barycentric box holds it (``BOUNDS_MARGIN``
+    wider) and the emitter's cone accepts it (``_sample_ok``), so the selection is a subset of
+    :class:`TupleCull`'s.  ``tuples`` (m, 2) (emitter index, local receiver index into
+    ``rec_tri``), pieces of tuple t at rows piece_start[t]:piece_start[t+1] of ``pieces``
+    (chain1's P_* layout).  ``gamma``: inf enumerates, else each pair is kept with
+    P = min(γ Ẽ, 1) (eq 28, Ẽ the largest Ē of the pieces holding the sample, eq 21 with
+    m = 1); :meth:`batches` yields (emitter index, sample index, 1/P or None)."""
 
-    def __init__(self, chain, emitters, x0, tri_p, tri_n, eta, rec_p, rec_tri, rec_uv, band, width, height, gamma=math.inf,
-                 intensity=1.0, rng=None, cache=None):
-        import time
-
-        t0 = time.perf_counter()
-        key = "bounds"
-        if cache is not None and key in cache:
-            tuples, start, pieces = cache[key]
-        else:
-            tuples, start, pieces, _ = one_bounce_bounds(chain, np.asarray(x0, dtype=np.float64), tri_p, tri_n, eta, rec_p,
-                                                         rec_uv, irradiance=not math.isinf(gamma))
-            if cache is not None:
-                cache[key] = (tuples, start, pieces)
-        self.bounds_seconds = time.perf_counter() - t0
+    def _prepare(self, tuples, start, pieces, emitters, rec_tri, band, width, height, gamma, intensity, rng):
         self.n_bound_tuples = tuples.shape[0]
         e = emitters
         local = np.full(int(rec_tri.max()) + 1 if rec_tri.size else 1, -1, dtype=np.int64)
@@ -804,18 +793,16 @@ class BoundsCull:
         while q < n:
             base = csum[q - 1] if q else 0
             q1 = max(q + 1, int(np.searchsorted(csum, base + max_tuples, side="right")))
-            cnt = np.zeros(n, dtype=np.int64)
-            sel = np.zeros(n, dtype=np.int64)
-            sel[q:q1] = self.count[q:q1]
+            cnt = np.zeros(q1 - q, dtype=np.int64)
+            sel = self.count[q:q1]
             offset = np.concatenate([[0], np.cumsum(sel)[:-1]]).astype(np.int64)
             total = int(sel.sum())
             out_e = np.empty(total, dtype=np.int64)
             out_s = np.empty(total, dtype=np.int64)
             out_E = np.empty(total)
             if total:
-                a = self._args
-                ps, pc = self._restrict_starts(q, q1)  # tuples outside [q, q1) emit nothing
-                _bounds_pairs(True, a[0], a[1], ps, pc, *a[4:], offset, cnt, out_e, out_s, out_E)
+                a = self._args  # the tuples [q, q1) only (their piece rows are absolute)
+                _bounds_pairs(True, a[0][q:q1], a[1][q:q1], a[2][q:q1 + 1], a[3], *a[4:], offset, cnt, out_e, out_s, out_E)
             q = q1
             if not total:
                 continue
@@ -827,11 +814,40 @@ class BoundsCull:
             if keep.any():
                 yield out_e[keep], out_s[keep], 1.0 / p[keep]
 
-    def _restrict_starts(self, q, q1):
-        """piece_start / pieces with the tuples outside [q, q1) emptied (so they emit nothing)."""
-        start = self._args[2].copy()
-        ps = start.copy()
-        ps[:q] = start[q]
-        ps[q1 + 1:] = start[q1]
-        # tuple t has pieces [ps[t], ps[t+1]): empty for t < q and t >= q1
-        return ps, self._args[3]
+
+class BoundsCull(PieceCull):
+    """Candidate (caster, sample) tuples of a one-bounce chain from the Bernstein position
+    bounds (see above; :class:`PieceCull`).  ``emitters``: the chain's :class:`Emitters` (one
+    per caster, its cone used as an extra test); ``x0``: the light point, (3,) for all
+    casters, or (T, 3) one per caster (the sun's far points: the bounds are then taken with
+    each caster's own point, ``addon.bake.bounds_select.one_bounce_bounds_points``);
+    ``tri_p, tri_n, eta``: the casters in emitter order; ``rec_tri`` (r,) global receiver
+    triangle ids and ``rec_uv`` (r,3,2) their UVs; the band as for :class:`TupleCull`.
+    ``gamma``: inf enumerates, else each tuple is kept with P = min(γ Ẽ, 1) (eq 28);
+    :meth:`batches` yields (emitter index, sample index, 1/P).  ``cache``: a dict to keep the
+    bounds in between bands.
+    """
+
+    def __init__(self, chain, emitters, x0, tri_p, tri_n, eta, rec_p, rec_tri, rec_uv, band, width, height, gamma=math.inf,
+                 intensity=1.0, rng=None, cache=None):
+        import time
+
+        t0 = time.perf_counter()
+        key = "bounds"
+        if cache is not None and key in cache:
+            tuples, start, pieces = cache[key]
+        else:
+            x0 = np.asarray(x0, dtype=np.float64)
+            if x0.ndim == 2 and not np.all(x0 == x0[:1]):
+                from .bounds_select import one_bounce_bounds_points
+
+                tuples, start, pieces, _ = one_bounce_bounds_points(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv,
+                                                                    irradiance=not math.isinf(gamma))
+            else:
+                tuples, start, pieces, _ = one_bounce_bounds(chain, x0.reshape(-1, 3)[0], tri_p, tri_n, eta, rec_p,
+                                                             rec_uv, irradiance=not math.isinf(gamma))
+            if cache is not None:
+                cache[key] = (tuples, start, pieces)
+        self.bounds_seconds = time.perf_counter() - t0
+        self._prepare(tuples, start, pieces, emitters, rec_tri, band, width, height, gamma, intensity, rng)
+

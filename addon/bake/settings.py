@@ -60,8 +60,8 @@ class BakeSettings:
     jitter: bool = True  # jittered (True) or centred (False) supersamples
     light_samples: int = 1  # > 1: sample light radius / area / sun angle (soft caustics)
     margin: int = 16  # texels of padding over UV seams
-    cull: object = True  # path-points: True / "cone": cone cull; "bounds": Bernstein position bounds for R/T from
-    #                       point-like lights (cone elsewhere); False: side tests only
+    cull: object = "bounds"  # path-points: "bounds": Bernstein position bounds (R, T, RR, RT, TR, TT; cone cull where they
+    #                           do not apply); "cone" / True: the cone cull; False: side tests only
     gamma: float = math.inf  # bounds cull: solve a tuple with P = min(gamma Ẽ, 1) (Ẽ in W/m²), weight 1/P; inf: all
     batch_tuples: int = 1 << 18
     band_samples: int = 1 << 20

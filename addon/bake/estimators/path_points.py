@@ -1,9 +1,11 @@
 """The ``path-points`` estimator: every exact specular path at every texel supersample.
 
 For every receiver band, light sample and planned chain, a cull selects the candidate
-(caster tuple, supersample) pairs (:class:`addon.bake.cull.TupleCull`: side tests and cones
-of scattered directions; ``cull="bounds"``: the Bernstein position bounds of Fan et al. 2025
-§4, :class:`addon.bake.cull.BoundsCull`), the solver finds their paths (``spoly``: the
+(caster tuple, supersample) pairs: by default (``cull="bounds"``) the one- and two-bounce
+Bernstein position bounds of Fan et al. 2025 §4 (:mod:`addon.bake.bounds_select`: R, T, RR,
+RT, TR, TT, point lights and the sun); ``cull="cone"`` (or True) the side tests and cones of
+scattered directions (:class:`addon.bake.cull.TupleCull`, also the fallback where the bounds
+do not apply); the solver finds their paths (``spoly``: the
 Specular Polynomials of Fan et al. 2024, every path; the baselines ``newton``, ``sms``,
 ``curve``), and each path is weighed and tested:
 
@@ -23,7 +25,8 @@ import numpy as np
 from ...solver import path_irradiance, solve_tuples
 from ...solver.api import CHAIN_LENGTH
 from ...solver.bvh import segments_occluded
-from ..cull import BoundsCull, TupleCull, one_bounce_emitters, two_bounce_emitters
+from ..bounds_select import bounds_cull
+from ..cull import TupleCull, one_bounce_emitters, two_bounce_emitters
 from ..lights import emission_factor, light_points, lit_casters
 from ..scene import ROLE_BOTH
 from ..settings import SOLVER_CHAINS
@@ -178,7 +181,7 @@ def chain_pass(ctx, item, ls, m, band, rec_index, sums, emitters, solve=None, re
     em, tri_of, x0_of = emitters
     W = ctx.receivers[rec_index].resolution[0]
     t0 = time.perf_counter()
-    cull = _bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec)
+    cull = bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec) if settings.cull == "bounds" else None
     if cull is None:
         cull = TupleCull(em, band.position, band.geo_normal, band.texel, W)
     st["tuples_tile_cull"] = cull.upper_bound
@@ -253,23 +256,6 @@ def accumulate_paths(ctx, item, ls, m, band, rec_index, sums, tri, x_start, x_en
     ctx.ledger.add(item.light, chain, scene.tri_object[pt[:, 0]], scene.tri_object[pt[:, 1]] if k > 1 else None,
                    np.full(vis.size, rec_index), power)
     timer.add("accumulate", time.perf_counter() - t0)
-
-
-def _bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec):
-    """A :class:`BoundsCull` when ``settings.cull == "bounds"`` applies (one-bounce chain, one
-    light point for every caster, i.e. not the sun), else None.  Bounds are cached per
-    receiver on the chain's emitters (shared by every band)."""
-    if settings.cull != "bounds" or len(chain) != 1 or ls.kind == "sun" or rec is None or em.size == 0:
-        return None
-    if not np.all(x0_of == x0_of[:1]):
-        return None
-    cache = em.extra.setdefault(("bounds", rec.name, rec.resolution), {})
-    tri = tri_of[:, 0]
-    seed = [int(settings.seed) & 0x7FFFFFFF, m, "RT".index(chain), band.row0]
-    H = rec.resolution[1]
-    return BoundsCull(chain, em, x0_of[0], scene.tri_p[tri], scene.tri_n[tri], scene.tri_ior[tri], scene.tri_p[rec.tri_index],
-                      rec.tri_index, rec.uv, band, W, H, gamma=settings.gamma, intensity=float(np.max(ls.rgb[m])),
-                      rng=np.random.default_rng(seed), cache=cache)
 
 
 def _fresnel_dielectric(cos_i, eta_i, eta_t):

@@ -1,0 +1,745 @@
+"""Bernstein-bounds tuple selection in the bake: which (tuple, texel sample) pairs the
+path-points estimator solves, and which first-vertex casters the forward-flux estimator
+needs at all (Fan et al. 2025, "Bernstein Bounds for Caustics").
+
+Path-points (``BakeSettings(cull="bounds")``, the default; ``estimators.path_points.chain_pass``):
+
+* one bounce (R, T): :class:`addon.bake.cull.BoundsCull` (chain1's position bounds, §4.2–4.3,
+  eq 3–13, §6.1 subdivision); from the sun (a far light point per caster, lights.light_points)
+  the bounds are taken with every caster's own point (:func:`one_bounce_bounds_points`), so the
+  selection stays exact for the points the solver is given;
+* two bounces (RR, RT, TR, TT): :class:`TwoBounceBoundsCull`.  Per (light point, receiver) the
+  (t1, t2) pairs of the chain's cone emitters (``cull.two_bounce_emitters``) are intersected
+  with the BVH pairs of §6.1 "Tuple construction" (``tuples._pairs_of``), each (pair, receiver
+  triangle) that the cone test of ``cull.py`` admits gets the reach grid of
+  ``irradiance_two.receivers_reached`` (the exact two-vertex map in affine arithmetic on 4 x 4
+  cells of t1) and then the position quadtree of ``chain2_fast`` (§4.3 with the remainder
+  variables of eq 12–13 and the degree reduction of §6.1); optionally the irradiance pass
+  (eq 14–16, ``irradiance_two.piece_irradiance_two``) drops the pieces it proves empty and gives
+  Ē for γ-sampling (§5, eq 21, 24, 28).  A band then keeps a sample for an emitter when a piece
+  of (emitter, the sample's receiver triangle) holds it (:class:`addon.bake.cull.PieceCull`,
+  margin ``cull.BOUNDS_MARGIN``) and the emitter's cone accepts it.
+
+  Each step is conservative (no path is lost), so the selection is a subset of the cone cull's
+  and holds every pair with a path; ``tests/test_bake_bounds_select.py`` checks both against
+  the exact paths of the cone cull.  The light point may differ per first triangle (the sun):
+  every kernel here takes one light point per pair, calling the engines' per-tuple functions
+  (the engines' batch drivers take a single point).
+
+  Fallback: where the bounds do not apply path-points keeps the cone cull
+  (:class:`addon.bake.cull.TupleCull`): ``BakeSettings.cull`` other than "bounds", a chain
+  other than R, T, RR, RT, TR, TT, no receiver, or no emitter.
+
+Forward flux: :func:`reachable_first` (the conservative reach of first-vertex casters).
+"""
+
+import math
+import time
+
+import numpy as np
+
+from ..solver.bounds.chain1 import P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, push_children
+from ..solver.bounds.chain1_fast import _setup_caster, tuple_pieces_fast
+from ..solver.bounds.chain1_fast import workspace as workspace1
+from ..solver.bounds.chain2 import CHAIN_CODES
+from ..solver.bounds.chain2_fast import _box_bounds
+from ..solver.bounds.chain2_fast import workspace as workspace2
+from ..solver.bounds.chain1 import POS_PAD, _eta_ratio, orientation_mask
+from ..solver.bounds.irradiance_two import (BOUNDED, EDGE_TOL, NO_PATH, UNBOUNDED, _c3, _dadd, _daddc, _drange, _dscale, _hit, _scatter,
+                                            _vdotc, _vertex_one, box_reached, piece_irradiance_two, sub_box_irradiance)
+from ..solver.bounds.tuples import _pairs_of
+from ..solver.jit import kernel, run_chunks
+from .cull import (BOUNDS_SETTINGS, Emitters, PieceCull, _pairs_count, _pairs_fill, one_bounce_emitters, tri_spheres,
+                   two_bounce_emitters)
+
+P_RECEIVER = PIECE_FIELDS  # the receiver column of the two-bounce rows (as chain2.P_RECEIVER)
+
+TWO_BOUNCE_SETTINGS = dict(max_depth=3, sigma=1e-4, reach_depth=2, levels=1, refine=2, capacity=64, prune=True,
+                           irr_depth=1, irr_ratio=2.0, image_split=4)
+"""Two-bounce bounds of the bake: quadtree depth and σ (§6.1 stopping rules: 4 x 4 x 4 pieces of
+t1 at most), the reach grid's 2^reach_depth cells, the BVH pair search's quadtree (levels,
+refine; ``tuples.two_bounce_pairs``), most pieces per (pair, receiver), and the irradiance pass
+(prune: drop the pieces it proves empty; irr_depth, irr_ratio as ``bound_irradiance_two``).
+Measured by ``bench/bounds_select.py``."""
+
+ROW_BUDGET = 1 << 25  # float64s of piece rows (or reach cells) per chunk of pairs: 256 MB
+
+
+# ---------------------------------------------------------------------------------------
+# kernels: the engines' batch loops with one light point (and one IOR) per tuple
+
+
+@kernel
+def _one_chunk(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, irr_refine, out, counts, stats,
+               start, stop):
+    """``chain1_fast._batch_chunk`` with the light point x0[c] of caster c (eq 3–13, §6.1)."""
+    W, work, scr, U = workspace1()
+    stack = np.empty((4 * (max_depth + 2), 5))
+    rstack = np.empty((4 * (irr_refine + 2), 5))
+    last = -1
+    for t in range(start, stop):
+        c = pairs[t, 0]
+        r = pairs[t, 1]
+        if c != last:
+            _setup_caster(W, refract, x0[c], P[c], N[c])
+            last = c
+        counts[t] = tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0[c], P[c], N[c], Q[r], UV[r], eta, max_depth,
+                                      sigma, alpha, irradiance, irr_refine, out[t], stats[t])
+
+
+@kernel
+def _pairs_chunk(refract, x0, P, N, eta, levels, refine, first, node_min, node_max, node_child, node_count, node_start, order,
+                 out, counts, stats, start, stop):
+    """``tuples._pairs_chunk`` (§6.1 tuple construction) with light point x0[i] and IOR eta[i]
+    for first triangle first[i]."""
+    for i in range(start, stop):
+        counts[i] = _pairs_of(first[i], refract, x0[i], P, N, eta[i], levels, refine, node_min, node_max, node_child,
+                              node_count, node_start, order, out[i], stats[i])
+
+
+@kernel
+def _reach_chunk(chain_code, x0, P, N, Q, eta, pairs, mask, reach, start, stop):
+    """``irradiance_two._reach_chunk`` with light point x0[t], IOR eta[t] per pair, and only for
+    the receivers with mask[t, r] (the others stay unreached: the cone test proved them empty)."""
+    refract1 = (chain_code & 1) != 0
+    refract2 = (chain_code & 2) != 0
+    box = np.empty(4)
+    rbox = np.empty(4)
+    rbox[0], rbox[1], rbox[2], rbox[3] = 0.0, 1.0, 0.0, 1.0
+    cells = reach.shape[2]
+    h = 1.0 / cells
+    for t in range(start, stop):
+        a = pairs[t, 0]
+        b = pairs[t, 1]
+        for r in range(Q.shape[0]):
+            grid = reach[t, r]
+            grid[:, :] = False
+            if not mask[t, r]:
+                continue
+            box[0], box[1], box[2], box[3] = 0.0, 1.0, 0.0, 1.0
+            st, bh, bl = sub_box_irradiance(refract1, refract2, x0[t], P[a], N[a], P[b], N[b], Q[r], eta[t], box, rbox)
+            if st == NO_PATH:
+                continue
+            if cells == 1:
+                grid[0, 0] = True
+                continue
+            for i in range(cells):
+                for j in range(cells - i):
+                    box[0], box[1], box[2], box[3] = i * h, (i + 1) * h, j * h, (j + 1) * h
+                    st, bh, bl = sub_box_irradiance(refract1, refract2, x0[t], P[a], N[a], P[b], N[b], Q[r], eta[t], box, rbox)
+                    grid[i, j] = st != NO_PATH
+
+
+@kernel
+def _two_chunk(chain_code, x0, P, N, Q, UV, eta, pairs, reach, n_alive, row_start, max_depth, sigma, rows, counts, stats,
+               start, stop):
+    """``chain2_fast._chunk`` (the pair-level position quadtree of every receiver, §6.1 stopping
+    rules, eq 3–13) with light point x0[t] and IOR eta[t] per pair, writing pair t's rows into
+    rows[row_start[t]:row_start[t+1]] (room for ``capacity`` pieces per receiver it reaches;
+    n_alive[t] of them: a box emits at most that many rows)."""
+    nr = Q.shape[0]
+    W, E = workspace2()
+    size = 4 * (max_depth + 2)
+    stack = np.empty((size, 5))
+    alive = np.zeros((size, nr), dtype=np.bool_)
+    pos = np.zeros((nr, 8))
+    found = np.zeros(nr, dtype=np.bool_)
+    node_alive = np.zeros(nr, dtype=np.bool_)
+    child = np.zeros(nr, dtype=np.bool_)
+    lo = np.zeros(2)
+    hi = np.zeros(2)
+    for t in range(start, stop):
+        counts[t] = 0
+        r0 = row_start[t]
+        cap = row_start[t + 1] - r0
+        if cap == 0:
+            continue
+        a = pairs[t, 0]
+        b = pairs[t, 1]
+        stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0.0, 1.0, 0.0, 1.0, 0.0
+        alive[0, :] = True
+        top = 1
+        count = 0
+        while top > 0:
+            top -= 1
+            lo[0], hi[0], lo[1], hi[1] = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+            depth = int(stack[top, 4])
+            any_alive = False
+            for r in range(nr):
+                node_alive[r] = alive[top, r] and box_reached(reach[t, r], lo, hi)
+                any_alive = any_alive or node_alive[r]
+            if not any_alive:
+                continue
+            stats[t, 0] += 1
+            _box_bounds(W, E, chain_code, x0[t], P[a], N[a], P[b], N[b], Q, UV, node_alive, eta[t], lo, hi, pos, found, stats[t])
+            can_split = depth < max_depth and count + (top + 4) * n_alive[t] <= cap
+            any_child = False
+            for r in range(nr):
+                child[r] = False
+                if not found[r]:
+                    continue
+                area = (pos[r, 1] - pos[r, 0]) * (pos[r, 3] - pos[r, 2])
+                if area >= sigma and can_split:
+                    child[r] = True
+                    any_child = True
+                    continue
+                if depth < max_depth and area >= sigma:
+                    stats[t, 3] += 1
+                row = rows[r0 + count]
+                row[P_U0], row[P_U1], row[P_V0], row[P_V1] = lo[0], hi[0], lo[1], hi[1]
+                for k in range(8):
+                    row[P_BU0 + k] = pos[r, k]
+                row[P_EHI] = np.inf
+                row[P_ELO] = 0.0
+                row[P_DEPTH] = depth
+                row[P_RECEIVER] = r
+                count += 1
+            if any_child:
+                pushed = push_children(stack, top, lo, hi, depth)
+                for k in range(top, pushed):
+                    alive[k] = child
+                top = pushed
+        counts[t] = count
+
+
+@kernel
+def _irr_chunk(chain_code, x0, P, N, Q, eta, piece_pair, piece_receiver, pieces, irr_depth, irr_ratio, stats, start, stop):
+    """``irradiance_two._irradiance_chunk`` (eq 14–16) with light point x0[i] and IOR eta[i] per piece."""
+    lo = np.empty(2)
+    hi = np.empty(2)
+    rbox = np.empty(4)
+    for i in range(start, stop):
+        a = piece_pair[i, 0]
+        b = piece_pair[i, 1]
+        lo[0], hi[0], lo[1], hi[1] = pieces[i, P_U0], pieces[i, P_U1], pieces[i, P_V0], pieces[i, P_V1]
+        for k in range(4):
+            rbox[k] = pieces[i, P_BU0 + k]
+        eh, el = piece_irradiance_two(chain_code, x0[i], P[a], N[a], P[b], N[b], Q[piece_receiver[i]], eta[i], lo, hi, rbox,
+                                      irr_depth, irr_ratio, stats[i])
+        pieces[i, P_EHI] = eh
+        pieces[i, P_ELO] = el
+
+
+IMAGE_NONE, IMAGE_BOX, IMAGE_UNKNOWN = 0, 1, 2
+
+
+@kernel
+def _image_box(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, out):
+    """Enclosure of the receiver barycentrics (uk, vk) of every admissible path x0 -> x1 -> x2
+    -> receiver Q with x1 in the box (u_lo, u_hi, v_lo, v_hi) of triangle 1 and x2 on triangle
+    2's plane: the exact map of eq 6–11 and eq 9 (exact √β) in the affine arithmetic of
+    ``irradiance_two`` (the forward map ``sub_box_irradiance`` bounds eq 15 with), value forms
+    only, the union over the orientations CONTRACT.md allows.  Writes out[0:4] = (uk_lo,
+    uk_hi, vk_lo, vk_hi) and returns IMAGE_BOX; IMAGE_NONE when no admissible path of the box
+    reaches the receiver triangle (total internal reflection, backward rays, u2 or uk
+    enclosures outside their triangles); IMAGE_UNKNOWN where a ray can be parallel to a plane
+    (no enclosure).  Conservative: where d̃ is grazing (√β's derivative unbounded) its value
+    forms still enclose it."""
+    if box[0] + box[2] > 1.0 + EDGE_TOL:
+        return IMAGE_NONE
+    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
+    f1 = P2[1] - P2[0]
+    f2 = P2[2] - P2[0]
+    g1 = N2[1] - N2[0]
+    g2 = N2[2] - N2[0]
+    ng2 = _c3(f1, f2)
+    out[0] = np.inf
+    out[1] = -np.inf
+    out[2] = np.inf
+    out[3] = -np.inf
+    found = False
+    for k1 in range(2):
+        if not (mask1 >> k1) & 1:
+            continue
+        if not refract1 and k1 == 1 and (mask1 & 1):
+            continue
+        o1 = 1.0 if k1 == 0 else -1.0
+        st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+        if st == NO_PATH:
+            continue
+        st, u2, v2 = _hit(x1, dt1, P2)
+        if st == NO_PATH:
+            continue
+        if st >= UNBOUNDED:
+            return IMAGE_UNKNOWN
+        x2 = (_daddc(_dadd(_dscale(u2, f1[0]), _dscale(v2, f2[0])), P2[0, 0]),
+              _daddc(_dadd(_dscale(u2, f1[1]), _dscale(v2, f2[1])), P2[0, 1]),
+              _daddc(_dadd(_dscale(u2, f1[2]), _dscale(v2, f2[2])), P2[0, 2]))
+        n2 = (_daddc(_dadd(_dscale(u2, g1[0]), _dscale(v2, g2[0])), N2[0, 0]),
+              _daddc(_dadd(_dscale(u2, g1[1]), _dscale(v2, g2[1])), N2[0, 1]),
+              _daddc(_dadd(_dscale(u2, g1[2]), _dscale(v2, g2[2])), N2[0, 2]))
+        slo, shi = _drange(_vdotc(dt1, ng2))
+        nlo2, nhi2 = _drange(_vdotc(n2, ng2))
+        mask2 = orientation_mask(-shi, -slo, nlo2, nhi2)
+        for k2 in range(2):
+            if not (mask2 >> k2) & 1:
+                continue
+            if not refract2 and k2 == 1 and (mask2 & 1):
+                continue
+            o2 = 1.0 if k2 == 0 else -1.0
+            st, dt2 = _scatter(refract2, o2, _eta_ratio(o2, eta), n2, dt1)
+            if st == NO_PATH:
+                continue
+            st, uk, vk = _hit(x2, dt2, Q)
+            if st == NO_PATH:
+                continue
+            if st != BOUNDED:  # the last ray can be parallel to the receiver
+                return IMAGE_UNKNOWN
+            ulo, uhi = _drange(uk)
+            vlo, vhi = _drange(vk)
+            if not (math.isfinite(ulo) and math.isfinite(uhi) and math.isfinite(vlo) and math.isfinite(vhi)):
+                return IMAGE_UNKNOWN
+            out[0] = min(out[0], ulo)
+            out[1] = max(out[1], uhi)
+            out[2] = min(out[2], vlo)
+            out[3] = max(out[3], vhi)
+            found = True
+    return IMAGE_BOX if found else IMAGE_NONE
+
+
+@kernel
+def _split_chunk(chain_code, x0, P, N, Q, UV, eta, pairs, piece_pair, piece_receiver, pieces, split, rows, counts, start, stop):
+    """Cut the (u1, v1) box of pieces start..stop-1 into split x split sub-boxes and give each the
+    intersection of its piece's Bernstein bound (eq 3–5) with the affine image of the sub-box
+    (:func:`_image_box`); sub-boxes without an admissible path are dropped.  Piece i's rows go
+    to rows[i * split², ...], counts[i] of them; Ē and E̲ stay the piece's (they bound every
+    sub-box of it)."""
+    refract1 = (chain_code & 1) != 0
+    refract2 = (chain_code & 2) != 0
+    box = np.empty(4)
+    img = np.empty(4)
+    for i in range(start, stop):
+        t = piece_pair[i]
+        a = pairs[t, 0]
+        b = pairs[t, 1]
+        r = piece_receiver[i]
+        pc = pieces[i]
+        hu = (pc[P_U1] - pc[P_U0]) / split
+        hv = (pc[P_V1] - pc[P_V0]) / split
+        c = 0
+        for ia in range(split):
+            for ib in range(split):
+                box[0] = pc[P_U0] + ia * hu
+                box[1] = pc[P_U0] + (ia + 1) * hu if ia + 1 < split else pc[P_U1]
+                box[2] = pc[P_V0] + ib * hv
+                box[3] = pc[P_V0] + (ib + 1) * hv if ib + 1 < split else pc[P_V1]
+                st = _image_box(refract1, refract2, x0[t], P[a], N[a], P[b], N[b], Q[r], eta[t], box, img)
+                if st == IMAGE_NONE:
+                    continue
+                row = rows[i * split * split + c]
+                for k in range(PIECE_FIELDS):
+                    row[k] = pc[k]
+                row[P_U0], row[P_U1], row[P_V0], row[P_V1] = box[0], box[1], box[2], box[3]
+                if st == IMAGE_BOX:
+                    row[4] = max(row[4], img[0] - POS_PAD)
+                    row[5] = min(row[5], img[1] + POS_PAD)
+                    row[6] = max(row[6], img[2] - POS_PAD)
+                    row[7] = min(row[7], img[3] + POS_PAD)
+                    if row[4] > row[5] or row[6] > row[7]:
+                        continue
+                    # UV box of the barycentric box (UV is affine in (uk, vk): extremes at the corners)
+                    for d in range(2):
+                        lo = np.inf
+                        hi = -np.inf
+                        for cu in range(2):
+                            for cv in range(2):
+                                uu = row[4 + cu]
+                                vv = row[6 + cv]
+                                x = UV[r, 0, d] + uu * (UV[r, 1, d] - UV[r, 0, d]) + vv * (UV[r, 2, d] - UV[r, 0, d])
+                                lo = min(lo, x)
+                                hi = max(hi, x)
+                        row[8 + 2 * d] = max(row[8 + 2 * d], lo - POS_PAD)
+                        row[9 + 2 * d] = min(row[9 + 2 * d], hi + POS_PAD)
+                c += 1
+        counts[i] = c
+
+
+# ---------------------------------------------------------------------------------------
+# bounds with a light point per caster / pair
+
+
+def _points(x0, n):
+    x0 = np.asarray(x0, dtype=np.float64)
+    return np.ascontiguousarray(np.broadcast_to(x0.reshape(-1, 3), (n, 3)) if x0.size == 3 else x0.reshape(n, 3))
+
+
+def _cone_pairs(emitters, rec_p):
+    """(emitter, receiver triangle) pairs that the cone test of ``cull.py`` admits (the tile
+    test ``_tile_ok`` with the receiver triangles' bounding spheres as tiles): (m, 2) int64."""
+    c, r = tri_spheres(np.asarray(rec_p, dtype=np.float64))
+    e = emitters
+    arrays = (e.part_start, e.part_c, e.part_r, e.part_d, e.part_t, e.tri_ng, e.tri_p0, e.side_req)
+    count = np.zeros(e.size, dtype=np.int64)
+    c = np.ascontiguousarray(c)
+    r = np.ascontiguousarray(r)
+    if e.size and c.shape[0]:
+        _pairs_count(*arrays, c, r, count)
+    offset = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
+    out = np.zeros(offset[-1], dtype=np.int64)
+    if offset[-1]:
+        _pairs_fill(*arrays, c, r, offset[:-1].copy(), out)
+    return np.stack([np.repeat(np.arange(e.size, dtype=np.int64), count), out], axis=1)
+
+
+def one_bounce_bounds_points(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv, irradiance=False, irr_refine=2, pairs=None,
+                             settings=None):
+    """Position (and irradiance) bounds of every (caster, receiver triangle) pair with a light
+    point per caster (Fan et al. 2025 §4.2–4.4, eq 3–19, §6.1; chain1_fast's per-tuple engine):
+    ``x0`` (T, 3) or (3,), ``eta`` (T,) or scalar; ``pairs`` (m, 2) candidate (caster, receiver)
+    pairs (default all).  Returns (tuples (m, 2), piece_start (m+1,), pieces, report) as
+    ``cull.one_bounce_bounds``."""
+    t0 = time.perf_counter()
+    s = dict(BOUNDS_SETTINGS, **(settings or {}))
+    T = tri_p.shape[0]
+    x0 = _points(x0, T)
+    eta = np.broadcast_to(np.asarray(eta, dtype=np.float64), (T,))
+    P = np.ascontiguousarray(tri_p, dtype=np.float64)
+    N = np.ascontiguousarray(tri_n, dtype=np.float64)
+    Q = np.ascontiguousarray(rec_p, dtype=np.float64)
+    UV = np.ascontiguousarray(rec_uv, dtype=np.float64)
+    if pairs is None:
+        ci, ri = np.meshgrid(np.arange(T), np.arange(Q.shape[0]), indexing="ij")
+        pairs = np.stack([ci.ravel(), ri.ravel()], axis=1)
+    pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
+    capacity = max(1, min(64, 4 ** int(s["max_depth"])))
+    tuples, pieces_all, counts_all = [], [], []
+    for e in np.unique(eta[pairs[:, 0]]) if pairs.shape[0] else []:
+        sel = pairs[eta[pairs[:, 0]] == e]
+        step = max(1, ROW_BUDGET // (capacity * PIECE_FIELDS))
+        for a in range(0, sel.shape[0], step):
+            pr = np.ascontiguousarray(sel[a:a + step])
+            n = pr.shape[0]
+            out = np.empty((n, capacity, PIECE_FIELDS))
+            counts = np.zeros(n, dtype=np.int64)
+            stats = np.zeros((n, 4), dtype=np.int64)
+            run_chunks(_one_chunk, (chain == "T", x0, P, N, Q, UV, float(e), pr, int(s["max_depth"]), float(s["sigma"]),
+                                    float(s["alpha"]), bool(irradiance), int(irr_refine), out, counts, stats), n,
+                       max(1, -(-n // 32)))
+            keep = np.flatnonzero(counts > 0)
+            kc = counts[keep]
+            owner = np.repeat(keep, kc)
+            slot = np.arange(owner.shape[0]) - np.repeat(np.cumsum(kc) - kc, kc)
+            tuples.append(pr[keep])
+            pieces_all.append(out[owner, slot])
+            counts_all.append(kc)
+    tuples = np.concatenate(tuples) if tuples else np.zeros((0, 2), dtype=np.int64)
+    pieces = np.ascontiguousarray(np.concatenate(pieces_all)) if pieces_all else np.zeros((0, PIECE_FIELDS))
+    counts = np.concatenate(counts_all) if counts_all else np.zeros(0, dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    report = {"pairs": int(pairs.shape[0]), "tuples": int(tuples.shape[0]), "pieces": int(pieces.shape[0]),
+              "seconds": time.perf_counter() - t0}
+    return np.ascontiguousarray(tuples, dtype=np.int64), start, pieces, report
+
+
+def bvh_pairs(chain, x0_first, P, N, eta_first, first, levels=1, refine=2, capacity=64):
+    """The (t1, t2) pairs of §6.1 "Tuple construction" (``tuples.two_bounce_pairs``: BVH over
+    ``P``, bounds of x1 and d̃1 per box of t1, eq 9–10 in affine arithmetic) with a light point
+    x0_first[i] and IOR eta_first[i] per first triangle first[i].  Returns (m, 2) int64 sorted."""
+    from ..solver.bvh import build_bvh
+
+    first = np.ascontiguousarray(first, dtype=np.int64)
+    n = first.shape[0]
+    if n == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    P = np.ascontiguousarray(P, dtype=np.float64)
+    N = np.ascontiguousarray(N, dtype=np.float64)
+    bvh = build_bvh(P)
+    tree = (bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_count, bvh.node_start, bvh.order)
+    x0_first = _points(x0_first, n)
+    eta_first = np.ascontiguousarray(np.broadcast_to(np.asarray(eta_first, dtype=np.float64), (n,)))
+    refract = chain[0] == "T"
+    counts = np.zeros(n, dtype=np.int64)
+    stats = np.zeros((n, 2), dtype=np.int64)
+    out = np.full((n, capacity), -1, dtype=np.int64)
+    args = (refract, x0_first, P, N, eta_first, int(levels), int(refine))
+    run_chunks(_pairs_chunk, args + (first,) + tree + (out, counts, stats), n, 256)
+    kept = np.where(counts <= capacity, counts, 0)
+    firsts = [np.repeat(first, kept)]
+    seconds = [out[np.arange(capacity)[None, :] < kept[:, None]]]
+    over = np.flatnonzero(counts > capacity)
+    if over.size:  # the few first triangles with more second triangles than fit: again with room for all
+        big = int(counts[over].max())
+        out2 = np.full((over.size, big), -1, dtype=np.int64)
+        c2 = np.zeros(over.size, dtype=np.int64)
+        s2 = np.zeros((over.size, 2), dtype=np.int64)
+        args2 = (refract, np.ascontiguousarray(x0_first[over]), P, N, np.ascontiguousarray(eta_first[over]), int(levels), int(refine))
+        run_chunks(_pairs_chunk, args2 + (np.ascontiguousarray(first[over]),) + tree + (out2, c2, s2), over.size, 256)
+        firsts.append(np.repeat(first[over], c2))
+        seconds.append(out2[np.arange(big)[None, :] < c2[:, None]])
+    pairs = np.stack([np.concatenate(firsts), np.concatenate(seconds)], axis=1).astype(np.int64)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=None, settings=None):
+    """Position bounds of two-bounce tuples (pair, receiver triangle) with a light point and an
+    IOR per pair (Fan et al. 2025 §4.3, eq 3–13 with remainder variables; §6.1 subdivision), as
+    ``chain2.bound_two_bounce`` with engine "fast" and ``irradiance_two.receivers_reached``
+    (depth ``reach_depth``) before it; then, with ``prune``, the irradiance pass (eq 14–16) drops
+    the pieces it proves to hold no path and fills Ē, E̲.
+
+    ``P``, ``N``: (n,3,3) casters (both vertices index them); ``pairs`` (t, 2); ``x0`` (t, 3)
+    or (3,); ``eta`` (t,) or scalar; ``rec_p`` (r,3,3), ``rec_uv`` (r,3,2); ``mask`` (t, r)
+    bool: the (pair, receiver) tuples to bound (default all; the others get no piece).
+    Returns (tuples (m, 2) (pair index, receiver index), piece_start (m+1,), pieces
+    (p, PIECE_FIELDS), report)."""
+    t_start = time.perf_counter()
+    s = dict(TWO_BOUNCE_SETTINGS, **(settings or {}))
+    code = CHAIN_CODES[chain]
+    pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
+    n = pairs.shape[0]
+    x0 = _points(x0, n)
+    eta = np.ascontiguousarray(np.broadcast_to(np.asarray(eta, dtype=np.float64), (n,)))
+    P = np.ascontiguousarray(P, dtype=np.float64)
+    N = np.ascontiguousarray(N, dtype=np.float64)
+    Q = np.ascontiguousarray(rec_p, dtype=np.float64)
+    UV = np.ascontiguousarray(rec_uv, dtype=np.float64)
+    nr = Q.shape[0]
+    if mask is None:
+        mask = np.ones((n, nr), dtype=np.bool_)
+    mask = np.ascontiguousarray(mask, dtype=np.bool_)
+    cells = 1 << int(s["reach_depth"])
+    depth = int(s["max_depth"])
+    capacity = max(1, min(int(s["capacity"]), 4 ** depth))
+    rep = {"pairs": int(n), "receivers": int(nr), "cone_tuples": int(mask.sum()), "reach_tuples": 0, "box_evaluations": 0,
+           "capacity_stops": 0, "seconds": {"reach": 0.0, "bound": 0.0, "irradiance": 0.0}}
+    step = max(1, ROW_BUDGET // max(1, nr * cells * cells))
+    tup, pcs, cnts = [], [], []
+    for a in range(0, n, step):
+        b = min(n, a + step)
+        m = b - a
+        pr = np.ascontiguousarray(pairs[a:b])
+        xs = np.ascontiguousarray(x0[a:b])
+        es = np.ascontiguousarray(eta[a:b])
+        t0 = time.perf_counter()
+        reach = np.zeros((m, nr, cells, cells), dtype=np.bool_)
+        if m and nr:
+            run_chunks(_reach_chunk, (code, xs, P, N, Q, es, pr, np.ascontiguousarray(mask[a:b]), reach), m, 256)
+        alive = reach.any(axis=(2, 3))
+        n_alive = alive.sum(axis=1).astype(np.int64)
+        rep["reach_tuples"] += int(n_alive.sum())
+        t1 = time.perf_counter()
+        rep["seconds"]["reach"] += t1 - t0
+        row_start = np.concatenate([[0], np.cumsum(capacity * n_alive)]).astype(np.int64)
+        rows = np.empty((int(row_start[-1]), PIECE_FIELDS + 1))
+        counts = np.zeros(m, dtype=np.int64)
+        stats = np.zeros((m, 4), dtype=np.int64)
+        if row_start[-1]:
+            run_chunks(_two_chunk, (code, xs, P, N, Q, UV, es, pr, reach, n_alive, row_start, depth, float(s["sigma"]), rows,
+                                    counts, stats), m, 256)
+        rep["box_evaluations"] += int(stats[:, 0].sum())
+        rep["capacity_stops"] += int(stats[:, 3].sum())
+        rep["seconds"]["bound"] += time.perf_counter() - t1
+        owner = np.repeat(np.arange(m), counts)
+        slot = np.arange(owner.shape[0]) - np.repeat(np.cumsum(counts) - counts, counts)
+        rws = rows[row_start[owner] + slot]
+        receiver = rws[:, P_RECEIVER].astype(np.int64)
+        pieces = np.ascontiguousarray(rws[:, :PIECE_FIELDS])
+        if s["prune"] and pieces.shape[0]:
+            t2 = time.perf_counter()
+            pp = np.ascontiguousarray(pr[owner])
+            istats = np.zeros((pieces.shape[0], 6), dtype=np.int64)
+            run_chunks(_irr_chunk, (code, np.ascontiguousarray(xs[owner]), P, N, Q, np.ascontiguousarray(es[owner]), pp,
+                                    np.ascontiguousarray(receiver), pieces, int(s["irr_depth"]), float(s["irr_ratio"]), istats),
+                       pieces.shape[0], 256)
+            keep = ~((pieces[:, P_EHI] == 0.0) & (pieces[:, P_ELO] == 0.0))
+            owner, receiver, pieces = owner[keep], receiver[keep], np.ascontiguousarray(pieces[keep])
+            rep["seconds"]["irradiance"] += time.perf_counter() - t2
+        split = int(s["image_split"])
+        if split > 1 and pieces.shape[0]:
+            t3 = time.perf_counter()
+            k = split * split
+            srows = np.empty((pieces.shape[0] * k, PIECE_FIELDS))
+            scount = np.zeros(pieces.shape[0], dtype=np.int64)
+            run_chunks(_split_chunk, (code, xs, P, N, Q, UV, es, pr, np.ascontiguousarray(owner), np.ascontiguousarray(receiver),
+                                      pieces, split, srows, scount), pieces.shape[0], 256)
+            idx = np.repeat(np.arange(pieces.shape[0]) * k, scount) + (np.arange(int(scount.sum())) - np.repeat(np.cumsum(scount) - scount, scount))
+            owner, receiver, pieces = np.repeat(owner, scount), np.repeat(receiver, scount), np.ascontiguousarray(srows[idx])
+            rep["seconds"]["split"] = rep["seconds"].get("split", 0.0) + time.perf_counter() - t3
+        order = np.lexsort((receiver, owner))
+        owner, receiver, pieces = owner[order] + a, receiver[order], pieces[order]
+        key = owner * max(nr, 1) + receiver
+        new = np.ones(key.shape[0], dtype=bool)
+        new[1:] = key[1:] != key[:-1]
+        st = np.flatnonzero(new)
+        tup.append(np.stack([owner[st], receiver[st]], axis=1))
+        pcs.append(pieces)
+        cnts.append(np.diff(np.append(st, key.shape[0])))
+    tuples = np.concatenate(tup) if tup else np.zeros((0, 2), dtype=np.int64)
+    pieces = np.ascontiguousarray(np.concatenate(pcs)) if pcs else np.zeros((0, PIECE_FIELDS))
+    counts = np.concatenate(cnts) if cnts else np.zeros(0, dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    rep.update({"tuples": int(tuples.shape[0]), "pieces": int(pieces.shape[0])})
+    rep["seconds"]["total"] = time.perf_counter() - t_start
+    return np.ascontiguousarray(tuples, dtype=np.int64), start, pieces, rep
+
+
+def _union(tri_of):
+    """Local ids of the triangles of ``tri_of`` (n, k): (global ids (u,), local (n, k))."""
+    ids, inv = np.unique(tri_of.ravel(), return_inverse=True)
+    return ids, inv.reshape(tri_of.shape).astype(np.int64)
+
+
+def emitter_bounds_two(chain, emitters, tri_of, x0_of, scene_p, scene_n, scene_ior, rec_p, rec_uv, settings=None):
+    """Two-bounce bounds of the cone emitters (``cull.two_bounce_emitters``; ``tri_of`` (n, 2)
+    global ids, ``x0_of`` (n, 3) the light point of each) against the receiver triangles
+    ``rec_p`` / ``rec_uv``: the emitter pairs that §6.1's BVH pair search also finds, the
+    (emitter, receiver triangle) tuples that the cone test admits, bounded by
+    :func:`two_bounce_bounds_points`.  Returns (tuples (m, 2) (emitter index, receiver index),
+    piece_start, pieces, report)."""
+    t0 = time.perf_counter()
+    s = dict(TWO_BOUNCE_SETTINGS, **(settings or {}))
+    ids, loc = _union(tri_of)
+    P = np.ascontiguousarray(scene_p[ids], dtype=np.float64)
+    N = np.ascontiguousarray(scene_n[ids], dtype=np.float64)
+    eta_e = np.asarray(scene_ior, dtype=np.float64)[tri_of[:, 0]]
+    # §6.1 pairs (per first triangle: its light point, its IOR)
+    first, at = np.unique(loc[:, 0], return_index=True)
+    bp = bvh_pairs(chain, x0_of[at], P, N, eta_e[at], first, levels=s["levels"], refine=s["refine"])
+    nu = max(1, ids.shape[0])
+    in_bvh = np.isin(loc[:, 0] * nu + loc[:, 1], bp[:, 0] * nu + bp[:, 1])
+    sel = np.flatnonzero(in_bvh)
+    t1 = time.perf_counter()
+    # cone test per (emitter, receiver triangle)
+    cp = _cone_pairs(emitters, rec_p)
+    mask_full = np.zeros((emitters.size, rec_p.shape[0]), dtype=np.bool_)
+    mask_full[cp[:, 0], cp[:, 1]] = True
+    sel = sel[mask_full[sel].any(axis=1)]
+    t2 = time.perf_counter()
+    tuples, start, pieces, rep = two_bounce_bounds_points(chain, x0_of[sel], P, N, eta_e[sel], loc[sel], rec_p, rec_uv,
+                                                          mask=mask_full[sel], settings=s)
+    tuples = tuples.copy()
+    tuples[:, 0] = sel[tuples[:, 0]]
+    rep = dict(rep, emitters=int(emitters.size), bvh_pairs=int(bp.shape[0]), emitters_in_bvh_pairs=int(in_bvh.sum()),
+               emitters_bounded=int(sel.size))
+    rep["seconds"] = dict(rep["seconds"], pairs=t1 - t0, cone=t2 - t1, all=time.perf_counter() - t0)
+    return tuples, start, pieces, rep
+
+
+class TwoBounceBoundsCull(PieceCull):
+    """Candidate (emitter, sample) tuples of a two-bounce chain (RR, RT, TR, TT) from the
+    two-bounce Bernstein position bounds (module doc; Fan et al. 2025 §4.3, eq 3–13, §6.1),
+    with the interface of :class:`addon.bake.cull.TupleCull` / :class:`addon.bake.cull.BoundsCull`:
+    ``upper_bound`` and ``batches(max_tuples)`` -> (emitter index, sample index, 1/P or None).
+
+    ``emitters``: the chain's :class:`addon.bake.cull.Emitters` (``two_bounce_emitters``; their
+    cones are the per-sample test as well); ``tri_of`` (n, 2) their global (t1, t2) ids;
+    ``x0_of`` (n, 3) their light points (one point, or the sun's far point per t1);
+    ``scene_p/scene_n/scene_ior`` the scene's triangles; ``rec_tri`` (r,) the receiver's global
+    triangle ids, ``rec_uv`` (r,3,2); ``band`` a :class:`addon.bake.raster.SampleBand` of a
+    ``width`` x ``height`` texture.  ``gamma`` < inf: P = min(γ Ẽ, 1) with Ẽ from the
+    irradiance pass (eq 21, 28; needs ``settings["prune"]``, else Ē = inf and P = 1).  ``cache``:
+    a dict keeping the bounds of this (light point, receiver) across bands.
+    Where the bounds do not apply path-points falls back to the cone cull (module doc).
+    """
+
+    def __init__(self, chain, emitters, tri_of, x0_of, scene_p, scene_n, scene_ior, rec_tri, rec_uv, band, width, height,
+                 gamma=math.inf, intensity=1.0, rng=None, cache=None, settings=None):
+        t0 = time.perf_counter()
+        key = "bounds2"
+        if cache is not None and key in cache:
+            tuples, start, pieces, report = cache[key]
+        else:
+            tuples, start, pieces, report = emitter_bounds_two(chain, emitters, tri_of, x0_of, scene_p, scene_n, scene_ior,
+                                                                scene_p[rec_tri], rec_uv, settings=settings)
+            if cache is not None:
+                cache[key] = (tuples, start, pieces, report)
+        self.report = report
+        self.bounds_seconds = time.perf_counter() - t0
+        self._prepare(tuples, start, pieces, emitters, rec_tri, band, width, height, gamma, intensity, rng)
+
+
+def bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec):
+    """The bounds-driven selection of one chain, light sample and band for path-points
+    (``BakeSettings.cull == "bounds"``): :class:`addon.bake.cull.BoundsCull` for R and T (one
+    light point, or a point per caster: the sun), :class:`TwoBounceBoundsCull` for RR, RT, TR,
+    TT; None (path-points' cone cull) where they do not apply.  The bounds are cached per
+    receiver on the chain's emitters (shared by every band)."""
+    from .cull import BoundsCull
+
+    if rec is None or em.size == 0 or chain not in ("R", "T", "RR", "RT", "TR", "TT"):
+        return None
+    cache = em.extra.setdefault(("bounds", rec.name, rec.resolution), {})
+    H = rec.resolution[1]
+    kinds = ("R", "T", "RR", "RT", "TR", "TT")
+    rng = np.random.default_rng([int(settings.seed) & 0x7FFFFFFF, m, kinds.index(chain), band.row0])
+    intensity = float(np.max(ls.rgb[m]))
+    if len(chain) == 1:
+        tri = tri_of[:, 0]
+        return BoundsCull(chain, em, x0_of, scene.tri_p[tri], scene.tri_n[tri], scene.tri_ior[tri], scene.tri_p[rec.tri_index],
+                          rec.tri_index, rec.uv, band, W, H, gamma=settings.gamma, intensity=intensity, rng=rng, cache=cache)
+    return TwoBounceBoundsCull(chain, em, tri_of, x0_of, scene.tri_p, scene.tri_n, scene.tri_ior, rec.tri_index, rec.uv, band, W,
+                               H, gamma=settings.gamma, intensity=intensity, rng=rng, cache=cache)
+
+
+# ---------------------------------------------------------------------------------------
+# forward flux: which first-vertex casters can light a receiver at all
+
+
+def reachable_first(chain, x0, tri_p1, tri_n1, eta1, rec_p, tri_p2=None, tri_n2=None, eta2=None, ids1=None, ids2=None,
+                    use_bounds=True, settings=None):
+    """Mask (T1,) of the first-vertex caster triangles from which light of ``x0`` can reach a
+    receiver triangle through ``chain`` (conservative: a triangle with a path is never dropped).
+
+    ``x0`` (3,) or (T1, 3) (the sun's far point per triangle); ``tri_p1, tri_n1, eta1`` the
+    first-vertex casters (corners, corner normals, IOR behind the surface: (T1,) or scalar);
+    ``rec_p`` (r, 3, 3) the receivers' triangles; for two-vertex chains ``tri_p2, tri_n2, eta2``
+    the second-vertex casters and ``ids1`` / ``ids2`` global ids of both sets (a triangle is
+    never its own second vertex; default: the sets are disjoint).  Pure: numpy in, numpy out.
+
+    One bounce: the cone caps of ``cull.py`` per (triangle, receiver triangle) (its sphere as a
+    tile), then the Bernstein position bound of chain1 (Fan et al. 2025 §4.2–4.3, eq 3–13; the
+    quadtree of §6.1 to ``max_depth`` 2 with σ = 0: a triangle stays when some piece's bound
+    meets a receiver triangle).  Two bounces: the cone pairs of ``cull.two_bounce_emitters``
+    (with their pair parts), the BVH pairs of §6.1, the cone test per (pair, receiver triangle),
+    the reach grid of ``irradiance_two.receivers_reached`` (eq 9–10 in affine arithmetic) and
+    the position quadtree of §4.3 (``max_depth`` 1): a triangle stays when one of its pairs has
+    a piece.  ``use_bounds=False``: the cone tests alone (the equivalent conservative test where
+    the bound engines do not apply)."""
+    T1 = tri_p1.shape[0]
+    keep = np.zeros(T1, dtype=bool)
+    if T1 == 0 or rec_p.shape[0] == 0:
+        return keep
+    tri_p1 = np.ascontiguousarray(tri_p1, dtype=np.float64)
+    tri_n1 = np.ascontiguousarray(tri_n1, dtype=np.float64)
+    rec_p = np.ascontiguousarray(rec_p, dtype=np.float64)
+    x0 = _points(x0, T1)
+    eta1 = np.ascontiguousarray(np.broadcast_to(np.asarray(eta1, dtype=np.float64), (T1,)))
+    rec_uv = np.zeros((rec_p.shape[0], 3, 2))
+    rec_uv[:, 1, 0] = 1.0
+    rec_uv[:, 2, 1] = 1.0  # UV = barycentrics: only the receiver-barycentric bound matters here
+    if len(chain) == 1:
+        em = one_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1)
+        cp = _cone_pairs(em, rec_p)
+        if not use_bounds or cp.shape[0] == 0:
+            keep[cp[:, 0]] = True
+            return keep
+        s = {"max_depth": 2, "sigma": 0.0, "alpha": 2.0, **(settings or {})}
+        tuples, _, _, _ = one_bounce_bounds_points(chain, x0, tri_p1, tri_n1, eta1, rec_p, rec_uv, pairs=cp, settings=s)
+        keep[tuples[:, 0]] = True
+        return keep
+    T2 = tri_p2.shape[0]
+    tri_p2 = np.ascontiguousarray(tri_p2, dtype=np.float64)
+    tri_n2 = np.ascontiguousarray(tri_n2, dtype=np.float64)
+    eta2 = np.ascontiguousarray(np.broadcast_to(np.asarray(eta2 if eta2 is not None else eta1[:1], dtype=np.float64), (T2,)))
+    if ids1 is None:
+        ids1, ids2 = np.arange(T1), T1 + np.arange(T2)
+    em = two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, ids1=np.asarray(ids1),
+                             ids2=np.asarray(ids2))
+    if em.size == 0:
+        return keep
+    if not use_bounds:
+        cp = _cone_pairs(em, rec_p)
+        keep[em.index[cp[:, 0], 0]] = True
+        return keep
+    # scene-like arrays over both sets (global ids -> rows)
+    gid = np.concatenate([np.asarray(ids1), np.asarray(ids2)])
+    ids, first_row = np.unique(gid, return_index=True)
+    allP = np.concatenate([tri_p1, tri_p2])[first_row]
+    allN = np.concatenate([tri_n1, tri_n2])[first_row]
+    allE = np.concatenate([eta1, eta2])[first_row]
+    tri_of = np.stack([np.searchsorted(ids, np.asarray(ids1)[em.index[:, 0]]),
+                       np.searchsorted(ids, np.asarray(ids2)[em.index[:, 1]])], axis=1).astype(np.int64)
+    s = {**TWO_BOUNCE_SETTINGS, "max_depth": 1, "sigma": 0.0, "prune": False, **(settings or {})}
+    tuples, _, _, _ = emitter_bounds_two(chain, em, tri_of, x0[em.index[:, 0]], allP, allN, allE, rec_p, rec_uv, settings=s)
+    keep[em.index[tuples[:, 0], 0]] = True
+    return keep

@@ -14,9 +14,15 @@ Path-points (``BakeSettings(cull="bounds")``, the default; ``estimators.path_poi
   triangle) that the cone test of ``cull.py`` admits gets the reach grid of
   ``irradiance_two.receivers_reached`` (the exact two-vertex map in affine arithmetic on 4 x 4
   cells of t1) and then the position quadtree of ``chain2_fast`` (§4.3 with the remainder
-  variables of eq 12–13 and the degree reduction of §6.1); optionally the irradiance pass
-  (eq 14–16, ``irradiance_two.piece_irradiance_two``) drops the pieces it proves empty and gives
-  Ē for γ-sampling (§5, eq 21, 24, 28).  A band then keeps a sample for an emitter when a piece
+  variables of eq 12–13 and the degree reduction of §6.1); the irradiance pass (eq 14–16,
+  ``irradiance_two.piece_irradiance_two``) drops the pieces it proves empty and gives Ē for
+  γ-sampling (§5, eq 21, 24, 28).  Each piece's (u1, v1) box is then cut into
+  ``image_split``² sub-boxes whose receiver box is the piece's Bernstein box intersected with
+  the enclosure of the exact map (eq 6–11 with the exact √β, eq 9 at both planes) in the affine
+  arithmetic of ``irradiance_two`` (:func:`_image_box`): where only part of a box's light meets
+  triangle 2 the position bound falls back to a constant form of (u2, v2) and loses the
+  correlation of x2 with x1, the affine map keeps it (a 32 x 16 glass sphere's TT at 64², one
+  sample per texel: 2.33M -> 0.70M pairs, the same 4,096 paths).  A band then keeps a sample for an emitter when a piece
   of (emitter, the sample's receiver triangle) holds it (:class:`addon.bake.cull.PieceCull`,
   margin ``cull.BOUNDS_MARGIN``) and the emitter's cone accepts it.
 
@@ -478,8 +484,9 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
     the pieces it proves to hold no path and fills Ē, E̲.
 
     ``P``, ``N``: (n,3,3) casters (both vertices index them); ``pairs`` (t, 2); ``x0`` (t, 3)
-    or (3,); ``eta`` (t,) or scalar; ``rec_p`` (r,3,3), ``rec_uv`` (r,3,2); ``mask`` (t, r)
-    bool: the (pair, receiver) tuples to bound (default all; the others get no piece).
+    or (3,); ``eta`` (t,) or scalar; ``rec_p`` (r,3,3), ``rec_uv`` (r,3,2); ``mask``: the
+    (pair, receiver) tuples to bound, (t, r) bool or (k, 2) int (pair, receiver) rows (default
+    all; the others get no piece).
     Returns (tuples (m, 2) (pair index, receiver index), piece_start (m+1,), pieces
     (p, PIECE_FIELDS), report)."""
     t_start = time.perf_counter()
@@ -494,13 +501,17 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
     Q = np.ascontiguousarray(rec_p, dtype=np.float64)
     UV = np.ascontiguousarray(rec_uv, dtype=np.float64)
     nr = Q.shape[0]
-    if mask is None:
-        mask = np.ones((n, nr), dtype=np.bool_)
-    mask = np.ascontiguousarray(mask, dtype=np.bool_)
+    if mask is not None and mask.dtype != np.bool_:  # sparse (pair, receiver) rows
+        rows_of = np.asarray(mask, dtype=np.int64).reshape(-1, 2)
+        rows_of = rows_of[np.argsort(rows_of[:, 0], kind="stable")]
+        at = np.searchsorted(rows_of[:, 0], np.arange(n + 1))
+    else:
+        rows_of = None
     cells = 1 << int(s["reach_depth"])
     depth = int(s["max_depth"])
     capacity = max(1, min(int(s["capacity"]), 4 ** depth))
-    rep = {"pairs": int(n), "receivers": int(nr), "cone_tuples": int(mask.sum()), "reach_tuples": 0, "box_evaluations": 0,
+    n_mask = n * nr if mask is None else (rows_of.shape[0] if rows_of is not None else int(np.count_nonzero(mask)))
+    rep = {"pairs": int(n), "receivers": int(nr), "cone_tuples": int(n_mask), "reach_tuples": 0, "box_evaluations": 0,
            "capacity_stops": 0, "seconds": {"reach": 0.0, "bound": 0.0, "irradiance": 0.0}}
     step = max(1, ROW_BUDGET // max(1, nr * cells * cells))
     tup, pcs, cnts = [], [], []
@@ -511,9 +522,17 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
         xs = np.ascontiguousarray(x0[a:b])
         es = np.ascontiguousarray(eta[a:b])
         t0 = time.perf_counter()
+        if mask is None:
+            mk = np.ones((m, nr), dtype=np.bool_)
+        elif rows_of is not None:
+            mk = np.zeros((m, nr), dtype=np.bool_)
+            sub = rows_of[at[a]:at[b]]
+            mk[sub[:, 0] - a, sub[:, 1]] = True
+        else:
+            mk = np.ascontiguousarray(mask[a:b], dtype=np.bool_)
         reach = np.zeros((m, nr, cells, cells), dtype=np.bool_)
         if m and nr:
-            run_chunks(_reach_chunk, (code, xs, P, N, Q, es, pr, np.ascontiguousarray(mask[a:b]), reach), m, 256)
+            run_chunks(_reach_chunk, (code, xs, P, N, Q, es, pr, mk, reach), m, 256)
         alive = reach.any(axis=(2, 3))
         n_alive = alive.sum(axis=1).astype(np.int64)
         rep["reach_tuples"] += int(n_alive.sum())
@@ -573,6 +592,24 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
     return np.ascontiguousarray(tuples, dtype=np.int64), start, pieces, rep
 
 
+def parallel_scale(pieces, start, first_p, x0):
+    """Ē, E̲ of pieces for a parallel light (the sun) stood in for by far points x0 (lights.light_points:
+    intensity S |x1 - x0|² per path, where the bounds take I0 = 1, eq 14): Ē times the largest
+    |x1 - x0|² over the first triangle (its corners), E̲ times the smallest (the distance to its
+    bounding sphere).  ``start`` (m+1,) the pieces of tuple t, ``first_p`` (m,3,3) and ``x0``
+    (m,3) its first triangle and light point.  In place; returns ``pieces``."""
+    if pieces.shape[0] == 0:
+        return pieces
+    d = np.linalg.norm(first_p - x0[:, None, :], axis=2)
+    c, r = tri_spheres(first_p)
+    hi = np.max(d, axis=1) ** 2
+    lo = np.maximum(0.0, np.linalg.norm(c - x0, axis=1) - r) ** 2
+    n = np.diff(start)
+    pieces[:, P_EHI] *= np.repeat(hi, n)
+    pieces[:, P_ELO] *= np.repeat(lo, n)
+    return pieces
+
+
 def _union(tri_of):
     """Local ids of the triangles of ``tri_of`` (n, k): (global ids (u,), local (n, k))."""
     ids, inv = np.unique(tri_of.ravel(), return_inverse=True)
@@ -599,14 +636,17 @@ def emitter_bounds_two(chain, emitters, tri_of, x0_of, scene_p, scene_n, scene_i
     in_bvh = np.isin(loc[:, 0] * nu + loc[:, 1], bp[:, 0] * nu + bp[:, 1])
     sel = np.flatnonzero(in_bvh)
     t1 = time.perf_counter()
-    # cone test per (emitter, receiver triangle)
+    # cone test per (emitter, receiver triangle), as sparse (row of sel, receiver) rows
     cp = _cone_pairs(emitters, rec_p)
-    mask_full = np.zeros((emitters.size, rec_p.shape[0]), dtype=np.bool_)
-    mask_full[cp[:, 0], cp[:, 1]] = True
-    sel = sel[mask_full[sel].any(axis=1)]
+    row_of = np.full(emitters.size, -1, dtype=np.int64)
+    has = np.zeros(emitters.size, dtype=bool)
+    has[cp[:, 0]] = True
+    sel = sel[has[sel]]
+    row_of[sel] = np.arange(sel.size)
+    cp = cp[row_of[cp[:, 0]] >= 0]
     t2 = time.perf_counter()
     tuples, start, pieces, rep = two_bounce_bounds_points(chain, x0_of[sel], P, N, eta_e[sel], loc[sel], rec_p, rec_uv,
-                                                          mask=mask_full[sel], settings=s)
+                                                          mask=np.column_stack([row_of[cp[:, 0]], cp[:, 1]]), settings=s)
     tuples = tuples.copy()
     tuples[:, 0] = sel[tuples[:, 0]]
     rep = dict(rep, emitters=int(emitters.size), bvh_pairs=int(bp.shape[0]), emitters_in_bvh_pairs=int(in_bvh.sum()),
@@ -629,11 +669,12 @@ class TwoBounceBoundsCull(PieceCull):
     ``width`` x ``height`` texture.  ``gamma`` < inf: P = min(γ Ẽ, 1) with Ẽ from the
     irradiance pass (eq 21, 28; needs ``settings["prune"]``, else Ē = inf and P = 1).  ``cache``:
     a dict keeping the bounds of this (light point, receiver) across bands.
+    ``parallel``: the light points stand for the sun (:func:`parallel_scale`).
     Where the bounds do not apply path-points falls back to the cone cull (module doc).
     """
 
     def __init__(self, chain, emitters, tri_of, x0_of, scene_p, scene_n, scene_ior, rec_tri, rec_uv, band, width, height,
-                 gamma=math.inf, intensity=1.0, rng=None, cache=None, settings=None):
+                 gamma=math.inf, intensity=1.0, rng=None, cache=None, settings=None, parallel=False):
         t0 = time.perf_counter()
         key = "bounds2"
         if cache is not None and key in cache:
@@ -641,6 +682,8 @@ class TwoBounceBoundsCull(PieceCull):
         else:
             tuples, start, pieces, report = emitter_bounds_two(chain, emitters, tri_of, x0_of, scene_p, scene_n, scene_ior,
                                                                 scene_p[rec_tri], rec_uv, settings=settings)
+            if parallel:
+                parallel_scale(pieces, start, scene_p[tri_of[tuples[:, 0], 0]], x0_of[tuples[:, 0]])
             if cache is not None:
                 cache[key] = (tuples, start, pieces, report)
         self.report = report
@@ -663,12 +706,14 @@ def bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec):
     kinds = ("R", "T", "RR", "RT", "TR", "TT")
     rng = np.random.default_rng([int(settings.seed) & 0x7FFFFFFF, m, kinds.index(chain), band.row0])
     intensity = float(np.max(ls.rgb[m]))
+    sun = ls.kind == "sun"
     if len(chain) == 1:
         tri = tri_of[:, 0]
         return BoundsCull(chain, em, x0_of, scene.tri_p[tri], scene.tri_n[tri], scene.tri_ior[tri], scene.tri_p[rec.tri_index],
-                          rec.tri_index, rec.uv, band, W, H, gamma=settings.gamma, intensity=intensity, rng=rng, cache=cache)
+                          rec.tri_index, rec.uv, band, W, H, gamma=settings.gamma, intensity=intensity, rng=rng, cache=cache,
+                          parallel=sun)
     return TwoBounceBoundsCull(chain, em, tri_of, x0_of, scene.tri_p, scene.tri_n, scene.tri_ior, rec.tri_index, rec.uv, band, W,
-                               H, gamma=settings.gamma, intensity=intensity, rng=rng, cache=cache)
+                               H, gamma=settings.gamma, intensity=intensity, rng=rng, cache=cache, parallel=sun)
 
 
 # ---------------------------------------------------------------------------------------
@@ -684,17 +729,20 @@ def reachable_first(chain, x0, tri_p1, tri_n1, eta1, rec_p, tri_p2=None, tri_n2=
     first-vertex casters (corners, corner normals, IOR behind the surface: (T1,) or scalar);
     ``rec_p`` (r, 3, 3) the receivers' triangles; for two-vertex chains ``tri_p2, tri_n2, eta2``
     the second-vertex casters and ``ids1`` / ``ids2`` global ids of both sets (a triangle is
-    never its own second vertex; default: the sets are disjoint).  Pure: numpy in, numpy out.
+    never its own second vertex; default: the sets are disjoint; ids1 must be distinct).  Pure:
+    numpy in, numpy out.
 
     One bounce: the cone caps of ``cull.py`` per (triangle, receiver triangle) (its sphere as a
     tile), then the Bernstein position bound of chain1 (Fan et al. 2025 §4.2–4.3, eq 3–13; the
     quadtree of §6.1 to ``max_depth`` 2 with σ = 0: a triangle stays when some piece's bound
-    meets a receiver triangle).  Two bounces: the cone pairs of ``cull.two_bounce_emitters``
-    (with their pair parts), the BVH pairs of §6.1, the cone test per (pair, receiver triangle),
-    the reach grid of ``irradiance_two.receivers_reached`` (eq 9–10 in affine arithmetic) and
-    the position quadtree of §4.3 (``max_depth`` 1): a triangle stays when one of its pairs has
-    a piece.  ``use_bounds=False``: the cone tests alone (the equivalent conservative test where
-    the bound engines do not apply)."""
+    meets a receiver triangle).  Two bounces: the BVH pairs of §6.1 "Tuple construction"
+    (bounds of x1 and d̃1, eq 9–10 in affine arithmetic), the reach grid of
+    ``irradiance_two.receivers_reached`` per (pair, receiver triangle) and the position quadtree
+    of §4.3 (eq 3–13, ``max_depth`` 1): a triangle stays when one of its pairs has a piece (no
+    cone pairs: ``two_bounce_emitters`` costs O(T1 T2)).  ``use_bounds=False``: the cone tests
+    of ``cull.py`` alone (one bounce: caps per (triangle, receiver triangle); two: the pairs of
+    ``two_bounce_emitters`` with their parts, then the same per receiver triangle), the
+    equivalent conservative test where the bound engines do not apply."""
     T1 = tri_p1.shape[0]
     keep = np.zeros(T1, dtype=bool)
     if T1 == 0 or rec_p.shape[0] == 0:
@@ -723,23 +771,30 @@ def reachable_first(chain, x0, tri_p1, tri_n1, eta1, rec_p, tri_p2=None, tri_n2=
     eta2 = np.ascontiguousarray(np.broadcast_to(np.asarray(eta2 if eta2 is not None else eta1[:1], dtype=np.float64), (T2,)))
     if ids1 is None:
         ids1, ids2 = np.arange(T1), T1 + np.arange(T2)
-    em = two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, ids1=np.asarray(ids1),
-                             ids2=np.asarray(ids2))
-    if em.size == 0:
-        return keep
+    ids1, ids2 = np.asarray(ids1), np.asarray(ids2)
     if not use_bounds:
-        cp = _cone_pairs(em, rec_p)
-        keep[em.index[cp[:, 0], 0]] = True
+        em = two_bounce_emitters(chain, x0, tri_p1, tri_n1, eta1, tri_p2, tri_n2, eta2, ids1=ids1, ids2=ids2)
+        if em.size:
+            cp = _cone_pairs(em, rec_p)
+            keep[em.index[cp[:, 0], 0]] = True
         return keep
-    # scene-like arrays over both sets (global ids -> rows)
-    gid = np.concatenate([np.asarray(ids1), np.asarray(ids2)])
-    ids, first_row = np.unique(gid, return_index=True)
-    allP = np.concatenate([tri_p1, tri_p2])[first_row]
-    allN = np.concatenate([tri_n1, tri_n2])[first_row]
+    # one array over both sets (global ids -> rows): the BVH pair search of §6.1 over it, then the
+    # pairs whose second triangle is a second-vertex caster with the first's IOR
+    ids, first_row = np.unique(np.concatenate([ids1, ids2]), return_index=True)
+    allP = np.ascontiguousarray(np.concatenate([tri_p1, tri_p2])[first_row])
+    allN = np.ascontiguousarray(np.concatenate([tri_n1, tri_n2])[first_row])
     allE = np.concatenate([eta1, eta2])[first_row]
-    tri_of = np.stack([np.searchsorted(ids, np.asarray(ids1)[em.index[:, 0]]),
-                       np.searchsorted(ids, np.asarray(ids2)[em.index[:, 1]])], axis=1).astype(np.int64)
-    s = {**TWO_BOUNCE_SETTINGS, "max_depth": 1, "sigma": 0.0, "prune": False, **(settings or {})}
-    tuples, _, _, _ = emitter_bounds_two(chain, em, tri_of, x0[em.index[:, 0]], allP, allN, allE, rec_p, rec_uv, settings=s)
-    keep[em.index[tuples[:, 0], 0]] = True
+    row1 = np.searchsorted(ids, ids1)
+    second = np.zeros(ids.size, dtype=bool)
+    second[np.searchsorted(ids, ids2)] = True
+    pairs = bvh_pairs(chain, x0, allP, allN, eta1, row1, levels=TWO_BOUNCE_SETTINGS["levels"], refine=TWO_BOUNCE_SETTINGS["refine"])
+    pairs = pairs[second[pairs[:, 1]] & (allE[pairs[:, 1]] == allE[pairs[:, 0]])]
+    if pairs.shape[0] == 0:
+        return keep
+    first_of = np.full(ids.size, -1, dtype=np.int64)
+    first_of[row1] = np.arange(T1)
+    t1 = first_of[pairs[:, 0]]
+    s = {**TWO_BOUNCE_SETTINGS, "max_depth": 1, "sigma": 0.0, "prune": False, "image_split": 1, **(settings or {})}
+    tuples, _, _, _ = two_bounce_bounds_points(chain, x0[t1], allP, allN, eta1[t1], pairs, rec_p, rec_uv, settings=s)
+    keep[t1[tuples[:, 0]]] = True
     return keep

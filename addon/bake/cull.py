@@ -653,7 +653,8 @@ class OneBounceCull(TupleCull):
 
 
 # ---------------------------------------------------------------------------------------
-# Bounds-driven cull (Fan et al. 2025): per (light point, caster triangle, receiver triangle)
+# Bounds-driven cull (Fan et al. 2025; two bounces and the sun: addon/bake/bounds_select.py,
+# on :class:`PieceCull`): per (light point, caster triangle, receiver triangle)
 # the Bernstein position bound (addon.solver.bounds.chain1) says which receiver points any
 # admissible path can reach; only samples inside a piece's box are kept.  The cone test of
 # the sample (``_sample_ok``) is applied as well, so this cull keeps a subset of the cone
@@ -825,11 +826,12 @@ class BoundsCull(PieceCull):
     triangle ids and ``rec_uv`` (r,3,2) their UVs; the band as for :class:`TupleCull`.
     ``gamma``: inf enumerates, else each tuple is kept with P = min(γ Ẽ, 1) (eq 28);
     :meth:`batches` yields (emitter index, sample index, 1/P).  ``cache``: a dict to keep the
-    bounds in between bands.
+    bounds in between bands.  ``parallel``: the light points stand for the sun (Ē scaled by
+    |x1 - x0|², ``bounds_select.parallel_scale``).
     """
 
     def __init__(self, chain, emitters, x0, tri_p, tri_n, eta, rec_p, rec_tri, rec_uv, band, width, height, gamma=math.inf,
-                 intensity=1.0, rng=None, cache=None):
+                 intensity=1.0, rng=None, cache=None, parallel=False):
         import time
 
         t0 = time.perf_counter()
@@ -846,6 +848,11 @@ class BoundsCull(PieceCull):
             else:
                 tuples, start, pieces, _ = one_bounce_bounds(chain, x0.reshape(-1, 3)[0], tri_p, tri_n, eta, rec_p,
                                                              rec_uv, irradiance=not math.isinf(gamma))
+            if parallel and not math.isinf(gamma):
+                from .bounds_select import parallel_scale
+
+                x0s = np.broadcast_to(x0.reshape(-1, 3), (tri_p.shape[0], 3))
+                parallel_scale(pieces, start, tri_p[tuples[:, 0]], x0s[tuples[:, 0]])
             if cache is not None:
                 cache[key] = (tuples, start, pieces)
         self.bounds_seconds = time.perf_counter() - t0

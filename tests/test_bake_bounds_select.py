@@ -88,7 +88,7 @@ CASES = {
     # name: (scene, chain, samples, rows, most bounded / cone)
     "slab_TT": (lambda: _slab(Light("Point", "point", (1, 1, 1), 30.0, position=(0.5, 0.2, 3.0))), "TT", 4, None, 0.5),
     "slab_TT_sun": (lambda: _slab(SUN), "TT", 4, None, 0.5),
-    "ball_TT": (lambda: glass_sphere_scene(resolution=32, segments=8, rings=4), "TT", 1, (14, 17), 0.5),
+    "ball_TT": (lambda: glass_sphere_scene(resolution=32, segments=8, rings=4), "TT", 1, (15, 17), 0.5),
     "periscope_RR": (_periscope, "RR", 4, None, 0.5),
     "ring_R_sun": (lambda: build_scene([floor(half=1.6, resolution=32),
                                         dict(name="ring", tri_p=ring(24)[0], tri_n=ring(24)[1], role="reflect")],

@@ -55,7 +55,7 @@ from ..solver.bounds.irradiance_two import (BOUNDED, EDGE_TOL, NO_PATH, UNBOUNDE
                                             _vdotc, _vertex_one, box_reached, piece_irradiance_two, sub_box_irradiance)
 from ..solver.bounds.tuples import _pairs_of
 from ..solver.jit import kernel, run_chunks
-from .cull import (BOUNDS_SETTINGS, Emitters, PieceCull, _pairs_count, _pairs_fill, one_bounce_emitters, tri_spheres,
+from .cull import (BOUNDS_SETTINGS, PieceCull, _pairs_count, _pairs_fill, one_bounce_emitters, tri_spheres,
                    two_bounce_emitters)
 
 P_RECEIVER = PIECE_FIELDS  # the receiver column of the two-bounce rows (as chain2.P_RECEIVER)
@@ -571,7 +571,8 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
             scount = np.zeros(pieces.shape[0], dtype=np.int64)
             run_chunks(_split_chunk, (code, xs, P, N, Q, UV, es, pr, np.ascontiguousarray(owner), np.ascontiguousarray(receiver),
                                       pieces, split, srows, scount), pieces.shape[0], 256)
-            idx = np.repeat(np.arange(pieces.shape[0]) * k, scount) + (np.arange(int(scount.sum())) - np.repeat(np.cumsum(scount) - scount, scount))
+            within = np.arange(int(scount.sum())) - np.repeat(np.cumsum(scount) - scount, scount)
+            idx = np.repeat(np.arange(pieces.shape[0]) * k, scount) + within
             owner, receiver, pieces = np.repeat(owner, scount), np.repeat(receiver, scount), np.ascontiguousarray(srows[idx])
             rep["seconds"]["split"] = rep["seconds"].get("split", 0.0) + time.perf_counter() - t3
         order = np.lexsort((receiver, owner))

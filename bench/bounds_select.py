@@ -58,6 +58,7 @@ for chain in {chains!r}:
         bake(scene, BakeSettings(**base, cull="bounds"))
     b = bake(scene, BakeSettings(**base, cull="bounds"))
     c, tm = b.report["counts"], b.report["timings"]
+    print(chain, "bounds bake", c["tuples"], tm, file=sys.stderr, flush=True)
     row["bounds"] = dict(tuples=c["tuples"], paths=c["paths_visible"], cull=tm.get("cull", 0.0), solve=tm.get("solve", 0.0),
                          total=tm["bake_total"])
     # the cone cull's pairs, every light sample and band (counted only)
@@ -124,16 +125,20 @@ for chain in {chains!r}:
 def run_scene(scene, res, samples, chains, cone_solve):
     code = ONE.format(root=ROOT, blend=os.path.join(ROOT, "sample_blends", scene + ".blend"), res=res, samples=samples,
                       chains=list(chains), cone_solve=cone_solve)
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    import tempfile
+
+    with tempfile.NamedTemporaryFile("w", suffix=f"_bounds_select_{scene}.py", delete=False) as fh:
+        fh.write(code)
+    proc = subprocess.Popen([sys.executable, fh.name], stdout=subprocess.PIPE, text=True)  # progress on stderr
     rows = []
     for line in proc.stdout:
         if line.startswith("ROW"):
             rows.append(json.loads(line[3:]))
             yield rows[-1]
     proc.wait()
+    os.unlink(fh.name)
     if proc.returncode != 0:
-        err = proc.stderr.read().strip().splitlines()
-        raise RuntimeError(f"{scene}: {err[-1] if err else 'failed'}")
+        raise RuntimeError(f"{scene}: exit status {proc.returncode} (see stderr)")
 
 
 def fmt(row, scene, res):

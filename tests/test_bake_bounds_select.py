@@ -4,8 +4,10 @@
 * Conservative and tighter: on small scenes the exact paths (every (tuple, sample) pair of the
   cone cull solved by ``solve_tuples``: an independent enumeration) all have their pair kept by
   the bounded selection, which keeps strictly fewer pairs than the cone cull (the ratio is
-  printed and capped): glass slab TT (point light and sun), glass ball TT, a concave mirror
-  dome RR, and the one-bounce bounds from the sun (a light point per caster).
+  printed and capped): glass slab TT (point light and sun), glass ball TT, two concave
+  mirrors RR (a periscope), and the one-bounce bounds from the sun (a light point per caster).
+* γ-sampling on the two-bounce Ē and on the sun's bounds keeps the energy; at γ = ∞ the
+  texture equals the cone cull's.
 * The per-pair kernels reproduce the engines' own drivers for one light point
   (``tuples.two_bounce_pairs``, ``chain2.bound_two_bounce``): the same pairs and pieces.
 * ``reachable_first`` never drops a first-vertex triangle from which a forward-traced exact

@@ -85,11 +85,7 @@ class BakeContext:
             rec = self.receivers[rec_index]
             W, H = rec.resolution
             S = grid_side(self.settings.samples) ** 2
-            uva = uv_areas(rec.uv)
-            wa = triangle_areas(self.scene.tri_p[rec.tri_index])
-            out = np.zeros(self.scene.n_triangles)
-            out[rec.tri_index] = np.divide(wa, uva, out=np.zeros_like(wa), where=uva > 0) / (W * H * S)
-            self._sample_area[rec_index] = out
+            self._sample_area[rec_index] = world_per_uv_area(self.scene, rec) / (W * H * S)
         return self._sample_area[rec_index]
 
     def receiver_of_triangle(self, receivers=None):
@@ -103,6 +99,16 @@ class BakeContext:
                 tri_rec[rec.tri_index] = r
                 tri_uv[rec.tri_index] = rec.uv
         return tri_rec, tri_uv
+
+
+def world_per_uv_area(scene, rec):
+    """(n_triangles,) world area per unit UV area of each of receiver ``rec``'s triangles (0
+    elsewhere and for triangles without UV area)."""
+    uva = uv_areas(rec.uv)
+    wa = triangle_areas(scene.tri_p[rec.tri_index])
+    out = np.zeros(scene.n_triangles)
+    out[rec.tri_index] = np.divide(wa, uva, out=np.zeros_like(wa), where=uva > 0)
+    return out
 
 
 def with_resolution(rec, res):

@@ -25,13 +25,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..solver.bvh import build_bvh, segments_occluded
-from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolution
+from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolution, world_per_uv_area
 from .estimators import make_estimator
 from .exr import write_exr
 from .lights import emission_factor, sample_light
-from .plan import make_plan
+from .plan import CHAINS, make_plan
 from .raster import bands, grid_side, pad, rasterise
-from .scene import SceneError, triangle_areas, uv_areas
+from .scene import SceneError
 from .settings import BakeSettings, check_settings, resolve_aliases
 
 __all__ = ["BakeSettings", "BakeResult", "BakeCancelled", "bake", "bake_steps", "make_context", "safe_filename",
@@ -208,10 +208,7 @@ def texel_areas(scene, rec, samples=16, band_samples=1 << 20):
     area_world(t) / area_uv(t) / (W H s²) m²."""
     W, H = rec.resolution
     S = grid_side(max(int(samples), AREA_SAMPLES)) ** 2
-    uva = uv_areas(rec.uv)
-    wa = triangle_areas(scene.tri_p[rec.tri_index])
-    ratio = np.zeros(scene.n_triangles)
-    ratio[rec.tri_index] = np.divide(wa, uva, out=np.zeros_like(wa), where=uva > 0)
+    ratio = world_per_uv_area(scene, rec)
     area = np.zeros(W * H)
     for j0, j1 in bands(rec, S, band_samples):
         band = rasterise(scene, rec, S, 0, False, rows=(j0, j1))
@@ -254,8 +251,8 @@ def _report(ctx, plan, estimators, rec_report, total):
                        **chain_counts.get(c, {"tuples": 0, "paths": 0, "paths_visible": 0})})
         if not baked and not _planned_skip(status):
             ctx.warnings.append(f"chain {c} {status}")
-    images = [r for e in estimators for r in e.report().get("passes", [])]
-    dropped = sum(p["dropped"] for p in images)
+    passes = [p for r in est_reports.values() for p in r.get("passes", [])]
+    dropped = sum(p["dropped"] for p in passes)
     if dropped:
         ctx.warnings.append(f"forward images: {dropped:,} sub-triangles partly lost (rays missing the receivers or total "
                             "internal reflection at the deepest level) were not counted")
@@ -294,7 +291,7 @@ def _planned_skip(status):
 
 
 def _chain_order(c):
-    return ("R", "T", "RR", "RT", "TR", "TT").index(c)
+    return CHAINS.index(c)
 
 
 def direct_light(ctx, ls, band, sums, chunk=1 << 21):

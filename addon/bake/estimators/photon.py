@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from ...solver.photon import make_emitters, photon_steps
+from ...solver.photon import CHAINS, make_emitters, photon_steps
 from .base import Estimator
 
 
@@ -40,7 +40,7 @@ class Photon(Estimator):
 
     def __init__(self, ctx, items):
         super().__init__(ctx, items)
-        self.chains = sorted({it.chain for it in self.items}, key=("R", "T", "RR", "RT", "TR", "TT").index)
+        self.chains = sorted({it.chain for it in self.items}, key=CHAINS.index)
         self.flux = None
         self.photons = self.deposited = 0
         self.per_chain = {}

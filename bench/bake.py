@@ -72,9 +72,15 @@ def main(argv=None):
             rep = r["report"]
             c = rep["counts"]
             chains = ", ".join(f"{ch['chain']}" + ("" if ch["status"] == "baked" else " (skipped)") for ch in rep["chains"]) or "-"
+            passes = [p for e in rep.get("estimators", {}).values() for p in e.get("passes", [])]
+            reach = [p["reach"] for p in passes if "reach" in p]
             row = dict(scene=scene, res=res, chains=chains, cold=r["cold"], warm=r["warm"], extract=r["extract"],
                        texels_per_s=c["texels_covered"] / r["warm"], tuples=c["tuples"], naive=c["tuples_naive"],
-                       paths=c["paths_visible"], lit=c["texels_touched"], stages=rep["timings"])
+                       paths=c["paths_visible"], lit=c["texels_touched"], stages=rep["timings"], estimator=rep["estimator"],
+                       summary=" / ".join(rep["plan"]["summary"]) if isinstance(rep["plan"]["summary"], list) else rep["plan"]["summary"],
+                       sub_triangles=sum(p["sub_triangles"] for p in passes),
+                       casters=(sum(x["reaching"] for x in reach), sum(x["lit"] for x in reach)),
+                       reach_s=sum(x["seconds"] for x in reach))
             rows.append(row)
             print(f"{scene:13s} {res:5d}²  cold {r['cold']:7.2f} s  warm {r['warm']:7.2f} s  {row['texels_per_s']:10,.0f} texels/s  "
                   f"{c['tuples']:>12,} tuples ({c['tuples_naive']:,} uncull'd)  {c['paths_visible']:>10,} paths  [{chains}]"
@@ -91,22 +97,24 @@ def _table(rows, samples, bounces):
     lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores ({numba.config.NUMBA_NUM_THREADS} Numba threads), "
              f"Python {platform.python_version()}; {samples} supersamples per texel, one light sample; "
              f"bounces = {bounces}; date {time.strftime('%Y-%m-%d')}.",
-             "Cold: the first bake in a fresh interpreter (Numba cache on disk warm); warm: the same bake again.", "",
-             "| scene | chains | texels | cold (s) | warm (s) | texels/s (warm) | tuples solved | tuples uncull'd | paths | texels lit |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "Cold: the first bake in a fresh interpreter (Numba cache on disk warm); warm: the same bake again. "
+             "Casters traced: first-vertex caster triangles whose scattered light can reach the chain's next targets, of those "
+             "the light reaches (summed over chains; the rest are skipped by the cone test of `cull.first_casters_reaching`, "
+             "which costs the seconds given).", "",
+             "| scene | estimator | plan | texels | cold (s) | warm (s) | texels/s (warm) | sub-triangles | casters traced | "
+             "reach test (s) | paths | texels lit |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['chains']} | {r['res']}² | {r['cold']:.2f} | {r['warm']:.2f} | {r['texels_per_s']:,.0f} | "
-                     f"{r['tuples']:,} | {r['naive']:,} | {r['paths']:,} | {r['lit']:,} |")
-    lines += ["", "Warm time per stage (s):", "", "| scene | texels | raster | cull | solve | irradiance | visibility | pad |",
-              "|---|---|---|---|---|---|---|---|"]
+        traced, lit = r["casters"]
+        lines.append(f"| {r['scene']} | {r['estimator']} | {r['summary']} | {r['res']}² | {r['cold']:.2f} | {r['warm']:.2f} | "
+                     f"{r['texels_per_s']:,.0f} | {r['sub_triangles']:,} | {traced:,} / {lit:,} | {r['reach_s']:.2f} | "
+                     f"{r['paths']:,} | {r['lit']:,} |")
+    keys = sorted({k for r in rows for k in r["stages"]})
+    lines += ["", "Warm time per stage (s):", "", "| scene | texels | " + " | ".join(keys) + " |",
+              "|---|---|" + "---|" * len(keys)]
     for r in rows:
         s = r["stages"]
-        lines.append(f"| {r['scene']} | {r['res']}² | " + " | ".join(f"{s.get(k, 0.0):.2f}" for k in
-                                                               ("raster", "cull", "solve", "irradiance", "visibility", "pad")) + " |")
-    lines += ["", "Target (issue): the glass-sphere bake at 1024² reaching relMSE <= 1e-3 against the photon reference faster than "
-              "Cycles' shadow caustics render 256 samples of one 256² view of the floor (128 s on the lead's machine); it needs the "
-              "TT chain: the solver has it now (about 250 µs per TT tuple here) but with the cone cull the tuple count is far too "
-              "high; it waits for the Bernstein-bounded tuple selection."]
+        lines.append(f"| {r['scene']} | {r['res']}² | " + " | ".join(f"{s.get(k, 0.0):.2f}" for k in keys) + " |")
     return "\n".join(lines)
 
 

@@ -14,7 +14,8 @@ the spoly solver:
   cone's pairs of one band of rows through the texture's middle are solved on a random subset
   of ``--cone-solve`` pairs and the µs per pair times the total count is the estimate ("est.").
 
-Prints a markdown table; does not touch BENCHMARKS.md.  Each scene runs in its own interpreter.
+Prints a markdown table; ``--write`` also rewrites the "bounds-select" section of BENCHMARKS.md.
+Each scene runs in its own interpreter.
 """
 
 import argparse
@@ -158,6 +159,7 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=1)
     ap.add_argument("--chains", default="R,T,RR,RT,TR,TT")
     ap.add_argument("--cone-solve", type=int, default=20000, help="cone pairs solved for the two-bounce estimate")
+    ap.add_argument("--write", action="store_true", help="rewrite the bounds-select section of BENCHMARKS.md")
     args = ap.parse_args(argv)
     head = ["| scene | chain | lights | texels | cone pairs | bounds pairs | fewer | cone cull + solve (s) | bounds cull + solve (s) "
             "| cone total (s) | bounds total (s) | faster | paths |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -170,6 +172,24 @@ def main(argv=None):
             print(lines[-1], flush=True)
         print(f"<!-- {scene}: {time.perf_counter() - t:.0f} s -->", flush=True)
     print("\n" + "\n".join(head + lines))
+    if args.write:
+        import platform
+
+        import numba
+
+        sys.path.insert(0, HERE)
+        from bake import write_section
+
+        intro = [f"Machine: {platform.machine()}, {os.cpu_count()} cores ({numba.config.NUMBA_NUM_THREADS} Numba threads); "
+                 f"{args.samples} supersample(s) per texel, one light sample per light, estimator path-points, solver spoly; "
+                 f"date {time.strftime('%Y-%m-%d')}.",
+                 "Pairs: (tuple, texel sample) pairs handed to the solver. *cone*: the cone cull of `addon/bake/cull.py`; "
+                 "*bounds*: the Bernstein position bounds of `addon/bake/bounds_select.py` (the default, `cull=\"bounds\"`). "
+                 "One-bounce rows are two full bakes; two-bounce cone rows marked *est.* solve a random subset of the cone's "
+                 "pairs of one band and scale its time per pair to all pairs. Same paths: the bounds are conservative.", ""]
+        write_section(os.path.join(ROOT, "BENCHMARKS.md"), "bounds-select",
+                      "Path-points pair selection: cone cull against Bernstein bounds (`bench/bounds_select.py`)",
+                      "\n".join(intro + head + lines))
 
 
 if __name__ == "__main__":

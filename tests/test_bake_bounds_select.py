@@ -26,7 +26,7 @@ from addon.bake import bounds_select as B
 from addon.bake.estimators.path_points import chain_emitters
 from addon.bake.pipeline import BakeSettings, bake, make_context
 from addon.bake.plan import make_plan
-from addon.bake.cull import TupleCull
+from addon.bake.cull import TupleCull, first_casters_reaching
 from addon.bake.lights import sample_light
 from addon.bake.raster import rasterise
 from addon.bake.scene import Light, build_scene
@@ -211,6 +211,8 @@ def test_reach_never_drops_a_first_triangle_with_a_traced_path(case):
         keep = B.reachable_first(chain, x0, P, N, eta, RP, P, N, eta, ids1=first, ids2=first)
         cone = B.reachable_first(chain, x0, P, N, eta, RP, P, N, eta, ids1=first, ids2=first, use_bounds=False)
     dt = time.perf_counter() - t0
+    # the forward-flux skip: the first cone against clustered targets (receivers, or the second casters)
+    fast = first_casters_reaching(chain, x0, P, N, eta, RP if len(chain) == 1 else P)
     if sun is not None:  # trace each triangle from its own far point
         lit = []
         n_paths = 0
@@ -222,13 +224,45 @@ def test_reach_never_drops_a_first_triangle_with_a_traced_path(case):
     else:
         lit, n_paths = _traced_firsts(chain, x0, P, N, eta, first, RP, per=256)
     print(f"\n{case}: {P.shape[0]} first triangles, {lit.size} with traced paths ({n_paths:,} paths); kept by the bounds "
-          f"{keep.sum()}, by the cones alone {cone.sum()}; {dt:.2f} s")
+          f"{keep.sum()}, by the cones alone {cone.sum()}; {dt:.2f} s; by the forward-flux skip {fast.sum()}")
     assert lit.size >= (5 if case == "periscope_RR" else 50)
     assert keep[lit].all()
     assert cone[lit].all()
+    assert fast[lit].all()
+    if case in ("ring_R", "ring_R_sun", "water_T"):  # triangles that light nothing are skipped
+        assert fast.sum() < 0.8 * P.shape[0]
     assert keep.sum() < P.shape[0]
     if len(chain) == 1:  # one bounce: the bounds run on the cone's (triangle, receiver) pairs only
         assert not np.any(keep & ~cone)
+
+
+@pytest.mark.parametrize("scene", ["ring", "ball"])
+def test_forward_flux_skips_casters_that_reach_nothing_and_keeps_the_texture(scene, monkeypatch):
+    """forward-flux traces only the first casters whose scattered light can reach the chain's
+    next targets (cull.first_casters_reaching): the texture must be bit for bit the texture
+    of a bake that traces every lit caster, and the skip must drop some casters (the ring's
+    outer wall reflects away from the floor; the ball's lit top refracts into the ball, so TT
+    keeps all its first triangles while R drops those reflecting upward)."""
+    from addon.bake.estimators import forward_images
+
+    from bake_scenes import ring_scene
+
+    sc = ring_scene(resolution=32, segments=48) if scene == "ring" else glass_sphere_scene(resolution=32, segments=24, rings=12)
+    settings = BakeSettings(samples=1, seed=3, margin=0, bounces=2)
+    skipped = bake(sc, settings)
+    monkeypatch.setattr(forward_images, "first_casters_reaching",
+                        lambda chain, x0, tri_p1, *a: np.ones(tri_p1.shape[0], dtype=bool))
+    every = bake(sc, settings)
+    passes = skipped.report["estimators"]["forward-flux"]["passes"]
+    reach = {p["chain"]: p["reach"] for p in passes}
+    print(f"\n{scene}: " + ", ".join(f"{c}: {r['reaching']}/{r['lit']} lit casters reach ({r['seconds'] * 1e3:.1f} ms)"
+                                      for c, r in reach.items()))
+    for name in every.raw:
+        assert every.raw[name].max() > 0
+        assert np.array_equal(skipped.raw[name], every.raw[name])
+    assert sum(r["reaching"] for r in reach.values()) < sum(r["lit"] for r in reach.values())
+    if scene == "ball":
+        assert reach["TT"]["reaching"] == reach["TT"]["lit"]
 
 
 @pytest.mark.slow

@@ -641,6 +641,112 @@ class TupleCull:
                 yield out_t, out_s
 
 
+REACH_DEPTH = 6  # levels of the target sphere tree below its root: 64 leaves
+REACH_PIECES = 1 << 14  # target triangles are cut to at most about this many pieces
+
+
+def _split_large(tri_p, max_radius, max_pieces):
+    """Midpoint-subdivide the triangles whose bounding sphere exceeds ``max_radius`` (at most
+    about ``max_pieces`` pieces in all); the pieces cover the triangles exactly."""
+    _, r = tri_spheres(tri_p)
+    while tri_p.shape[0] < max_pieces and np.any(r > max_radius):
+        big = r > max_radius
+        budget = (max_pieces - tri_p.shape[0]) // 3
+        if budget <= 0:
+            break
+        idx = np.flatnonzero(big)[np.argsort(-r[big], kind="stable")][:budget]
+        a, b, c = tri_p[idx, 0], tri_p[idx, 1], tri_p[idx, 2]
+        ab, bc, ca = 0.5 * (a + b), 0.5 * (b + c), 0.5 * (c + a)
+        pieces = np.stack([np.stack(q, 1) for q in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+        rest = np.ones(tri_p.shape[0], dtype=bool)
+        rest[idx] = False
+        tri_p = np.concatenate([tri_p[rest], pieces.reshape(-1, 3, 3)])
+        _, r = tri_spheres(tri_p)
+    return tri_p
+
+
+def sphere_tree(tri_p, depth=REACH_DEPTH, pieces=REACH_PIECES):
+    """A complete binary tree of bounding spheres over triangles (node k's children 2k+1 and
+    2k+2; ``depth`` levels below the root; an empty node has radius -1).  Large triangles are
+    first cut into pieces so that the leaves are small (radius about 1/32 of the whole set's);
+    groups are split at the median of their pieces' centroids along the longest extent.  Every
+    node's sphere holds every piece below it whole.  Returns (centre (n,3), radius (n,))."""
+    tri_p = np.asarray(tri_p, dtype=np.float64)
+    n_nodes = (1 << (depth + 1)) - 1
+    centre = np.zeros((n_nodes, 3))
+    radius = np.full(n_nodes, -1.0)
+    if tri_p.shape[0] == 0:
+        return centre, radius
+    lo, hi = tri_p.reshape(-1, 3).min(axis=0), tri_p.reshape(-1, 3).max(axis=0)
+    tri_p = _split_large(tri_p, 0.5 * np.linalg.norm(hi - lo) / 32.0, pieces)
+    c, r = tri_spheres(tri_p)
+    groups = {0: np.arange(c.shape[0])}
+    for k in range(n_nodes):
+        g = groups.pop(k, None)
+        if g is None or g.size == 0:
+            continue
+        lo, hi = c[g].min(axis=0), c[g].max(axis=0)
+        centre[k] = 0.5 * (lo + hi)
+        radius[k] = np.max(np.linalg.norm(c[g] - centre[k], axis=1) + r[g]) * (1.0 + 1e-12) + 1e-12
+        if 2 * k + 2 < n_nodes:
+            if g.size == 1:
+                groups[2 * k + 1] = g
+                continue
+            order = g[np.argsort(c[g, int(np.argmax(hi - lo))], kind="stable")]
+            groups[2 * k + 1], groups[2 * k + 2] = order[:g.size // 2], order[g.size // 2:]
+    return centre, radius
+
+
+@kernel(parallel=True)
+def _reach_tree(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c, node_r, keep):
+    n_nodes = node_r.shape[0]
+    for t in prange(side_req.shape[0]):
+        stack = np.empty(64, dtype=np.int64)
+        top = 0
+        stack[0] = 0
+        top = 1
+        while top > 0:
+            top -= 1
+            k = stack[top]
+            if node_r[k] < 0.0:
+                continue
+            if not _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c, node_r):
+                continue
+            if 2 * k + 2 >= n_nodes:  # a leaf
+                keep[t] = True
+                break
+            stack[top] = 2 * k + 2
+            stack[top + 1] = 2 * k + 1
+            top += 2
+
+
+def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p):
+    """Mask (T1,) of the first-vertex caster triangles whose scattered light can reach a target
+    triangle: the receivers' triangles for a one-bounce chain, the second-vertex casters' for
+    a two-bounce one (light that reaches no second caster reaches no receiver through it).
+
+    The test is the cone test of this module (side rule of the first vertex and the cap of
+    its scattered directions, :func:`one_bounce_emitters`) against the spheres of
+    :func:`sphere_tree` over the targets, descended from the root while a node passes (a leaf
+    that passes keeps the triangle): conservative, a triangle with a path is never dropped
+    (``tests/test_bake_bounds_select.py`` checks it against forward-traced paths), and its
+    cost is O(T1 log leaves) for most triangles.  ``x0`` (3,) or (T1, 3)."""
+    T1 = tri_p1.shape[0]
+    keep = np.zeros(T1, dtype=np.bool_)
+    target_p = np.asarray(target_p, dtype=np.float64)
+    if T1 == 0 or target_p.shape[0] == 0:
+        return keep
+    tri_p1 = np.ascontiguousarray(tri_p1, dtype=np.float64)
+    x0 = np.asarray(x0, dtype=np.float64)
+    x0 = np.ascontiguousarray(np.broadcast_to(x0.reshape(-1, 3), (T1, 3)))
+    eta1 = np.ascontiguousarray(np.broadcast_to(np.asarray(eta1, dtype=np.float64), (T1,)))
+    em = one_bounce_emitters(chain[0], x0, tri_p1, np.ascontiguousarray(tri_n1, dtype=np.float64), eta1)
+    centre, radius = sphere_tree(target_p)
+    _reach_tree(em.part_start, em.part_c, em.part_r, em.part_d, em.part_t, em.tri_ng, em.tri_p0, em.side_req, centre, radius,
+                keep)
+    return keep
+
+
 class OneBounceCull(TupleCull):
     """TupleCull of a one-bounce chain: emitter index = caster index.  ``use_cone`` False keeps
     only the side tests."""

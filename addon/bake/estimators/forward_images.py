@@ -2,7 +2,8 @@
 (the maths is in :mod:`addon.solver.forward_image`), shared by the ``forward-flux`` and
 ``path-seeded`` estimators.
 
-For one light sample and chain, the first-vertex casters the light reaches are cut into
+For one light sample and chain, the first-vertex casters the light reaches, and whose scattered
+light can reach the chain's next targets (:func:`addon.bake.cull.first_casters_reaching`), are cut into
 adaptive sub-triangles whose forward-traced images on the receivers are straight to within
 half a texel (:func:`prepare`), once per light sample and chain, for every receiver and band.
 """
@@ -12,6 +13,7 @@ import time
 import numpy as np
 
 from ...solver.forward_image import light_area_density, refine_image_triangles, trace_chain_points
+from ..cull import first_casters_reaching
 from ..lights import light_points, lit_casters
 
 IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
@@ -110,11 +112,26 @@ def image_state(ctx, item, ls, m, mode):
     cast1 = item.vertices[0]
     x0_all = light_points(ls, m, scene.tri_p[cast1], ctx.extent, ctx.settings.sun_distance)
     keep = lit_casters(ls, m, x0_all, scene.tri_p[cast1])
+    second = item.vertices[1] if len(item.vertices) > 1 else np.zeros(0, dtype=np.int64)
+    # Casters whose scattered light cannot reach the chain's next targets (receivers, or the
+    # second-vertex casters) are not traced at all: a conservative cone test.
+    t0 = time.perf_counter()
+    lit = np.flatnonzero(keep)
+    if second.size:
+        targets = scene.tri_p[second]
+    else:
+        only = range(len(ctx.receivers)) if item.receivers is None else item.receivers
+        targets = scene.tri_p[np.concatenate([ctx.receivers[r].tri_index for r in only] or [np.zeros(0, dtype=np.int64)])]
+    reach = first_casters_reaching(item.chain, x0_all[lit], scene.tri_p[cast1[lit]], scene.tri_n[cast1[lit]],
+                                   scene.tri_ior[cast1[lit]], targets)
+    keep[lit[~reach]] = False
+    reach_report = {"lit": int(lit.size), "reaching": int(reach.sum()), "seconds": time.perf_counter() - t0}
     if not keep.any():
         return None
-    second = item.vertices[1] if len(item.vertices) > 1 else np.zeros(0, dtype=np.int64)
-    return prepare(scene, ctx.bvh, ctx.eps, item.chain, cast1[keep], x0_all[keep], second, ctx.receivers,
-                   max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers)
+    state = prepare(scene, ctx.bvh, ctx.eps, item.chain, cast1[keep], x0_all[keep], second, ctx.receivers,
+                    max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers)
+    state.report["reach"] = reach_report
+    return state
 
 
 class ImageCache:

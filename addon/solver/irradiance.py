@@ -1,6 +1,6 @@
 """Irradiance carried by a solved specular path, per unit light intensity.
 
-E = I · (dΩ0/dA) · F  (DESIGN.md): the generalised geometry term dΩ0/dA is the solid angle
+E = I · (dΩ0/dA) · F  (docs/design.md): the generalised geometry term dΩ0/dA is the solid angle
 of light leaving x0 per unit receiver area, found with the chain rule through the
 specular vertex (the explicit Jacobian of Fan et al. 2025, eq 15, here for R and T):
 

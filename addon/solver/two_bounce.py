@@ -1,223 +1,37 @@
 """Two-bounce Specular Polynomials: the RR, RT, TR and TT chains (Fan et al. 2024, §3.4–4.3).
 
-For a tuple (x0, triangle 1, triangle 2, x3) the unknowns are the barycentrics (u1, v1) of
-x1; x2 follows by the *rational coordinate mapping* (eq 14–17): the scaled scattered
-direction d̃1 at x1 is intersected with triangle 2's plane (Möller–Trumbore),
+For a tuple (x0, triangle 1, triangle 2, x3) the unknowns are the barycentrics (u1, v1) of x1.
+The scaled scattered direction d̃1 (reflection eq 19, degree 3; refraction eq 21–22 with √β
+replaced by the piecewise rational r of eq 23, or by one Heron step on a fitted quadratic
+where that fits the triangle, ``heron_sqrt_fit``) is mapped to triangle 2 by the rational
+coordinate mapping (eq 14–17: u2 = ũ2/κ, v2 = ṽ2/κ), so that the constraints at vertex 2
+become a bivariate polynomial system (Table 3): coplanarity a (eq 6) and the law at vertex 2,
+b (R: product form eq 13; T: square form eq 10 with η_in on the light's side).  c2 is the
+normal of the plane of incidence, so that neither form vanishes on whole curves.
 
-    u2 = ũ2 / κ,  v2 = ṽ2 / κ,   ũ2 = (d̃1 × e2,2)·(x1 - p2,0),
-    ṽ2 = ((x1 - p2,0) × e2,1)·d̃1,  κ = (d̃1 × e2,2)·e2,1,
+Solve, per system (``solve_two_bounce_batch``):
+1. *Pre-pass* (``live_pieces``): a and b in tensor Bernstein form on a quadtree over
+   [-m, 1+m]²; boxes where a or b keeps one sign, that lie beyond u1 + v1 = 1 + m, whose ray
+   misses triangle 2 (``_misses_second``) or where β leaves the √ piece's band are dropped.
+2. *Resultant scan* (eq 28–31): u1 eliminated by the hybrid Bézout matrix (its determinant is
+   the Sylvester resultant), evaluated at v1 by pivoted elimination carrying sign and log
+   magnitude; the live v1 pieces are scanned for sign changes, each pinned by Illinois
+   regula falsi to ``ROOT_TOL``; pieces around productive roots and convex kinks of the
+   deflated log|det| are refined (``SUB_SAMPLES``, ``REFINE_LEVELS``), one-signed dips
+   resolved (``_resolve_dip``).
+3. *Paths* (§4.3): at each root the u1 roots of a(·, v1) are mapped to triangle 2 by the
+   exact scattered ray and Gauss–Newton polished in path space (``path_space2``), which
+   removes the √ approximation error; validated (both vertices inside, sides, TIR, residual)
+   and merged when two converge onto one path.
+The chain is also solved reversed (reciprocity) to catch root pairs one orientation misses;
+a candidate on the line x0 → x3 covers the normal-incidence path through parallel faces.
 
-so every quantity at vertex 2 is a polynomial in (u1, v1) once multiplied by κ:
-κ x2 - κ p2,0 = ũ2 e2,1 + ṽ2 e2,2, κ n2 = κ n2,0 + ũ2 m2,1 + ṽ2 m2,2 (m = corner normal
-differences), κ (x3 - x2) = κ (x3 - p2,0) - ũ2 e2,1 - ṽ2 e2,2, and x2 - x1 ∥ d̃1.
-
-d̃1 (scaled so that it stays a polynomial):
-
-* reflection, eq (19): d̃1 = -2 (d0·n1) n1 + d0 |n1|²  (degree 3, exact);
-* refraction, eq (21–22): d̃1 = η' (d0 |n1|² - (d0·n1) n1) - √β n1_o, with
-  β = |n1|²|d0|² - η'² (|n1|²|d0|² - (d0·n1)²) and n1_o the normal turned to the incoming
-  side.  √β is not rational; with S² = max|n1|² · max|d0|² over the triangle's corners
-  (so x = β / S² ∈ [0, 1]), √β ≈ S r(x) with the piecewise rational r of eq (23) below;
-  multiplying through by r's denominator keeps d̃1 a polynomial (degree 7).  β < 0 (total
-  internal reflection) has no refracted ray and is rejected explicitly when candidates are
-  mapped to triangle 2 (the exact refraction, ``path_space2.trace_to_second``).
-
-The bivariate system at vertex 2 (Table 3):
-
-* a(u1, v1) = (d̃1 × (x3 - x1)) · κn2 — coplanarity, eq (6);
-* R at vertex 2: the product form, eq (13): (d̃1·κn2)(κd2·t2) + (d̃1·t2)(κd2·κn2),
-  t2 = κn2 × c2;
-* T at vertex 2: the square form, eq (10): η_in² |κd2|² ((d̃1 × κn2)·c2)²
-  - η_out² |d̃1|² ((κd2 × κn2)·c2)², where η_in is the IOR on the side the light arrives
-  from at vertex 2 and η_out the other one — at the exit of a glass object η_in = eta and
-  η_out = 1 (the authors' released TT code swaps them and finds no TT path).
-
-c2 is the normal of the plane of incidence at vertex 2 ((x3 - centroid 1) × mean n2) so
-that neither form degenerates (the paper's fixed (1,0,0) vanishes on whole curves).  Total
-degrees (a, b): RR (8, 15), RT (8, 22), TR (16, 31), TT (16, 46) (the paper's Table 3 has
-(10, 16), (10, 24), (18, 48) with its endpoint-difference form at vertex 2).  A flat
-triangle 2 uses its constant normal, which removes a common factor κ (else the resultant
-vanishes identically).
-
-Elimination (eq 28–31).  u1 is the eliminated variable; the Bézout matrix R(v1) of a and b
-(eq 29; entries are polynomials in v1, built per evaluation from a_i(v1), b_i(v1) with the
-O(n²) recurrence R[i, j] = R[i-1, j+1] + a_i b_{j+1} - b_i a_{j+1}) is n × n with n the
-u-degree of b (15 … 46).  a has the lower u-degree m (8 or 16), so n - m rows of that matrix
-are multiples of a by b's leading coefficients, which are tiny (|b_n| ~ 1e-11 of the
-largest): eliminating it in doubles lost the determinant's sign near roots (``det_bezout``),
-so the hybrid Bézout matrix is used instead (those rows replaced by the shifts u^k a; the
-same size, its determinant the Sylvester resultant).  Its determinant is evaluated at a
-given v1 by Gaussian elimination
-with partial pivoting that carries the sign and the logarithm of the magnitude (TT
-coefficients span ~60 orders of magnitude: a product of pivots underflows to ±0 in plain
-doubles).  a_i and b_i are scaled to unit max-norm at each v1 (positive factors: the sign
-is unchanged).  An exactly singular elimination is never taken for a root: the point is
-re-evaluated a hair away, and a tuple whose determinant is zero at most samples is a
-degenerate system (common factor, e.g. the on-axis slab) handled by a seeded polish.
-
-Live pieces (before the scan; ``live_pieces``): a and b are converted to tensor Bernstein
-form over [-m, 1 + m]² and a quadtree (LIVE_DEPTH levels, 3 for RR's low-degree b) drops
-every box where a's or b's coefficients share one sign (convex hull property, an absolute
-rounding allowance) or that lies beyond u1 + v1 = 1 + m; only the pieces of v1 under a
-surviving leaf (one piece of margin each side) are scanned, pinned and refined.  Most real
-roots of the resultant have their common u1 outside the triangle (a planted RT or TT tuple
-has ~100 of them for ~1 path); each cost an Illinois bracket, the refinement of its kinks
-and candidates that led nowhere.  Measured on the 10,000-tuple acceptance sets: determinant
-evaluations RR 3.18M -> 1.90M, RT 16.9M -> 9.4M, TR 13.9M -> 6.5M, TT 24.6M -> 12.2M;
-recall RR 100 % and TR 99.988 % unchanged, RT 99.939 -> 99.927 % (one more path missed),
-TT 99.628 -> 99.529 % (8 more: paths whose own √-approximated system has no root near them
-and which were only found by polishing the candidates of far-away roots).
-
-The pre-pass also drops the boxes whose points cannot reach triangle 2 (``HIT_TEST``,
-``_misses_second``): a and b only say that x2, the scattered ray's point on triangle 2's
-*plane*, satisfies coplanarity and the law at vertex 2, so most real roots of a tuple without
-a path are rays meeting that plane outside the triangle or behind x1.  ``_build_system`` keeps
-κ, ũ2, ṽ2 (eq 14-17) and t̃ = e2,2·((x1 - p2,0) × e2,1) (x2 = x1 + (t̃/κ) d̃1); on a box where κ
-has one sign, tensor Bernstein bounds that prove u2 < -m, v2 < -m, u2 + v2 > 1 + m or t̃/κ < 0
-drop it (m = HIT_MARGIN_EXACT for an exact d̃1, HIT_MARGIN_APPROX where √ is approximated;
-boxes where κ may vanish are kept).  The test checks every dropped box against the exact ray
-at 144 points (tests/test_solver_two_bounce.py ``test_prepass_hit_test``).  Measured
-2026-11-25 (10,000-tuple acceptance sets; 1 thread, interleaved, µs/tuple on bench
-workloads): TT 6.55M -> 5.53M determinants, 36 -> 37 missed, random 476 -> 392, planted 5,240 ->
-4,825; RT 4.99M -> 4.40M, the same 5 missed, random 161 -> 128; TR 3.76M -> 3.24M, the same 1
-missed, random 328 -> 283; RR 1.63M -> 1.44M, 0 missed, random 57 -> 47 (planted RR +2 %).
-
-Roots in v1 (§4.2, made reliable): the range [-m, 1 + m] is cut into ``pieces`` (default
-100); every sign change is bracketed by the Illinois variant of regula falsi on the signed
-log-magnitude (bisection safeguard) down to ``ROOT_TOL`` = 1e-4, and its candidates are
-polished in path space, where Gauss-Newton converges quadratically: the accepted path has
-v1 to ~1e-15, and a strict path check never sees the bracket's error (pinning every bracket
-to 1e-12 instead cost 1.5x the determinants for the same paths; the authors' 10 bisection
-steps reach 1e-5 and validate that unpolished).  ROOT_TOL was 1e-7 until 2026-11-25: 1e-4
-takes ~21 % fewer determinants on TT for the same paths of the test's 300 tuples.  A kink
-threshold ``KINK`` of 2.0 instead of 1.0 saved another ~10 % but lost two TT paths of those
-300 (root pairs inside one piece whose kink is between 1 and 2): not taken.  Resultant roots cluster (all solutions
-through a small or distant second triangle lie in a small patch of the first), so pieces are
-refined (``SUB_SAMPLES`` sub-pieces, ``REFINE_LEVELS`` levels): the pieces around a sign
-change whose root polished into a path lying within ``PRODUCTIVE_RADIUS`` of it in v1 (a
-candidate clamped into the triangle from a far-away root often polishes into the one path
-there, which says nothing about roots clustering near that root), and pieces next to a convex kink of log|det|
-deflated by the roots already found (what is left of a kink is a root the scan did not see:
-a pair inside one piece).  Most sign changes are resultant roots whose common u1 lies
-outside the triangle or whose path is invalid (TT: ~600 real roots per planted tuple for ~1
-path); refining around those too was ~40 % of the determinant evaluations and found no
-path the kink rule missed (tests/test_solver_two_bounce.py recall unchanged or better).  A
-sub-sampled piece with more than ``NOISY_CHANGES`` sign changes is at
-rounding level and left alone.  The issue's "refine pieces where |det| dips towards zero
-without a sign change, so clustered roots separate" (the paper's §4.2 Discussion: the
-piecewise bisection "requires a large number of pieces in the case that solutions are
-clustered"): two ghost samples outside the range give the end pieces a kink test too,
-consecutive flagged pieces are refined as one run (a dip at a sample two pieces share has
-neighbours on both sides), and a one-signed dip of the deflated log|det| at the last level
-is resolved (``_resolve_dip``: the vertex of the quadratic |det| through three samples,
-3-8 determinants): a point of the other sign gives the root pair, both pinned; a complex
-pair stops the search; a dip where log|det| is at its rounding floor (not monotone over
-the next samples) is only tried at its deepest sample.  Root pairs still missed by one
-orientation are usually spread out in the other: the chain is also solved reversed
-(reciprocity: x3 -> triangle 2 -> triangle 1 -> x0, parametrised by (u2, v2)).
-
-m = 1e-6 for exact systems (RR, RT) and 2e-2 where √ is approximated (TR, TT).  For a
-refraction at the first vertex the system is solved once per √ piece holding β/S² at one
-of the triangle's sample points (corners, edge thirds, centroid): usually one or two
-(``SQRT_ALL_PIECES`` solves once per piece overlapping the whole sampled β range instead:
-more recall where x0 is close to a curved triangle, several times the cost); the path-space
-polish removes the error of a piece used a little outside its interval.  Each piece's system
-is solved only where β/S² can lie in the piece's band — its interval and its 3 neighbours'
-on each side (``SQRT_BANDS``, ``SQRT_BAND_REACH``, :func:`_sqrt_band`): the live pre-pass also drops
-the boxes where the tensor Bernstein bounds of β (degree 4) stay outside the band.
-Elsewhere the piece's rational is off by more than its fit error, and a path there is a
-root of the system of its own piece (or of the Heron √).  So that such a piece is solved,
-an orientation whose samples are all clear of TIR also takes every piece from
-BETA_MASK_FROM up that the Bernstein bounds of β on a BETA_GRID² grid reach
-(:func:`_beta_mask`: the samples miss the extremes of β over the triangle; test set TT
-tuple 122 of 300, β/S² = 0.021 on a triangle whose samples start at 0.029).  Orientations
-crossing TIR keep the sampled pieces (bounding them would add most of the 15 pieces: 2x
-the determinants).  When the Heron fit fails (β/S² spanning much of [0, 1] over the
-triangle: ~3 pieces per orientation on planted TT), each of those pieces was scanned over
-the whole triangle.  Measured (brute force, ``bench/two_bounce_recall.py``, 2026-11-25):
-TT on the 10,000-tuple acceptance set 38 -> 37 missed (99.529 -> 99.542 %; one near-TIR
-path lost, k_min 4e-3, two gained), determinants 8.17M -> 6.81M; RT and TR on the first
-2,000 tuples the same misses (4, 0), determinants 1.32M -> 1.05M, 0.87M -> 0.80M.  With
-one neighbour each side (reach 1) the determinants were 5.69M, but 42 missed (paths that
-a piece's own system misses, e.g. ill-conditioned or a root pair in one scan piece, and
-the neighbouring pieces' slightly different systems found); reach 2: 6.40M, 38 missed,
-not the same 38.  What it cost then: one well-conditioned path of the 190 planted TT tuples
-of ``bench/solver.py`` (tuple 153) was lost at every reach — it had been found from a far
-root of a piece used well outside its interval; since the Heron √ is tried at higher cuts
-(:func:`heron_sqrt_cut`) it is found again (201 paths, planted recall 100 %).  A candidate
-from the straight line x0 -> x3 covers the normal-incidence path through parallel faces
-(on-axis slab), where the coplanarity polynomial vanishes identically.
-
-The TIR fallback.  The centroid's sample is clamped to β/S² ≥ 0, so an orientation whose
-centroid is in total internal reflection (and some sample is not) also takes piece 0, whose
-band reaches β = 0: the paths next to the TIR curve.  That system is the noisiest of all
-(piece 0's rational has its pole at β/S² = -5e-8, on the TIR curve the pre-pass keeps) and
-on random TT tuples it was 45 % of the determinants (kink refinement of its noise), for
-paths the other systems found as well: it is solved for its sign changes only
-(``TIR_FALLBACK_REFINE``; piece 0 as a sampled piece is refined as before).  Measured on the
-10,000-tuple acceptance set (2026-11-26): TT determinants 5.26M -> 4.70M, 37 -> 42 missed
-(99.542 -> 99.480 %; the fallback not solved at all: 4.45M, 46 missed); TR 3.20M -> 3.03M,
-1 -> 2 missed (99.988 -> 99.976 %); RT (its reversed orientation refracts first) 4.22M ->
-3.51M, 5 -> 7 missed (99.939 -> 99.915 %); 1 thread, random TT tuples 1.27x faster, planted
-1.10x (interleaved runs).
-
-One √ for the triangle (``heron_sqrt_fit``, ``HERON_SQRT``).  β/S² spans several of eq
-(23)'s pieces over a triangle (β grows with |x1 - x0|²; planted TT: 3.5 pieces per
-orientation), and each piece is a full system to solve.  Where a quadratic q(u1, v1) fitted
-to √β (weighted least squares on a grid of the widened triangle) makes the Heron step
-√β ≈ (β + q²) / (2q) accurate to HERON_TOL (relative, checked on a finer grid) wherever
-β/S² ≥ HERON_CUT, that one system replaces the pieces above the cut; the pieces below it
-(grazing exit, next to TIR, where √ is too steep for a smooth fit) are solved as before.
-d̃1 then has degree 5 instead of 7 and TT's (a, b) degrees are (12, 34) instead of (16, 46),
-so each determinant is ~2x cheaper.  The path-space polish removes the approximation error as
-it does the pieces'.  Where the fit fails above HERON_CUT (β/S² spanning much of [0, 1]: √ is
-steep at the low end; ~40 % of planted TT orientations), the next of HERON_CUTS (the starts of
-pieces 10-14) is tried (``heron_sqrt_cut``): the fit then leaves out the steep part, whose eq
-(23) pieces are solved on their own, instead of solving every piece.  With the fit grid 10
-instead of 6 (more points above a high cut), measured 2026-11-25 on the 10,000-tuple
-acceptance sets: TT 37 -> 36 missed (99.554 %), RT 4 -> 5 (99.939 %), TR 0 -> 1 (99.988 %), RR
-unchanged (100 %); the two new RT/TR misses are ill-conditioned root pairs (sigma_min 2e-3 and
-5e-5, the other path of the pair 1e-3 away, found); 1 thread, planted TT 18 % faster, random
-TT 10 % (:func:`heron_sqrt_cut`).
-
-Vector kernels (``simd.py``, 2026-11-26).  The live pre-pass's Bernstein conversions and
-de Casteljau splits (whole rows as vector operations, the halvings deferred to one power of
-two per output row, 8 x 8 block transposes, a vector min/max), the system build's
-polynomial products (rows with a masked tail) and det_bezout's Bézoutian rows (eight outputs
-per register; a recurrence since) and pivot search (a tree of vector maxima) do the scalar loops' operations on
-each element in their order: paths, roots, candidates and determinants are unchanged bit
-for bit (the 300-tuple bench workloads of all four chains; the 10,000-tuple acceptance
-sets: TT 4,695,243 determinants and 42 missed, RT 3,513,457 and 7, TR 3,027,047 and 2, as
-before), and tests/test_solver_simd.py holds each kernel to its scalar loop.  1 thread,
-interleaved with the code before: random TT ~350 -> ~250 µs per tuple, per determinant
-(m, n) = (16, 34) 5.7 -> 3.8 µs.
-
-Then (2026-11-26, session 13): the determinants read the system v-major (``v_major``: one
-vector Horner step per column of v instead of a strided gather), the pivots' logs one per
-~100 orders of magnitude of their product (``_log_accumulate``), the Bézoutian rows by a
-recurrence, O(n m) (``_bezoutian_rows``), the pre-pass's box ranges of degree ≤ 7 in
-registers (``simd.small_box_range``, bit for bit, ~5x), and 16 tuples per parallel work item
-(each zeroes ~1.5 MB of scratch): a (16, 34) determinant 4.3 -> 3.8 µs in alternating runs.  The last
-two change the rounding; the acceptance sets moved by a few paths (TT 42 -> 49 missed,
-99.393 %; RT 7 -> 4; TR 2 -> 1; see ``_bezoutian_rows``).
-
-Path phase (§4.3): at each root v1*, u1 are the roots of a(·, v1*) in the triangle whose
-b(u1, v1*) is relatively small (the smallest always); (u1, v1) is mapped to (u2, v2) by the
-exact scattered ray (no √ approximation, TIR rejected), and the whole path is Gauss–Newton
-polished and validated in path space (both vertices, sides, TIR, inside both triangles:
-``path_space2``), which removes the √ approximation error (paper Fig. 12).  Paths that
-converge onto a stored one are merged keeping the smaller residual (same rule as
-``one_bounce._store_path``, in 4 dimensions).
-
-Piecewise rational √ (eq 23).  r(x) = (c0 + c1 x) / (1 + d1 x) on 15 consecutive pieces of
-[0, 1].  Fit (this file's ``SQRT_PIECES``, checked by tests/test_solver_two_bounce.py
-``test_sqrt_fit``): greedy from x = 1 downwards, each piece the widest
-interval on which a minimax fit (Lawson's iteratively reweighted least squares on the
-linearised error √x (1 + d1 x) - c0 - c1 x, 4,000 linear + 2,000 log-spaced points)
-stays below 6e-5 absolute; the first piece [0, 8.4e-8] (error 2.2e-5: near 0 the error of
-a (1,1) rational fit on [0, b] scales as 0.044 √b, so the first piece must be tiny).  Max
-absolute error over [0, 1] including x → 0: 6.0e-5 (the authors' 6-piece table: 1.7e-2 at
-x = 0).
+Invariants: float64; fixed-size scratch per work item, no allocation per tuple; the vector
+kernels of ``simd.py`` do the scalar loops' operations in their order (bit for bit).
+Tested in tests/test_solver_two_bounce.py (analytic cases, planted paths, brute-force recall
+on random and planted sets, the √ fit, the pre-pass hit test at 144 points per dropped box)
+and bench/two_bounce_recall.py (10,000-tuple acceptance sets).  Design decisions and their
+measurements: docs/decisions/two-bounce-solver.md.
 """
 
 import math
@@ -1011,10 +825,7 @@ def _det_hybrid_window(F, G, n, m, mat):
     the column (ties may pick another row than the dense order), so the result is the
     dense elimination's (tests/test_solver_two_bounce.py, bit for bit).  The sign is that of
     the pivots and of the permutation (original row of each pivot, parity by cycles).
-    Per determinant, µs on one core (2026-11-26): (m, n) = (16, 34) 7.1 -> 6.8, (16, 46)
-    10.8 -> 9.1, (8, 46) 7.3 -> 6.9; TT random tuples ~6 % less time; with the Bézoutian
-    rows in registers and the vector pivot search (simd.py) the whole det_bezout is ~3.8,
-    ~5.4 and ~4.5.  F is overwritten (the multipliers)."""
+    F is overwritten (the multipliers)."""
     L = LANES
     perm = mat[:, L]  # original row of the k-th pivot
     ids = mat[:, L + 1]  # original row in each lane
@@ -1661,10 +1472,8 @@ def heron_sqrt_cut(geo_l, r, margin, S2, M):
 
     At HERON_CUT alone the fit failed for ~40 % of the planted TT orientations (β/S² spanning
     much of [0, 1] over the triangle: √ is steep at its low end), which then solved ~3 eq
-    (23) pieces of degree 46 instead; a higher cut drops that steep part from the fit.  With
-    the finer fit grid (10 instead of 6), measured 2026-11-25 against the code before,
-    interleaved, 1 thread: µs per tuple TT planted 6,090 -> 4,977, random 502 -> 453; RT
-    3,922 -> 3,176 and 175 -> 158; TR 1,803 -> 1,526 and 351 -> 315; RR unchanged."""
+    (23) pieces of degree 46 instead; a higher cut drops that steep part from the fit
+    (measurements: docs/decisions/two-bounce-solver.md)."""
     ok = False
     cut = HERON_CUTS[0]
     c = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)

@@ -11,7 +11,7 @@ Specular Polynomials of Fan et al. 2024, every path; the baselines ``newton``, `
 
     E = I f(w0) (dΩ0/dA) F tint cos θr V
 
-(DESIGN.md; I the light's intensity, f its emission profile, dΩ0/dA the generalised geometry
+(docs/design.md; I the light's intensity, f its emission profile, dΩ0/dA the generalised geometry
 term and F the Fresnel product from ``addon.solver.path_irradiance``, V the visibility of
 every segment through the scene BVH).  A texel's value is the mean over its supersamples.
 Tested against the image-source mirror, Snell through a flat interface and Cycles

@@ -237,7 +237,7 @@ def run_scene(name, args, rows, notes):
                 notes[name]["skipped"][method] = skipped
             if not baked:
                 rows.append(dict(scene=name, method=method, knob=knob, seconds=None, relmse=None,
-                                 note="no chain baked: " + "; ".join(skipped)))
+                                 note="no chain baked (see below the table)"))
                 print(f"  {method:7s} {knob:>10,}  no chain baked ({'; '.join(skipped)})", flush=True)
                 break
             err = rel_mse(stack(out), ref)

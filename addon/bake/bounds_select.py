@@ -1,10 +1,9 @@
 """Bernstein-bounds tuple selection in the bake: which (tuple, texel sample) pairs the
-path-points estimator solves, and which first-vertex casters the forward-flux estimator
-needs at all (Fan et al. 2025, "Bernstein Bounds for Caustics").
+path-points estimator solves (Fan et al. 2025, "Bernstein Bounds for Caustics").
 
 Path-points (``BakeSettings(cull="bounds")``, the default; ``estimators.path_points.chain_pass``):
 
-* one bounce (R, T): :class:`addon.bake.cull.BoundsCull` (chain1's position bounds, §4.2–4.3,
+* one bounce (R, T): :class:`BoundsCull` (chain1's position bounds, §4.2–4.3,
   eq 3–13, §6.1 subdivision); from the sun (a far light point per caster, lights.light_points)
   the bounds are taken with every caster's own point (:func:`one_bounce_bounds_points`), so the
   selection stays exact for the points the solver is given;
@@ -22,9 +21,9 @@ Path-points (``BakeSettings(cull="bounds")``, the default; ``estimators.path_poi
   arithmetic of ``irradiance_two`` (:func:`_image_box`): where only part of a box's light meets
   triangle 2 the position bound falls back to a constant form of (u2, v2) and loses the
   correlation of x2 with x1, the affine map keeps it (a 32 x 16 glass sphere's TT at 64², one
-  sample per texel: 2.33M -> 0.70M pairs, the same 4,096 paths).  A band then keeps a sample for an emitter when a piece
-  of (emitter, the sample's receiver triangle) holds it (:class:`addon.bake.cull.PieceCull`,
-  margin ``cull.BOUNDS_MARGIN``) and the emitter's cone accepts it.
+  sample per texel: the same paths from about a third of the pairs).  A band then keeps a sample for an emitter when a piece
+  of (emitter, the sample's receiver triangle) holds it (:class:`PieceCull`,
+  margin ``BOUNDS_MARGIN``) and the emitter's cone accepts it.
 
   Each step is conservative (no path is lost), so the selection is a subset of the cone cull's
   and holds every pair with a path; ``tests/test_bake_bounds_select.py`` checks both against
@@ -36,7 +35,9 @@ Path-points (``BakeSettings(cull="bounds")``, the default; ``estimators.path_poi
   (:class:`addon.bake.cull.TupleCull`): ``BakeSettings.cull`` other than "bounds", a chain
   other than R, T, RR, RT, TR, TT, no receiver, or no emitter.
 
-Forward flux: :func:`reachable_first` (the conservative reach of first-vertex casters).
+:func:`reachable_first`: the first-vertex casters whose light can reach a receiver by these
+bounds (a reference for the cone test that forward-flux uses, ``cull.first_casters_reaching``,
+which costs far less).
 """
 
 import math
@@ -54,11 +55,211 @@ from ..solver.bounds.chain1 import POS_PAD, _eta_ratio, orientation_mask
 from ..solver.bounds.irradiance_two import (BOUNDED, EDGE_TOL, NO_PATH, UNBOUNDED, _c3, _dadd, _daddc, _drange, _dscale, _hit, _scatter,
                                             _vdotc, _vertex_one, box_reached, piece_irradiance_two, sub_box_irradiance)
 from ..solver.bounds.tuples import _pairs_of
-from ..solver.jit import kernel, run_chunks
-from .cull import (BOUNDS_SETTINGS, PieceCull, _pairs_count, _pairs_fill, one_bounce_emitters, tri_spheres,
-                   two_bounce_emitters)
+from ..solver.bounds.chain1 import bound_one_bounce
+from ..solver.jit import kernel, prange, run_chunks
+from .cull import _pairs_count, _pairs_fill, _sample_ok, one_bounce_emitters, tri_spheres, two_bounce_emitters
 
 P_RECEIVER = PIECE_FIELDS  # the receiver column of the two-bounce rows (as chain2.P_RECEIVER)
+
+
+# ---------------------------------------------------------------------------------------
+# Bounds-driven cull (Fan et al. 2025; two bounces and the sun below,
+# on :class:`PieceCull`): per (light point, caster triangle, receiver triangle)
+# the Bernstein position bound (addon.solver.bounds.chain1) says which receiver points any
+# admissible path can reach; only samples inside a piece's box are kept.  The cone test of
+# the sample (``_sample_ok``) is applied as well, so this cull keeps a subset of the cone
+# cull's tuples, and every (caster, sample) pair holding a path survives both (both are
+# conservative: no path is lost).  Optional γ-sampling (§5, eq 24, 28): each kept pair is
+# solved with probability P = min(γ Ẽ, 1), Ẽ the largest Ē of the pieces covering the sample
+# (eq 21, m = 1) times the light sample's largest RGB intensity, and weighted 1/P.
+
+BOUNDS_MARGIN = 1e-7  # barycentric margin around the pieces' boxes (solver tolerance is 1e-9)
+BOUNDS_SETTINGS = dict(max_depth=3, sigma=1e-4, alpha=2.0)
+
+
+def one_bounce_bounds(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv, irradiance=False, irr_refine=2):
+    """Bounds of every (caster, receiver triangle) pair for the point x0 (one call per IOR).
+
+    Returns (tuples (m, 2) local (caster, receiver) indices, piece_start (m+1,), pieces
+    (p, PIECE_FIELDS), report)."""
+    tuples, pieces, counts, reports = [], [], [], []
+    for e in np.unique(eta):
+        idx = np.flatnonzero(eta == e)
+        res = bound_one_bounce(chain, x0, tri_p[idx], tri_n[idx], rec_p, rec_uv, eta=float(e), irradiance=irradiance,
+                               irr_refine=irr_refine, **BOUNDS_SETTINGS)
+        t = res.tuples.copy()
+        t[:, 0] = idx[t[:, 0]]
+        tuples.append(t)
+        pieces.append(res.pieces)
+        counts.append(np.bincount(res.piece_tuple, minlength=t.shape[0]))
+        reports.append(res.report)
+    tuples = np.concatenate(tuples) if tuples else np.zeros((0, 2), dtype=np.int64)
+    pieces = np.ascontiguousarray(np.concatenate(pieces)) if pieces else np.zeros((0, PIECE_FIELDS))
+    counts = np.concatenate(counts) if counts else np.zeros(0, dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return np.ascontiguousarray(tuples, dtype=np.int64), start, pieces, reports
+
+
+@kernel(parallel=True)
+def _bounds_pairs(fill, tup_e, tup_r, piece_start, pieces, tex_start, tex_order, band_rec, bary, W, H, row0, row1, margin,
+                  part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng, offset, count, out_e,
+                  out_s, out_E):
+    for t in prange(tup_e.shape[0]):
+        e = tup_e[t]
+        r = tup_r[t]
+        k0 = piece_start[t]
+        k1 = piece_start[t + 1]
+        xlo = np.inf
+        xhi = -np.inf
+        ylo = np.inf
+        yhi = -np.inf
+        for k in range(k0, k1):
+            xlo = min(xlo, pieces[k, 8])
+            xhi = max(xhi, pieces[k, 9])
+            ylo = min(ylo, pieces[k, 10])
+            yhi = max(yhi, pieces[k, 11])
+        c = 0
+        o = offset[t] if fill else 0
+        if k1 > k0:
+            i0 = max(0, int(math.floor(xlo * W)) - 1)
+            i1 = min(W - 1, int(math.floor(xhi * W)) + 1)
+            j0 = max(row0, int(math.floor(ylo * H)) - 1)
+            j1 = min(row1 - 1, int(math.floor(yhi * H)) + 1)
+            for j in range(j0, j1 + 1):
+                for i in range(i0, i1 + 1):
+                    tex = (j - row0) * W + i
+                    for z in range(tex_start[tex], tex_start[tex + 1]):
+                        s = tex_order[z]
+                        if band_rec[s] != r:
+                            continue
+                        u = bary[s, 0]
+                        v = bary[s, 1]
+                        best = -1.0
+                        for k in range(k0, k1):
+                            if (u >= pieces[k, 4] - margin and u <= pieces[k, 5] + margin and v >= pieces[k, 6] - margin
+                                    and v <= pieces[k, 7] + margin):
+                                best = max(best, pieces[k, 12])
+                        if best < 0.0:
+                            continue
+                        if not _sample_ok(e, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos,
+                                          rec_ng):
+                            continue
+                        if fill:
+                            out_e[o] = e
+                            out_s[o] = s
+                            out_E[o] = best
+                            o += 1
+                        c += 1
+        count[t] = c
+
+
+class PieceCull:
+    """Candidate (emitter, sample) tuples of one band from bound pieces (Fan et al. 2025 §4.2,
+    eq 4–5; the position bounds of :func:`one_bounce_bounds`, or of the two-bounce bounds of
+    ``addon.bake.bounds_select``): a sample of receiver triangle r is kept for emitter e when
+    the tuple (e, r) has a piece whose receiver-barycentric box holds it (``BOUNDS_MARGIN``
+    wider) and the emitter's cone accepts it (``_sample_ok``), so the selection is a subset of
+    :class:`TupleCull`'s.  ``tuples`` (m, 2) (emitter index, local receiver index into
+    ``rec_tri``), pieces of tuple t at rows piece_start[t]:piece_start[t+1] of ``pieces``
+    (chain1's P_* layout).  ``gamma``: inf enumerates, else each pair is kept with
+    P = min(γ Ẽ, 1) (eq 28, Ẽ the largest Ē of the pieces holding the sample, eq 21 with
+    m = 1); :meth:`batches` yields (emitter index, sample index, 1/P or None)."""
+
+    def _prepare(self, tuples, start, pieces, emitters, rec_tri, band, width, height, gamma, intensity, rng):
+        self.n_bound_tuples = tuples.shape[0]
+        e = emitters
+        local = np.full(int(rec_tri.max()) + 1 if rec_tri.size else 1, -1, dtype=np.int64)
+        local[rec_tri] = np.arange(rec_tri.size)
+        band_rec = np.where(band.tri <= local.size - 1, local[np.minimum(band.tri, local.size - 1)], -1)
+        row0, row1 = band.row0, band.row1
+        tex = band.texel - row0 * width
+        order = np.argsort(tex, kind="stable").astype(np.int64)
+        tex_start = np.searchsorted(tex[order], np.arange((row1 - row0) * width + 1)).astype(np.int64)
+        self.gamma = gamma
+        self.intensity = intensity
+        self.rng = rng if rng is not None else np.random.default_rng(0)
+        self._args = (np.ascontiguousarray(tuples[:, 0]), np.ascontiguousarray(tuples[:, 1]), start, pieces, tex_start, order,
+                      np.ascontiguousarray(band_rec), np.ascontiguousarray(band.bary), int(width), int(height), int(row0),
+                      int(row1), BOUNDS_MARGIN, e.part_start, e.part_c, e.part_r, e.part_d, e.part_t, e.tri_ng, e.tri_p0,
+                      e.side_req,
+                      np.ascontiguousarray(band.position), np.ascontiguousarray(band.geo_normal))
+        n = tuples.shape[0]
+        self.count = np.zeros(n, dtype=np.int64)
+        z = np.zeros(0, dtype=np.int64)
+        if n:
+            _bounds_pairs(False, *self._args, z, self.count, z, z, np.zeros(0))
+
+    @property
+    def upper_bound(self):
+        return int(self.count.sum())
+
+    def batches(self, max_tuples):
+        from ..solver.bounds.sampling import selection_probability
+
+        n = self.count.shape[0]
+        csum = np.cumsum(self.count)
+        q = 0
+        while q < n:
+            base = csum[q - 1] if q else 0
+            q1 = max(q + 1, int(np.searchsorted(csum, base + max_tuples, side="right")))
+            cnt = np.zeros(q1 - q, dtype=np.int64)
+            sel = self.count[q:q1]
+            offset = np.concatenate([[0], np.cumsum(sel)[:-1]]).astype(np.int64)
+            total = int(sel.sum())
+            out_e = np.empty(total, dtype=np.int64)
+            out_s = np.empty(total, dtype=np.int64)
+            out_E = np.empty(total)
+            if total:
+                a = self._args  # the tuples [q, q1) only (their piece rows are absolute)
+                _bounds_pairs(True, a[0][q:q1], a[1][q:q1], a[2][q:q1 + 1], a[3], *a[4:], offset, cnt, out_e, out_s, out_E)
+            q = q1
+            if not total:
+                continue
+            if math.isinf(self.gamma):
+                yield out_e, out_s, None
+                continue
+            p = selection_probability(out_E * self.intensity, self.gamma)
+            keep = self.rng.random(p.shape[0]) < p
+            if keep.any():
+                yield out_e[keep], out_s[keep], 1.0 / p[keep]
+
+
+class BoundsCull(PieceCull):
+    """Candidate (caster, sample) tuples of a one-bounce chain from the Bernstein position
+    bounds (see above; :class:`PieceCull`).  ``emitters``: the chain's :class:`Emitters` (one
+    per caster, its cone used as an extra test); ``x0``: the light point, (3,) for all
+    casters, or (T, 3) one per caster (the sun's far points: the bounds are then taken with
+    each caster's own point, ``addon.bake.bounds_select.one_bounce_bounds_points``);
+    ``tri_p, tri_n, eta``: the casters in emitter order; ``rec_tri`` (r,) global receiver
+    triangle ids and ``rec_uv`` (r,3,2) their UVs; the band as for :class:`TupleCull`.
+    ``gamma``: inf enumerates, else each tuple is kept with P = min(γ Ẽ, 1) (eq 28);
+    :meth:`batches` yields (emitter index, sample index, 1/P).  ``cache``: a dict to keep the
+    bounds in between bands.  ``parallel``: the light points stand for the sun (Ē scaled by
+    |x1 - x0|², ``bounds_select.parallel_scale``).
+    """
+
+    def __init__(self, chain, emitters, x0, tri_p, tri_n, eta, rec_p, rec_tri, rec_uv, band, width, height, gamma=math.inf,
+                 intensity=1.0, rng=None, cache=None, parallel=False):
+        t0 = time.perf_counter()
+        key = "bounds"
+        if cache is not None and key in cache:
+            tuples, start, pieces = cache[key]
+        else:
+            x0 = np.asarray(x0, dtype=np.float64)
+            if x0.ndim == 2 and not np.all(x0 == x0[:1]):
+                tuples, start, pieces, _ = one_bounce_bounds_points(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv,
+                                                                    irradiance=not math.isinf(gamma))
+            else:
+                tuples, start, pieces, _ = one_bounce_bounds(chain, x0.reshape(-1, 3)[0], tri_p, tri_n, eta, rec_p,
+                                                             rec_uv, irradiance=not math.isinf(gamma))
+            if parallel and not math.isinf(gamma):
+                x0s = np.broadcast_to(x0.reshape(-1, 3), (tri_p.shape[0], 3))
+                parallel_scale(pieces, start, tri_p[tuples[:, 0]], x0s[tuples[:, 0]])
+            if cache is not None:
+                cache[key] = (tuples, start, pieces)
+        self.bounds_seconds = time.perf_counter() - t0
+        self._prepare(tuples, start, pieces, emitters, rec_tri, band, width, height, gamma, intensity, rng)
+
 
 TWO_BOUNCE_SETTINGS = dict(max_depth=3, sigma=1e-4, reach_depth=2, levels=1, refine=2, capacity=64, prune=True,
                            irr_depth=1, irr_ratio=2.0, image_split=4)
@@ -698,7 +899,6 @@ def bounds_cull(scene, settings, chain, ls, m, em, tri_of, x0_of, band, W, rec):
     light point, or a point per caster: the sun), :class:`TwoBounceBoundsCull` for RR, RT, TR,
     TT; None (path-points' cone cull) where they do not apply.  The bounds are cached per
     receiver on the chain's emitters (shared by every band)."""
-    from .cull import BoundsCull
 
     if rec is None or em.size == 0 or chain not in ("R", "T", "RR", "RT", "TR", "TT"):
         return None

@@ -20,6 +20,7 @@ import warnings
 
 import bpy
 
+from . import numba_cache
 from .state import MISSING_NUMBA, SHORT_MISSING_NUMBA, STATE, numba_missing
 
 
@@ -36,18 +37,17 @@ def _is_numba_import_error(ex):
 def load_solver():
     """Import numba and the solver lazily (after register() pointed numba's cache at the
     extension user directory); raises UserError when numba / llvmlite cannot be imported."""
-    from . import numba_cache_dir
-
+    cache_dir = numba_cache.directory()
     try:
         import llvmlite  # noqa: F401
         import numba  # noqa: F401
 
         from .. import solver
 
-        if numba_cache_dir:
+        if cache_dir:
             from ..solver.jit import configure_cache
 
-            configure_cache(numba_cache_dir)
+            configure_cache(cache_dir)
     except ImportError as ex:
         if _is_numba_import_error(ex):
             raise UserError(MISSING_NUMBA.format(ex)) from None

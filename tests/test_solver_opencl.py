@@ -86,3 +86,32 @@ def test_device_without_double_precision_is_refused(monkeypatch):
     x0, x2, P, N, _ = planted_tuples(10, "R", seed=25)
     with pytest.raises(opencl_backend.OpenCLNoDoublePrecision, match="fp32-only GPU.*cl_khr_fp64"):
         solve_tuples("R", x0, x2, P, N, 1.5, device="opencl")
+
+
+def _lexsort_reference(tuple_index, uv):
+    order = np.lexsort(tuple(uv[:, k] for k in range(uv.shape[1] - 1, -1, -1)) + (tuple_index,))
+    return tuple_index[order], uv[order]
+
+
+@pytest.mark.parametrize("width", [2, 4])
+def test_canonical_order_is_the_lexicographic_order(width):
+    """compact_paths (per-tuple slots) and canonical_order (paths in any order, as a device
+    writes them) both give the order of a lexsort by (tuple, u, v, ...), ties included."""
+    from addon.solver.api import canonical_order, compact_paths
+
+    rng = np.random.default_rng(5)
+    n, cap = 3000, 8
+    counts = rng.choice([0, 0, 0, 1, 1, 2, 3, 8, 11], size=n)  # 11: more than the slots hold
+    out_uv = rng.integers(0, 4, size=(n, cap, width)) / 4.0  # coarse values: many ties in u
+    ti, uv = compact_paths(out_uv, counts)
+    stored = np.minimum(counts, cap)
+    ref_ti = np.repeat(np.arange(n), stored)
+    ref_uv = np.concatenate([out_uv[t, :c] for t, c in enumerate(stored)])
+    ref_ti, ref_uv = _lexsort_reference(ref_ti, ref_uv)
+    np.testing.assert_array_equal(ti, ref_ti)
+    np.testing.assert_array_equal(uv, ref_uv)
+    shuffle = rng.permutation(ref_ti.size)
+    ti2, uv2 = canonical_order(ref_ti[shuffle], ref_uv[shuffle], n)
+    np.testing.assert_array_equal(ti2, ref_ti)
+    np.testing.assert_array_equal(uv2, ref_uv)
+

@@ -170,18 +170,29 @@ class SpecularPolynomialSolver:
 
 
 def compact_paths(out_uv, out_count):
-    """(n, cap, 2k) per-tuple slots + counts -> (tuple_index (m,), uv (m, 2k)), tuple order."""
-    cap = out_uv.shape[1]
-    counts = np.minimum(out_count, cap)
-    tuple_index = np.repeat(np.arange(out_uv.shape[0], dtype=np.int64), counts)
-    slot = np.arange(tuple_index.shape[0]) - np.repeat(np.cumsum(counts) - counts, counts)
-    uv = out_uv[tuple_index, slot]
-    # Canonical order inside a tuple (by u, then v): the order candidates happen to be found
-    # in is not part of the result, and must not differ between back ends.
-    if uv.shape[0]:
-        order = np.lexsort(tuple(uv[:, k] for k in range(uv.shape[1] - 1, -1, -1)) + (tuple_index,))
-        tuple_index, uv = tuple_index[order], uv[order]
-    return tuple_index, np.ascontiguousarray(uv)
+    """(n, cap, 2k) per-tuple slots + counts -> (tuple_index (m,), uv (m, 2k)) in canonical
+    order (by tuple, then u, then v: ``path_order``)."""
+    from .path_order import gather_sorted
+
+    m = int(np.minimum(out_count, out_uv.shape[1]).sum())
+    tuple_index = np.empty(m, dtype=np.int64)
+    uv = np.empty((m, out_uv.shape[2]))
+    if m:
+        gather_sorted(np.ascontiguousarray(out_uv), np.ascontiguousarray(out_count, dtype=np.int64), tuple_index, uv)
+    return tuple_index, uv
+
+
+def canonical_order(tuple_index, uv, n):
+    """Paths of tuples in [0, n) given in any order -> (tuple_index, uv) in canonical order
+    (by tuple, then u, then v: ``path_order``): the order a device writes them in is not part
+    of the result."""
+    from .path_order import order_by_tuple
+
+    out_index = np.empty(tuple_index.shape[0], dtype=np.int64)
+    out_uv = np.empty(uv.shape)
+    if tuple_index.shape[0]:
+        order_by_tuple(np.ascontiguousarray(tuple_index, dtype=np.int64), np.ascontiguousarray(uv), n, out_index, out_uv)
+    return out_index, out_uv
 
 
 _DEFAULT_SOLVER = SpecularPolynomialSolver()

@@ -115,3 +115,62 @@ def test_canonical_order_is_the_lexicographic_order(width):
     np.testing.assert_array_equal(ti2, ref_ti)
     np.testing.assert_array_equal(uv2, ref_uv)
 
+
+def _mixed_batch(n_random, n_planted, chain, seed):
+    """Random tuples (mostly without a path) with planted ones (a path each) spread among them."""
+    x0, x2, P, N = random_tuples(n_random, seed=seed)
+    p0, p2, pP, pN, _ = planted_tuples(2 * n_planted, chain, seed=seed + 1)
+    at = np.sort(np.random.default_rng(seed).choice(n_random, size=n_planted, replace=False))
+    for a, b in ((x0, p0), (x2, p2), (P, pP), (N, pN)):
+        a[at] = b[:n_planted]
+    return x0, x2, P, N
+
+
+@pytest.mark.parametrize("chain", ["R", "T"])
+def test_opencl_compaction_and_buffer_reuse(chain, monkeypatch):
+    """Paths compacted on the device equal Numba's over consecutive calls of different sizes
+    (the device buffers kept from a larger call serve a smaller one and are replaced for a
+    larger one), and when the path records overflow the device buffers (they grow and the
+    kernel runs again)."""
+    index = _opencl_device_or_skip()
+    solver = SpecularPolynomialSolver()
+    dev = opencl_backend._context(index)
+    monkeypatch.setattr(dev, "buffers", {})  # as on a device's first call
+    monkeypatch.setattr(dev, "path_capacity", 0)
+    sizes = (6000, 1500, 9000)
+    held = None
+    for i, n in enumerate(sizes):
+        x0, x2, P, N = _mixed_batch(n, n // 20, chain, seed=40 + i)
+        numba = solver.solve(chain, x0, x2, P, N, 1.5)
+        ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+        with_paths = np.unique(numba.tuple_index).size
+        assert n // 40 < with_paths < n // 4  # some tuples have paths, most do not
+        np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+        np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+        assert (ocl.report.paths, ocl.report.skipped, ocl.report.overflow) == \
+            (numba.report.paths, numba.report.skipped, numba.report.overflow)
+        buf = dev.buffers["x_start"]
+        assert buf.size >= 24 * n
+        if i == 1:
+            assert buf is held  # the smaller call wrote into the larger call's buffer
+        if i == 2:
+            assert buf is not held  # a larger call replaced it
+        held = buf
+    # path records past the device buffers' capacity: the buffers grow and the kernel runs again
+    monkeypatch.setattr(opencl_backend, "PATH_RECORDS_PER_TUPLE", 0)
+    monkeypatch.setattr(opencl_backend, "PATH_RECORDS_MIN", 16)
+    monkeypatch.setattr(dev, "path_capacity", 0)
+    monkeypatch.setattr(dev, "buffers", {})
+    x0, x2, P, N, _ = planted_tuples(400, chain, seed=47)
+    numba = solver.solve(chain, x0, x2, P, N, 1.5)
+    prof = opencl_backend.Profiler()
+    opencl_backend.set_profiling(index, prof)
+    try:
+        ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+    finally:
+        opencl_backend.set_profiling(index, None)
+    assert numba.uv.shape[0] > 16 and prof.launches == 2
+    assert dev.path_capacity >= numba.uv.shape[0]
+    np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+    np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+    assert ocl.report.paths == numba.report.paths

@@ -98,25 +98,29 @@ class SpecularPolynomialSolver:
         from .one_bounce import MAX_PATHS_ONE_BOUNCE, N_STATS, solve_one_bounce_batch
 
         n = x_start.shape[0]
-        out_uv = np.empty((n, MAX_PATHS_ONE_BOUNCE, 2))
-        out_count = np.zeros(n, dtype=np.int64)
-        stats = np.zeros((n, N_STATS), dtype=np.int64)
         t1 = time.perf_counter()
         if device_index is not None and not stop_after:
+            # compacted on the device: only the paths come back, in no particular order
             from .opencl_backend import solve_one_bounce_opencl
 
-            out_uv, out_count, stats = solve_one_bounce_opencl(device_index, chain == "T", x_start, x_end, P, N, eta)
-        elif n:
-            solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), out_uv, out_count, stats)
-        t2 = time.perf_counter()
-        tuple_index, uv = compact_paths(out_uv, out_count)
+            tuple_index, uv, totals = solve_one_bounce_opencl(device_index, chain == "T", x_start, x_end, P, N, eta)
+            t2 = time.perf_counter()
+            tuple_index, uv = canonical_order(tuple_index, uv, n)
+            report.overflow = int(totals[4])
+        else:
+            out_uv = np.empty((n, MAX_PATHS_ONE_BOUNCE, 2))
+            out_count = np.zeros(n, dtype=np.int64)
+            stats = np.zeros((n, N_STATS), dtype=np.int64)
+            if n:
+                solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), out_uv, out_count, stats)
+            t2 = time.perf_counter()
+            tuple_index, uv = compact_paths(out_uv, out_count)
+            totals = stats.sum(axis=0)
+            report.overflow = int(np.count_nonzero(stats[:, 2] > MAX_PATHS_ONE_BOUNCE))
         t3 = time.perf_counter()
-        totals = stats.sum(axis=0)
-        report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals)
-        report.overflow = int(np.count_nonzero(stats[:, 2] > MAX_PATHS_ONE_BOUNCE))
+        report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals[:4])
         report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
         return SolveResult(tuple_index, uv, report)
-
 
     @staticmethod
     def _opencl_device(device, chain, report):

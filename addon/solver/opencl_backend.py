@@ -5,7 +5,16 @@ written in OpenCL C, step for step, so both return the same paths.  Two bounces:
 pipeline of ``two_bounce.py`` runs in stages over a batch (``two_bounce_staged.py``); the
 Bézout determinants (Fan et al. 2024, eq 29) of the sign scan, the Illinois brackets and the
 refinement's sub-samples run on the device (``opencl/two_bounce.cl``), the systems'
-construction and the path-space polish on Numba.  Double precision is required: a
+construction and the path-space polish on Numba.
+
+Host side: each device keeps its context, queue, programs and device buffers (grow-only, by
+role) between calls; inputs are written without waiting; the one-bounce kernel compacts its
+output on the device (path records and summed statistics only, no per-tuple slots), and
+each two-bounce batch waits once.  Work-groups are small on CPUs and whole warps on GPUs
+(:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
+records the device time of every command and the host steps (``bench/opencl_profile.py``).
+
+Double precision is required: a
 device without ``cl_khr_fp64`` is refused with a clear message.  Without pyopencl or any
 OpenCL device, callers get :class:`OpenCLUnavailable` and fall back to Numba.
 

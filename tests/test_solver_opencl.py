@@ -174,3 +174,28 @@ def test_opencl_compaction_and_buffer_reuse(chain, monkeypatch):
     np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
     np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
     assert ocl.report.paths == numba.report.paths
+
+
+@pytest.mark.parametrize("chain", ["R", "T"])
+def test_opencl_launches_in_batches_and_empty_calls(chain, monkeypatch):
+    """A call larger than ONE_BOUNCE_BATCH runs in several launches (tuple offsets, summed
+    statistics) with Numba's paths; a call without tuples returns nothing."""
+    index = _opencl_device_or_skip()
+    solver = SpecularPolynomialSolver()
+    x0, x2, P, N = _mixed_batch(7000, 700, chain, seed=60)
+    numba = solver.solve(chain, x0, x2, P, N, 1.5)
+    monkeypatch.setattr(opencl_backend, "ONE_BOUNCE_BATCH", 2500)
+    prof = opencl_backend.Profiler()
+    opencl_backend.set_profiling(index, prof)
+    try:
+        ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+    finally:
+        opencl_backend.set_profiling(index, None)
+    assert prof.launches == 3
+    assert numba.uv.shape[0] > 700
+    np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+    np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+    assert (ocl.report.paths, ocl.report.skipped, ocl.report.overflow) == \
+        (numba.report.paths, numba.report.skipped, numba.report.overflow)
+    empty = solver.solve(chain, x0[:0], x2[:0], P[:0], N[:0], 1.5, device=f"opencl:{index}")
+    assert empty.tuple_index.shape == (0,) and empty.uv.shape == (0, 2) and empty.report.paths == 0

@@ -23,12 +23,12 @@ On Linux CPUs, Debian's ``pocl-opencl-icd`` provides a device; set
 """
 
 import os
+import time
 
 import numpy as np
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "opencl", "one_bounce.cl")
 _KERNEL_FILE_2 = os.path.join(os.path.dirname(os.path.abspath(__file__)), "opencl", "two_bounce.cl")
-_MAX_PATHS = 8
 # Work-group size on CPU devices: every work-item holds ~13 KB (one bounce) or ~18 KB (two
 # bounces) of private scratch, and CPU drivers (PoCL) place a whole work-group's private
 # memory on one thread's stack, so groups stay small there.
@@ -263,8 +263,6 @@ def solve_one_bounce_opencl(index, refract, x_start, x_end, P, N, eta):
     Returns (tuple_index (m,) int64, uv (m, 2), totals (4,) int64 = roots, candidates, paths,
     skipped, overflow = tuples with more than 8 paths): the stored paths of every tuple, in
     no particular order (the caller sorts them), and the summed statistics."""
-    import time
-
     d = _context(index)
     t0 = time.perf_counter()
     n = x_start.shape[0]
@@ -294,8 +292,6 @@ def _one_bounce_launch(d, refract, arrays, first):
     the kept buffers, the accumulators zeroed, the kernel run, then the accumulators and the
     path records read back.  When the records overflow the path buffers, they grow to fit
     and the kernel runs again."""
-    import time
-
     cl = d.cl
     n = arrays[0].shape[0]
     bufs = [d.write(role, a) for role, a in zip(("x_start", "x_end", "P", "N", "eta"), arrays)]

@@ -178,10 +178,12 @@ def opencl_lines(opencl_rows, threads_all, args):
     lines.append("")
     lines.append("Two bounces on OpenCL: systems built and paths polished on Numba, the Bézout determinants, "
                  "Illinois brackets and refinement sub-samples on the device (`addon/solver/two_bounce_staged.py`); "
-                 "the determinant counts differ by < 0.1 % (log/exp of two compilers: an Illinois step now and then), "
-                 "the paths do not. PoCL runs on the same 2 shared cores as Numba. "
-                 "No GPU was lent to this task; on an NVIDIA GPU run `bench/solver.py --opencl` with the device index "
-                 "of the GPU (`OPENCL_DEVICE=N`) to add its rows.")
+                 "the determinant counts differ by under 1 % (log/exp of two compilers: an Illinois step now and then), "
+                 "the paths do not. "
+                 + ("PoCL runs on the same cores as Numba; on an NVIDIA GPU run `bench/solver.py --opencl` with the "
+                    "device index of the GPU (`OPENCL_DEVICE=N`, or `bench/gpu_check.sh` on a lent machine) for its rows."
+                    if "Portable Computing Language" in opencl_rows[0]["device"] else
+                    f"Host: {os.cpu_count()} cores beside the device. Where the time goes: `bench/opencl_profile.py`."))
     return lines
 
 

@@ -86,3 +86,116 @@ def test_device_without_double_precision_is_refused(monkeypatch):
     x0, x2, P, N, _ = planted_tuples(10, "R", seed=25)
     with pytest.raises(opencl_backend.OpenCLNoDoublePrecision, match="fp32-only GPU.*cl_khr_fp64"):
         solve_tuples("R", x0, x2, P, N, 1.5, device="opencl")
+
+
+def _lexsort_reference(tuple_index, uv):
+    order = np.lexsort(tuple(uv[:, k] for k in range(uv.shape[1] - 1, -1, -1)) + (tuple_index,))
+    return tuple_index[order], uv[order]
+
+
+@pytest.mark.parametrize("width", [2, 4])
+def test_canonical_order_is_the_lexicographic_order(width):
+    """compact_paths (per-tuple slots) and canonical_order (paths in any order, as a device
+    writes them) both give the order of a lexsort by (tuple, u, v, ...), ties included."""
+    from addon.solver.api import canonical_order, compact_paths
+
+    rng = np.random.default_rng(5)
+    n, cap = 3000, 8
+    counts = rng.choice([0, 0, 0, 1, 1, 2, 3, 8, 11], size=n)  # 11: more than the slots hold
+    out_uv = rng.integers(0, 4, size=(n, cap, width)) / 4.0  # coarse values: many ties in u
+    ti, uv = compact_paths(out_uv, counts)
+    stored = np.minimum(counts, cap)
+    ref_ti = np.repeat(np.arange(n), stored)
+    ref_uv = np.concatenate([out_uv[t, :c] for t, c in enumerate(stored)])
+    ref_ti, ref_uv = _lexsort_reference(ref_ti, ref_uv)
+    np.testing.assert_array_equal(ti, ref_ti)
+    np.testing.assert_array_equal(uv, ref_uv)
+    shuffle = rng.permutation(ref_ti.size)
+    ti2, uv2 = canonical_order(ref_ti[shuffle], ref_uv[shuffle], n)
+    np.testing.assert_array_equal(ti2, ref_ti)
+    np.testing.assert_array_equal(uv2, ref_uv)
+
+
+def _mixed_batch(n_random, n_planted, chain, seed):
+    """Random tuples (mostly without a path) with planted ones (a path each) spread among them."""
+    x0, x2, P, N = random_tuples(n_random, seed=seed)
+    p0, p2, pP, pN, _ = planted_tuples(2 * n_planted, chain, seed=seed + 1)
+    at = np.sort(np.random.default_rng(seed).choice(n_random, size=n_planted, replace=False))
+    for a, b in ((x0, p0), (x2, p2), (P, pP), (N, pN)):
+        a[at] = b[:n_planted]
+    return x0, x2, P, N
+
+
+@pytest.mark.parametrize("chain", ["R", "T"])
+def test_opencl_compaction_and_buffer_reuse(chain, monkeypatch):
+    """Paths compacted on the device equal Numba's over consecutive calls of different sizes
+    (the device buffers kept from a larger call serve a smaller one and are replaced for a
+    larger one), and when the path records overflow the device buffers (they grow and the
+    kernel runs again)."""
+    index = _opencl_device_or_skip()
+    solver = SpecularPolynomialSolver()
+    dev = opencl_backend._context(index)
+    monkeypatch.setattr(dev, "buffers", {})  # as on a device's first call
+    monkeypatch.setattr(dev, "path_capacity", 0)
+    sizes = (6000, 1500, 9000)
+    held = None
+    for i, n in enumerate(sizes):
+        x0, x2, P, N = _mixed_batch(n, n // 20, chain, seed=40 + i)
+        numba = solver.solve(chain, x0, x2, P, N, 1.5)
+        ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+        with_paths = np.unique(numba.tuple_index).size
+        assert n // 40 < with_paths < n // 4  # some tuples have paths, most do not
+        np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+        np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+        assert (ocl.report.paths, ocl.report.skipped, ocl.report.overflow) == \
+            (numba.report.paths, numba.report.skipped, numba.report.overflow)
+        buf = dev.buffers["x_start"]
+        assert buf.size >= 24 * n
+        if i == 1:
+            assert buf is held  # the smaller call wrote into the larger call's buffer
+        if i == 2:
+            assert buf is not held  # a larger call replaced it
+        held = buf
+    # path records past the device buffers' capacity: the buffers grow and the kernel runs again
+    monkeypatch.setattr(opencl_backend, "PATH_RECORDS_PER_TUPLE", 0)
+    monkeypatch.setattr(opencl_backend, "PATH_RECORDS_MIN", 16)
+    monkeypatch.setattr(dev, "path_capacity", 0)
+    monkeypatch.setattr(dev, "buffers", {})
+    x0, x2, P, N, _ = planted_tuples(400, chain, seed=47)
+    numba = solver.solve(chain, x0, x2, P, N, 1.5)
+    prof = opencl_backend.Profiler()
+    opencl_backend.set_profiling(index, prof)
+    try:
+        ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+    finally:
+        opencl_backend.set_profiling(index, None)
+    assert numba.uv.shape[0] > 16 and prof.launches == 2
+    assert dev.path_capacity >= numba.uv.shape[0]
+    np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+    np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+    assert ocl.report.paths == numba.report.paths
+
+
+@pytest.mark.parametrize("chain", ["R", "T"])
+def test_opencl_launches_in_batches_and_empty_calls(chain, monkeypatch):
+    """A call larger than ONE_BOUNCE_BATCH runs in several launches (tuple offsets, summed
+    statistics) with Numba's paths; a call without tuples returns nothing."""
+    index = _opencl_device_or_skip()
+    solver = SpecularPolynomialSolver()
+    x0, x2, P, N = _mixed_batch(7000, 700, chain, seed=60)
+    numba = solver.solve(chain, x0, x2, P, N, 1.5)
+    monkeypatch.setattr(opencl_backend, "ONE_BOUNCE_BATCH", 2500)
+    prof = opencl_backend.Profiler()
+    opencl_backend.set_profiling(index, prof)
+    try:
+        ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+    finally:
+        opencl_backend.set_profiling(index, None)
+    assert prof.launches == 3
+    assert numba.uv.shape[0] > 700
+    np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+    np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+    assert (ocl.report.paths, ocl.report.skipped, ocl.report.overflow) == \
+        (numba.report.paths, numba.report.skipped, numba.report.overflow)
+    empty = solver.solve(chain, x0[:0], x2[:0], P[:0], N[:0], 1.5, device=f"opencl:{index}")
+    assert empty.tuple_index.shape == (0,) and empty.uv.shape == (0, 2) and empty.report.paths == 0

@@ -98,25 +98,29 @@ class SpecularPolynomialSolver:
         from .one_bounce import MAX_PATHS_ONE_BOUNCE, N_STATS, solve_one_bounce_batch
 
         n = x_start.shape[0]
-        out_uv = np.empty((n, MAX_PATHS_ONE_BOUNCE, 2))
-        out_count = np.zeros(n, dtype=np.int64)
-        stats = np.zeros((n, N_STATS), dtype=np.int64)
         t1 = time.perf_counter()
         if device_index is not None and not stop_after:
+            # compacted on the device: only the paths come back, in no particular order
             from .opencl_backend import solve_one_bounce_opencl
 
-            out_uv, out_count, stats = solve_one_bounce_opencl(device_index, chain == "T", x_start, x_end, P, N, eta)
-        elif n:
-            solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), out_uv, out_count, stats)
-        t2 = time.perf_counter()
-        tuple_index, uv = compact_paths(out_uv, out_count)
+            tuple_index, uv, totals = solve_one_bounce_opencl(device_index, chain == "T", x_start, x_end, P, N, eta)
+            t2 = time.perf_counter()
+            tuple_index, uv = canonical_order(tuple_index, uv, n)
+            report.overflow = int(totals[4])
+        else:
+            out_uv = np.empty((n, MAX_PATHS_ONE_BOUNCE, 2))
+            out_count = np.zeros(n, dtype=np.int64)
+            stats = np.zeros((n, N_STATS), dtype=np.int64)
+            if n:
+                solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), out_uv, out_count, stats)
+            t2 = time.perf_counter()
+            tuple_index, uv = compact_paths(out_uv, out_count)
+            totals = stats.sum(axis=0)
+            report.overflow = int(np.count_nonzero(stats[:, 2] > MAX_PATHS_ONE_BOUNCE))
         t3 = time.perf_counter()
-        totals = stats.sum(axis=0)
-        report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals)
-        report.overflow = int(np.count_nonzero(stats[:, 2] > MAX_PATHS_ONE_BOUNCE))
+        report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals[:4])
         report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
         return SolveResult(tuple_index, uv, report)
-
 
     @staticmethod
     def _opencl_device(device, chain, report):
@@ -170,18 +174,29 @@ class SpecularPolynomialSolver:
 
 
 def compact_paths(out_uv, out_count):
-    """(n, cap, 2k) per-tuple slots + counts -> (tuple_index (m,), uv (m, 2k)), tuple order."""
-    cap = out_uv.shape[1]
-    counts = np.minimum(out_count, cap)
-    tuple_index = np.repeat(np.arange(out_uv.shape[0], dtype=np.int64), counts)
-    slot = np.arange(tuple_index.shape[0]) - np.repeat(np.cumsum(counts) - counts, counts)
-    uv = out_uv[tuple_index, slot]
-    # Canonical order inside a tuple (by u, then v): the order candidates happen to be found
-    # in is not part of the result, and must not differ between back ends.
-    if uv.shape[0]:
-        order = np.lexsort(tuple(uv[:, k] for k in range(uv.shape[1] - 1, -1, -1)) + (tuple_index,))
-        tuple_index, uv = tuple_index[order], uv[order]
-    return tuple_index, np.ascontiguousarray(uv)
+    """(n, cap, 2k) per-tuple slots + counts -> (tuple_index (m,), uv (m, 2k)) in canonical
+    order (by tuple, then u, then v: ``path_order``)."""
+    from .path_order import gather_sorted
+
+    m = int(np.minimum(out_count, out_uv.shape[1]).sum())
+    tuple_index = np.empty(m, dtype=np.int64)
+    uv = np.empty((m, out_uv.shape[2]))
+    if m:
+        gather_sorted(np.ascontiguousarray(out_uv), np.ascontiguousarray(out_count, dtype=np.int64), tuple_index, uv)
+    return tuple_index, uv
+
+
+def canonical_order(tuple_index, uv, n):
+    """Paths of tuples in [0, n) given in any order -> (tuple_index, uv) in canonical order
+    (by tuple, then u, then v: ``path_order``): the order a device writes them in is not part
+    of the result."""
+    from .path_order import order_by_tuple
+
+    out_index = np.empty(tuple_index.shape[0], dtype=np.int64)
+    out_uv = np.empty(uv.shape)
+    if tuple_index.shape[0]:
+        order_by_tuple(np.ascontiguousarray(tuple_index, dtype=np.int64), np.ascontiguousarray(uv), n, out_index, out_uv)
+    return out_index, out_uv
 
 
 _DEFAULT_SOLVER = SpecularPolynomialSolver()

@@ -5,7 +5,16 @@ written in OpenCL C, step for step, so both return the same paths.  Two bounces:
 pipeline of ``two_bounce.py`` runs in stages over a batch (``two_bounce_staged.py``); the
 Bézout determinants (Fan et al. 2024, eq 29) of the sign scan, the Illinois brackets and the
 refinement's sub-samples run on the device (``opencl/two_bounce.cl``), the systems'
-construction and the path-space polish on Numba.  Double precision is required: a
+construction and the path-space polish on Numba.
+
+Host side: each device keeps its context, queue, programs and device buffers (grow-only, by
+role) between calls; inputs are written without waiting; the one-bounce kernel compacts its
+output on the device (path records and summed statistics only, no per-tuple slots), and
+each two-bounce batch waits once.  Work-groups are small on CPUs and whole warps on GPUs
+(:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
+records the device time of every command and the host steps (``bench/opencl_profile.py``).
+
+Double precision is required: a
 device without ``cl_khr_fp64`` is refused with a clear message.  Without pyopencl or any
 OpenCL device, callers get :class:`OpenCLUnavailable` and fall back to Numba.
 
@@ -14,15 +23,30 @@ On Linux CPUs, Debian's ``pocl-opencl-icd`` provides a device; set
 """
 
 import os
+import time
 
 import numpy as np
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "opencl", "one_bounce.cl")
 _KERNEL_FILE_2 = os.path.join(os.path.dirname(os.path.abspath(__file__)), "opencl", "two_bounce.cl")
-_MAX_PATHS = 8
-WORK_GROUP = 8
-_cache = {}
-_cache2 = {}
+# Work-group size on CPU devices: every work-item holds ~13 KB (one bounce) or ~18 KB (two
+# bounces) of private scratch, and CPU drivers (PoCL) place a whole work-group's private
+# memory on one thread's stack, so groups stay small there.
+CPU_WORK_GROUP = 8
+# Work-group size asked for on GPUs (clamped to what the kernel allows): whole warps /
+# wavefronts, a few per group.
+GPU_WORK_GROUP = 128
+# Tuples per one-bounce launch: bounds the device buffers (~200 bytes in, ~40 bytes of
+# path records per tuple) while keeping launches large.
+ONE_BOUNCE_BATCH = 1 << 22
+# Path records held on the device per one-bounce launch: this many per tuple (planted
+# workloads have ~1.1), at least PATH_RECORDS_MIN; more are made room for by running again.
+PATH_RECORDS_PER_TUPLE = 2
+PATH_RECORDS_MIN = 1024
+# Statistic slots of the one-bounce kernel (acc[1:], 5 counters each): spreads its atomics.
+N_SLOTS = 1024
+_cache = {}  # device index -> _Device
+_cache2 = {}  # device index -> its two-bounce kernels (det_batch, illinois_batch, local size)
 
 
 class OpenCLUnavailable(RuntimeError):
@@ -67,7 +91,127 @@ def list_devices():
     return found
 
 
+class Profiler:
+    """Per-stage times of the OpenCL calls while attached with :func:`set_profiling`:
+    device time of each enqueued command (OpenCL profiling events, by stage label) and
+    host seconds of the host-side steps, plus launch and synchronisation counts."""
+
+    def __init__(self):
+        self.events = []
+        self.host = {}
+        self.launches = 0
+        self.syncs = 0
+
+    def event(self, stage, evt):
+        self.events.append((stage, evt))
+
+    def host_time(self, stage, seconds):
+        self.host[stage] = self.host.get(stage, 0.0) + seconds
+
+    def device_seconds(self):
+        """{stage: summed device seconds of its commands}."""
+        out = {}
+        for stage, evt in self.events:
+            evt.wait()
+            out[stage] = out.get(stage, 0.0) + (evt.profile.end - evt.profile.start) * 1e-9
+        return out
+
+
+class _Device:
+    """One OpenCL device: context, queue, programs, work-group sizes and the device buffers
+    kept between calls (grow-only, by role)."""
+
+    def __init__(self, cl, dev, label):
+        self.cl = cl
+        self.dev = dev
+        self.label = label
+        self.ctx = cl.Context([dev])
+        self.queue = cl.CommandQueue(self.ctx)
+        self.profiler = None
+        self.is_cpu = bool(dev.type & cl.device_type.CPU)
+        self.kernel_one = cl.Kernel(self._build(_KERNEL_FILE), "solve_one_bounce")
+        self.local_one = self.work_group(self.kernel_one)
+        self.kernels_two = None
+        self.buffers = {}
+        self.path_capacity = 0
+
+    def _build(self, path):
+        with open(path) as f:
+            source = f.read()
+        return self.cl.Program(self.ctx, source).build(options=["-cl-std=CL1.2"])
+
+    def work_group(self, kernel):
+        """The work-group size for kernel here: CPU_WORK_GROUP on CPUs; on other devices
+        GPU_WORK_GROUP (or CAUSTIC_OPENCL_WORK_GROUP) within the kernel's limit, rounded down
+        to the preferred multiple (the warp width)."""
+        cl = self.cl
+        if self.is_cpu:
+            return CPU_WORK_GROUP
+        wanted = int(os.environ.get("CAUSTIC_OPENCL_WORK_GROUP", GPU_WORK_GROUP))
+        limit = kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev)
+        multiple = kernel.get_work_group_info(cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE, self.dev)
+        size = min(wanted, limit)
+        return max(multiple * (size // multiple), 1) if size >= multiple else max(size, 1)
+
+    def kernel_info(self, kernel):
+        """(kernel's maximum work-group size, private memory bytes per work-item or None)."""
+        cl = self.cl
+        limit = kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev)
+        try:
+            private = kernel.get_work_group_info(cl.kernel_work_group_info.PRIVATE_MEM_SIZE, self.dev)
+        except Exception:  # not every driver answers
+            private = None
+        return int(limit), private
+
+    def set_profiling(self, profiler):
+        """Attach a Profiler (a new queue with profiling events) or detach it (None)."""
+        props = self.cl.command_queue_properties.PROFILING_ENABLE if profiler is not None else 0
+        self.queue.finish()
+        self.queue = self.cl.CommandQueue(self.ctx, properties=props)
+        self.profiler = profiler
+
+    def buffer(self, role, nbytes):
+        """A device buffer of at least nbytes for role, reused while large enough; a
+        larger request replaces it by one 1.5 times as large (fewer reallocations when
+        sizes creep up)."""
+        held = self.buffers.get(role)
+        if held is None or held.size < nbytes:
+            size = max(nbytes, int(1.5 * held.size) if held is not None else 0, 64)
+            held = self.cl.Buffer(self.ctx, self.cl.mem_flags.READ_WRITE, size)
+            self.buffers[role] = held
+        return held
+
+    def write(self, role, array, stage="host->device"):
+        """Enqueue (without waiting) array into role's buffer; returns the buffer."""
+        buf = self.buffer(role, array.nbytes)
+        if array.nbytes:
+            evt = self.cl.enqueue_copy(self.queue, buf, array, is_blocking=False)
+            if self.profiler is not None:
+                self.profiler.event(stage, evt)
+        return buf
+
+    def read(self, array, buf, stage="device->host", wait=True):
+        if array.nbytes:
+            evt = self.cl.enqueue_copy(self.queue, array, buf, is_blocking=wait)
+            if self.profiler is not None:
+                self.profiler.event(stage, evt)
+                if wait:
+                    self.profiler.syncs += 1
+
+    def launch(self, kernel, stage, n, local, *args):
+        padded = (n + local - 1) // local * local
+        evt = kernel(self.queue, (padded,), (local,), *args)
+        if self.profiler is not None:
+            self.profiler.event(stage, evt)
+            self.profiler.launches += 1
+
+    def host(self, stage, seconds):
+        if self.profiler is not None:
+            self.profiler.host_time(stage, seconds)
+
+
 def _context(index):
+    """The _Device for OpenCL device index, created (program built) on first use."""
     if index in _cache:
         return _cache[index]
     devices = list_devices()  # raises OpenCLUnavailable without pyopencl or a platform
@@ -82,70 +226,120 @@ def _context(index):
     if not fp64:
         raise OpenCLNoDoublePrecision(f"OpenCL device {index} ({name}) has no double precision (cl_khr_fp64); "
                                       "the caustic solver needs it: choose another device or the Numba back end")
-    ctx = cl.Context([dev])
-    queue = cl.CommandQueue(ctx)
-    with open(_KERNEL_FILE) as f:
-        source = f.read()
-    program = cl.Program(ctx, source).build(options=["-cl-std=CL1.2"])
-    entry = (ctx, queue, cl.Kernel(program, "solve_one_bounce"), f"{platform}: {name}")
+    entry = _Device(cl, dev, f"{platform}: {name}")
     _cache[index] = entry
     return entry
 
 
 def device_name(index):
-    return _context(index)[3]
+    return _context(index).label
+
+
+def set_profiling(index, profiler):
+    """Record per-stage times of device index's calls into profiler (a :class:`Profiler`;
+    None stops recording).  The queue is recreated with profiling events enabled."""
+    _context(index).set_profiling(profiler)
+
+
+def device_info(index):
+    """What the profile reports about device index: its name, type, compute units, and per
+    kernel the work-group size used, the kernel's maximum and its private memory per
+    work-item (None where the driver does not say)."""
+    d = _context(index)
+    info = dict(name=d.label, type="CPU" if d.is_cpu else "GPU/accelerator", compute_units=d.dev.max_compute_units,
+                kernels={})
+    limit, private = d.kernel_info(d.kernel_one)
+    info["kernels"]["solve_one_bounce"] = dict(local=d.local_one, max_local=limit, private_bytes=private)
+    if d.kernels_two is not None:
+        k_det, k_ill, local = d.kernels_two
+        for name, k in (("det_batch", k_det), ("illinois_batch", k_ill)):
+            limit, private = d.kernel_info(k)
+            info["kernels"][name] = dict(local=local, max_local=limit, private_bytes=private)
+    return info
 
 
 def solve_one_bounce_opencl(index, refract, x_start, x_end, P, N, eta):
-    """Run the OpenCL kernel; returns (out_uv (n, 8, 2), out_count (n,), stats (n, 4)) like the
-    Numba batch kernel."""
-    import pyopencl as cl
-
-    ctx, queue, kernel, _ = _context(index)
+    """Run the one-bounce kernel over the tuples in launches of up to ONE_BOUNCE_BATCH.
+    Returns (tuple_index (m,) int64, uv (m, 2), totals (4,) int64 = roots, candidates, paths,
+    skipped, overflow = tuples with more than 8 paths): the stored paths of every tuple, in
+    no particular order (the caller sorts them), and the summed statistics."""
+    d = _context(index)
+    t0 = time.perf_counter()
     n = x_start.shape[0]
-    out_uv = np.zeros((n, _MAX_PATHS, 2))
-    out_count = np.zeros(n, dtype=np.int64)
-    stats = np.zeros((n, 4), dtype=np.int64)
-    if n == 0:
-        return out_uv, out_count, stats
-    mf = cl.mem_flags
-    bufs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a, dtype=np.float64))
-            for a in (x_start, x_end, P[:, 0], N[:, 0], eta)]
-    uv_buf = cl.Buffer(ctx, mf.WRITE_ONLY, out_uv.nbytes)
-    count_buf = cl.Buffer(ctx, mf.WRITE_ONLY, out_count.nbytes)
-    stats_buf = cl.Buffer(ctx, mf.WRITE_ONLY, stats.nbytes)
-    # Small work-groups: every work-item holds ~13 KB of private scratch, and CPU drivers
-    # (PoCL) place a whole work-group's private memory on one thread's stack.
-    local = WORK_GROUP
-    padded = (n + local - 1) // local * local
-    kernel(queue, (padded,), (local,), np.int32(1 if refract else 0), *bufs, np.int32(n), uv_buf, count_buf, stats_buf)
-    cl.enqueue_copy(queue, out_uv, uv_buf)
-    cl.enqueue_copy(queue, out_count, count_buf)
-    cl.enqueue_copy(queue, stats, stats_buf)
-    queue.finish()
-    return out_uv, out_count, stats
+    # P and N of (n, 1, 3, 3) are read in place when contiguous (the kernel reads 9 doubles a tuple)
+    arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in (x_start, x_end, P, N, eta)]
+    d.host("pack", time.perf_counter() - t0)
+    parts_index, parts_uv = [], []
+    totals = np.zeros(5, dtype=np.int64)
+    for b0 in range(0, n, ONE_BOUNCE_BATCH):
+        b1 = min(n, b0 + ONE_BOUNCE_BATCH)
+        ti, uv, sums = _one_bounce_launch(d, refract, [a[b0:b1] for a in arrays], b0)
+        parts_index.append(ti)
+        parts_uv.append(uv)
+        totals += sums
+    t1 = time.perf_counter()
+    if len(parts_index) == 1:
+        tuple_index, uv = parts_index[0], parts_uv[0]
+    else:
+        tuple_index = np.concatenate(parts_index) if parts_index else np.zeros(0, dtype=np.int64)
+        uv = np.concatenate(parts_uv) if parts_uv else np.zeros((0, 2))
+    d.host("unpack", time.perf_counter() - t1)
+    return tuple_index, uv, totals
+
+
+def _one_bounce_launch(d, refract, arrays, first):
+    """One launch over the tuples of arrays (x_start, x_end, P, N, eta): inputs written into
+    the kept buffers, the accumulators zeroed, the kernel run, then the accumulators and the
+    path records read back.  When the records overflow the path buffers, they grow to fit
+    and the kernel runs again."""
+    cl = d.cl
+    n = arrays[0].shape[0]
+    bufs = [d.write(role, a) for role, a in zip(("x_start", "x_end", "P", "N", "eta"), arrays)]
+    acc = np.zeros(1 + 5 * N_SLOTS, dtype=np.int32)
+    acc_buf = d.buffer("acc", acc.nbytes)
+    capacity = max(d.path_capacity, PATH_RECORDS_PER_TUPLE * n, PATH_RECORDS_MIN)
+    while True:
+        d.path_capacity = capacity
+        tuple_buf = d.buffer("path_tuple", 4 * capacity)
+        uv_buf = d.buffer("path_uv", 16 * capacity)
+        evt = cl.enqueue_fill_buffer(d.queue, acc_buf, np.int32(0), 0, acc.nbytes)
+        if d.profiler is not None:
+            d.profiler.event("zero", evt)
+        d.launch(d.kernel_one, "kernel solve_one_bounce", n, d.local_one, np.int32(1 if refract else 0), *bufs,
+                 np.int32(n), np.int32(first), np.int32(capacity), np.int32(N_SLOTS), acc_buf, tuple_buf, uv_buf)
+        d.read(acc, acc_buf)
+        m = int(acc[0])
+        if m <= capacity:
+            break
+        capacity = int(1.25 * m)
+    t0 = time.perf_counter()
+    tuple_index = np.empty(m, dtype=np.int32)
+    uv = np.empty((m, 2))
+    d.host("unpack", time.perf_counter() - t0)
+    d.read(tuple_index, tuple_buf, wait=False)
+    d.read(uv, uv_buf, wait=False)
+    d.queue.finish()
+    if d.profiler is not None and m:
+        d.profiler.syncs += 1
+    sums = acc[1:].reshape(N_SLOTS, 5).sum(axis=0, dtype=np.int64)
+    return tuple_index.astype(np.int64), uv, sums
 
 
 # --- two bounces --------------------------------------------------------------------------------
 
 
 def _two_bounce_program(index):
-    """(context, queue, det_batch, illinois_batch, local size) on device index, built once."""
-    if index in _cache2:
-        return _cache2[index]
-    import pyopencl as cl
-
-    ctx, queue, _, _ = _context(index)  # OpenCLUnavailable / OpenCLNoDoublePrecision as for one bounce
-    with open(_KERNEL_FILE_2) as f:
-        source = f.read()
-    program = cl.Program(ctx, source).build(options=["-cl-std=CL1.2"])
-    # ~18 KB of private scratch per work-item (the Bézout matrix): CPU drivers (PoCL) put a
-    # whole work-group's private memory on one thread's stack, so small groups there; a GPU
-    # keeps it in per-thread local memory.
-    local = WORK_GROUP if ctx.devices[0].type & cl.device_type.CPU else 64
-    entry = (ctx, queue, cl.Kernel(program, "det_batch"), cl.Kernel(program, "illinois_batch"), local)
-    _cache2[index] = entry
-    return entry
+    """The _Device of index with its two-bounce kernels (det_batch, illinois_batch, local
+    size) built once."""
+    d = _context(index)  # OpenCLUnavailable / OpenCLNoDoublePrecision as for one bounce
+    if d.kernels_two is None:
+        program = d._build(_KERNEL_FILE_2)
+        k_det, k_ill = d.cl.Kernel(program, "det_batch"), d.cl.Kernel(program, "illinois_batch")
+        # ~18 KB of private scratch per work-item (the Bézout matrix): small groups on CPUs
+        # (see CPU_WORK_GROUP); on a GPU it lives in per-thread local memory.
+        d.kernels_two = (k_det, k_ill, min(d.work_group(k_det), d.work_group(k_ill)))
+    _cache2[index] = d.kernels_two
+    return d
 
 
 def two_bounce_device_name(index):
@@ -158,37 +352,33 @@ def two_bounce_device_name(index):
 class OpenCLDeterminants:
     """Stages B and D of ``two_bounce_staged`` on an OpenCL device: batches of sign and
     log|det| of Bézout matrices at given v1 (eq 29) and of Illinois brackets, over the
-    packed systems given to :meth:`load`.  One work-item per job."""
+    packed systems given to :meth:`load`.  One work-item per job; the device buffers are
+    the device's kept ones (by role), written without waiting, and each batch waits once,
+    for its results."""
 
     def __init__(self, index):
-        self.ctx, self.queue, self.k_det, self.k_ill, self.local = _two_bounce_program(index)
-        self.name = device_name(index)
+        self.device = _two_bounce_program(index)
+        self.k_det, self.k_ill, self.local = self.device.kernels_two
+        self.name = self.device.label
 
     def load(self, coef, sysint3, b_offset):
         """coef (S, stride) packed systems, sysint3 (S, 3) int32 (da, db, n)."""
-        import pyopencl as cl
-
-        mf = cl.mem_flags
         self.stride = np.int32(coef.shape[1])
         self.b_offset = np.int32(b_offset)
-        coef = np.ascontiguousarray(coef, dtype=np.float64)
-        sysint3 = np.ascontiguousarray(sysint3, dtype=np.int32)
-        self.coef_buf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=coef if coef.size else np.zeros(1))
-        self.sys_buf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                                 hostbuf=sysint3 if sysint3.size else np.zeros(3, dtype=np.int32))
+        self.coef_buf = self.device.write("coef", np.ascontiguousarray(coef, dtype=np.float64))
+        self.sys_buf = self.device.write("sysint3", np.ascontiguousarray(sysint3, dtype=np.int32))
 
-    def _run(self, kernel, n, inputs, outputs):
-        import pyopencl as cl
-
-        mf = cl.mem_flags
-        bufs = [cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a)) for a in inputs]
-        out_bufs = [cl.Buffer(self.ctx, mf.WRITE_ONLY, o.nbytes) for o in outputs]
-        padded = (n + self.local - 1) // self.local * self.local
-        kernel(self.queue, (padded,), (self.local,), self.coef_buf, self.sys_buf, self.stride, self.b_offset, *bufs,
-               np.int32(n), *out_bufs)
+    def _run(self, kernel, stage, n, inputs, outputs):
+        d = self.device
+        bufs = [d.write(f"in{i}", a) for i, a in enumerate(inputs)]
+        out_bufs = [d.buffer(f"out{i}", o.nbytes) for i, o in enumerate(outputs)]
+        d.launch(kernel, stage, n, self.local, self.coef_buf, self.sys_buf, self.stride, self.b_offset, *bufs,
+                 np.int32(n), *out_bufs)
         for o, b in zip(outputs, out_bufs):
-            cl.enqueue_copy(self.queue, o, b)
-        self.queue.finish()
+            d.read(o, b, wait=False)
+        d.queue.finish()
+        if d.profiler is not None:
+            d.profiler.syncs += 1
 
     def dets(self, job_sys, job_v):
         """(sign (J,) int32, log|det| (J,), determinant evaluations (J,)) of system job_sys
@@ -198,7 +388,9 @@ class OpenCLDeterminants:
         log = np.zeros(n)
         dets = np.zeros(n, dtype=np.int32)
         if n:
-            self._run(self.k_det, n, [job_sys.astype(np.int32), job_v.astype(np.float64)], [sign, log, dets])
+            self._run(self.k_det, "kernel det_batch", n,
+                      [np.ascontiguousarray(job_sys, dtype=np.int32), np.ascontiguousarray(job_v, dtype=np.float64)],
+                      [sign, log, dets])
         return sign, log, dets
 
     def illinois(self, job_sys, job_f, job_s):
@@ -208,8 +400,9 @@ class OpenCLDeterminants:
         root = np.zeros(n)
         dets = np.zeros(n, dtype=np.int32)
         if n:
-            self._run(self.k_ill, n, [job_sys.astype(np.int32), job_f.astype(np.float64), job_s.astype(np.int32)],
-                      [root, dets])
+            self._run(self.k_ill, "kernel illinois_batch", n,
+                      [np.ascontiguousarray(job_sys, dtype=np.int32), np.ascontiguousarray(job_f, dtype=np.float64),
+                       np.ascontiguousarray(job_s, dtype=np.int32)], [root, dets])
         return root, dets
 
 

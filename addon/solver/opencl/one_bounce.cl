@@ -549,9 +549,16 @@ static void solve_system(const Tuple *T, biv a_poly, double max_a, biv b_poly, i
 
 static vec load3(__global const double *a, long i) { return (vec)(a[3 * i], a[3 * i + 1], a[3 * i + 2]); }
 
+// Outputs are compacted here so that only paths cross back to the host: a tuple's stored
+// paths (at most 8) take consecutive records from the atomic counter acc[0] (records past
+// `capacity` are counted but not written: the host grows the buffers and runs again), in
+// whatever order the work-items get there (the host sorts them); the statistics are summed
+// into acc[1 + 5 s .. 5 + 5 s] (roots, candidates, paths, skipped, tuples with more than 8
+// paths) for slot s = t % n_slots, so that no single counter takes every work-item's atomic.
 __kernel void solve_one_bounce(const int refract, __global const double *x_start, __global const double *x_end,
                                __global const double *P, __global const double *N, __global const double *eta,
-                               const int n, __global double *out_uv, __global long *out_count, __global long *stats) {
+                               const int n, const int first, const int capacity, const int n_slots,
+                               __global int *acc, __global int *path_tuple, __global double *path_uv) {
     int t = get_global_id(0);
     if (t >= n) return;
     Tuple T;
@@ -568,7 +575,6 @@ __kernel void solve_one_bounce(const int refract, __global const double *x_start
     Paths out;
     out.count = 0;
     int n_roots = 0, n_candidates = 0, skipped = 0;
-    __global long *st = stats + 4L * t;
 
     vec g = cross(T.e1, T.e2);
     double area2 = length(g);
@@ -637,7 +643,18 @@ __kernel void solve_one_bounce(const int refract, __global const double *x_start
         }
     }
     int stored = min(out.count, 8);
-    for (int q = 0; q < stored; ++q) { out_uv[16L * t + 2 * q] = out.u[q]; out_uv[16L * t + 2 * q + 1] = out.v[q]; }
-    out_count[t] = out.count;
-    st[0] = n_roots; st[1] = n_candidates; st[2] = out.count; st[3] = skipped;
+    if (stored > 0) {
+        int base = atomic_add(acc, stored);
+        for (int q = 0; q < stored && base + q < capacity; ++q) {
+            path_tuple[base + q] = first + t;
+            path_uv[2L * (base + q)] = out.u[q];
+            path_uv[2L * (base + q) + 1] = out.v[q];
+        }
+    }
+    __global int *sum = acc + 1 + 5 * (t % n_slots);
+    if (n_roots) atomic_add(sum, n_roots);
+    if (n_candidates) atomic_add(sum + 1, n_candidates);
+    if (out.count) atomic_add(sum + 2, out.count);
+    if (skipped) atomic_add(sum + 3, 1);
+    if (out.count > 8) atomic_add(sum + 4, 1);
 }

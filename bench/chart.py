@@ -323,14 +323,16 @@ def section(rows, notes, args):
         lines.append(f"**{scene}** (bounces {n['bounces']}; reference floor relMSE {n['floor']:.1e}) "
                      f"![{scene}](bench/results/chart_{scene}.png)")
         lines.append("")
-        lines.append("| estimator | knob | seconds | relMSE | note |")
+        lines.append("| estimator | knobs | seconds | relMSE | note |")
         lines.append("|---|---|---|---|---|")
-        for r in rows:
-            if r["scene"] != scene:
-                continue
-            sec = "" if r["seconds"] is None else f"{r['seconds']:.2f}"
-            err = "" if r["relmse"] is None else f"{r['relmse']:.2e}"
-            lines.append(f"| {r['method']} | {knob_label(r['method'], r['knob'])} | {sec} | {err} | {r['note']} |")
+        methods = list(dict.fromkeys(r["method"] for r in rows if r["scene"] == scene))
+        for method in methods:  # one row per estimator: its sweep as lists (the chart has the picture)
+            rs = [r for r in rows if r["scene"] == scene and r["method"] == method]
+            knobs = " / ".join(knob_label(method, r["knob"]) for r in rs)
+            sec = " / ".join("–" if r["seconds"] is None else f"{r['seconds']:.2f}" for r in rs)
+            err = " / ".join("–" if r["relmse"] is None else f"{r['relmse']:.1e}" for r in rs)
+            notes = "; ".join(dict.fromkeys(r["note"] for r in rs if r["note"]))
+            lines.append(f"| {method} | {knobs} | {sec} | {err} | {notes} |")
         for method, sk in n["skipped"].items():
             lines.append(f"\n{method}: " + "; ".join(sorted(set(sk))))
         lines.append("")

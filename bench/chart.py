@@ -47,7 +47,6 @@ import argparse
 import csv
 import hashlib
 import json
-import math
 import os
 import platform
 import sys
@@ -92,7 +91,7 @@ def load_scene(name, res):
 
 def reference(scene, name, digest, res, bounces, photons, force=False):
     """(image stack, floor, seconds) of the photon reference, cached on disk."""
-    from addon.bake.driver import BakeSettings, bake
+    from addon.bake.pipeline import BakeSettings, bake
 
     key = hashlib.sha1(json.dumps(dict(d=digest, res=res, b=bounces, p=photons, v=1)).encode()).hexdigest()[:12]
     path = os.path.join(RESULTS, f"ref_{name}_{key}.npz")
@@ -100,7 +99,7 @@ def reference(scene, name, digest, res, bounces, photons, force=False):
         z = np.load(path)
         return z["ref"], float(z["floor"]), float(z["seconds"]), True
     t0 = time.perf_counter()
-    halves = [stack(bake(scene, BakeSettings(resolution=res, bounces=bounces, margin=0, method="photon",
+    halves = [stack(bake(scene, BakeSettings(resolution=res, bounces=bounces, margin=0, estimator="photon",
                                              photons=photons // 2, seed=1000 + k))) for k in range(2)]
     seconds = time.perf_counter() - t0
     ref = 0.5 * (halves[0] + halves[1])
@@ -132,7 +131,7 @@ class TooSlow(Exception):
 
 def timed_bake(scene, settings, limit):
     """(result, seconds), or raises TooSlow after ``limit`` seconds."""
-    from addon.bake.driver import BakeCancelled, bake
+    from addon.bake.pipeline import BakeCancelled, bake
 
     t0 = time.perf_counter()
 
@@ -160,12 +159,14 @@ def run_cycles(name, scene, bounces, ref, args, rows, notes):
     """The "cycles" rows of one scene (bench/cycles_bake.py); reopens the .blend afterwards,
     since the Cycles set-up changes the bpy scene (the other methods bake the extracted model
     and never see it)."""
-    from addon.bake.driver import plan_chains
     from addon.bake.extract import open_blend
+    from addon.bake.pipeline import BakeSettings, make_context
+    from addon.bake.plan import make_plan
     from cycles_bake import CyclesCaustics, CyclesUnavailable
 
     knobs = sweep(args.quick)["cycles"]
-    chains = [it["chain"] for it in plan_chains(scene, bounces)]
+    plan = make_plan(make_context(scene, BakeSettings(resolution=8, bounces=bounces)))
+    chains = list(dict.fromkeys(it.chain for it in plan.items if it.baked))
     rendered = [c for c in chains if set(c) == {"T"}]
     missing = [c for c in chains if c not in rendered]
     try:
@@ -210,7 +211,7 @@ def run_scene(name, args, rows, notes):
             continue
         knobs = sweep(args.quick)[method]
         # Warm-up: load / compile the method's kernels on a tiny bake (not timed).
-        from addon.bake.driver import BakeSettings, bake
+        from addon.bake.pipeline import bake
 
         warm_settings = settings_for(method, sweep(True)[method][0], 8, bounces)
         warm_settings.photons = min(warm_settings.photons, 1000)
@@ -243,7 +244,6 @@ def run_scene(name, args, rows, notes):
             err = rel_mse(stack(out), ref)
             rows.append(dict(scene=name, method=method, knob=knob, seconds=sec, relmse=err, note="chains " + ",".join(baked)))
             print(f"  {method:7s} {knob:>10,}  {sec:8.2f} s  relMSE {err:.3e}  [{','.join(baked)}]", flush=True)
-        del warm
 
 
 def write_csv(rows, path):

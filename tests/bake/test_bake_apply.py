@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
+pytestmark = pytest.mark.bpy
 
 from addon.bake.apply import GROUP_NAME, apply_bake, clear_bake  # noqa: E402
 from fixtures.checks import snapshot  # noqa: E402

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
+pytestmark = pytest.mark.bpy
 
 from addon.__main__ import main  # noqa: E402
 from addon.bake.pipeline import BakeSettings, bake  # noqa: E402

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
+pytestmark = pytest.mark.bpy
 
 from addon.bake.extract import extract_scene, material_role  # noqa: E402
 from addon.bake.scene import ROLE_BOTH, ROLE_NONE, ROLE_REFLECT, ROLE_REFRACT, SceneError  # noqa: E402

@@ -156,6 +156,7 @@ def test_unknown_method_is_a_clear_value_error():
         bake(sc, BakeSettings(method="photon", photons=0))
 
 
+@pytest.mark.bpy
 def test_cli_method_flag_writes_the_method_into_report(tmp_path, capsys):
     pytest.importorskip("bpy")
     import json

@@ -205,6 +205,7 @@ bpy = pytest.importorskip("bpy")
 SAMPLES = ("mirror_plane", "metal_ring", "water_pool", "glass_sphere", "glass_slab")
 
 
+@pytest.mark.bpy
 @pytest.mark.parametrize("name", SAMPLES)
 def test_default_bake_of_each_sample_keeps_the_forced_two_bounce_energy(name):
     """With the defaults (bounces auto), every sample scene's textures hold >= 99 % of the

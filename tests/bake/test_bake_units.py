@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
+pytestmark = pytest.mark.bpy
 
 from addon.bake.apply import apply_bake, clear_bake, receivers_uv_maps  # noqa: E402
 from addon.bake.pipeline import BakeSettings, bake  # noqa: E402

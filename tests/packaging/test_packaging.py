@@ -23,6 +23,8 @@ sys.path.insert(0, os.path.join(ROOT, "tools"))
 
 import build_extension  # noqa: E402
 
+pytestmark = pytest.mark.bpy  # Blender's extension tool ships inside the bpy package
+
 PKG = "bl_ext.user_default.caustic_bake"
 PLATFORM_WHEEL_TAG = {
     "linux-x64": re.compile(r"manylinux.*_x86_64\.whl$"),
@@ -64,6 +66,7 @@ def test_committed_manifest_is_clean_and_valid():
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
+@pytest.mark.network
 def test_one_zip_per_platform_each_valid(zips):
     assert set(zips) == set(build_extension.PLATFORMS)
     tool, tags = build_extension.blender_ext_tool()
@@ -76,6 +79,7 @@ def test_one_zip_per_platform_each_valid(zips):
         assert "Success" in proc.stdout + proc.stderr
 
 
+@pytest.mark.network
 def test_zip_contents(zips):
     versions = build_extension.pinned_versions()
     for platform, path in zips.items():
@@ -151,6 +155,7 @@ def _assert_installed_and_disabled(report, resources):
     assert report["cache_env_after_disable"] is None
 
 
+@pytest.mark.network
 def test_install_enable_prepare_disable_with_bundled_numba(zips, tmp_path):
     """Fresh install of the linux-x64 zip; numba may come only from the bundled wheels."""
     resources, report, log = _install_check(zips["linux-x64"], tmp_path, "bundle")
@@ -206,6 +211,7 @@ def test_install_enable_prepare_disable_with_bundled_numba(zips, tmp_path):
     print("headless bake: {:.1f} s".format(again["bake_seconds"]))
 
 
+@pytest.mark.network
 def test_without_numba_the_operator_fails_cleanly(zips, tmp_path):
     """numba missing: the add-on still enables; the operator reports an error, no traceback."""
     resources, report, log = _install_check(zips["linux-x64"], tmp_path, "none")

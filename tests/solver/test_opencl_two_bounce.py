@@ -63,6 +63,7 @@ def _assert_same_paths(got, expected, n, what=""):
     np.testing.assert_allclose(got.uv, expected.uv, rtol=0, atol=1e-9, err_msg=what)
 
 
+@pytest.mark.opencl
 @pytest.mark.parametrize("chain", CHAINS)
 def test_opencl_two_bounce_returns_the_numba_paths(chain):
     index = _opencl_device_or_skip()
@@ -113,6 +114,7 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
         assert abs(int(totals[4]) - rep.determinants) <= 0.02 * rep.determinants + 5, kwargs
 
 
+@pytest.mark.opencl
 def test_opencl_determinant_equals_det_bezout():
     """sign and log|det R(v1)| (eq 29) of real TT systems: OpenCL against Numba's det_bezout."""
     index = _opencl_device_or_skip()
@@ -158,6 +160,7 @@ def test_opencl_determinant_equals_det_bezout():
     assert compared >= 0.99 * job_sys.size
 
 
+@pytest.mark.opencl
 @pytest.mark.parametrize("chain", CHAINS)
 def test_opencl_two_bounce_degenerate_tuples(chain):
     """Degenerate, grazing and near-TIR tuples (as test_solver_two_bounce.py): no NaN, no
@@ -187,6 +190,7 @@ def test_opencl_two_bounce_degenerate_tuples(chain):
     _assert_same_paths(ocl, numba, x0.shape[0], chain)
 
 
+@pytest.mark.opencl
 def test_two_bounce_missing_device_warns_and_uses_numba():
     _opencl_device_or_skip()
     x0, x3, P, N, _ = planted_two_bounce(12, "RR", seed=34)

@@ -24,6 +24,7 @@ def _opencl_device_or_skip():
     return usable[0][0]
 
 
+@pytest.mark.opencl
 @pytest.mark.parametrize("chain", ["R", "T"])
 def test_opencl_returns_the_numba_paths(chain):
     index = _opencl_device_or_skip()
@@ -51,6 +52,7 @@ def test_bad_device_names_are_value_errors():
             solve_tuples("R", np.zeros((1, 3)), np.ones((1, 3)), P, P, 1.5, device=bad)
 
 
+@pytest.mark.opencl
 def test_missing_device_warns_and_uses_numba():
     _opencl_device_or_skip()
     x0, x2, P, N, _ = planted_tuples(200, "R", seed=23)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
+pytestmark = pytest.mark.bpy
 
 import addon  # noqa: E402
 from addon.bake.apply import FILES_MANIFEST, GROUP_NAME  # noqa: E402

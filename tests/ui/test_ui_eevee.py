@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
+pytestmark = pytest.mark.bpy
 
 import addon  # noqa: E402
 

@@ -76,7 +76,7 @@ a path are rays meeting that plane outside the triangle or behind x1.  ``_build_
 has one sign, tensor Bernstein bounds that prove u2 < -m, v2 < -m, u2 + v2 > 1 + m or t̃/κ < 0
 drop it (m = HIT_MARGIN_EXACT for an exact d̃1, HIT_MARGIN_APPROX where √ is approximated;
 boxes where κ may vanish are kept).  The test checks every dropped box against the exact ray
-at 144 points (tests/test_solver_two_bounce.py ``test_prepass_hit_test``).  Measured
+at 144 points (tests/solver/test_solver_two_bounce.py ``test_prepass_hit_test``).  Measured
 2026-11-25 (10,000-tuple acceptance sets; 1 thread, interleaved, µs/tuple on bench
 workloads): TT 6.55M -> 5.53M determinants, 36 -> 37 missed, random 476 -> 392, planted 5,240 ->
 4,825; RT 4.99M -> 4.40M, the same 5 missed, random 161 -> 128; TR 3.76M -> 3.24M, the same 1
@@ -101,7 +101,7 @@ deflated by the roots already found (what is left of a kink is a root the scan d
 a pair inside one piece).  Most sign changes are resultant roots whose common u1 lies
 outside the triangle or whose path is invalid (TT: ~600 real roots per planted tuple for ~1
 path); refining around those too was ~40 % of the determinant evaluations and found no
-path the kink rule missed (tests/test_solver_two_bounce.py recall unchanged or better).  A
+path the kink rule missed (tests/solver/test_solver_two_bounce.py recall unchanged or better).  A
 sub-sampled piece with more than ``NOISY_CHANGES`` sign changes is at
 rounding level and left alone.  The issue's "refine pieces where |det| dips towards zero
 without a sign change, so clustered roots separate" (the paper's §4.2 Discussion: the
@@ -188,7 +188,7 @@ per register; a recurrence since) and pivot search (a tree of vector maxima) do 
 each element in their order: paths, roots, candidates and determinants are unchanged bit
 for bit (the 300-tuple bench workloads of all four chains; the 10,000-tuple acceptance
 sets: TT 4,695,243 determinants and 42 missed, RT 3,513,457 and 7, TR 3,027,047 and 2, as
-before), and tests/test_solver_simd.py holds each kernel to its scalar loop.  1 thread,
+before), and tests/solver/test_solver_simd.py holds each kernel to its scalar loop.  1 thread,
 interleaved with the code before: random TT ~350 -> ~250 µs per tuple, per determinant
 (m, n) = (16, 34) 5.7 -> 3.8 µs.
 
@@ -210,7 +210,7 @@ converge onto a stored one are merged keeping the smaller residual (same rule as
 ``one_bounce._store_path``, in 4 dimensions).
 
 Piecewise rational √ (eq 23).  r(x) = (c0 + c1 x) / (1 + d1 x) on 15 consecutive pieces of
-[0, 1].  Fit (this file's ``SQRT_PIECES``, checked by tests/test_solver_two_bounce.py
+[0, 1].  Fit (this file's ``SQRT_PIECES``, checked by tests/solver/test_solver_two_bounce.py
 ``test_sqrt_fit``): greedy from x = 1 downwards, each piece the widest
 interval on which a minimax fit (Lawson's iteratively reweighted least squares on the
 linearised error √x (1 + d1 x) - c0 - c1 x, 4,000 linear + 2,000 log-spaced points)
@@ -1009,7 +1009,7 @@ def _det_hybrid_window(F, G, n, m, mat):
     takes the place of the pivot when that is not it itself.  The arithmetic on every entry
     is the dense elimination's (f = x_ik / pivot, x_ij -= f x_kj), the pivot the largest in
     the column (ties may pick another row than the dense order), so the result is the
-    dense elimination's (tests/test_solver_two_bounce.py, bit for bit).  The sign is that of
+    dense elimination's (tests/solver/test_solver_two_bounce.py, bit for bit).  The sign is that of
     the pivots and of the permutation (original row of each pivot, parity by cycles).
     Per determinant, µs on one core (2026-11-26): (m, n) = (16, 34) 7.1 -> 6.8, (16, 46)
     10.8 -> 9.1, (8, 46) 7.3 -> 6.9; TT random tuples ~6 % less time; with the Bézoutian

@@ -303,6 +303,6 @@ def test_glass_sphere_tt_path_points_with_bounds_matches_forward_flux():
     from fixtures.checks import rel_mse  # the project's relMSE (floor 1e-2 mean² over lit texels)
 
     project = rel_mse(pts.raw["floor"][..., 0], flux.raw["floor"][..., 0])
-    print(f"relMSE (tests/test_bake_caustics.py) {project:.2e}")
+    print(f"relMSE (tests/fixtures/checks.py rel_mse) {project:.2e}")
     assert project < 5e-3
     assert c["tuples"] < 250 * c["paths_visible"]  # the cone cull keeps ~16,000 per path here

@@ -1,7 +1,7 @@
-"""Caustic bakes against an independent photon-traced reference (tests/photon_reference.py).
+"""Caustic bakes against an independent photon-traced reference (tests/reference/photon.py).
 
-relMSE here is the mean over the texels lit in either image of (bake - ref)² / (ref² + eps),
-eps = 1e-2 x (mean lit reference)², the usual per-pixel relative MSE with a small floor so
+relMSE here (rel_mse, tests/fixtures/checks.py) is the mean over the texels lit in either
+image of (bake - ref)² / (ref² + eps), eps = 1e-2 x (mean lit reference)², the usual per-pixel relative MSE with a small floor so
 that texels at the caustic's edge do not divide by ~0.  The photon histogram is the exact
 texel average plus noise; the bake's texel is the mean of its stratified supersamples
 ("points") or, with the forward-image "flux" estimator, the flux of the sub-triangles whose

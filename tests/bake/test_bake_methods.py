@@ -2,8 +2,8 @@
 reference and the analytic mirror, the Newton / SMS baselines in the bake, determinism.
 
 Tolerances:
-- photon (addon/solver/photon.py) vs tests/photon_reference.py: both are unbiased estimates of
-  the same texel averages, so relMSE (tests/test_bake_caustics.py's definition) is the sum of
+- photon (addon/solver/photon.py) vs tests/reference/photon.py: both are unbiased estimates of
+  the same texel averages, so relMSE (rel_mse, tests/fixtures/checks.py) is the sum of
   their variances.  The reference's (3M photons into a loose cone, no stratification) is
   ~1/(photons per lit texel) ~ 1.5e-3 at 32² on the ring (4.7e-3 on the water, whose cone
   is wide); ours is ~10x smaller (stratified, tight cone: two seeds differ by 1.4e-4).

@@ -173,7 +173,7 @@ def test_glass_ball_plan_finds_tt_and_its_estimate_matches_the_bake():
 def test_metal_ring_default_bake_matches_photon_tracing_of_r_and_rr():
     """An open metal ring under a point light: its caustic is R plus the double reflections
     inside the ring (RR).  The default bake (bounces auto) must find RR by itself and match an
-    independent photon reference of both chains (tests/photon_reference.py, 3M photons each);
+    independent photon reference of both chains (tests/reference/photon.py, 3M photons each);
     a bake forced to one bounce misses the RR light (7 % here), which the reference shows.
     Measured: relMSE 1.3e-3 per channel, energy 1.0002; one bounce: relMSE 2.5e-2 to 4.5e-2."""
     from fixtures.bake_scenes import ring_scene

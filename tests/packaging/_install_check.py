@@ -1,10 +1,10 @@
 """Install a built extension zip into a throw-away Blender user profile and exercise it.
 
-Run by tests/test_packaging.py in a subprocess (never imported by pytest: the name does not
+Run by tests/packaging/test_packaging.py in a subprocess (never imported by pytest: the name does not
 start with ``test_``), because the user profile is chosen by environment variables that the
 ``bpy`` module reads once, at import::
 
-    BLENDER_USER_RESOURCES=<tmp> python tests/_install_check.py <zip> <result.json> --numba=MODE
+    BLENDER_USER_RESOURCES=<tmp> python tests/packaging/_install_check.py <zip> <result.json> --numba=MODE
 
 The development venv has its own numba, and on a fresh install Blender *appends* the
 extensions' wheel site-packages to ``sys.path``, so the venv's numba would be found first and

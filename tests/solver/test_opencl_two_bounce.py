@@ -5,7 +5,7 @@ and paths polished on Numba, the Bézout determinants (Fan et al. 2024, eq 29), 
 Illinois brackets and the refinement's sub-samples (§4.2) on the device
 (addon/solver/opencl/two_bounce.cl).  PoCL on the CPU in CI; tests that need a device skip
 without one.  Tuples: bench/workloads.py (planted_two_bounce, random_two_bounce) and
-tests/two_bounce_data.py (the sets of test_solver_two_bounce.py, fewer of them).
+tests/reference/two_bounce_data.py (the sets of test_solver_two_bounce.py, fewer of them).
 """
 
 import os

@@ -2,7 +2,7 @@
 
 Ground truth: tests/reference/bruteforce.py (dense seeds on both triangles, Levenberg-Marquardt on
 eq. (3) at both vertices, every side assignment of the refracting vertices, deflation; validated by
-the independent contract check ``check_path``).  Tuples: tests/two_bounce_data.py (planted paths
+the independent contract check ``check_path``).  Tuples: tests/reference/two_bounce_data.py (planted paths
 through both triangles with tilted or sphere-like normal fields, random triangle pairs).
 
 Tuple counts.  Per tuple, on this 2-core machine: brute force ~15 ms (RR) to ~120 ms (TT), the
@@ -10,7 +10,7 @@ solver ~1 ms (RR) to ~50 ms (TT, planted).  The default run uses ``TWO_BOUNCE_TU
 per chain: ~2-5 min for the whole file, ~70 s of it compiling the kernels on an empty Numba cache.
 The acceptance run of the issue (>= 10,000 per chain) is
 
-    TWO_BOUNCE_TUPLES=10000 .venv/bin/python -m pytest tests/test_solver_two_bounce.py -s
+    TWO_BOUNCE_TUPLES=10000 .venv/bin/python -m pytest tests/solver/test_solver_two_bounce.py -s
 
 (about 1 h on 2 cores, the brute force dominating; bench/two_bounce_recall.py runs one chain of it
 from a brute force cached once and lists the misses).  Its result (2026-11-26, session 13,

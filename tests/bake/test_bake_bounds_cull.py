@@ -14,6 +14,10 @@ from addon.demo import wavy_water
 
 from fixtures.bake_scenes import floor, mirror_scene, ring_scene
 
+# Every test here bakes with the Bernstein-bound engines: in a fresh process the first one
+# spends minutes (2-core machine) loading and compiling them, so the file is in the slow tier.
+pytestmark = pytest.mark.slow
+
 
 def _water():
     wp, wn = wavy_water(cells=12, size=2.0, amplitude=0.08)

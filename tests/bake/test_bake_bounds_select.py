@@ -35,6 +35,10 @@ from addon.solver import solve_tuples
 from fixtures import bounds_scenes as S
 from fixtures.bake_scenes import box, floor, glass_sphere_scene, ring, uv_sphere
 
+# Every test here bakes with the Bernstein-bound engines: in a fresh process the first one
+# spends minutes (2-core machine) loading and compiling them, so the file is in the slow tier.
+pytestmark = pytest.mark.slow
+
 
 def _pairs(batches, n):
     keys = [e * n + s for e, s, *_ in batches]

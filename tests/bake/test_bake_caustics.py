@@ -20,6 +20,7 @@ from fixtures.checks import kinds_of, rel_mse
 from reference.photon import KIND_GLASS, KIND_REFLECT, KIND_REFRACT, trace_caustic
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("estimator", ["points", "flux"])
 def test_metal_ring_cardioid_matches_photon_tracing(estimator):
     """Measured (3M-photon reference): points (64 supersamples) relMSE 4.7e-3, energy 0.998;
@@ -68,6 +69,7 @@ def test_water_surface_refraction_matches_photon_tracing():
     assert lit.max() > 1.3 * lit.mean() and lit.min() < 0.8 * lit.mean()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["flux", "seeded"])
 def test_glass_sphere_focus_matches_photon_tracing(mode):
     """TT through a smooth glass sphere (Fresnel at both interfaces) onto the floor, with the

@@ -145,6 +145,7 @@ def test_two_bounce_cull_keeps_forward_traced_paths(chain):
     assert kept[4] <= kept[1]
 
 
+@pytest.mark.slow
 def test_glass_sphere_tt_cull_keeps_every_traced_path_and_culls_hard():
     P, N = uv_sphere(segments=24, rings=12, radius=0.5, centre=(0.0, 0.0, 1.0))
     rng = np.random.default_rng(7)

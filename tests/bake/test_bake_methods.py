@@ -38,6 +38,7 @@ def _water_scene(res_=32, half=2.0):
     return build_scene([floor(half=half, resolution=res_), dict(name="water", tri_p=wp, tri_n=wn, role="refract", ior=1.33)], [light])
 
 
+@pytest.mark.slow
 def test_photon_ring_matches_photon_reference():
     res_, half = 32, 1.6
     sc = ring_scene(resolution=res_, half=half)
@@ -56,6 +57,7 @@ def test_photon_ring_matches_photon_reference():
     assert rep["counts"]["photons"] >= 3_000_000 and rep["counts"]["photons_deposited"] > 500_000
 
 
+@pytest.mark.slow
 def test_photon_water_matches_photon_reference():
     res_, half = 32, 2.0
     sc = _water_scene(res_, half)

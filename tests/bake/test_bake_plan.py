@@ -10,6 +10,8 @@ from addon.bake.pipeline import BakeSettings, bake, make_context, texel_areas
 from addon.bake.plan import make_plan
 from addon.bake.scene import Light, build_scene
 
+from fixtures.marks import slow_cases
+
 
 def _cube(offset):
     v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) + offset
@@ -143,6 +145,7 @@ def _sphere_scene(threshold=0.005):
                        [Light("lamp", "point", (1, 1, 1), 100.0, position=(0.4, 0.1, 3.0))])
 
 
+@pytest.mark.slow
 def test_glass_ball_plan_finds_tt_and_its_estimate_matches_the_bake():
     """The default bake of a glass ball bakes TT (the focused caustic) and R, skips RR, RT, TR
     (no light path), and the probe's estimated shares are within 2 % of what the bake delivered
@@ -170,6 +173,7 @@ def test_glass_ball_plan_finds_tt_and_its_estimate_matches_the_bake():
     assert abs(_energy(sc, tt_only)["floor"] / per_chain["TT"] - 1) < 1e-9
 
 
+@pytest.mark.slow
 def test_metal_ring_default_bake_matches_photon_tracing_of_r_and_rr():
     """An open metal ring under a point light: its caustic is R plus the double reflections
     inside the ring (RR).  The default bake (bounces auto) must find RR by itself and match an
@@ -206,7 +210,7 @@ SAMPLES = ("mirror_plane", "metal_ring", "water_pool", "glass_sphere", "glass_sl
 
 
 @pytest.mark.bpy
-@pytest.mark.parametrize("name", SAMPLES)
+@pytest.mark.parametrize("name", slow_cases(SAMPLES, {"glass_sphere", "water_pool"}))
 def test_default_bake_of_each_sample_keeps_the_forced_two_bounce_energy(name):
     """With the defaults (bounces auto), every sample scene's textures hold >= 99 % of the
     caustic energy of a bake forced to two bounces (and never more: the plan is a subset)."""

@@ -14,6 +14,7 @@ from addon.bake.scene import Light, build_scene
 from addon.solver.irradiance import PathIrradiance
 
 from fixtures.bake_scenes import floor, mirror_facing
+from fixtures.marks import slow_cases
 
 RES = 32
 LIGHT = np.array([-1.3, 0.1, 1.4])
@@ -156,7 +157,7 @@ def test_two_bounce_chains_are_skipped_until_the_solver_has_them():
         assert status["RR"] == "baked"
 
 
-@pytest.mark.parametrize("mode", ["exact", "seeded"])
+@pytest.mark.parametrize("mode", slow_cases(["exact", "seeded"], {"seeded"}))
 def test_real_solver_matches_double_image(mode):
     """Point samples: the exact solver (cone cull + two-bounce Specular Polynomials) and the
     forward-image seeds + exact Newton find the same paths as the double image source."""
@@ -241,6 +242,7 @@ def test_seeded_finds_the_exact_solvers_tt_paths_through_a_glass_slab():
     assert seeded.report["counts"]["paths_visible"] == exact.report["counts"]["paths_visible"]
 
 
+@pytest.mark.slow
 def test_flux_through_a_glass_slab_matches_fine_exact_paths():
     """TT through a flat glass box, the "flux" estimator at 24² against the exact paths of
     "seeded" at 96² x 256 jittered samples averaged over 4 x 4 blocks (4,096 exact paths per

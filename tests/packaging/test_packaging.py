@@ -67,6 +67,7 @@ def test_committed_manifest_is_clean_and_valid():
 
 
 @pytest.mark.network
+@pytest.mark.slow  # the session's zip build takes ~20 s (and downloads the wheels once)
 def test_one_zip_per_platform_each_valid(zips):
     assert set(zips) == set(build_extension.PLATFORMS)
     tool, tags = build_extension.blender_ext_tool()
@@ -80,6 +81,7 @@ def test_one_zip_per_platform_each_valid(zips):
 
 
 @pytest.mark.network
+@pytest.mark.slow  # the session's zip build takes ~20 s (and downloads the wheels once)
 def test_zip_contents(zips):
     versions = build_extension.pinned_versions()
     for platform, path in zips.items():
@@ -156,6 +158,7 @@ def _assert_installed_and_disabled(report, resources):
 
 
 @pytest.mark.network
+@pytest.mark.slow  # the session's zip build takes ~20 s (and downloads the wheels once)
 def test_install_enable_prepare_disable_with_bundled_numba(zips, tmp_path):
     """Fresh install of the linux-x64 zip; numba may come only from the bundled wheels."""
     resources, report, log = _install_check(zips["linux-x64"], tmp_path, "bundle")
@@ -212,6 +215,7 @@ def test_install_enable_prepare_disable_with_bundled_numba(zips, tmp_path):
 
 
 @pytest.mark.network
+@pytest.mark.slow  # the session's zip build takes ~20 s (and downloads the wheels once)
 def test_without_numba_the_operator_fails_cleanly(zips, tmp_path):
     """numba missing: the add-on still enables; the operator reports an error, no traceback."""
     resources, report, log = _install_check(zips["linux-x64"], tmp_path, "none")

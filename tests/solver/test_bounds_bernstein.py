@@ -158,6 +158,7 @@ def _interval_reflect_uk(x0, P, N, Q, lo, hi):
     return imul(pu, inv)
 
 
+@pytest.mark.slow
 def test_bernstein_position_bound_is_tighter_than_interval_arithmetic():
     """Same reflector pieces: width of the uk bound, Bernstein (eq 3, 9) vs interval arithmetic."""
     from addon.solver.bounds import chain1 as C

@@ -317,6 +317,7 @@ def test_irradiance_bound_degenerate_inputs_never_nan():
             assert eh >= 0.0 and el >= 0.0 and el <= eh
 
 
+@pytest.mark.slow
 def test_position_bound_converges_to_the_image_of_a_small_box():
     """Slab TT: around traced paths, a box of side 1e-3 in (u1, v1): the bound's width is within
     a factor 1.5 of the exact image's width (a 25 x 25 grid traced forward), and contains it."""
@@ -378,6 +379,7 @@ def test_remainder_endpoint_bound_contains_the_function_of_the_remainder_variabl
         assert hi - lo <= 6.0 * (vals.max() - vals.min())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,chain,n_first", [("slab10k", "TT", 40), ("slab10k", "RR", 40), ("slab10k", "RT", 40),
                                                  ("slab10k", "TR", 40), ("ball80", "TT", 80)])
 def test_fast_engine_gives_the_reference_pieces(name, chain, n_first):

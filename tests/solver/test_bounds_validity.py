@@ -56,6 +56,7 @@ def test_pool4k_water():
 
 
 @pytest.mark.skipif(not os.path.exists(os.path.join(S.MESH_DIR, "ball1280.obj")), reason="benchmark meshes not present")
+@pytest.mark.slow
 def test_ball1280_glass_ball_two_bounce():
     """The glass ball (1,280 triangles, interpolated normals) over the floor, TT through both
     surfaces: every (T1, T2) pair from the BVH, position bounds (max depth 1) and the two-bounce
@@ -80,6 +81,7 @@ def test_ball1280_glass_ball_two_bounce():
     assert c["median_ratio"] < 2.5  # measured 1.88 (pieces of a quarter triangle on a strongly focusing ball)
 
 
+@pytest.mark.slow  # needs test_ball1280_glass_ball_two_bounce (slow) in the same session
 def test_total_paths_at_least_100k():
     if len(TOTAL) < 4:
         pytest.skip("needs the three scenes above in the same session")
@@ -87,6 +89,7 @@ def test_total_paths_at_least_100k():
     assert sum(TOTAL.values()) >= 100_000
 
 
+@pytest.mark.slow
 def test_fast_refraction_irradiance_matches_reference_engine():
     """chain1_fast builds the implicit refraction bound (eq 17–19) from 2-D products per monomial
     of the (uk, vk) box coordinates; chain1 builds the same polynomials as tensor 4-D products.

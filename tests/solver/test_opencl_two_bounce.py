@@ -64,6 +64,7 @@ def _assert_same_paths(got, expected, n, what=""):
 
 
 @pytest.mark.opencl
+@pytest.mark.slow  # the first builds the two-bounce OpenCL kernels: ~3 min on PoCL here
 @pytest.mark.parametrize("chain", CHAINS)
 def test_opencl_two_bounce_returns_the_numba_paths(chain):
     index = _opencl_device_or_skip()
@@ -115,6 +116,7 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
 
 
 @pytest.mark.opencl
+@pytest.mark.slow  # builds the two-bounce OpenCL kernels
 def test_opencl_determinant_equals_det_bezout():
     """sign and log|det R(v1)| (eq 29) of real TT systems: OpenCL against Numba's det_bezout."""
     index = _opencl_device_or_skip()
@@ -161,6 +163,7 @@ def test_opencl_determinant_equals_det_bezout():
 
 
 @pytest.mark.opencl
+@pytest.mark.slow  # builds the two-bounce OpenCL kernels
 @pytest.mark.parametrize("chain", CHAINS)
 def test_opencl_two_bounce_degenerate_tuples(chain):
     """Degenerate, grazing and near-TIR tuples (as test_solver_two_bounce.py): no NaN, no

@@ -15,6 +15,7 @@ from fixtures.checks import found_fraction
 from reference import bruteforce as bf
 
 
+@pytest.mark.slow  # the 10,000-tuple brute-force truth (reference/truth.py): ~30-60 s per chain here
 @pytest.mark.parametrize("chain", ["R", "T"])
 def test_baselines_find_only_true_paths_and_fewer_than_the_polynomials(chain):
     d = truth.dataset_with_truth(chain)

@@ -83,6 +83,7 @@ def assert_true_paths(args, ti, uv):
 # --- (1) recall against the brute force --------------------------------------------------------
 
 
+@pytest.mark.slow  # the 10,000-tuple brute-force truth (reference/truth.py): ~30-60 s per chain here
 @pytest.mark.parametrize("steps, floor_all", [(32, 0.985), (128, 0.997)])
 def test_random_tuples_against_bruteforce(steps, floor_all):
     d = truth.dataset_with_truth("T")
@@ -148,6 +149,7 @@ def closed_ellipse_case():
     return x0, x2, P, N, 1.5
 
 
+@pytest.mark.slow
 def test_closed_ellipse_inside_one_triangle():
     x0, x2, P, N, eta = closed_ellipse_case()
     p0, e1, e2 = P[0, 0, 0], P[0, 0, 1] - P[0, 0, 0], P[0, 0, 2] - P[0, 0, 0]
@@ -235,6 +237,7 @@ def test_mesh_walk_matches_polynomials_over_all_triangles():
 # --- (4) ray differentials against the geometry term ---------------------------------------------
 
 
+@pytest.mark.slow
 def test_ray_differential_equals_path_irradiance():
     d = truth.dataset_with_truth("T")
     args = ("T", d["x0"], d["x2"], d["P"], d["N"], d["eta"])

@@ -86,6 +86,7 @@ def _describe(d, t, extra=""):
 # ----------------------------------------------------------------------------------------------
 # tests that need no solver: the reference itself
 # ----------------------------------------------------------------------------------------------
+@pytest.mark.slow  # the 10,000-tuple brute-force truth (reference/truth.py): ~30-60 s per chain here
 @pytest.mark.parametrize("chain", ["R", "T"])
 def test_bruteforce_recovers_planted(chain):
     d = dataset_with_truth(chain)
@@ -126,6 +127,7 @@ def test_bruteforce_recovers_planted(chain):
 # ----------------------------------------------------------------------------------------------
 # the solver
 # ----------------------------------------------------------------------------------------------
+@pytest.mark.slow  # the 10,000-tuple brute-force truth (reference/truth.py): ~30-60 s per chain here
 @pytest.mark.parametrize("chain", ["R", "T"])
 def test_solver_against_bruteforce(chain):
     d = dataset_with_truth(chain)
@@ -227,6 +229,7 @@ def test_solver_against_bruteforce(chain):
     assert required.sum() > 10_000  # the comparison really covers many paths
 
 
+@pytest.mark.slow  # the 10,000-tuple brute-force truth (reference/truth.py): ~30-60 s per chain here
 @pytest.mark.parametrize("chain", ["R", "T"])
 def test_solver_paths_polished(chain):
     """Contract: 'returned paths are Newton-polished to ~1e-12'. Checked in uv space (the

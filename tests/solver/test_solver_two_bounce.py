@@ -35,6 +35,7 @@ import time
 import numpy as np
 import pytest
 
+from fixtures.marks import slow_cases
 from reference import bruteforce as bf
 from reference.two_bounce_data import plant_two_bounce
 from reference.truth_two_bounce import (DUP_TOL, FALSE_TOL, GRAZE_MARGIN, RECALL_MARGIN, SEED,
@@ -292,6 +293,7 @@ def test_live_prepass():
     assert tb.live_pieces(a, da, b, db, m, pieces, biv, boxes, live) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("refract1", [False, True])
 def test_prepass_hit_test(refract1):
     """The pre-pass's test that a box of (u1, v1) cannot reach triangle 2 (``_misses_second``,
@@ -414,7 +416,7 @@ def test_path_space_jacobian(chain):
 # TT 99.19 % (2 of 248 missed: their √-approximated systems have no real root near the path, a
 # near-tangent pair made complex by the √ error; the padded Bézout's sign noise used to find both
 # by chance, and missed another).  At 10,000 per chain see the module docstring.
-@pytest.mark.parametrize("chain", CHAINS)
+@pytest.mark.parametrize("chain", slow_cases(CHAINS, {"RT", "TR", "TT"}))
 def test_solver_against_bruteforce(chain):
     solve_tuples, _ = _api()
     d = dataset_with_truth(chain)

@@ -57,7 +57,6 @@ def test_photon_ring_matches_photon_reference():
     assert rep["counts"]["photons"] >= 3_000_000 and rep["counts"]["photons_deposited"] > 500_000
 
 
-@pytest.mark.slow
 def test_photon_water_matches_photon_reference():
     res_, half = 32, 2.0
     sc = _water_scene(res_, half)

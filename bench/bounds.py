@@ -54,7 +54,7 @@ def run_row_two(name, check=True, samples=16):
     """A two-bounce row: (T1, T2) pairs through the BVH, then position bounds against the floor."""
     import resource
 
-    import bounds_scenes as S
+    from fixtures import bounds_scenes as S
     from addon.solver.bounds.chain2 import bound_two_bounce
     from addon.solver.bounds.tuples import two_bounce_pairs
 
@@ -87,7 +87,7 @@ def run_row_two(name, check=True, samples=16):
 
 def run_row(name, check=True, samples=4):
     """Bound one scene; return the row dict (warm time of this call, no compile if cached)."""
-    import bounds_scenes as S
+    from fixtures import bounds_scenes as S
 
     if len(S.SCENES[name.split("_")[0]][0]) == 2:
         return run_row_two(name, check)
@@ -135,7 +135,7 @@ def warm_up():
     """Compile (or load) the kernels on a tiny scene so warm timings exclude it."""
     import numpy as np
 
-    import bounds_scenes as S
+    from fixtures import bounds_scenes as S
     from addon.solver.bounds.chain1 import bound_one_bounce
 
     P, N = S.curved_plane(2, 0.3)

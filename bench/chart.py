@@ -24,7 +24,7 @@ the chains of the reference.
 
 Error: relMSE against a high-count photon reference of the same scene and settings (the
 texel-averaged irradiance, every chain the scene has), all receivers and RGB channels, with
-the definition of tests/test_bake_caustics.py: mean over texels lit in either image of
+the definition of rel_mse in tests/fixtures/checks.py: mean over texels lit in either image of
 (b - r)² / (r² + eps), eps = 1e-2 (mean lit r)².  The reference is the mean of two halves with
 different seeds; relMSE(half1, half2) / 4 estimates its own noise, the floor under every
 error measured against it (given per scene).  References are cached under
@@ -64,7 +64,7 @@ METHODS = ("path-points/spoly", "forward-flux", "path-points/newton", "path-poin
 
 
 def rel_mse(b, r):
-    """relMSE of tests/test_bake_caustics.py over every texel and channel lit in either."""
+    """relMSE (rel_mse of tests/fixtures/checks.py) over every texel and channel lit in either."""
     b = np.asarray(b, dtype=np.float64).ravel()
     r = np.asarray(r, dtype=np.float64).ravel()
     lit = (r > 0) | (b > 0)
@@ -313,7 +313,7 @@ def section(rows, notes, args):
              "the forward-image sub-triangles (forward-flux, **the default estimator**), "
              "random seeds per tuple at 4 supersamples (path-points/sms), photons (photon), Cycles samples (cycles: "
              "Cycles' MNEE shadow caustics baked by bpy, two bakes per point, see bench/cycles_bake.py; refraction "
-             "chains only). Error: relMSE (tests/test_bake_caustics.py's definition, all receivers and channels) against a "
+             "chains only). Error: relMSE (rel_mse of tests/fixtures/checks.py, all receivers and channels) against a "
              f"{args.ref_photons:,}-photon reference of every chain the scene has (bounces 2 for the glass scenes: TT); "
              "'floor' is the reference's own noise (relMSE of its two halves / 4), under which no error can be measured. "
              f"Bakes over {args.limit:.0f} s are cancelled and marked too slow (cycles: cannot be cancelled, measured "

@@ -6,7 +6,7 @@
 
 ``images[receiver]`` is an (H, W, 3) float64 array of caustic irradiance in W/m² with the
 layout of ``addon.bake.pipeline.BakeResult.raw`` (row 0 = v = 0, as Blender stores pixels; the
-texel order is checked against our bakes in tests/test_cycles_caustics.py), i.e. directly
+texel order is checked against our bakes in tests/bake/test_cycles_caustics.py), i.e. directly
 comparable with our bakes and the chart's photon reference.
 
 How it is measured
@@ -25,10 +25,10 @@ albedo: for a Lambertian surface L = albedo E / pi, so the pass holds E / pi and
 
     E [W/m²] = pi x baked value.
 
-This is the relation tests/test_bake_units.py pins down for renders; here it is checked on
+This is the relation tests/bake/test_bake_units.py pins down for renders; here it is checked on
 the bake itself: pi x (Cycles' bake of the glass sphere's floor without the caustic, i.e. its
 direct light, 1024 spp) / our ``direct=True`` bake = 1.0009 (median over lit texels, 5-95 %:
-0.9998-1.0035); tests/test_cycles_caustics.py asserts it on the (asymmetric) glass slab,
+0.9998-1.0035); tests/bake/test_cycles_caustics.py asserts it on the (asymmetric) glass slab,
 which also fixes the texel order (a flipped or transposed image fails it).  And through the
 casters: inside the glass slab's caustic (chain TT, away from its border and from the hole
 below) Cycles / our photon bake = 1.0002 (48², 1024 spp, 8M photons; per texel 5-95 %:

@@ -5,8 +5,8 @@
 
 Bakes sample_blends/glass_sphere.blend's TT chain (light -> into the sphere -> out -> floor,
 Fresnel at both interfaces) with the two-bounce modes of the default method, and twice with
-photon tracing (independent seeds) for the reference.  relMSE as in tests/test_bake_caustics.py
-(mean over texels lit in either image of (a - b)² / (b² + eps), eps = 1e-2 x mean² of the
+photon tracing (independent seeds) for the reference.  relMSE as rel_mse in
+tests/fixtures/checks.py (mean over texels lit in either image of (a - b)² / (b² + eps), eps = 1e-2 x mean² of the
 lit reference).  The reference is noisy: with two independent photon textures A, B of
 per-texel relative variance s², relMSE(A, B) ~ 2 s², and the reference R = (A + B) / 2 adds
 ~ s² / 2 = relMSE(A, B) / 4 to any relMSE measured against it; the table prints the raw value

@@ -2,9 +2,10 @@
 
     .venv/bin/python bench/stability.py [--no-write]
 
-The cases are the independent test set of tests/test_solver_random.py (planted paths with
-tilted or sphere-like normals, tuples built with two or more paths, random tuples, near
-total internal reflection for T), ground truth from the brute force in tests/reference.
+The cases are the independent test set of tests/solver/test_solver_random.py, built by
+tests/reference/truth.py (planted paths with tilted or sphere-like normals, tuples built with
+two or more paths, random tuples, near total internal reflection for T), ground truth from the
+brute force in tests/reference.
 Writes the "stability" section of BENCHMARKS.md.
 """
 
@@ -17,11 +18,11 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-sys.path[:0] = [ROOT, os.path.join(ROOT, "tests"), HERE]
+sys.path[:0] = [ROOT, HERE, os.path.join(ROOT, "tests")]
 
-import test_solver_random as truth  # noqa: E402
+from fixtures.checks import found_fraction  # noqa: E402
+from reference import truth  # noqa: E402
 from solver import write_section  # noqa: E402
-from test_solver_baselines import found_fraction  # noqa: E402
 
 from addon.solver.api import SpecularPolynomialSolver  # noqa: E402
 from addon.solver.baselines import NewtonSolver, SMSSolver  # noqa: E402
@@ -59,7 +60,7 @@ def main():
             lines.append(f"| {name} | {dt:.2f} | " + " | ".join(f"{100 * f:.2f} %" for f in row) + f" | {int((~np.isfinite(uv)).sum())} |")
         lines.append("")
     lines.append("Fraction of the brute-force paths each method returns (all returned paths are true paths: "
-                 "`tests/test_solver_baselines.py` checks it). Newton/MNEE seeds as Path Cuts does (centroid; for T also "
+                 "`tests/solver/test_solver_baselines.py` checks it). Newton/MNEE seeds as Path Cuts does (centroid; for T also "
                  "the straight line's crossing); SMS is the biased variant with k uniform seeds; curve-k is the coplanarity-curve "
                  "walk of Granizo-Hidalgo & Holzschuch 2024 restricted to the tuple's triangle (all conic arcs and a closed "
                  "ellipse, longest marching step 1/k; T only: a reflection has no starting point on the curve). All share one "

@@ -1,4 +1,4 @@
-"""Two-bounce recall harness: the tuples of tests/test_solver_two_bounce.py's acceptance run,
+"""Two-bounce recall harness: the tuples of tests/solver/test_solver_two_bounce.py's acceptance run,
 brute-force truth cached once, the solver's misses listed with diagnostics.
 
     .venv/bin/python bench/two_bounce_recall.py --chain RT --tuples 10000 [--pieces 100] [--diag]
@@ -34,7 +34,7 @@ for p in (ROOT, TESTS):
         sys.path.insert(0, p)
 
 from reference import bruteforce as bf  # noqa: E402
-import test_solver_two_bounce as T  # noqa: E402
+from reference import truth_two_bounce as T  # noqa: E402
 
 
 def truth(chain, n, cache, chunk):
@@ -87,7 +87,7 @@ def evaluate(chain, d, ti, uv):
     false = np.flatnonzero(~chk.valid)
     dup = duplicates(chain, d, ti, uv)
     req = required_mask(d)
-    m = T._match(d["bf_t"], d["bf_uv"], ti, uv)
+    m = T.match_paths(d["bf_t"], d["bf_uv"], ti, uv)
     miss = np.flatnonzero(req & (m < 0))
     return dict(false=false, dup=dup, req=req, match=m, miss=miss, recall=1.0 - len(miss) / max(1, int(req.sum())))
 

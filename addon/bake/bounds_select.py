@@ -26,7 +26,7 @@ Path-points (``BakeSettings(cull="bounds")``, the default; ``estimators.path_poi
   margin ``BOUNDS_MARGIN``) and the emitter's cone accepts it.
 
   Each step is conservative (no path is lost), so the selection is a subset of the cone cull's
-  and holds every pair with a path; ``tests/test_bake_bounds_select.py`` checks both against
+  and holds every pair with a path; ``tests/bake/test_bake_bounds_select.py`` checks both against
   the exact paths of the cone cull.  The light point may differ per first triangle (the sun):
   every kernel here takes one light point per pair, calling the engines' per-tuple functions
   (the engines' batch drivers take a single point).

@@ -36,7 +36,7 @@ failing either has no path, so the cull never drops a real one:
    1e-7 of exact, and barycentrics 1e-9 outside the triangle).
 
 The test runs first on tiles of 8 x 8 texels (bounding spheres of their samples), then on the
-samples of the surviving (triangle, tile) pairs.  ``tests/test_bake_cull.py`` checks against
+samples of the surviving (triangle, tile) pairs.  ``tests/bake/test_bake_cull.py`` checks against
 the enumeration of every (triangle, sample) pair that the cull loses no path.
 
 Two bounces (x0 -> t1 -> t2 -> x3): a pair survives when t2's bounding sphere reaches t1's
@@ -731,7 +731,7 @@ def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p):
     its scattered directions, :func:`one_bounce_emitters`) against the spheres of
     :func:`sphere_tree` over the targets, descended from the root while a node passes (a leaf
     that passes keeps the triangle): conservative, a triangle with a path is never dropped
-    (``tests/test_bake_bounds_select.py`` checks it against forward-traced paths), and its
+    (``tests/bake/test_bake_bounds_select.py`` checks it against forward-traced paths), and its
     cost is O(T1 log leaves) for most triangles.  ``x0`` (3,) or (T1, 3)."""
     T1 = tri_p1.shape[0]
     keep = np.zeros(T1, dtype=np.bool_)

@@ -21,7 +21,7 @@
 - What is baked is what the (viewport) depsgraph holds: objects hidden from renders are left
   out, and so are objects disabled in viewports (the render depsgraph is not reachable from
   Python outside a render).
-- Lights in Cycles' units (verified against Cycles in tests/test_bake_units.py):
+- Lights in Cycles' units (verified against Cycles in tests/bake/test_bake_units.py):
   point / spot I = P / (4 pi) W/sr, sun S = strength W/m², area on-axis I = P / pi W/sr;
   times colour and 2^exposure.
 """

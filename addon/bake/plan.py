@@ -18,7 +18,7 @@
 
 The plan's report (:meth:`Plan.report`) lists every (light, chain, casters, receiver) with its
 estimated share (the probe) and its baked share (the power the estimators delivered,
-``ctx.ledger``), and a one-line summary per receiver.  Tested in tests/test_bake_plan.py
+``ctx.ledger``), and a one-line summary per receiver.  Tested in tests/bake/test_bake_plan.py
 (a single refracting sheet needs no two-bounce work; every sample scene's default bake keeps
 ≥ 99 % of a forced two-bounce bake's energy).
 """

@@ -12,7 +12,7 @@ computes it — point light: I f(w) Ω (Ω the sub-triangle's solid angle from t
 S times its area across the beam — times the transport factor and the tints.  The sums are a
 midpoint quadrature of the flux the forward-flux estimator bakes; the plan only compares
 them with a threshold (0.5 % of a receiver's caustic power by default), so a few per cent of
-quadrature error do not matter.  Tested against full bakes (tests/test_bake_plan.py).
+quadrature error do not matter.  Tested against full bakes (tests/bake/test_bake_plan.py).
 """
 
 import math

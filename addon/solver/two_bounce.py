@@ -28,7 +28,7 @@ a candidate on the line x0 → x3 covers the normal-incidence path through paral
 
 Invariants: float64; fixed-size scratch per work item, no allocation per tuple; the vector
 kernels of ``simd.py`` do the scalar loops' operations in their order (bit for bit).
-Tested in tests/test_solver_two_bounce.py (analytic cases, planted paths, brute-force recall
+Tested in tests/solver/test_solver_two_bounce.py (analytic cases, planted paths, brute-force recall
 on random and planted sets, the √ fit, the pre-pass hit test at 144 points per dropped box)
 and bench/two_bounce_recall.py (10,000-tuple acceptance sets).  Design decisions and their
 measurements: docs/decisions/two-bounce-solver.md.
@@ -823,7 +823,7 @@ def _det_hybrid_window(F, G, n, m, mat):
     takes the place of the pivot when that is not it itself.  The arithmetic on every entry
     is the dense elimination's (f = x_ik / pivot, x_ij -= f x_kj), the pivot the largest in
     the column (ties may pick another row than the dense order), so the result is the
-    dense elimination's (tests/test_solver_two_bounce.py, bit for bit).  The sign is that of
+    dense elimination's (tests/solver/test_solver_two_bounce.py, bit for bit).  The sign is that of
     the pivots and of the permutation (original row of each pivot, parity by cycles).
     F is overwritten (the multipliers)."""
     L = LANES

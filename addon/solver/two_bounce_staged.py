@@ -36,7 +36,7 @@ before its refined roots), which can change which of two copies of one path is k
 
 Stage A repeats ``_solve_oriented``'s set-up (side tests, frame, √ pieces, orientations) so
 that the one-kernel path stays exactly as it is; the two must change together
-(tests/test_opencl_two_bounce.py compares the staging on Numba with the one-kernel solver).
+(tests/solver/test_opencl_two_bounce.py compares the staging on Numba with the one-kernel solver).
 Limits: one projection (``TWO_PROJECTIONS`` False) and ``REFINE_LEVELS`` ≤ 1, the settings
 of two_bounce.py; a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel
 path in stage E.

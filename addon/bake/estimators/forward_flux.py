@@ -11,7 +11,7 @@ straight image in UV space by exact texel overlap with a density linear over the
 (:func:`addon.solver.forward_image.corner_densities`, :func:`~addon.solver.forward_image.splat_triangles`);
 divided by each texel's world area it is the texel-averaged irradiance, finite at focal
 points.  Energy is conserved by construction; tested against photon references
-(tests/test_bake_two_bounce.py, tests/test_bake_caustics.py) and bench/glass_target.py.
+(tests/bake/test_bake_two_bounce.py, tests/bake/test_bake_caustics.py) and bench/glass_target.py.
 """
 
 import time

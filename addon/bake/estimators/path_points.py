@@ -15,7 +15,7 @@ Specular Polynomials of Fan et al. 2024, every path; the baselines ``newton``, `
 term and F the Fresnel product from ``addon.solver.path_irradiance``, V the visibility of
 every segment through the scene BVH).  A texel's value is the mean over its supersamples.
 Tested against the image-source mirror, Snell through a flat interface and Cycles
-(tests/test_bake_mirror.py, test_bake_units.py, test_bake_caustics.py).
+(tests/bake/test_bake_mirror.py, test_bake_units.py, test_bake_caustics.py).
 """
 
 import time

@@ -6,7 +6,7 @@ gets a seed; Newton on the exact two-vertex constraint (eq. 3 of Fan et al. 2024
 vertices, :func:`addon.solver.forward_image.solve_image_seeds`) solves the path through the
 tuple the seed's ray passes, duplicates are merged, and the paths are weighed, tested and
 accumulated exactly as :mod:`.path_points` does.  Every path is a validated exact path;
-completeness is measured against the exact solver (tests/test_bake_two_bounce.py).
+completeness is measured against the exact solver (tests/bake/test_bake_two_bounce.py).
 One-bounce chains planned for this estimator run ``path-points`` (BakeSettings.estimator_for).
 """
 

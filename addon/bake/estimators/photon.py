@@ -11,7 +11,7 @@ the texel-averaged irradiance (W/m²), an unbiased estimate of the mean over the
 per-point irradiance the path estimators take at their supersamples.  The sun is traced as
 exactly parallel light.  Photons deposit on every receiver a planned chain reaches (the
 tracer follows chains, not receivers).  Tested against the path estimators
-(tests/test_bake_methods.py).
+(tests/bake/test_bake_methods.py).
 """
 
 import time

@@ -1,0 +1,213 @@
+"""The two-bounce OpenCL path (RR, RT, TR, TT) returns the Numba back end's paths.
+
+device="opencl" runs the staged pipeline of addon/solver/two_bounce_staged.py: systems built
+and paths polished on Numba, the Bézout determinants (Fan et al. 2024, eq 29), the sign scan's
+Illinois brackets and the refinement's sub-samples (§4.2) on the device
+(addon/solver/opencl/two_bounce.cl).  PoCL on the CPU in CI; tests that need a device skip
+without one.  Tuples: bench/workloads.py (planted_two_bounce, random_two_bounce) and
+tests/reference/two_bounce_data.py (the sets of test_solver_two_bounce.py, fewer of them).
+"""
+
+import os
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+if os.path.join(ROOT, "bench") not in sys.path:
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+
+from addon.solver import opencl_backend, solve_tuples  # noqa: E402
+from addon.solver.api import SpecularPolynomialSolver, compact_paths  # noqa: E402
+from reference.two_bounce_data import plant_two_bounce, random_two_bounce as random_pairs  # noqa: E402
+from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
+
+CHAINS = ("RR", "RT", "TR", "TT")
+N_EACH = 24  # tuples per source: ~1 min for the file on a loaded 2-core PoCL machine (warm Numba cache)
+
+
+def _opencl_device_or_skip():
+    try:
+        devices = opencl_backend.list_devices()
+    except opencl_backend.OpenCLUnavailable as ex:
+        pytest.skip(f"no OpenCL here: {ex}")
+    usable = [d for d in devices if d[3]]
+    if not usable:
+        pytest.skip("no OpenCL device with double precision")
+    return usable[0][0]
+
+
+def _tuples(chain, n=N_EACH):
+    """bench/workloads planted + random, and the test set's planted (tilted, sphere) + random."""
+    x0, x3, P, N, _ = planted_two_bounce(4 * n, chain, seed=31)
+    assert x0.shape[0] >= n
+    r0, r3, rP, rN = random_two_bounce(n, seed=32)
+    rng = np.random.default_rng([33, ord(chain[0]), ord(chain[1])])
+    parts = [plant_two_bounce(rng, chain, n, sphere_frac=0.0), plant_two_bounce(rng, chain, n // 2, sphere_frac=1.0),
+             random_pairs(rng, chain, n // 2)]
+    cat = lambda key: np.concatenate([p[key] for p in parts])  # noqa: E731
+    X0 = np.concatenate([x0[:n], r0, cat("x0")])
+    X3 = np.concatenate([x3[:n], r3, cat("x3")])
+    PP = np.concatenate([P[:n], rP, cat("P")])
+    NN = np.concatenate([N[:n], rN, cat("N")])
+    eta = np.concatenate([np.full(2 * n, 1.5), cat("eta")])
+    return X0, X3, PP, NN, eta
+
+
+def _assert_same_paths(got, expected, n, what=""):
+    np.testing.assert_array_equal(np.bincount(got.tuple_index, minlength=n), np.bincount(expected.tuple_index, minlength=n),
+                                  err_msg=f"path count per tuple {what}")
+    np.testing.assert_array_equal(got.tuple_index, expected.tuple_index)
+    np.testing.assert_allclose(got.uv, expected.uv, rtol=0, atol=1e-9, err_msg=what)
+
+
+@pytest.mark.opencl
+@pytest.mark.slow  # the first builds the two-bounce OpenCL kernels: ~3 min on PoCL here
+@pytest.mark.parametrize("chain", CHAINS)
+def test_opencl_two_bounce_returns_the_numba_paths(chain):
+    index = _opencl_device_or_skip()
+    x0, x3, P, N, eta = _tuples(chain)
+    solver = SpecularPolynomialSolver()
+    numba = solver.solve(chain, x0, x3, P, N, eta)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no fallback warning: it runs on the device
+        ocl = solver.solve(chain, x0, x3, P, N, eta, device=f"opencl:{index}")
+    assert ocl.report.device.startswith("opencl: ") and numba.report.device == "numba"
+    assert numba.report.paths >= N_EACH
+    _assert_same_paths(ocl, numba, x0.shape[0], chain)
+    assert ocl.report.paths == numba.report.paths and ocl.report.skipped == numba.report.skipped
+    assert ocl.report.overflow == numba.report.overflow
+    # Two compilers (log, exp to the last bit): an Illinois iteration may take another step
+    # and a rounding-level sign another value, so the counts may differ a little; the
+    # paths may not.
+    for key in ("determinants", "roots", "candidates"):
+        a, b = getattr(ocl.report, key), getattr(numba.report, key)
+        assert abs(a - b) <= 0.02 * b + 5, (key, a, b)
+    print(f"\n[{chain}] {x0.shape[0]} tuples, {ocl.report.paths} paths; determinants OpenCL {ocl.report.determinants:,} "
+          f"Numba {numba.report.determinants:,}")
+
+
+@pytest.mark.parametrize("chain", ["RR", "TT"])
+def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
+    """Stages A-E with the determinants on Numba (no OpenCL needed): the staging itself
+    changes nothing — same paths, and here the same counts — also with small batches and
+    with tuples pushed to the one-kernel path (sys_cap=1)."""
+    from addon.solver.two_bounce import MAX_PATHS_TWO_BOUNCE, N_STATS
+    from addon.solver.two_bounce_staged import NumbaDeterminants, solve_staged
+
+    x0, x3, P, N, eta = _tuples(chain, 8)
+    expected = SpecularPolynomialSolver().solve(chain, x0, x3, P, N, eta)
+    n = x0.shape[0]
+    for kwargs in ({}, {"batch": 5, "sys_cap": 1}):
+        out_uv = np.zeros((n, MAX_PATHS_TWO_BOUNCE, 4))
+        count = np.zeros(n, dtype=np.int64)
+        stats = np.zeros((n, N_STATS), dtype=np.int64)
+        solve_staged(NumbaDeterminants(), chain[0] == "T", chain[1] == "T", x0, x3, P, N, eta, 100, out_uv, count, stats,
+                     **kwargs)
+        ti, uv = compact_paths(out_uv, count)
+        np.testing.assert_array_equal(ti, expected.tuple_index)
+        np.testing.assert_allclose(uv, expected.uv, rtol=0, atol=1e-9)
+        totals = stats.sum(0)
+        rep = expected.report
+        assert (totals[2], totals[3]) == (rep.paths, rep.skipped)
+        assert abs(int(totals[4]) - rep.determinants) <= 0.02 * rep.determinants + 5, kwargs
+
+
+@pytest.mark.opencl
+@pytest.mark.slow  # builds the two-bounce OpenCL kernels
+def test_opencl_determinant_equals_det_bezout():
+    """sign and log|det R(v1)| (eq 29) of real TT systems: OpenCL against Numba's det_bezout."""
+    index = _opencl_device_or_skip()
+    from addon.solver.opencl_backend import OpenCLDeterminants
+    from addon.solver.two_bounce import MAXD, N_STATS, det_bezout
+    from addon.solver.two_bounce_staged import SYS_CAP, _unpack_v_major, layout, stage_a
+
+    x0, x3, P, N, eta = _tuples("TT", 6)
+    n = x0.shape[0]
+    stride, b_offset = layout(True, True)
+    coef = np.zeros((n, SYS_CAP, stride))
+    sysint = np.zeros((n, SYS_CAP, 7), dtype=np.int64)
+    nsys = np.zeros(n, dtype=np.int64)
+    state = np.zeros(n, dtype=np.int64)
+    stage_a(True, True, x0, x3, P, N, eta, b_offset, coef, sysint, nsys, state, np.zeros((n, N_STATS), dtype=np.int64),
+            100, np.zeros((n, SYS_CAP, 100), dtype=np.int64))
+    t, k = np.nonzero((np.arange(SYS_CAP)[None, :] < nsys[:, None]) & (sysint[:, :, 1] == 1))
+    assert t.size >= 20
+    coef, sysint = np.ascontiguousarray(coef[t, k]), sysint[t, k]
+    assert sysint[:, 6].max() > 30  # TT: Bézout matrices up to 46 x 46
+    dev = OpenCLDeterminants(index)
+    dev.load(coef, np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32), b_offset)
+    rng = np.random.default_rng(7)
+    job_sys = np.repeat(np.arange(t.size), 40).astype(np.int32)
+    job_v = rng.uniform(-0.02, 1.02, job_sys.size)
+    sign, log, _ = dev.dets(job_sys, job_v)
+    a = np.zeros((MAXD + 1, MAXD + 1))
+    scratch = np.zeros((MAXD + 1, MAXD + 1))
+    b = np.zeros((MAXD + 1, MAXD + 1))
+    cf = np.zeros((2, MAXD + 2))
+    mat = np.zeros((MAXD + 1, MAXD + 1))
+    compared = 0
+    for j, (s, v) in enumerate(zip(job_sys, job_v)):
+        da, db, nn = sysint[s, 2], sysint[s, 3], sysint[s, 6]
+        _unpack_v_major(coef[s], 0, da, scratch, a)
+        _unpack_v_major(coef[s], b_offset, db, scratch, b)
+        s_nb, lg_nb = det_bezout(a, da, b, db, nn, v, cf, mat)
+        if s_nb == 0:
+            continue  # an exact zero is re-checked a hair away by both back ends
+        assert sign[j] == s_nb, (j, s, v)
+        assert abs(log[j] - lg_nb) <= 1e-9 * max(1.0, abs(lg_nb)), (j, log[j], lg_nb)
+        compared += 1
+    assert compared >= 0.99 * job_sys.size
+
+
+@pytest.mark.opencl
+@pytest.mark.slow  # builds the two-bounce OpenCL kernels
+@pytest.mark.parametrize("chain", CHAINS)
+def test_opencl_two_bounce_degenerate_tuples(chain):
+    """Degenerate, grazing and near-TIR tuples (as test_solver_two_bounce.py): no NaN, no
+    crash, the Numba back end's paths."""
+    index = _opencl_device_or_skip()
+    rng = np.random.default_rng([20261121, 9, ord(chain[0]), ord(chain[1])])
+    d = plant_two_bounce(rng, chain, 40, max_theta_deg=89.9)
+    x0, x3, P, N, eta = d["x0"].copy(), d["x3"].copy(), d["P"].copy(), d["N"].copy(), d["eta"].copy()
+    P[0:4, 0, 2] = P[0:4, 0, 0]  # zero-area triangle 1
+    P[4:8, 1, 2] = P[4:8, 1, 1]  # zero-area triangle 2
+    N[8:12] = 0.0  # zero normals
+    x0[12:16] = P[12:16, 0].mean(1) + 2.0 * (P[12:16, 0, 1] - P[12:16, 0, 0])  # x0 in plane 1
+    x3[16:20] = P[16:20, 1].mean(1) + 2.0 * (P[16:20, 1, 1] - P[16:20, 1, 0])  # x3 in plane 2
+    P[20:24, 1] = P[20:24, 0]  # both triangles the same
+    eta[24:28] = 1.0 + 1e-9  # index matched
+    c = P[28:40, 0].mean(1)
+    fn = np.cross(P[28:40, 0, 1] - P[28:40, 0, 0], P[28:40, 0, 2] - P[28:40, 0, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    rel = x0[28:40] - c
+    h = np.sum(rel * fn, 1, keepdims=True)
+    x0[28:40] = c + (rel - h * fn) + h * fn * 10.0 ** rng.uniform(-6, -2, (12, 1))  # grazing
+    solver = SpecularPolynomialSolver()
+    numba = solver.solve(chain, x0, x3, P, N, eta)
+    ocl = solver.solve(chain, x0, x3, P, N, eta, device=f"opencl:{index}")
+    assert np.isfinite(ocl.uv).all()
+    assert not np.isin(ocl.tuple_index, np.r_[0:12]).any()
+    _assert_same_paths(ocl, numba, x0.shape[0], chain)
+
+
+@pytest.mark.opencl
+def test_two_bounce_missing_device_warns_and_uses_numba():
+    _opencl_device_or_skip()
+    x0, x3, P, N, _ = planted_two_bounce(12, "RR", seed=34)
+    expected = solve_tuples("RR", x0, x3, P, N, 1.5)
+    with pytest.warns(RuntimeWarning, match="OpenCL unavailable.*does not exist"):
+        got = solve_tuples("RR", x0, x3, P, N, 1.5, device="opencl:99")
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
+
+
+def test_two_bounce_device_without_double_precision_is_refused(monkeypatch):
+    monkeypatch.setattr(opencl_backend, "_cache", {})
+    monkeypatch.setattr(opencl_backend, "_cache2", {})
+    monkeypatch.setattr(opencl_backend, "list_devices", lambda: [(0, "Fake", "fp32-only GPU", False, None)])
+    x0, x3, P, N, _ = planted_two_bounce(6, "TT", seed=35)
+    with pytest.raises(opencl_backend.OpenCLNoDoublePrecision, match="fp32-only GPU.*cl_khr_fp64"):
+        solve_tuples("TT", x0, x3, P, N, 1.5, device="opencl")

@@ -1,0 +1,203 @@
+"""The optional OpenCL back end (PoCL on the CPU in CI) returns the Numba back end's paths."""
+
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from addon.solver import opencl_backend, solve_tuples
+from addon.solver.api import SpecularPolynomialSolver
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "bench"))
+from workloads import planted_tuples, random_tuples  # noqa: E402
+
+
+def _opencl_device_or_skip():
+    try:
+        devices = opencl_backend.list_devices()
+    except opencl_backend.OpenCLUnavailable as ex:
+        pytest.skip(f"no OpenCL here: {ex}")
+    usable = [d for d in devices if d[3]]
+    if not usable:
+        pytest.skip("no OpenCL device with double precision")
+    return usable[0][0]
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("chain", ["R", "T"])
+def test_opencl_returns_the_numba_paths(chain):
+    index = _opencl_device_or_skip()
+    x0, x2, P, N, _ = planted_tuples(6000, chain, seed=21)
+    r0, r2, rP, rN = random_tuples(6000, seed=22)
+    x0, x2, P, N = np.vstack([x0, r0]), np.vstack([x2, r2]), np.vstack([P, rP]), np.vstack([N, rN])
+    solver = SpecularPolynomialSolver()
+    numba = solver.solve(chain, x0, x2, P, N, 1.5)
+    ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+    assert ocl.report.device.startswith("opencl: ")
+    assert numba.report.paths > 3000
+    np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+    np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+    assert ocl.report.paths == numba.report.paths and ocl.report.skipped == numba.report.skipped
+    # Root and candidate counts may differ by a few touch candidates at rounding thresholds
+    # (two compilers); the paths may not.
+    assert abs(ocl.report.roots - numba.report.roots) <= 0.01 * numba.report.roots
+    assert abs(ocl.report.candidates - numba.report.candidates) <= 0.01 * numba.report.candidates
+
+
+def test_bad_device_names_are_value_errors():
+    P = np.zeros((1, 1, 3, 3))
+    for bad in ("cuda", "opencl:", "opencl:x", "opencl:-1", 3):
+        with pytest.raises(ValueError, match="device must be"):
+            solve_tuples("R", np.zeros((1, 3)), np.ones((1, 3)), P, P, 1.5, device=bad)
+
+
+@pytest.mark.opencl
+def test_missing_device_warns_and_uses_numba():
+    _opencl_device_or_skip()
+    x0, x2, P, N, _ = planted_tuples(200, "R", seed=23)
+    expected = solve_tuples("R", x0, x2, P, N, 1.5)
+    with pytest.warns(RuntimeWarning, match="OpenCL unavailable.*does not exist"):
+        got = solve_tuples("R", x0, x2, P, N, 1.5, device="opencl:99")
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
+
+
+def test_without_pyopencl_warns_and_uses_numba(monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_pyopencl(name, *args, **kwargs):
+        if name == "pyopencl" or name.startswith("pyopencl."):
+            raise ImportError("No module named 'pyopencl'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_pyopencl)
+    monkeypatch.setattr(opencl_backend, "_cache", {})
+    x0, x2, P, N, _ = planted_tuples(100, "T", seed=24)
+    with pytest.warns(RuntimeWarning, match="pyopencl is not installed"):
+        ti, uv = solve_tuples("T", x0, x2, P, N, 1.5, device="opencl")
+    assert ti.size >= x0.shape[0] * 0.99
+
+
+def test_device_without_double_precision_is_refused(monkeypatch):
+    """The refusal path, with the device list replaced by one fp32-only device."""
+    monkeypatch.setattr(opencl_backend, "_cache", {})
+    monkeypatch.setattr(opencl_backend, "list_devices", lambda: [(0, "Fake", "fp32-only GPU", False, None)])
+    x0, x2, P, N, _ = planted_tuples(10, "R", seed=25)
+    with pytest.raises(opencl_backend.OpenCLNoDoublePrecision, match="fp32-only GPU.*cl_khr_fp64"):
+        solve_tuples("R", x0, x2, P, N, 1.5, device="opencl")
+
+
+def _lexsort_reference(tuple_index, uv):
+    order = np.lexsort(tuple(uv[:, k] for k in range(uv.shape[1] - 1, -1, -1)) + (tuple_index,))
+    return tuple_index[order], uv[order]
+
+
+@pytest.mark.parametrize("width", [2, 4])
+def test_canonical_order_is_the_lexicographic_order(width):
+    """compact_paths (per-tuple slots) and canonical_order (paths in any order, as a device
+    writes them) both give the order of a lexsort by (tuple, u, v, ...), ties included."""
+    from addon.solver.api import canonical_order, compact_paths
+
+    rng = np.random.default_rng(5)
+    n, cap = 3000, 8
+    counts = rng.choice([0, 0, 0, 1, 1, 2, 3, 8, 11], size=n)  # 11: more than the slots hold
+    out_uv = rng.integers(0, 4, size=(n, cap, width)) / 4.0  # coarse values: many ties in u
+    ti, uv = compact_paths(out_uv, counts)
+    stored = np.minimum(counts, cap)
+    ref_ti = np.repeat(np.arange(n), stored)
+    ref_uv = np.concatenate([out_uv[t, :c] for t, c in enumerate(stored)])
+    ref_ti, ref_uv = _lexsort_reference(ref_ti, ref_uv)
+    np.testing.assert_array_equal(ti, ref_ti)
+    np.testing.assert_array_equal(uv, ref_uv)
+    shuffle = rng.permutation(ref_ti.size)
+    ti2, uv2 = canonical_order(ref_ti[shuffle], ref_uv[shuffle], n)
+    np.testing.assert_array_equal(ti2, ref_ti)
+    np.testing.assert_array_equal(uv2, ref_uv)
+
+
+def _mixed_batch(n_random, n_planted, chain, seed):
+    """Random tuples (mostly without a path) with planted ones (a path each) spread among them."""
+    x0, x2, P, N = random_tuples(n_random, seed=seed)
+    p0, p2, pP, pN, _ = planted_tuples(2 * n_planted, chain, seed=seed + 1)
+    at = np.sort(np.random.default_rng(seed).choice(n_random, size=n_planted, replace=False))
+    for a, b in ((x0, p0), (x2, p2), (P, pP), (N, pN)):
+        a[at] = b[:n_planted]
+    return x0, x2, P, N
+
+
+@pytest.mark.parametrize("chain", ["R", "T"])
+def test_opencl_compaction_and_buffer_reuse(chain, monkeypatch):
+    """Paths compacted on the device equal Numba's over consecutive calls of different sizes
+    (the device buffers kept from a larger call serve a smaller one and are replaced for a
+    larger one), and when the path records overflow the device buffers (they grow and the
+    kernel runs again)."""
+    index = _opencl_device_or_skip()
+    solver = SpecularPolynomialSolver()
+    dev = opencl_backend._context(index)
+    monkeypatch.setattr(dev, "buffers", {})  # as on a device's first call
+    monkeypatch.setattr(dev, "path_capacity", 0)
+    sizes = (6000, 1500, 9000)
+    held = None
+    for i, n in enumerate(sizes):
+        x0, x2, P, N = _mixed_batch(n, n // 20, chain, seed=40 + i)
+        numba = solver.solve(chain, x0, x2, P, N, 1.5)
+        ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+        with_paths = np.unique(numba.tuple_index).size
+        assert n // 40 < with_paths < n // 4  # some tuples have paths, most do not
+        np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+        np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+        assert (ocl.report.paths, ocl.report.skipped, ocl.report.overflow) == \
+            (numba.report.paths, numba.report.skipped, numba.report.overflow)
+        buf = dev.buffers["x_start"]
+        assert buf.size >= 24 * n
+        if i == 1:
+            assert buf is held  # the smaller call wrote into the larger call's buffer
+        if i == 2:
+            assert buf is not held  # a larger call replaced it
+        held = buf
+    # path records past the device buffers' capacity: the buffers grow and the kernel runs again
+    monkeypatch.setattr(opencl_backend, "PATH_RECORDS_PER_TUPLE", 0)
+    monkeypatch.setattr(opencl_backend, "PATH_RECORDS_MIN", 16)
+    monkeypatch.setattr(dev, "path_capacity", 0)
+    monkeypatch.setattr(dev, "buffers", {})
+    x0, x2, P, N, _ = planted_tuples(400, chain, seed=47)
+    numba = solver.solve(chain, x0, x2, P, N, 1.5)
+    prof = opencl_backend.Profiler()
+    opencl_backend.set_profiling(index, prof)
+    try:
+        ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+    finally:
+        opencl_backend.set_profiling(index, None)
+    assert numba.uv.shape[0] > 16 and prof.launches == 2
+    assert dev.path_capacity >= numba.uv.shape[0]
+    np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+    np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+    assert ocl.report.paths == numba.report.paths
+
+
+@pytest.mark.parametrize("chain", ["R", "T"])
+def test_opencl_launches_in_batches_and_empty_calls(chain, monkeypatch):
+    """A call larger than ONE_BOUNCE_BATCH runs in several launches (tuple offsets, summed
+    statistics) with Numba's paths; a call without tuples returns nothing."""
+    index = _opencl_device_or_skip()
+    solver = SpecularPolynomialSolver()
+    x0, x2, P, N = _mixed_batch(7000, 700, chain, seed=60)
+    numba = solver.solve(chain, x0, x2, P, N, 1.5)
+    monkeypatch.setattr(opencl_backend, "ONE_BOUNCE_BATCH", 2500)
+    prof = opencl_backend.Profiler()
+    opencl_backend.set_profiling(index, prof)
+    try:
+        ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
+    finally:
+        opencl_backend.set_profiling(index, None)
+    assert prof.launches == 3
+    assert numba.uv.shape[0] > 700
+    np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+    np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+    assert (ocl.report.paths, ocl.report.skipped, ocl.report.overflow) == \
+        (numba.report.paths, numba.report.skipped, numba.report.overflow)
+    empty = solver.solve(chain, x0[:0], x2[:0], P[:0], N[:0], 1.5, device=f"opencl:{index}")
+    assert empty.tuple_index.shape == (0,) and empty.uv.shape == (0, 2) and empty.report.paths == 0

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from .solver import path_irradiance
-from .solver.api import SpecularPolynomialSolver
+from .solver.spoly.api import SpecularPolynomialSolver
 
 SHADES = " .:-=+*#%@"
 

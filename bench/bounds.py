@@ -161,7 +161,7 @@ def main():
     if args.child:
         print(json.dumps(run_row(args.child, check=False)))
         return
-    from addon.solver.jit import get_num_threads
+    from addon.solver.runtime.jit import get_num_threads
 
     rows = []
     for name in args.rows.split(","):

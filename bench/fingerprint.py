@@ -7,7 +7,7 @@
 
 * the 24 result arrays of the solver benchmark workloads (``bench/workloads.py``): per chain
   R, T, RR, RT, TR, TT and workload random / planted, the solver's ``tuple_index`` and ``uv``
-  (the Specular Polynomial solver of ``addon.solver.api``, IOR 1.5; one-bounce sets of
+  (the Specular Polynomial solver of ``addon.solver.spoly.api``, IOR 1.5; one-bounce sets of
   20,000 tuples, two-bounce sets of 60);
 * with the bpy module, the default bake (forward-flux, bounces auto, 4 supersamples) of every
   sample scene in ``sample_blends/`` at ``--resolution``: each receiver's raw texture.
@@ -36,7 +36,7 @@ def solver_arrays():
     """{"<chain>/<workload>/tuple_index" | ".../uv": array} for the 24 workload results."""
     from workloads import planted_tuples, planted_two_bounce, random_tuples, random_two_bounce
 
-    from addon.solver.api import SpecularPolynomialSolver
+    from addon.solver.spoly.api import SpecularPolynomialSolver
 
     solver = SpecularPolynomialSolver()
     out = {}

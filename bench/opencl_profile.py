@@ -90,7 +90,8 @@ def same_paths(a, b):
 
 def profiled_run(index, solve, chain):
     """One OpenCL solve with profiling events and host timers on: (wall, {stage: s}, profiler)."""
-    from addon.solver import api, opencl_backend, two_bounce_staged
+    from addon.solver.spoly import api, two_bounce_staged
+    from addon.solver.opencl import backend as opencl_backend
 
     prof = opencl_backend.Profiler()
     timer = HostTimer()
@@ -229,8 +230,9 @@ def main():
     args = parser.parse_args()
     args.rows = set(args.chains.split(","))
 
-    from addon.solver import jit, opencl_backend
-    from addon.solver.api import SpecularPolynomialSolver
+    from addon.solver.runtime import jit
+    from addon.solver.opencl import backend as opencl_backend
+    from addon.solver.spoly.api import SpecularPolynomialSolver
 
     devices = [d for d in opencl_backend.list_devices() if d[3]]
     if args.device is None:

@@ -74,8 +74,8 @@ def main():
     parser.add_argument("--opencl", action="store_true", help="only the Numba-against-OpenCL table")
     args = parser.parse_args()
     if args.opencl:
-        from addon.solver import jit
-        from addon.solver.api import SpecularPolynomialSolver
+        from addon.solver.runtime import jit
+        from addon.solver.spoly.api import SpecularPolynomialSolver
 
         threads_all = jit.get_num_threads()
         section = "\n".join(opencl_lines(opencl_comparison(SpecularPolynomialSolver(), args, threads_all), threads_all, args))
@@ -89,8 +89,8 @@ def main():
         imp_cold, compile_s = cold_start(empty_cache)
         imp_warm, first_warm = cold_start(empty_cache)
 
-    from addon.solver import jit
-    from addon.solver.api import SpecularPolynomialSolver
+    from addon.solver.runtime import jit
+    from addon.solver.spoly.api import SpecularPolynomialSolver
 
     solver = SpecularPolynomialSolver()
     threads_all = jit.get_num_threads()
@@ -177,7 +177,7 @@ def opencl_lines(opencl_rows, threads_all, args):
                      f"{r['opencl'] / r['numba']:.2f}× | {r['device']} | {r['same']} | {dets} |")
     lines.append("")
     lines.append("Two bounces on OpenCL: systems built and paths polished on Numba, the Bézout determinants, "
-                 "Illinois brackets and refinement sub-samples on the device (`addon/solver/two_bounce_staged.py`); "
+                 "Illinois brackets and refinement sub-samples on the device (`addon/solver/spoly/two_bounce_staged.py`); "
                  "the determinant counts differ by under 1 % (log/exp of two compilers: an Illinois step now and then), "
                  "the paths do not. "
                  + ("PoCL runs on the same cores as Numba; on an NVIDIA GPU run `bench/solver.py --opencl` with the "
@@ -189,7 +189,8 @@ def opencl_lines(opencl_rows, threads_all, args):
 
 def opencl_comparison(solver, args, threads_all):
     """Rows comparing the two back ends, or a sentence saying why there are none."""
-    from addon.solver import jit, opencl_backend
+    from addon.solver.runtime import jit
+    from addon.solver.opencl import backend as opencl_backend
 
     try:
         devices = [d for d in opencl_backend.list_devices() if d[3]]
@@ -272,8 +273,8 @@ def two_bounce_main(argv=None):
         imp_cold, compile_s = cold_start_two_bounce(empty_cache)
         imp_warm, first_warm = cold_start_two_bounce(empty_cache)
 
-    from addon.solver import jit
-    from addon.solver.api import SpecularPolynomialSolver
+    from addon.solver.runtime import jit
+    from addon.solver.spoly.api import SpecularPolynomialSolver
 
     solver = SpecularPolynomialSolver()
     threads_all = jit.get_num_threads()

@@ -24,9 +24,9 @@ from fixtures.checks import found_fraction  # noqa: E402
 from reference import truth  # noqa: E402
 from solver import write_section  # noqa: E402
 
-from addon.solver.api import SpecularPolynomialSolver  # noqa: E402
-from addon.solver.baselines import NewtonSolver, SMSSolver  # noqa: E402
-from addon.solver.curve_walk import CurveWalkSolver  # noqa: E402
+from addon.solver.spoly.api import SpecularPolynomialSolver  # noqa: E402
+from addon.solver.baselines.newton_sms import NewtonSolver, SMSSolver  # noqa: E402
+from addon.solver.baselines.curve_walk import CurveWalkSolver  # noqa: E402
 
 # Methods that solve one chain only (the curve walk has no starting point for a reflection).
 CHAIN_ONLY = {"curve-8": "T", "curve-32": "T", "curve-128": "T"}

@@ -16,9 +16,9 @@ import math
 
 import numpy as np
 
-from addon.solver import two_bounce as tb
-from addon.solver.path_space2 import pack_geometry, polish_and_validate2, trace_to_second
-from addon.solver.roots import MAX_DEGREE, roots_in_interval
+from addon.solver.spoly import two_bounce as tb
+from addon.solver.paths.two_vertex import pack_geometry, polish_and_validate2, trace_to_second
+from addon.solver.polynomials.roots import MAX_DEGREE, roots_in_interval
 
 
 def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):

@@ -93,7 +93,7 @@ def evaluate(chain, d, ti, uv):
 
 
 def solve(chain, d, pieces, idx=None):
-    from addon.solver.api import SpecularPolynomialSolver
+    from addon.solver.spoly.api import SpecularPolynomialSolver
 
     s = SpecularPolynomialSolver()
     sel = slice(None) if idx is None else idx

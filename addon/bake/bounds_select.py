@@ -56,7 +56,7 @@ from ..solver.bounds.irradiance_two import (BOUNDED, EDGE_TOL, NO_PATH, UNBOUNDE
                                             _vdotc, _vertex_one, box_reached, piece_irradiance_two, sub_box_irradiance)
 from ..solver.bounds.tuples import _pairs_of
 from ..solver.bounds.chain1 import bound_one_bounce
-from ..solver.jit import kernel, prange, run_chunks
+from ..solver.runtime.jit import kernel, prange, run_chunks
 from .cull import _pairs_count, _pairs_fill, _sample_ok, one_bounce_emitters, tri_spheres, two_bounce_emitters
 
 P_RECEIVER = PIECE_FIELDS  # the receiver column of the two-bounce rows (as chain2.P_RECEIVER)
@@ -642,7 +642,7 @@ def bvh_pairs(chain, x0_first, P, N, eta_first, first, levels=1, refine=2, capac
     """The (t1, t2) pairs of §6.1 "Tuple construction" (``tuples.two_bounce_pairs``: BVH over
     ``P``, bounds of x1 and d̃1 per box of t1, eq 9–10 in affine arithmetic) with a light point
     x0_first[i] and IOR eta_first[i] per first triangle first[i].  Returns (m, 2) int64 sorted."""
-    from ..solver.bvh import build_bvh
+    from ..solver.geometry.bvh import build_bvh
 
     first = np.ascontiguousarray(first, dtype=np.int64)
     n = first.shape[0]

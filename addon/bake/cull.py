@@ -52,7 +52,7 @@ import math
 
 import numpy as np
 
-from ..solver.jit import kernel, prange
+from ..solver.runtime.jit import kernel, prange
 
 ANGLE_MARGIN = 1e-6
 NO_CONE = 4.0  # > pi: "keep every direction"

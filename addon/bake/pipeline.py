@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..solver.bvh import build_bvh, segments_occluded
+from ..solver.geometry.bvh import build_bvh, segments_occluded
 from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolution, world_per_uv_area
 from .estimators import make_estimator
 from .exr import write_exr
@@ -119,7 +119,7 @@ def make_context(scene, settings):
     """The :class:`BakeContext` of a bake: threads, the BVH over every triangle, the scene
     extent and visibility offset, the receivers at the bake's resolution, the light samples."""
     if settings.threads:
-        from ..solver.jit import set_num_threads
+        from ..solver.runtime.jit import set_num_threads
 
         set_num_threads(settings.threads)
     t0 = time.perf_counter()

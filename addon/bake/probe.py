@@ -5,7 +5,7 @@ For one light (its centre: one sample) and one chain, the first-vertex casters t
 reaches are sampled at the centroids of a g x g grid of sub-triangles each (at most
 ``PROBE_POINTS`` points per light and chain: meshes with more triangles than that take every
 s-th triangle, weighted s), and each point is traced forward exactly through the chain
-(:func:`addon.solver.forward_image.trace_chain_points`: shadow ray from the light, scattering
+(:func:`addon.solver.estimators.forward_image.trace_chain_points`: shadow ray from the light, scattering
 with the interpolated normal and the contract's side rules, closest hits, Fresnel).  A point
 that lands on a receiver carries its sub-triangle's flux, as the forward-flux estimator
 computes it — point light: I f(w) Ω (Ω the sub-triangle's solid angle from the light); sun:
@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ..solver.forward_image import solid_angle, trace_chain_points
+from ..solver.estimators.forward_image import solid_angle, trace_chain_points
 from .lights import emission_factor, light_points, lit_casters
 
 PROBE_POINTS = 1 << 15  # traced points per light and chain at most

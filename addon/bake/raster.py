@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..solver.jit import kernel, prange
+from ..solver.runtime.jit import kernel, prange
 
 UV_EPS = 1e-12
 

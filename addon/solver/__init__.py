@@ -9,9 +9,9 @@ Public API (see CONTRACT.md):
 - :func:`warm_up` — compile (or load from the cache) every kernel ahead of the first bake.
 """
 
-from . import jit  # noqa: F401  (configures the Numba cache before any kernel module loads)
-from .api import SolveReport, SolveResult, SpecularPolynomialSolver, solve_tuples, validate_inputs  # noqa: F401
-from .irradiance import PathIrradiance, fresnel_conductor, fresnel_dielectric, path_irradiance  # noqa: F401
+from .runtime import jit  # noqa: F401  (configures the Numba cache before any kernel module loads)
+from .spoly.api import SolveReport, SolveResult, SpecularPolynomialSolver, solve_tuples, validate_inputs  # noqa: F401
+from .paths.irradiance import PathIrradiance, fresnel_conductor, fresnel_dielectric, path_irradiance  # noqa: F401
 
 
 def warm_up(bounces=2):

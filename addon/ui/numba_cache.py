@@ -10,7 +10,7 @@ import os
 import sys
 
 #: The numba cache directory chosen at registration (None in development: the solver then
-#: uses ``<repo>/.numba_cache``, see ``addon.solver.jit``).
+#: uses ``<repo>/.numba_cache``, see ``addon.solver.runtime.jit``).
 numba_cache_dir = None
 _previous_cache_env = None
 
@@ -28,7 +28,7 @@ def extension_package():
 def configure():
     """Send numba's kernel cache to the extension user directory.
 
-    numba reads ``NUMBA_CACHE_DIR`` when it is first imported, and ``addon.solver.jit`` uses the
+    numba reads ``NUMBA_CACHE_DIR`` when it is first imported, and ``addon.solver.runtime.jit`` uses the
     same variable as its default; setting it here, before anything imports the solver, is what
     ``jit.configure_cache(directory)`` needs without importing numba at registration.  If
     numba was already imported (by another add-on), re-point it through ``configure_cache``.
@@ -47,7 +47,7 @@ def configure():
     numba_cache_dir = directory
     if "numba" in sys.modules:
         try:
-            from ..solver.jit import configure_cache
+            from ..solver.runtime.jit import configure_cache
 
             configure_cache(directory)
         except Exception as ex:  # never block registration; the operator reports problems
@@ -64,7 +64,7 @@ def restore():
     """Undo :func:`configure`: NUMBA_CACHE_DIR as it was before, when it is still ours."""
     global numba_cache_dir, _previous_cache_env
     current = os.environ.get("NUMBA_CACHE_DIR")
-    # addon.solver.jit caches under <our directory>/<source fingerprint>: that is ours too.
+    # addon.solver.runtime.jit caches under <our directory>/<source fingerprint>: that is ours too.
     ours = current is not None and numba_cache_dir is not None and (
         current == numba_cache_dir or os.path.dirname(os.path.normpath(current)) == os.path.normpath(numba_cache_dir))
     if ours:

@@ -45,7 +45,7 @@ def load_solver():
         from .. import solver
 
         if cache_dir:
-            from ..solver.jit import configure_cache
+            from ..solver.runtime.jit import configure_cache
 
             configure_cache(cache_dir)
     except ImportError as ex:

@@ -1,8 +1,8 @@
-"""BVH shadow rays (addon/solver/bvh.py) against brute-force ray/triangle intersection."""
+"""BVH shadow rays (addon/solver/geometry/bvh.py) against brute-force ray/triangle intersection."""
 
 import numpy as np
 
-from addon.solver.bvh import build_bvh, rays_closest, segments_occluded
+from addon.solver.geometry.bvh import build_bvh, rays_closest, segments_occluded
 
 
 def _brute_hits(a, b, tri, eps):

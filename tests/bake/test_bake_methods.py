@@ -2,7 +2,7 @@
 reference and the analytic mirror, the Newton / SMS baselines in the bake, determinism.
 
 Tolerances:
-- photon (addon/solver/photon.py) vs tests/reference/photon.py: both are unbiased estimates of
+- photon (addon/solver/estimators/photon.py) vs tests/reference/photon.py: both are unbiased estimates of
   the same texel averages, so relMSE (rel_mse, tests/fixtures/checks.py) is the sum of
   their variances.  The reference's (3M photons into a loose cone, no stratification) is
   ~1/(photons per lit texel) ~ 1.5e-3 at 32² on the ring (4.7e-3 on the water, whose cone
@@ -102,7 +102,7 @@ def test_photon_mirror_conserves_flux_against_image_source():
 
 
 def test_photon_is_deterministic_for_any_thread_count():
-    from addon.solver.jit import get_num_threads, set_num_threads
+    from addon.solver.runtime.jit import get_num_threads, set_num_threads
 
     sc = ring_scene(resolution=16)
     base = dict(seed=7, photons=300_000, **PH)

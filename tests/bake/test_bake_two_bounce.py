@@ -11,7 +11,7 @@ from addon.bake.estimators.path_points import chain_supported
 from addon.bake.pipeline import BakeSettings, bake
 from addon.bake.raster import rasterise
 from addon.bake.scene import Light, build_scene
-from addon.solver.irradiance import PathIrradiance
+from addon.solver.paths.irradiance import PathIrradiance
 
 from fixtures.bake_scenes import floor, mirror_facing
 from fixtures.marks import slow_cases

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from addon.solver.jit import kernel, prange
+from addon.solver.runtime.jit import kernel, prange
 
 KIND_REFLECT = 0  # mirror: R with weight 1 (tint applied by the caller)
 KIND_RECEIVER = 1

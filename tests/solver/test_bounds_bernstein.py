@@ -4,7 +4,7 @@ sampling, and against interval arithmetic on the same pieces (Fig. 4)."""
 import numpy as np
 import pytest
 
-from addon.solver.bounds import bernstein as B
+from addon.solver.polynomials import bernstein as B
 
 RNG = np.random.default_rng(20261121)
 LO, HI = np.zeros(4), np.ones(4)

@@ -140,7 +140,7 @@ def test_bounds_hold_every_traced_path(name, chain, n_first, widest, unbounded_c
 
 def test_irradiance_bound_shrinks_onto_the_path_geometry_term():
     """Boxes of side 1e-4 around traced paths (slab TT, RT, RR; ball TT): E̲ <= G <= Ē with
-    G = dΩ0/dA_k of the path computed independently (path_space2's chained footprint, Fresnel
+    G = dΩ0/dA_k of the path computed independently (two_vertex's chained footprint, Fresnel
     left out), and Ē/E̲ < 1.01: the affine enclosure of eq 16 converges to the exact Jacobian."""
     from addon.solver import path_irradiance
     from addon.solver.bounds.irradiance_two import piece_irradiance_two
@@ -175,7 +175,7 @@ def test_irradiance_bound_shrinks_onto_the_path_geometry_term():
 
 
 def _path_geometry(sc, chain, t1, t2, r, uv, uv2, buv):
-    """dΩ0/dA_k of one traced path by path_irradiance (path_space2's chained footprint), no Fresnel."""
+    """dΩ0/dA_k of one traced path by path_irradiance (two_vertex's chained footprint), no Fresnel."""
     from addon.solver import path_irradiance
 
     RP = sc["receiver_P"]
@@ -355,7 +355,7 @@ def test_position_bound_converges_to_the_image_of_a_small_box():
 def test_remainder_endpoint_bound_contains_the_function_of_the_remainder_variable():
     """pu/q with pu = (1-ξ) p0 + ξ p1, q likewise: eq 3 over the ξ = 0 and ξ = 1 coefficient sets
     together (chain2's handling of ξ2) bounds it over the 5-variable box."""
-    from addon.solver.bounds.bernstein import _bound_of_coefficients, evaluate, power_to_bernstein
+    from addon.solver.polynomials.bernstein import _bound_of_coefficients, evaluate, power_to_bernstein
     from addon.solver.bounds.chain2 import _flat_common
 
     rng = np.random.default_rng(11)

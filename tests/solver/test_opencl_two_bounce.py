@@ -1,6 +1,6 @@
 """The two-bounce OpenCL path (RR, RT, TR, TT) returns the Numba back end's paths.
 
-device="opencl" runs the staged pipeline of addon/solver/two_bounce_staged.py: systems built
+device="opencl" runs the staged pipeline of addon/solver/spoly/two_bounce_staged.py: systems built
 and paths polished on Numba, the Bézout determinants (Fan et al. 2024, eq 29), the sign scan's
 Illinois brackets and the refinement's sub-samples (§4.2) on the device
 (addon/solver/opencl/two_bounce.cl).  PoCL on the CPU in CI; tests that need a device skip
@@ -19,8 +19,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 if os.path.join(ROOT, "bench") not in sys.path:
     sys.path.insert(0, os.path.join(ROOT, "bench"))
 
-from addon.solver import opencl_backend, solve_tuples  # noqa: E402
-from addon.solver.api import SpecularPolynomialSolver, compact_paths  # noqa: E402
+from addon.solver.opencl import backend as opencl_backend
+from addon.solver import solve_tuples  # noqa: E402
+from addon.solver.spoly.api import SpecularPolynomialSolver, compact_paths  # noqa: E402
 from reference.two_bounce_data import plant_two_bounce, random_two_bounce as random_pairs  # noqa: E402
 from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
 
@@ -94,8 +95,8 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
     """Stages A-E with the determinants on Numba (no OpenCL needed): the staging itself
     changes nothing — same paths, and here the same counts — also with small batches and
     with tuples pushed to the one-kernel path (sys_cap=1)."""
-    from addon.solver.two_bounce import MAX_PATHS_TWO_BOUNCE, N_STATS
-    from addon.solver.two_bounce_staged import NumbaDeterminants, solve_staged
+    from addon.solver.spoly.two_bounce import MAX_PATHS_TWO_BOUNCE, N_STATS
+    from addon.solver.spoly.two_bounce_staged import NumbaDeterminants, solve_staged
 
     x0, x3, P, N, eta = _tuples(chain, 8)
     expected = SpecularPolynomialSolver().solve(chain, x0, x3, P, N, eta)
@@ -120,9 +121,9 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
 def test_opencl_determinant_equals_det_bezout():
     """sign and log|det R(v1)| (eq 29) of real TT systems: OpenCL against Numba's det_bezout."""
     index = _opencl_device_or_skip()
-    from addon.solver.opencl_backend import OpenCLDeterminants
-    from addon.solver.two_bounce import MAXD, N_STATS, det_bezout
-    from addon.solver.two_bounce_staged import SYS_CAP, _unpack_v_major, layout, stage_a
+    from addon.solver.opencl.backend import OpenCLDeterminants
+    from addon.solver.spoly.two_bounce import MAXD, N_STATS, det_bezout
+    from addon.solver.spoly.two_bounce_staged import SYS_CAP, _unpack_v_major, layout, stage_a
 
     x0, x3, P, N, eta = _tuples("TT", 6)
     n = x0.shape[0]

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from reference import truth
-from addon.solver.api import SpecularPolynomialSolver
-from addon.solver.baselines import NewtonSolver, SMSSolver
+from addon.solver.spoly.api import SpecularPolynomialSolver
+from addon.solver.baselines.newton_sms import NewtonSolver, SMSSolver
 from fixtures.checks import found_fraction
 from reference import bruteforce as bf
 

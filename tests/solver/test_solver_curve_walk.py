@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from reference import truth
-from addon.solver.api import SpecularPolynomialSolver
-from addon.solver.curve_walk import (CurveWalkSolver, _edge_roots, build_adjacency, conic_coefficients,
+from addon.solver.spoly.api import SpecularPolynomialSolver
+from addon.solver.baselines.curve_walk import (CurveWalkSolver, _edge_roots, build_adjacency, conic_coefficients,
                                      ray_differential_irradiance, walk_mesh)
-from addon.solver.irradiance import path_irradiance
+from addon.solver.paths.irradiance import path_irradiance
 from reference import bruteforce as bf
 from fixtures.checks import found_fraction
 

@@ -1,4 +1,4 @@
-"""Building blocks of the forward-image two-bounce modes (addon/solver/forward_image.py)
+"""Building blocks of the forward-image two-bounce modes (addon/solver/estimators/forward_image.py)
 against independent answers: exact texel overlap vs dense point sampling, solid angle vs
 quadrature, closest point vs brute force, the adaptive refinement on analytic maps, and the
 merging of duplicate paths.  The whole bake is checked in test_bake_two_bounce.py (double
@@ -6,7 +6,7 @@ image source) and test_bake_caustics.py (photon reference)."""
 
 import numpy as np
 
-from addon.solver.forward_image import _closest_on_triangle, dedupe_paths, refine_image_triangles, solid_angle, splat_triangles
+from addon.solver.estimators.forward_image import _closest_on_triangle, dedupe_paths, refine_image_triangles, solid_angle, splat_triangles
 
 
 def test_splat_matches_dense_sampling_and_conserves_flux():
@@ -166,7 +166,7 @@ def test_lost_sub_triangles_are_probed_before_they_are_dropped():
 def test_density_nonlinearity_on_analytic_cases():
     """Zero for an affine map with a constant density; for an affine map with density w(u) =
     1 / (0.2 + u)² the midpoint value against the mean of the corners, exactly; inf at a fold."""
-    from addon.solver.forward_image import density_nonlinearity
+    from addon.solver.estimators.forward_image import density_nonlinearity
 
     corners = np.array([[[0.0, 0.0], [0.5, 0.0], [0.0, 0.5]]])
     mids = 0.5 * (corners + corners[:, [1, 2, 0]])
@@ -232,7 +232,7 @@ def test_sliver_images_take_the_uniform_splat():
     """corner_densities: a well-shaped image of an affine map with a light close by gets the
     light's solid-angle ramp; the same corners squeezed into a sliver (aspect above SLIVER,
     where det J is a small difference of nearly parallel derivatives) get (1, 1, 1)."""
-    from addon.solver.forward_image import SLIVER, corner_densities
+    from addon.solver.estimators.forward_image import SLIVER, corner_densities
 
     tri = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
     bary = np.array([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]])

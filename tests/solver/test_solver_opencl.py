@@ -6,8 +6,9 @@ import sys
 import numpy as np
 import pytest
 
-from addon.solver import opencl_backend, solve_tuples
-from addon.solver.api import SpecularPolynomialSolver
+from addon.solver.opencl import backend as opencl_backend
+from addon.solver import solve_tuples
+from addon.solver.spoly.api import SpecularPolynomialSolver
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "bench"))
 from workloads import planted_tuples, random_tuples  # noqa: E402
@@ -99,7 +100,7 @@ def _lexsort_reference(tuple_index, uv):
 def test_canonical_order_is_the_lexicographic_order(width):
     """compact_paths (per-tuple slots) and canonical_order (paths in any order, as a device
     writes them) both give the order of a lexsort by (tuple, u, v, ...), ties included."""
-    from addon.solver.api import canonical_order, compact_paths
+    from addon.solver.spoly.api import canonical_order, compact_paths
 
     rng = np.random.default_rng(5)
     n, cap = 3000, 8

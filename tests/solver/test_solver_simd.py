@@ -1,4 +1,4 @@
-"""The vector intrinsics of addon/solver/simd.py against plain scalar loops.
+"""The vector intrinsics of addon/solver/runtime/simd.py against plain scalar loops.
 
 Each intrinsic promises the scalar loop's IEEE operations element by element (the
 de Casteljau halves: its halvings deferred, exact short of subnormals), so the checks are
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from numba import njit
 
-from addon.solver.simd import (SMALL_BOX_DEGREE, casteljau_halves, lanes_abs_argmax, rows_add_scaled,
+from addon.solver.runtime.simd import (SMALL_BOX_DEGREE, casteljau_halves, lanes_abs_argmax, rows_add_scaled,
                                rows_add_scaled_exact, rows_scale, rows_scale_add, small_box_range, square_min_max_abs,
                                transpose_blocks)
-from addon.solver.two_bounce import _binomial_ratios, _tensor_bernstein_box
+from addon.solver.spoly.two_bounce import _binomial_ratios, _tensor_bernstein_box
 
 RNG_SEED = 20261126
 

@@ -80,7 +80,7 @@ def test_det_bezout_is_the_resultant(m, n):
     polynomial pairs with coefficients graded over 8 orders of magnitude: the same log|det|
     and a sign that differs from the Sylvester determinant's by one constant per (m, n);
     the dense elimination of the full matrix gives the same numbers bit for bit."""
-    from addon.solver import two_bounce as tb
+    from addon.solver.spoly import two_bounce as tb
 
     rng = np.random.default_rng([m, n])
     MAXD = tb.MAXD
@@ -118,7 +118,7 @@ def test_det_bezout_depends_on_v_as_the_resultant(m, n):
     matrix of the coefficient vectors a_i(v), b_i(v) evaluated here with numpy's polyval,
     and a sign that differs from the Sylvester determinant's by one constant per (m, n) —
     the layout, the Horner in v and the elimination against an independent evaluation."""
-    from addon.solver import two_bounce as tb
+    from addon.solver.spoly import two_bounce as tb
 
     rng = np.random.default_rng([m, n, 1])
     MAXD = tb.MAXD
@@ -146,7 +146,7 @@ def test_det_bezout_depends_on_v_as_the_resultant(m, n):
 
 def test_sqrt_fit():
     """The piecewise rational √ (eq 23) errs by < 1e-4 on [0, 1], including next to 0."""
-    from addon.solver.two_bounce import SQRT_PIECES, sqrt_approx
+    from addon.solver.spoly.two_bounce import SQRT_PIECES, sqrt_approx
 
     x = np.unique(np.concatenate([[0.0], np.logspace(-300, 0, 20001), np.linspace(0, 1, 200001),
                                   SQRT_PIECES[:, 0], SQRT_PIECES[:, 1],
@@ -166,7 +166,7 @@ def test_heron_sqrt_fit():
     at random points of the widened triangle with β/S² above the cut (the check grid is
     finite: 3x slack), the cut is the first of HERON_CUTS where the fit is accepted, and the
     TT system built with it has total degrees (12, 34) instead of the √ pieces' (16, 46)."""
-    from addon.solver.two_bounce import (HERON_CUTS, HERON_TOL, MAXD, N_SLOTS, V_MARGIN_APPROX, _beta_local,
+    from addon.solver.spoly.two_bounce import (HERON_CUTS, HERON_TOL, MAXD, N_SLOTS, V_MARGIN_APPROX, _beta_local,
                                          _build_system, heron_sqrt_cut, heron_sqrt_fit)
 
     rng = np.random.default_rng(7)
@@ -239,7 +239,7 @@ def test_live_prepass():
     common zeros all lie outside the triangle keeps none."""
     from math import comb
 
-    from addon.solver import two_bounce as tb
+    from addon.solver.spoly import two_bounce as tb
 
     rng = np.random.default_rng(3)
     biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
@@ -303,7 +303,7 @@ def test_prepass_hit_test(refract1):
     margin for the exact reflected map, half of it for the √-approximated refracted one (the
     rest is the approximation's allowance) — and it drops a good share of boxes of random
     configurations (not vacuous)."""
-    from addon.solver import two_bounce as tb
+    from addon.solver.spoly import two_bounce as tb
 
     rng = np.random.default_rng(11)
     m = tb.V_MARGIN_APPROX if refract1 else tb.V_MARGIN_EXACT
@@ -379,7 +379,7 @@ def test_prepass_hit_test(refract1):
 @pytest.mark.parametrize("chain", CHAINS)
 def test_path_space_jacobian(chain):
     """Analytic Jacobian of the two-vertex residual against central differences."""
-    from addon.solver import path_space2 as ps
+    from addon.solver.paths import two_vertex as ps
 
     rng = np.random.default_rng([SEED, 3, ord(chain[0]), ord(chain[1])])
     d = plant_two_bounce(rng, chain, 60)

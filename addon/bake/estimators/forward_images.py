@@ -1,5 +1,5 @@
 """Forward images: a chain's caster triangles cut into sub-triangles traced forward exactly
-(the maths is in :mod:`addon.solver.forward_image`), shared by the ``forward-flux`` and
+(the maths is in :mod:`addon.solver.estimators.forward_image`), shared by the ``forward-flux`` and
 ``path-seeded`` estimators.
 
 For one light sample and chain, the first-vertex casters the light reaches, and whose scattered
@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from ...solver.forward_image import light_area_density, refine_image_triangles, trace_chain_points
+from ...solver.estimators.forward_image import light_area_density, refine_image_triangles, trace_chain_points
 from ..cull import first_casters_reaching
 from ..lights import light_points, lit_casters
 

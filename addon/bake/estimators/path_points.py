@@ -23,8 +23,8 @@ import time
 import numpy as np
 
 from ...solver import path_irradiance, solve_tuples
-from ...solver.api import CHAIN_LENGTH
-from ...solver.bvh import segments_occluded
+from ...solver.spoly.api import CHAIN_LENGTH
+from ...solver.geometry.bvh import segments_occluded
 from ..bounds_select import bounds_cull
 from ..cull import TupleCull, one_bounce_emitters, two_bounce_emitters
 from ..lights import emission_factor, light_points, lit_casters
@@ -75,20 +75,20 @@ def make_solver(settings):
     if name == "spoly" and not settings.pieces:
         return None, None
     if name == "spoly":
-        from ...solver.api import SpecularPolynomialSolver
+        from ...solver.spoly.api import SpecularPolynomialSolver
 
         solver, kw = SpecularPolynomialSolver(), {"pieces": int(settings.pieces), "device": settings.device}
     elif name == "newton":
-        from ...solver.baselines import NewtonSolver
+        from ...solver.baselines.newton_sms import NewtonSolver
 
         solver, kw = NewtonSolver(), {}
     elif name == "sms":
-        from ...solver.baselines import SMSSolver
+        from ...solver.baselines.newton_sms import SMSSolver
 
         solver, kw = SMSSolver(int(settings.sms_seeds), int(settings.seed)), {}
     else:
         try:
-            from ...solver.curve_walk import CurveWalkSolver
+            from ...solver.baselines.curve_walk import CurveWalkSolver
 
             solver, kw = CurveWalkSolver(), {}
         except Exception as ex:  # broken install: the bake says so and skips its chains

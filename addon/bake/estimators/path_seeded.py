@@ -3,7 +3,7 @@ from forward-image seeds.
 
 Per band, every supersample near a forward-image sub-triangle's image (:mod:`.forward_images`)
 gets a seed; Newton on the exact two-vertex constraint (eq. 3 of Fan et al. 2024 at both
-vertices, :func:`addon.solver.forward_image.solve_image_seeds`) solves the path through the
+vertices, :func:`addon.solver.estimators.forward_image.solve_image_seeds`) solves the path through the
 tuple the seed's ray passes, duplicates are merged, and the paths are weighed, tested and
 accumulated exactly as :mod:`.path_points` does.  Every path is a validated exact path;
 completeness is measured against the exact solver (tests/bake/test_bake_two_bounce.py).
@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from ...solver.forward_image import ImageSeeds, dedupe_paths, solve_image_seeds
+from ...solver.estimators.forward_image import ImageSeeds, dedupe_paths, solve_image_seeds
 from .base import Estimator
 from .forward_images import ImageCache
 from .path_points import accumulate_paths, new_counts

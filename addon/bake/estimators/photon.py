@@ -2,7 +2,7 @@
 
 Photons are traced from the lights as the bake models them (:func:`addon.bake.lights.sample_light`:
 points with their emission profile, sun directions; ``settings.light_samples`` per light) by
-:mod:`addon.solver.photon`, following only the planned chains, and their flux is binned per
+:mod:`addon.solver.estimators.photon`, following only the planned chains, and their flux is binned per
 receiver texel; the pipeline divides it by the world area each texel covers on its receiver:
 
     E = flux / A,
@@ -18,12 +18,12 @@ import time
 
 import numpy as np
 
-from ...solver.photon import CHAINS, make_emitters, photon_steps
+from ...solver.estimators.photon import CHAINS, make_emitters, photon_steps
 from .base import Estimator
 
 
 def light_sample_dicts(ctx):
-    """The light samples of every light as :func:`addon.solver.photon.make_emitters` takes them."""
+    """The light samples of every light as :func:`addon.solver.estimators.photon.make_emitters` takes them."""
     out = []
     for ls in ctx.lsamples:
         for m in range(ls.size):

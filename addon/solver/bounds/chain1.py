@@ -42,9 +42,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..jit import kernel, prange
-from .bernstein import (_bound_of_coefficients, abs_lower, abs_upper, affine, affine_map, clip_hull, coef_range, deriv, elevate, lincomb, mul,
-                        rational_bound, sqrt_linearisation, sub)
+from ..runtime.jit import kernel, prange
+from ..polynomials.bernstein import (_bound_of_coefficients, abs_lower, abs_upper, affine, affine_map, clip_hull,
+                                     coef_range, deriv, elevate, lincomb, mul, rational_bound, sqrt_linearisation, sub)
 
 # Piece record layout (one row of ``pieces``).
 P_U0, P_U1, P_V0, P_V1 = 0, 1, 2, 3          # caster (u1, v1) box

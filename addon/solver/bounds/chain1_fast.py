@@ -31,8 +31,8 @@ import math
 
 import numpy as np
 
-from ..jit import kernel
-from .bernstein import BINOM, abs_lower, abs_upper, clip_hull, sqrt_linearisation
+from ..runtime.jit import kernel
+from ..polynomials.bernstein import BINOM, abs_lower, abs_upper, clip_hull, sqrt_linearisation
 from .chain1 import IRR_PAD, MIN_WIDTH, N_STATS, P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD, push_children
 
 # ---------------------------------------------------------------------------------------
@@ -1246,7 +1246,7 @@ def batch_fast(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, ir
     """Every (caster, receiver) tuple of ``pairs`` in chunks of ``chunk`` tuples, one workspace
     per chunk, on ``jit.run_chunks`` threads (``_batch_chunk`` releases the GIL; a
     ``parallel=True`` loop over the chunks took seconds longer to compile on a cold bake)."""
-    from ..jit import run_chunks
+    from ..runtime.jit import run_chunks
 
     n = pairs.shape[0]
     run_chunks(_batch_chunk, (refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, irr_refine, out, counts,

@@ -56,8 +56,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..jit import kernel, prange
-from .bernstein import _with_extent, add, affine, affine_map, coef_range, elevate, lincomb, mul, sqrt_linearisation
+from ..runtime.jit import kernel, prange
+from ..polynomials.bernstein import (_with_extent, add, affine, affine_map, coef_range, elevate, lincomb, mul,
+                                     sqrt_linearisation)
 from .chain1 import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, P_X0, P_X1, P_Y0, P_Y1, PIECE_FIELDS, POS_PAD, _c3, _d3,
                      _dot, _eta_ratio, _orientations, _receiver_numerators, orientation_mask, push_children, receiver_box)
 from .irradiance_two import box_reached, first_bounce_forms

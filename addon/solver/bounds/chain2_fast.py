@@ -36,8 +36,8 @@ then one of the two engines returns the unbounded (clipped, wider) interval.
 
 import numpy as np
 
-from ..jit import kernel
-from .bernstein import BINOM, clip_hull, sqrt_linearisation
+from ..runtime.jit import kernel
+from ..polynomials.bernstein import BINOM, clip_hull, sqrt_linearisation
 from .chain1 import P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD, orientation_mask, push_children
 from .chain1_fast import ratio_bound
 from .chain2 import _stage_one
@@ -768,7 +768,7 @@ def batch_fast(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma,
     """Every pair (rows of ``pairs``; reach[t, r]: receiver r's reach grid), in about
     ``chunks`` chunks on Python threads (``jit.run_chunks``: ``_chunk`` releases the GIL; a
     ``parallel=True`` wrapper took about 14 s to compile)."""
-    from ..jit import run_chunks
+    from ..runtime.jit import run_chunks
 
     run_chunks(_chunk, (chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out, counts, stats), pairs.shape[0],
                chunks)

@@ -58,7 +58,7 @@ import time
 
 import numpy as np
 
-from ..jit import kernel
+from ..runtime.jit import kernel
 from .chain1 import IRR_PAD, P_BU0, P_ELO, P_EHI, P_U0, P_U1, P_V0, P_V1, _eta_ratio, orientation_mask, push_children
 
 NO_PATH = 0
@@ -804,7 +804,7 @@ def receivers_reached(chain, light, caster_P, caster_N, receiver_P, pairs, eta=1
     x2 - x1 relaxation spans the whole receiver (slab10k TT: 55 % of the position tuples proven
     empty on the whole triangle, 63 % with depth 1).  depth 2 is ``bound_two_bounce``'s default
     (slab10k reach + bounds 13.7 s against 14.8 s at depth 1)."""
-    from ..jit import run_chunks
+    from ..runtime.jit import run_chunks
     from .chain2 import CHAIN_CODES
 
     pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
@@ -845,7 +845,7 @@ def bound_irradiance_two(bounds, light, caster_P, caster_N, receiver_P, eta=1.5,
 
     irr_depth: most quadtree levels inside a piece for the irradiance bound (0: the piece as
     it is); irr_ratio: split while Ē/E̲ exceeds it.  Returns ``bounds``."""
-    from ..jit import run_chunks
+    from ..runtime.jit import run_chunks
     from .chain2 import CHAIN_CODES
 
     t0 = time.perf_counter()

@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 
-from ..bvh import build_bvh
-from ..jit import kernel
+from ..geometry.bvh import build_bvh
+from ..runtime.jit import kernel
 from .irradiance_two import first_bounce_reaches, first_bounce_rays
 
 
@@ -154,7 +154,7 @@ def _all_pairs(refract, x0, P, N, eta, levels, refine, first, node_min, node_max
                chunks=256):
     """``_pairs_of`` for every first triangle, in about ``chunks`` chunks on Python threads
     (``jit.run_chunks``: ``_pairs_chunk`` releases the GIL)."""
-    from ..jit import run_chunks
+    from ..runtime.jit import run_chunks
 
     run_chunks(_pairs_chunk, (refract, x0, P, N, eta, levels, refine, first, node_min, node_max, node_child, node_count, node_start,
                               order, out, counts, stats), first.shape[0], chunks)

@@ -1,7 +1,7 @@
 """Photon tracing (forward light tracing) as a caustic method: texel-averaged irradiance.
 
 Photons leave light samples (points with an emission profile, or parallel sun beams), are
-traced through the scene's BVH (closest hit, :mod:`addon.solver.bvh`), reflect / refract at
+traced through the scene's BVH (closest hit, :mod:`addon.solver.geometry.bvh`), reflect / refract at
 casters with the interpolated corner normal, and deposit their flux into a texel histogram
 of whichever receiver triangle they land on (hit triangle -> barycentrics -> UV -> texel).
 Dividing a texel's flux by the world area the texel covers on the receiver gives the
@@ -52,9 +52,9 @@ from collections import namedtuple
 
 import numpy as np
 
-from .bvh import _ray_closest, build_bvh
-from .jit import kernel, prange
-from .surface import plane_barycentrics, scatter_direction, triangle_frame
+from ..geometry.bvh import _ray_closest, build_bvh
+from ..runtime.jit import kernel, prange
+from ..geometry.surface import plane_barycentrics, scatter_direction, triangle_frame
 
 CHAINS = ("R", "T", "RR", "RT", "TR", "TT")
 ROLE_REFLECT, ROLE_REFRACT, ROLE_BOTH = 1, 2, 3  # the codes of addon.bake.scene

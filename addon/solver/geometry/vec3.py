@@ -2,7 +2,7 @@
 
 import math
 
-from .jit import kernel
+from ..runtime.jit import kernel
 
 
 @kernel(inline="always")

@@ -46,17 +46,16 @@ import math
 
 import numpy as np
 
-from .jit import kernel, prange
-from .path_space2 import pack_geometry
-from .two_bounce import (
-    BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
-    SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
-    TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS, LIVE_STACK, MAX_PIECES, live_pieces_band,
-    SQRT_BANDS, _beta_mask, _beta_poly, _centroid_piece, _sqrt_band,
-    _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_cut, HERON_SQRT, HERON_CUT,
-    _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece, _straight_candidate, _u_degree, make_scratch2,
-    refine_flags_one, solve_two_bounce_tuple, v_major,
-)
+from ..runtime.jit import kernel, prange
+from ..paths.two_vertex import pack_geometry
+from .two_bounce import (BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES,
+                         REFINE_LEVELS, SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS,
+                         STAT_SKIPPED, SUB_SAMPLES, TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS,
+                         LIVE_STACK, MAX_PIECES, live_pieces_band, SQRT_BANDS, _beta_mask, _beta_poly, _centroid_piece,
+                         _sqrt_band, _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_cut,
+                         HERON_SQRT, HERON_CUT, _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece,
+                         _straight_candidate, _u_degree, make_scratch2, refine_flags_one, solve_two_bounce_tuple,
+                         v_major)
 
 SYS_CAP = 24  # systems per tuple held by stage A; a tuple with more is solved by the one-kernel path
 MAX_ROOTS = 4096  # roots per system (the capacity of the one-kernel path's root list)
@@ -709,7 +708,7 @@ def solve_staged(det_device, refract1, refract2, x_start, x_end, P, N, eta, piec
     """All paths of a batch of two-bounce tuples, stages A-E (module docstring); fills
     out_uv (n, MAX_PATHS_TWO_BOUNCE, 4), out_count (n,), stats (n, N_STATS) like
     ``solve_two_bounce_batch``.  ``det_device``: an object with load / dets / illinois
-    (:class:`NumbaDeterminants`, ``opencl_backend.OpenCLDeterminants``).  ``batch``: tuples
+    (:class:`NumbaDeterminants`, ``opencl.backend.OpenCLDeterminants``).  ``batch``: tuples
     per pass (default: stage A's store within BATCH_BYTES); ``sys_cap``: systems per tuple
     held by stage A (a tuple with more is solved by the one-kernel path)."""
     if TWO_PROJECTIONS or REFINE_LEVELS not in (0, 1):

@@ -11,8 +11,8 @@ no refracted direction.  The rules are spelled out in ``CONTRACT.md``.
 
 import math
 
-from .jit import kernel
-from .vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
+from ..runtime.jit import kernel
+from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
 
 DIRECTION_TOLERANCE = 1e-7  # |wo - expected| for an accepted path (unit vectors)
 INSIDE_EPSILON = 1e-9  # barycentric slack at triangle edges

@@ -17,11 +17,11 @@ from collections import namedtuple
 
 import numpy as np
 
-from .api import CHAIN_LENGTH, validate_inputs
-from .jit import kernel, prange
-from .path_space import geometric_normal, scatter_residual, triangle_frame
-from .path_space2 import pack_geometry, two_bounce_footprint
-from .vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
+from ..spoly.api import CHAIN_LENGTH, validate_inputs
+from ..runtime.jit import kernel, prange
+from .one_vertex import geometric_normal, scatter_residual, triangle_frame
+from .two_vertex import pack_geometry, two_bounce_footprint
+from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
 
 PathIrradiance = namedtuple("PathIrradiance", "irradiance geometry fresnel cos_receiver direction")
 
@@ -91,7 +91,7 @@ def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tup
             continue
         n = madd(madd(n0, m1, u), m2, v)
         nh = scale(n, 1.0 / norm(n))
-        di = madd(madd(sub(p0, x0), e1, u), e2, v)  # from p0: see path_space.scatter_residual
+        di = madd(madd(sub(p0, x0), e1, u), e2, v)  # from p0: see one_vertex.scatter_residual
         li = norm(di)
         wi = scale(di, 1.0 / li)
         do = madd(madd(sub(x2, p0), e1, -u), e2, -v)

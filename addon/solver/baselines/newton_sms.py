@@ -10,7 +10,7 @@
   seeds come from a counter-based hash of (seed, tuple, k), so the result does not depend on
   the number of threads.
 
-Both use the same Newton (``path_space.polish_and_validate``) and the same rule for "one
+Both use the same Newton (``one_vertex.polish_and_validate``) and the same rule for "one
 physical path" (``one_bounce._store_path``) as the polynomial solver, so differences in the
 comparison come from the seeding alone.
 """
@@ -19,11 +19,11 @@ import time
 
 import numpy as np
 
-from .api import ONE_BOUNCE_CHAINS, SolveReport, SolveResult, compact_paths, validate_inputs
-from .jit import kernel, prange
-from .one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, _store_path
-from .path_space import geometric_normal, polish_and_validate, triangle_frame
-from .vec3 import dot, madd, norm, row, sub
+from ..spoly.api import ONE_BOUNCE_CHAINS, SolveReport, SolveResult, compact_paths, validate_inputs
+from ..runtime.jit import kernel, prange
+from ..spoly.one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, _store_path
+from ..paths.one_vertex import geometric_normal, polish_and_validate, triangle_frame
+from ..geometry.vec3 import dot, madd, norm, row, sub
 
 NEWTON_STEPS = 20  # MNEE's usual iteration budget
 

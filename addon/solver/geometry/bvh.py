@@ -15,7 +15,7 @@ from collections import namedtuple
 
 import numpy as np
 
-from .jit import kernel, prange
+from ..runtime.jit import kernel, prange
 
 LEAF_SIZE = 4
 N_BINS = 16

@@ -9,7 +9,7 @@ normal's side.
 
 import math
 
-from .jit import kernel
+from ..runtime.jit import kernel
 
 
 @kernel(inline="always")

@@ -101,7 +101,7 @@ class SpecularPolynomialSolver:
         t1 = time.perf_counter()
         if device_index is not None and not stop_after:
             # compacted on the device: only the paths come back, in no particular order
-            from .opencl_backend import solve_one_bounce_opencl
+            from ..opencl.backend import solve_one_bounce_opencl
 
             tuple_index, uv, totals = solve_one_bounce_opencl(device_index, chain == "T", x_start, x_end, P, N, eta)
             t2 = time.perf_counter()
@@ -125,7 +125,7 @@ class SpecularPolynomialSolver:
     @staticmethod
     def _opencl_device(device, chain, report):
         """The OpenCL device index to use, or None for Numba (with a warning saying why)."""
-        from .opencl_backend import OpenCLUnavailable, device_name, parse_device, two_bounce_device_name
+        from ..opencl.backend import OpenCLUnavailable, device_name, parse_device, two_bounce_device_name
 
         index = parse_device(device)
         if index is None:
@@ -154,7 +154,7 @@ class SpecularPolynomialSolver:
         if device_index is not None and not stop_after:
             # the staged pipeline: Bézout determinants and brackets on the device, systems and
             # path-space polish on Numba (two_bounce_staged.py); the same paths
-            from .opencl_backend import solve_two_bounce_opencl
+            from ..opencl.backend import solve_two_bounce_opencl
 
             if n:
                 solve_two_bounce_opencl(device_index, chain[0] == "T", chain[1] == "T", x_start, x_end, P, N, eta, pieces,
@@ -175,8 +175,8 @@ class SpecularPolynomialSolver:
 
 def compact_paths(out_uv, out_count):
     """(n, cap, 2k) per-tuple slots + counts -> (tuple_index (m,), uv (m, 2k)) in canonical
-    order (by tuple, then u, then v: ``path_order``)."""
-    from .path_order import gather_sorted
+    order (by tuple, then u, then v: ``paths.order``)."""
+    from ..paths.order import gather_sorted
 
     m = int(np.minimum(out_count, out_uv.shape[1]).sum())
     tuple_index = np.empty(m, dtype=np.int64)
@@ -188,9 +188,9 @@ def compact_paths(out_uv, out_count):
 
 def canonical_order(tuple_index, uv, n):
     """Paths of tuples in [0, n) given in any order -> (tuple_index, uv) in canonical order
-    (by tuple, then u, then v: ``path_order``): the order a device writes them in is not part
+    (by tuple, then u, then v: ``paths.order``): the order a device writes them in is not part
     of the result."""
-    from .path_order import order_by_tuple
+    from ..paths.order import order_by_tuple
 
     out_index = np.empty(tuple_index.shape[0], dtype=np.int64)
     out_uv = np.empty(uv.shape)

@@ -13,7 +13,7 @@ passed in, so the per-solve loop allocates nothing.
 
 import numpy as np
 
-from .jit import kernel
+from ..runtime.jit import kernel
 
 MAX_DEGREE = 24  # scratch arrays are (MAX_DEGREE + 1) wide; the one-bounce resultant has 12.
 NEWTON_ITERATIONS = 64  # bisection fallback halves the bracket: 64 steps reach any float64 width.

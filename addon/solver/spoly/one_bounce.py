@@ -10,7 +10,7 @@ vertex x1.  Two bivariate polynomials vanish at every admissible path:
 
 u is eliminated with the resultant r(v) = Res_u(a, b) (eq 28–30) and the real roots of r in
 [0, 1] are found by derivative isolation (``roots.py``); u follows from a(u, v*) = 0, and
-each candidate is Newton-polished and validated in path space (``path_space.py``).
+each candidate is Newton-polished and validated in path space (``one_vertex.py``).
 
 Resultant in closed form.  a has total degree 2, so its u² coefficient a2 is a constant and
 a = a2 u² + a1(v) u + a0(v).  The Bézout matrix (eq 29) of (a, b) would be n×n with
@@ -35,10 +35,11 @@ import math
 
 import numpy as np
 
-from .jit import kernel, prange
-from .path_space import geometric_normal, line_crossing_barycentrics, polish_and_validate, scatter_residual, triangle_frame
-from .roots import MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval
-from .vec3 import cross, dot, madd, norm, row, scale, sub
+from ..runtime.jit import kernel, prange
+from ..paths.one_vertex import (geometric_normal, line_crossing_barycentrics, polish_and_validate, scatter_residual,
+                                triangle_frame)
+from ..polynomials.roots import MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval
+from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
 
 MAX_PATHS_ONE_BOUNCE = 8  # per tuple; a one-bounce tuple seldom has more than 2
 CHUNK = 256  # tuples per parallel work item (scratch is allocated once per chunk)

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ..jit import kernel
+from ..runtime.jit import kernel
 
 MAX_DEGREE = 96
 

@@ -25,7 +25,7 @@ the same with a *forward-traced image* instead of the Bernstein bound:
    image triangle grown by a margin (base texels + twice the deviation) gets a seed: the
    point of the sub-triangle whose straight image is closest to the sample.
 4. :func:`solve_image_seeds` — the seed is traced to its second triangle, then the exact
-   two-vertex constraint is solved by the path-space Gauss-Newton of :mod:`path_space2`
+   two-vertex constraint is solved by the path-space Gauss-Newton of :mod:`two_vertex`
    (eq. 3 of Fan et al. 2024 at both vertices) and accepted by the same validation as the
    exact solver (both vertices inside their triangles, sides, residual ≤ 1e-12 or settled
    within 1e-7).  A Newton step that leaves the second triangle re-traces and tries the
@@ -40,13 +40,13 @@ import math
 
 import numpy as np
 
-from .bvh import _ray_closest
-from .jit import kernel, prange
-from .path_space2 import pack_geometry, polish_and_validate2
+from ..geometry.bvh import _ray_closest
+from ..runtime.jit import kernel, prange
+from ..paths.two_vertex import pack_geometry, polish_and_validate2
 from .photon import ROLE_BOTH, ROLE_REFLECT, _fresnel
-from .surface import plane_barycentrics as _hit_bary
-from .surface import scatter_direction as _scatter
-from .surface import triangle_frame
+from ..geometry.surface import plane_barycentrics as _hit_bary
+from ..geometry.surface import scatter_direction as _scatter
+from ..geometry.surface import triangle_frame
 
 POLISH_STEPS = 40
 ACCEPT_RESIDUAL = 1e-12  # as the exact solver (two_bounce.ACCEPT_RESIDUAL)

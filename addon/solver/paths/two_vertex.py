@@ -1,6 +1,6 @@
 """Two-vertex specular constraint in path space: residual, Jacobian, Gauss-Newton polish.
 
-The two-bounce generalisation of ``path_space.py`` (which stays as it is for one bounce).
+The two-bounce generalisation of ``one_vertex.py`` (which stays as it is for one bounce).
 The unknowns are θ = (u1, v1, u2, v2), the barycentrics of x1 on triangle 1 and x2 on
 triangle 2; the residual stacks, per vertex, the outgoing unit direction minus the one the
 vertex rule expects (reflect / refract the incoming one about the shading normal):
@@ -23,8 +23,8 @@ import math
 
 import numpy as np
 
-from .jit import kernel
-from .vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
+from ..runtime.jit import kernel
+from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
 
 DIRECTION_TOLERANCE = 1e-7  # |r_i| per vertex for an accepted path (contract)
 INSIDE_EPSILON = 1e-9

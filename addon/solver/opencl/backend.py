@@ -27,8 +27,8 @@ import time
 
 import numpy as np
 
-_KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "opencl", "one_bounce.cl")
-_KERNEL_FILE_2 = os.path.join(os.path.dirname(os.path.abspath(__file__)), "opencl", "two_bounce.cl")
+_KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "one_bounce.cl")
+_KERNEL_FILE_2 = os.path.join(os.path.dirname(os.path.abspath(__file__)), "two_bounce.cl")
 # Work-group size on CPU devices: every work-item holds ~13 KB (one bounce) or ~18 KB (two
 # bounces) of private scratch, and CPU drivers (PoCL) place a whole work-group's private
 # memory on one thread's stack, so groups stay small there.
@@ -409,6 +409,6 @@ class OpenCLDeterminants:
 def solve_two_bounce_opencl(index, refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats):
     """The two-bounce solve with its determinant work on OpenCL device index; fills the
     arrays as ``two_bounce.solve_two_bounce_batch`` does."""
-    from .two_bounce_staged import solve_staged
+    from ..spoly.two_bounce_staged import solve_staged
 
     solve_staged(OpenCLDeterminants(index), refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats)

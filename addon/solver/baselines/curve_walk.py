@@ -25,7 +25,7 @@ curve and looks for sign changes of a scalar refraction function f on it (eq 16-
 * bisection along the curve where f changes sign (§3.4.3: the paper bisects sub-triangles,
   here the bracket is the curve piece between two marching samples, halved and projected
   back onto the conic), then the project's Newton polish and validation
-  (``path_space.polish_and_validate``) and its rule for "one physical path"
+  (``one_vertex.polish_and_validate``) and its rule for "one physical path"
   (``one_bounce._store_path``), the same as the other baselines;
 * the ellipse wholly inside one triangle (§3.4.4): no edge crossing, the closed curve is
   marched all the way round from a point on it;
@@ -57,12 +57,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .api import SolveReport, SolveResult, compact_paths, validate_inputs
-from .irradiance import PathIrradiance, fresnel_dielectric
-from .jit import kernel, prange
-from .one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, POLISH_STEPS, _store_path
-from .path_space import geometric_normal, line_crossing_barycentrics, polish_and_validate, triangle_frame
-from .vec3 import cross, dot, madd, norm, row, scale, sub
+from ..spoly.api import SolveReport, SolveResult, compact_paths, validate_inputs
+from ..paths.irradiance import PathIrradiance, fresnel_dielectric
+from ..runtime.jit import kernel, prange
+from ..spoly.one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, POLISH_STEPS, _store_path
+from ..paths.one_vertex import geometric_normal, line_crossing_barycentrics, polish_and_validate, triangle_frame
+from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
 
 DEFAULT_STEPS = 32  # tuple walk: longest marching step 1/DEFAULT_STEPS in barycentric units
 MESH_STEPS = 4  # mesh walk: longest step per triangle 1/MESH_STEPS (f is sampled at entry and exit too)

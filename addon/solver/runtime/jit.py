@@ -8,7 +8,8 @@ in development the cache lives in ``<repo>/.numba_cache``.
 
 import os
 
-_PROJECT_CACHE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), ".numba_cache")
+_SOLVER = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # addon/solver
+_PROJECT_CACHE = os.path.join(os.path.dirname(os.path.dirname(_SOLVER)), ".numba_cache")
 
 
 def source_fingerprint():
@@ -22,7 +23,7 @@ def source_fingerprint():
     import hashlib
 
     digest = hashlib.sha1()
-    folder = os.path.dirname(os.path.abspath(__file__))
+    folder = _SOLVER
     files = []
     for root, dirs, names in os.walk(folder):
         dirs[:] = sorted(d for d in dirs if d != "__pycache__")

@@ -20,7 +20,7 @@ Solve, per system (``solve_two_bounce_batch``):
    deflated log|det| are refined (``SUB_SAMPLES``, ``REFINE_LEVELS``), one-signed dips
    resolved (``_resolve_dip``).
 3. *Paths* (§4.3): at each root the u1 roots of a(·, v1) are mapped to triangle 2 by the
-   exact scattered ray and Gauss–Newton polished in path space (``path_space2``), which
+   exact scattered ray and Gauss–Newton polished in path space (``two_vertex``), which
    removes the √ approximation error; validated (both vertices inside, sides, TIR, residual)
    and merged when two converge onto one path.
 The chain is also solved reversed (reciprocity) to catch root pairs one orientation misses;
@@ -38,15 +38,16 @@ import math
 
 import numpy as np
 
-from .jit import kernel, prange
-from .path_space import line_crossing_barycentrics
-from .path_space2 import pack_geometry, polish_and_validate2, trace_to_second
-from .vec3 import row
-from .roots import MAX_DEGREE, roots_in_interval
-from .simd import CHUNK as SIMD_CHUNK
-from .simd import SMALL_BOX_DEGREE
-from .simd import (casteljau_halves, lanes_abs_argmax, lanes_sub_scaled, rows_add_scaled, rows_add_scaled_exact, rows_scale,
-                   rows_scale_add, small_box_range, square_min_max_abs, transpose_blocks)
+from ..runtime.jit import kernel, prange
+from ..paths.one_vertex import line_crossing_barycentrics
+from ..paths.two_vertex import pack_geometry, polish_and_validate2, trace_to_second
+from ..geometry.vec3 import row
+from ..polynomials.roots import MAX_DEGREE, roots_in_interval
+from ..runtime.simd import CHUNK as SIMD_CHUNK
+from ..runtime.simd import SMALL_BOX_DEGREE
+from ..runtime.simd import (casteljau_halves, lanes_abs_argmax, lanes_sub_scaled, rows_add_scaled,
+                            rows_add_scaled_exact, rows_scale, rows_scale_add, small_box_range, square_min_max_abs,
+                            transpose_blocks)
 
 MAX_PATHS_TWO_BOUNCE = 8
 CHUNK = 16  # tuples per parallel work item (and per ~1.5 MB of zeroed scratch: at 4 its allocation was ~8 µs per tuple)

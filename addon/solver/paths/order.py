@@ -9,7 +9,7 @@ is insertion-sorted in place.
 
 import numpy as np
 
-from .jit import kernel
+from ..runtime.jit import kernel
 
 
 @kernel

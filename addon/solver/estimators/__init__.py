@@ -1,0 +1,1 @@
+"""Forward estimators of caustic irradiance: forward-traced sub-triangle images, photon tracing."""

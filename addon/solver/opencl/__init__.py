@@ -1,0 +1,1 @@
+"""The optional OpenCL back end (pyopencl) and its kernels (*.cl)."""

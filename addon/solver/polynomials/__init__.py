@@ -1,0 +1,1 @@
+"""Univariate root finding and Bernstein forms."""

@@ -13,12 +13,8 @@ The acceptance run of the issue (>= 10,000 per chain) is
     TWO_BOUNCE_TUPLES=10000 .venv/bin/python -m pytest tests/solver/test_solver_two_bounce.py -s
 
 (about 1 h on 2 cores, the brute force dominating; bench/two_bounce_recall.py runs one chain of it
-from a brute force cached once and lists the misses).  Its result (2026-11-26, session 13,
-BENCHMARKS.md: bench/two_bounce_recall.py on the cached brute force, the test's margins): recall
-RR 100.000 %, RT 99.951 %, TR 99.988 %, TT 99.393 %; zero false paths, zero duplicates.  Earlier:
-2026-11-25, with the Heron-step √ and ROOT_TOL 1e-4: RR 100.000 %, RT 99.951 %, TR 99.988 %, TT
-99.529 %; 2026-11-22, before those: RR 100 %, RT 99.927 %, TR 99.988 %, TT 99.529 %, at 1.1-1.5x
-the determinants.
+from a brute force cached once and lists the misses; its recall per chain, with the test's
+margins, is in docs/perf-log.md).
 
 Asserts: contract output format, no NaN, zero false paths (check_path, direction tolerance 1e-6, both
 vertices, sides, inside both triangles), no duplicates, recall of the brute-force paths that are

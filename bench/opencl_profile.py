@@ -90,7 +90,8 @@ def same_paths(a, b):
 
 def profiled_run(index, solve, chain):
     """One OpenCL solve with profiling events and host timers on: (wall, {stage: s}, profiler)."""
-    from addon.solver.spoly import api, two_bounce_staged
+    from addon.solver.spoly import api
+    from addon.solver.spoly.two_bounce import staged as two_bounce_staged
     from addon.solver.opencl import backend as opencl_backend
 
     prof = opencl_backend.Profiler()

@@ -409,6 +409,6 @@ class OpenCLDeterminants:
 def solve_two_bounce_opencl(index, refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats):
     """The two-bounce solve with its determinant work on OpenCL device index; fills the
     arrays as ``two_bounce.solve_two_bounce_batch`` does."""
-    from ..spoly.two_bounce_staged import solve_staged
+    from ..spoly.two_bounce.staged import solve_staged
 
     solve_staged(OpenCLDeterminants(index), refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats)

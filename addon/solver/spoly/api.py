@@ -141,7 +141,8 @@ class SpecularPolynomialSolver:
         return index
 
     def _solve_two_bounce(self, chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0, device_index=None):
-        from .two_bounce import DEFAULT_PIECES, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, N_STATS, solve_two_bounce_batch
+        from .two_bounce.params import DEFAULT_PIECES, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, N_STATS
+        from .two_bounce.solve import solve_two_bounce_batch
 
         pieces = DEFAULT_PIECES if pieces is None else int(pieces)
         if not 1 <= pieces <= MAX_PIECES:

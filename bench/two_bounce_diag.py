@@ -3,7 +3,7 @@
 Used by bench/two_bounce_recall.py ``--diag``.  Rebuilds, in Python, the systems that
 ``two_bounce._solve_oriented`` builds for one tuple (both orientations: forward, hidden v1;
 reversed by reciprocity, hidden v2 of the forward path), with the solver's own kernels
-(``_build_system``, ``det_bezout``, ``find_v_roots``, ``refine_v_roots``,
+(``system.build_system``, ``det_bezout``, ``find_v_roots``, ``refine_v_roots``,
 ``roots_in_interval``, ``trace_to_second``, ``polish_and_validate2``), and reports for the
 system that holds the missed root: the 100-piece scan's signs and log|det| around it, the
 true resultant roots near it (dense sampling of its piece), the roots the scan and the
@@ -200,7 +200,7 @@ def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, m
 
 
 def candidates(A, da, B, db, v, margin, geo_or, refract1, eta):
-    """u-roots of a(., v) in range with their relative |b| (what _candidates_at ranks)."""
+    """u-roots of a(., v) in range with their relative |b| (what candidates_at ranks)."""
     na = int(bivariate.u_degree(A.copy(), da, 1e-14))
     nb = int(bivariate.u_degree(B.copy(), db, 1e-15))
     coeffs = np.zeros(MAX_DEGREE + 1)

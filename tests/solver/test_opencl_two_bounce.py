@@ -1,6 +1,6 @@
 """The two-bounce OpenCL path (RR, RT, TR, TT) returns the Numba back end's paths.
 
-device="opencl" runs the staged pipeline of addon/solver/spoly/two_bounce_staged.py: systems built
+device="opencl" runs the staged pipeline of addon/solver/spoly/two_bounce/staged.py: systems built
 and paths polished on Numba, the Bézout determinants (Fan et al. 2024, eq 29), the sign scan's
 Illinois brackets and the refinement's sub-samples (§4.2) on the device
 (addon/solver/opencl/two_bounce.cl).  PoCL on the CPU in CI; tests that need a device skip

@@ -154,7 +154,7 @@ class SpecularPolynomialSolver:
         t1 = time.perf_counter()
         if device_index is not None and not stop_after:
             # the staged pipeline: Bézout determinants and brackets on the device, systems and
-            # path-space polish on Numba (two_bounce_staged.py); the same paths
+            # path-space polish on Numba (two_bounce/staged.py); the same paths
             from ..opencl.backend import solve_two_bounce_opencl
 
             if n:

@@ -1,7 +1,7 @@
 """Why a two-bounce path was missed: the resultant of each system around its root.
 
 Used by bench/two_bounce_recall.py ``--diag``.  Rebuilds, in Python, the systems that
-``two_bounce._solve_oriented`` builds for one tuple (both orientations: forward, hidden v1;
+``two_bounce.solve._solve_oriented`` builds for one tuple (both orientations: forward, hidden v1;
 reversed by reciprocity, hidden v2 of the forward path), with the solver's own kernels
 (``system.build_system``, ``det_bezout``, ``find_v_roots``, ``refine_v_roots``,
 ``roots_in_interval``, ``trace_to_second``, ``polish_and_validate2``), and reports for the

@@ -21,11 +21,11 @@ from ...paths.one_vertex import line_crossing_barycentrics
 from ...paths.two_vertex import pack_geometry, polish_and_validate2, trace_to_second
 from ...geometry.vec3 import row
 from ...polynomials.roots import MAX_DEGREE, roots_in_interval
-from .params import (ACCEPT_RESIDUAL, B_RELATIVE, BOTH_DIRECTIONS, CHUNK, HERON_CUT, HERON_SQRT, HIT_SLOT, LIVE_PREPASS,
+from .params import (ACCEPT_RESIDUAL, B_RELATIVE, BOTH_DIRECTIONS, CHUNK, HERON_CUT, HERON_SQRT, LIVE_PREPASS,
                      LIVE_STACK, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD, N_SEEDS, N_SLOTS, N_STATS, NEAR_PATH,
-                     POLISH_STEPS, PRODUCTIVE_RADIUS, SAME_PATH, SQRT_ALL_PIECES, SQRT_BANDS, SQRT_PIECES,
-                     STAT_ACCEPTED, STAT_CANDIDATES, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, TWO_PROJECTIONS,
-                     V_MAJOR_SLOT, V_MARGIN_APPROX, V_MARGIN_EXACT)
+                     POLISH_STEPS, PRODUCTIVE_RADIUS, SAME_PATH, SQRT_BANDS, SQRT_PIECES, STAT_ACCEPTED,
+                     STAT_CANDIDATES, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, V_MAJOR_SLOT, V_MARGIN_APPROX,
+                     V_MARGIN_EXACT)
 from ...polynomials.bivariate import bernstein_has_zero, bmax, u_degree
 from .prepass import live_pieces_band
 from .sqrt import beta_mask, beta_poly, centroid_piece, heron_sqrt_cut, sqrt_band, sqrt_piece
@@ -313,14 +313,10 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
             xc = min(1.0, max(0.0, (n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn) / (S * S)))
             if xhi <= 0.0:
                 continue  # TIR everywhere on the triangle
-            if SQRT_ALL_PIECES:
-                xlo = max(0.0, xlo * 0.8)
-                xhi = min(1.0, xhi * 1.25)
-            else:
-                # the pieces holding x at the corners, edge thirds and centroid (the
-                # Gauss-Newton polish in path space removes the error of a piece used
-                # a little outside its interval)
-                mask, fallback_piece = centroid_piece(xc, mask)
+            # the pieces holding x at the corners, edge thirds and centroid (the
+            # Gauss-Newton polish in path space removes the error of a piece used
+            # a little outside its interval)
+            mask, fallback_piece = centroid_piece(xc, mask)
         if refract1 and SQRT_BANDS:
             beta_poly(geo_l, r1, biv)
             if xlo > 0.0:
@@ -337,9 +333,7 @@ def _solve_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, pieces, sto
                 continue
             if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= heron_cut:
                 continue
-            if piece >= 0 and refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
-                continue
-            if piece >= 0 and refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
+            if piece >= 0 and refract1 and not (mask >> piece) & 1:
                 continue
             for o2 in range(n_side2):
                 eta_in2 = 1.0
@@ -395,43 +389,22 @@ def _solve_system(biv, da, db, blo, bhi, refract1, refract2, margin, pieces, sto
         return count
     if stop_after == 1:
         return count
-    # Hidden variable v1 (u1 eliminated), then hidden u1 (v1 eliminated) on the transposed
-    # system: two solutions whose projections on one axis fall within one piece are a root
-    # pair no sign scan separates, but they are seldom that close on both axes.
-    count = _eliminate(a, da, b, db, blo, bhi, False, refract1, refract2, margin, pieces, stop_after, refine, geo, eta, cf, mat, scan,
-                       work, th, biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
-    if count < 0:
-        return count
-    if not TWO_PROJECTIONS:
-        return count
-    at = biv[37]
-    bt = biv[38]
-    _transpose(a, da, at)
-    _transpose(b, db, bt)
-    return _eliminate(at, da, bt, db, -math.inf, math.inf, True, refract1, refract2, margin, pieces, stop_after, refine, geo, eta, cf, mat, scan,
+    # hidden variable v1 (u1 eliminated)
+    return _eliminate(a, da, b, db, blo, bhi, refract1, refract2, margin, pieces, stop_after, refine, geo, eta, cf, mat, scan,
                       work, th, biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
 
 
 @kernel
-def _transpose(src, d, dst):
-    for i in range(d + 1):
-        for j in range(d + 1 - i):
-            dst[j, i] = src[i, j]
-
-
-@kernel
-def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, pieces, stop_after, refine, geo, eta, cf, mat, scan, work, th,
+def _eliminate(a, da, b, db, blo, bhi, refract1, refract2, margin, pieces, stop_after, refine, geo, eta, cf, mat, scan, work, th,
                biv, v_roots, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
     """Eliminate the first variable (rows of a, b), scan the hidden one (columns), back-solve,
-    polish.  ``swapped``: the hidden variable is u1 (the arrays are transposed)."""
+    polish."""
     na = u_degree(a, da, 1e-14)
     nb = u_degree(b, db, 1e-15)
     n = max(na, nb)
     if n == 0 or n >= MAXD:
         return -(count + 1)
     live = scan[7]
-    if swapped:
-        biv[HIT_SLOT, MAXD, 0] = 0.0  # the stored map to triangle 2 is in (u1, v1), not transposed: no hit test
     if LIVE_PREPASS:
         boxes = scan[3, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
         if live_pieces_band(a, da, b, db, margin, pieces, biv, boxes, live, blo, bhi) == 0:
@@ -453,20 +426,20 @@ def _eliminate(a, da, b, db, blo, bhi, swapped, refract1, refract2, margin, piec
     productive = scan[5]  # per scan root: did one of its candidates polish into a path?
     for iv in range(nv):
         near = stats[STAT_NEAR]
-        count = candidates_at(v_roots[iv], a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta,
+        count = candidates_at(v_roots[iv], a, da, b, db, na, nb, refract1, refract2, margin, geo, eta,
                                work, th, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
         productive[iv] = 1.0 if stats[STAT_NEAR] > near else 0.0
     nv_all = refine_v_roots(at, da, bt, db, n, pieces, live, cf, mat, scan, v_roots, nv, productive, stats) if refine else nv
 
     for iv in range(nv, nv_all):
-        count = candidates_at(v_roots[iv], a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta,
+        count = candidates_at(v_roots[iv], a, da, b, db, na, nb, refract1, refract2, margin, geo, eta,
                                work, th, u_roots, coeffs, chain, lists, rev, geo_fwd, out_uv, meta, count, stats)
     stats[STAT_ROOTS] += max(nv, nv_all)
     return count
 
 
 @kernel
-def candidates_at(v, a, da, b, db, na, nb, swapped, refract1, refract2, margin, geo, eta, work, th, u_roots, coeffs,
+def candidates_at(v, a, da, b, db, na, nb, refract1, refract2, margin, geo, eta, work, th, u_roots, coeffs,
                    chain, lists, rev, geo_fwd, out_uv, meta, count, stats):
     """Back-substitution at a resultant root v (§4.3): the roots u of a(·, v) in the
     triangle whose b(u, v) is relatively small (the smallest always) are polished as paths."""
@@ -524,11 +497,9 @@ def candidates_at(v, a, da, b, db, na, nb, swapped, refract1, refract2, margin, 
             excess = 0.5 * (u1 + v1 - 1.0)
             u1 -= excess
             v1 -= excess
-        if swapped:
-            u1, v1 = v1, u1
         if _already_stored(u1, v1, out_uv, 2 if rev else 0, count):
             stats[STAT_ACCEPTED] += 1
-            if abs((u1 if swapped else v1) - v) <= PRODUCTIVE_RADIUS:
+            if abs(v1 - v) <= PRODUCTIVE_RADIUS:
                 stats[STAT_NEAR] += 1
             continue
         accepted = stats[STAT_ACCEPTED]
@@ -536,7 +507,7 @@ def candidates_at(v, a, da, b, db, na, nb, swapped, refract1, refract2, margin, 
         if stats[STAT_ACCEPTED] > accepted:
             # th: the polished path, forward order; the oriented chain's (u1, v1) are th[2:4]
             # when solved reversed
-            hidden = th[(2 if rev else 0) + (0 if swapped else 1)]
+            hidden = th[(2 if rev else 0) + 1]
             if abs(hidden - v) <= PRODUCTIVE_RADIUS:
                 stats[STAT_NEAR] += 1
     return count

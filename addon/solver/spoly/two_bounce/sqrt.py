@@ -12,7 +12,7 @@ import math
 
 from ...runtime.jit import kernel
 from .params import (BETA_GRID, BETA_MASK_FROM, BETA_SLOT, HERON_CHECK_GRID, HERON_CUTS, HERON_FIT_GRID, HERON_TOL,
-                     SQRT_BAND_REACH, SQRT_BANDS, SQRT_PIECES, TIR_FALLBACK_REFINE)
+                     SQRT_BAND_REACH, SQRT_BANDS, SQRT_PIECES)
 from ...polynomials.bivariate import bmul_acc, bzero, vdot, vlin
 from .prepass import box_range
 
@@ -24,8 +24,8 @@ def centroid_piece(xc, mask):
     (xc ≤ 0) and piece 0 not sampled already, piece 0 (its band reaches β = 0) is solved for
     the paths next to the TIR curve, its sign changes only: that system is the noisiest of
     all (the √'s pole sits at the TIR curve) and its kink refinement cost 45 % of random TT's
-    determinants for ~0.05 % of the paths (``TIR_FALLBACK_REFINE``; docs/decisions/two-bounce-solver.md)."""
-    if xc > 0.0 or mask & 1 or TIR_FALLBACK_REFINE:
+    determinants for ~0.05 % of the paths (docs/decisions/two-bounce-solver.md)."""
+    if xc > 0.0 or mask & 1:
         return mask | (1 << sqrt_piece(xc)), -2
     return mask | 1, 0
 

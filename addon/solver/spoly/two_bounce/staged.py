@@ -37,7 +37,7 @@ before its refined roots), which can change which of two copies of one path is k
 Stage A repeats ``_solve_oriented``'s set-up (side tests, frame, √ pieces, orientations) so
 that the one-kernel path stays exactly as it is; the two must change together
 (tests/solver/test_opencl_two_bounce.py compares the staging on Numba with the one-kernel solver).
-Limits: one projection (``TWO_PROJECTIONS`` False) and ``REFINE_LEVELS`` ≤ 1, the settings
+Limits: ``REFINE_LEVELS`` ≤ 1, the settings
 of ``params.py``; a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel
 path in stage E.
 """
@@ -49,9 +49,9 @@ import numpy as np
 from ...runtime.jit import kernel, prange
 from ...paths.two_vertex import pack_geometry
 from .params import (BOTH_DIRECTIONS, CHUNK, HERON_CUT, HERON_SQRT, KINK, LIVE_PREPASS, LIVE_STACK,
-                     MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS,
-                     SQRT_ALL_PIECES, SQRT_BANDS, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS,
-                     STAT_SKIPPED, SUB_SAMPLES, TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT)
+                     MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS, SQRT_BANDS,
+                     SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
+                     V_MARGIN_APPROX, V_MARGIN_EXACT)
 from ...polynomials.bivariate import bernstein_has_zero, bmax, u_degree
 from .prepass import live_pieces_band
 from .sqrt import beta_mask, beta_poly, centroid_piece, heron_sqrt_cut, sqrt_band, sqrt_piece
@@ -286,11 +286,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
             xc = min(1.0, max(0.0, (n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn) / (S * S)))
             if xhi <= 0.0:
                 continue
-            if SQRT_ALL_PIECES:
-                xlo = max(0.0, xlo * 0.8)
-                xhi = min(1.0, xhi * 1.25)
-            else:
-                mask, fallback_piece = centroid_piece(xc, mask)
+            mask, fallback_piece = centroid_piece(xc, mask)
         if refract1 and SQRT_BANDS:
             beta_poly(geo_l, r1, biv)
             if xlo > 0.0:
@@ -307,9 +303,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 continue
             if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= heron_cut:
                 continue
-            if piece >= 0 and refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
-                continue
-            if piece >= 0 and refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
+            if piece >= 0 and refract1 and not (mask >> piece) & 1:
                 continue
             for o2 in range(n_side2):
                 eta_in2 = 1.0
@@ -442,7 +436,7 @@ def _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef
         g = geo[2] if rev else geo[0]
         for iv in range(nv[s]):
             near = stats[t, STAT_NEAR]
-            count = candidates_at(roots[s, iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], False, r1, r2,
+            count = candidates_at(roots[s, iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], r1, r2,
                                    margin, g, eta[t], work, th, u_roots, coeffs, chain, lists, rev, geo[0], out_uv[t],
                                    meta[t], count, stats[t])
             productive[s, iv] = 1.0 if stats[t, STAT_NEAR] > near else 0.0
@@ -502,7 +496,7 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
             _unpack(coef[s], b_offset, db, biv[1])
             margin = V_MARGIN_APPROX if r1 else V_MARGIN_EXACT
             for iv in range(ref_first[s], ref_first[s] + ref_count[s]):
-                count = candidates_at(ref_roots[iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], False, r1,
+                count = candidates_at(ref_roots[iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], r1,
                                        r2, margin, g, eta[t], work, th, u_roots, coeffs, chain, lists, rev, geo[0],
                                        out_uv[t], meta[t], count, stats[t])
         stats[t, STAT_ROOTS] += nv[s] + ref_count[s]
@@ -713,8 +707,8 @@ def solve_staged(det_device, refract1, refract2, x_start, x_end, P, N, eta, piec
     (:class:`NumbaDeterminants`, ``opencl.backend.OpenCLDeterminants``).  ``batch``: tuples
     per pass (default: stage A's store within BATCH_BYTES); ``sys_cap``: systems per tuple
     held by stage A (a tuple with more is solved by the one-kernel path)."""
-    if TWO_PROJECTIONS or REFINE_LEVELS not in (0, 1):
-        raise NotImplementedError("the staged two-bounce path implements one projection and REFINE_LEVELS <= 1")
+    if REFINE_LEVELS not in (0, 1):
+        raise NotImplementedError("the staged two-bounce path implements REFINE_LEVELS <= 1")
     stride, b_offset = layout(refract1, refract2)
     n = x_start.shape[0]
     if batch is None:

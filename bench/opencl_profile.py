@@ -8,7 +8,7 @@ One bounce (R, T; random and planted workloads of bench/workloads.py, the tuples
 bench/solver.py): host checks and packing, host→device writes, the accumulator fill, the
 kernel, device→host read-back (OpenCL profiling events), the host sort into canonical order,
 and the rest of the wall time.  Two bounces (RR, RT, TR, TT): the Numba stages of
-``two_bounce_staged`` (A, C, the refinement's flags / brackets / assembly, E), the numpy glue
+``two_bounce.staged`` (A, C, the refinement's flags / brackets / assembly, E), the numpy glue
 between them, and inside the device calls the writes, each kernel and the read-back, with the
 number of launches and of host waits.  Every row gives the OpenCL wall time (best of
 --repeats, profiling off), the Numba wall time on the same tuples (all threads) and their
@@ -90,7 +90,8 @@ def same_paths(a, b):
 
 def profiled_run(index, solve, chain):
     """One OpenCL solve with profiling events and host timers on: (wall, {stage: s}, profiler)."""
-    from addon.solver.spoly import api, two_bounce_staged
+    from addon.solver.spoly import api
+    from addon.solver.spoly.two_bounce import staged as two_bounce_staged
     from addon.solver.opencl import backend as opencl_backend
 
     prof = opencl_backend.Profiler()
@@ -263,7 +264,7 @@ def main():
         lines.append("")
     if two:
         lines.append("Two bounces (staged: systems, candidates and polish on Numba between device batches; "
-                     "`two_bounce_staged.py`): times in ms for the batch. \"device calls, rest\" = host time inside "
+                     "`two_bounce/staged.py`): times in ms for the batch. \"device calls, rest\" = host time inside "
                      "the device calls beyond their commands' device time (Python, waits); \"numpy glue\" = the "
                      "staging's array work between stages.")
         lines.append("")

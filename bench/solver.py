@@ -177,7 +177,7 @@ def opencl_lines(opencl_rows, threads_all, args):
                      f"{r['opencl'] / r['numba']:.2f}× | {r['device']} | {r['same']} | {dets} |")
     lines.append("")
     lines.append("Two bounces on OpenCL: systems built and paths polished on Numba, the Bézout determinants, "
-                 "Illinois brackets and refinement sub-samples on the device (`addon/solver/spoly/two_bounce_staged.py`); "
+                 "Illinois brackets and refinement sub-samples on the device (`addon/solver/spoly/two_bounce/staged.py`); "
                  "the determinant counts differ by under 1 % (log/exp of two compilers: an Illinois step now and then), "
                  "the paths do not. "
                  + ("PoCL runs on the same cores as Numba; on an NVIDIA GPU run `bench/solver.py --opencl` with the "

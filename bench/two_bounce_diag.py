@@ -1,9 +1,9 @@
 """Why a two-bounce path was missed: the resultant of each system around its root.
 
 Used by bench/two_bounce_recall.py ``--diag``.  Rebuilds, in Python, the systems that
-``two_bounce._solve_oriented`` builds for one tuple (both orientations: forward, hidden v1;
+``two_bounce.solve._solve_oriented`` builds for one tuple (both orientations: forward, hidden v1;
 reversed by reciprocity, hidden v2 of the forward path), with the solver's own kernels
-(``_build_system``, ``det_bezout``, ``find_v_roots``, ``refine_v_roots``,
+(``system.build_system``, ``det_bezout``, ``find_v_roots``, ``refine_v_roots``,
 ``roots_in_interval``, ``trace_to_second``, ``polish_and_validate2``), and reports for the
 system that holds the missed root: the 100-piece scan's signs and log|det| around it, the
 true resultant roots near it (dense sampling of its piece), the roots the scan and the
@@ -16,7 +16,8 @@ import math
 
 import numpy as np
 
-from addon.solver.spoly import two_bounce as tb
+from addon.solver.polynomials import bivariate
+from addon.solver.spoly.two_bounce import params, prepass, resultant, sqrt, system
 from addon.solver.paths.two_vertex import pack_geometry, polish_and_validate2, trace_to_second
 from addon.solver.polynomials.roots import MAX_DEGREE, roots_in_interval
 
@@ -67,7 +68,7 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
     c2 = c2 / np.linalg.norm(c2)
     dmax = max(np.sum((q - geo[0]) ** 2) * inv * inv for q in (np.zeros(3), e11, e12))
     S = math.sqrt(nmax1 * dmax)
-    margin = tb.V_MARGIN_APPROX if refract1 else tb.V_MARGIN_EXACT
+    margin = params.V_MARGIN_APPROX if refract1 else params.V_MARGIN_EXACT
     for o1 in range(2 if refract1 else 1):
         sigma1 = 1.0 if o1 == 0 else -1.0
         if refract1 and ((sigma1 > 0 and not any_front1) or (sigma1 < 0 and not any_back1)):
@@ -88,24 +89,24 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
                     x = min(1.0, max(0.0, x))
                 xs.append(x)
                 if x >= 0:
-                    mask |= 1 << int(tb._sqrt_piece(x))
+                    mask |= 1 << int(sqrt.sqrt_piece(x))
             if max(xs[:-1]) <= 0:
                 continue
-        biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
-        if refract1 and tb.SQRT_BANDS:
-            tb._beta_poly(geo_l, r1, biv)
+        biv = np.zeros((params.N_SLOTS, params.MAXD + 1, params.MAXD + 1))
+        if refract1 and params.SQRT_BANDS:
+            sqrt.beta_poly(geo_l, r1, biv)
             if min(xs[:-1]) > 0.0:
-                mask |= int(tb._beta_mask(biv, margin, S * S))
-        beta_poly = biv[tb.BETA_SLOT].copy()
-        heron_ok, heron_cut, heron = False, tb.HERON_CUT, (0.0,) * 6
-        if refract1 and tb.HERON_SQRT:
-            heron_ok, heron_cut, heron = tb.heron_sqrt_cut(geo_l, r1, margin, S * S, np.zeros((6, 7)))
-        for piece in range(-1, tb.SQRT_PIECES.shape[0] if refract1 else 1):
+                mask |= int(sqrt.beta_mask(biv, margin, S * S))
+        beta_poly = biv[params.BETA_SLOT].copy()
+        heron_ok, heron_cut, heron = False, params.HERON_CUT, (0.0,) * 6
+        if refract1 and params.HERON_SQRT:
+            heron_ok, heron_cut, heron = sqrt.heron_sqrt_cut(geo_l, r1, margin, S * S, np.zeros((6, 7)))
+        for piece in range(-1, params.SQRT_PIECES.shape[0] if refract1 else 1):
             # as _solve_oriented: the Heron √ (piece -1) where it fits, the eq (23) pieces
             # below its cut (all of them without it) held by the mask
             if piece < 0 and not heron_ok:
                 continue
-            if piece >= 0 and heron_ok and tb.SQRT_PIECES[piece, 0] >= heron_cut:
+            if piece >= 0 and heron_ok and params.SQRT_PIECES[piece, 0] >= heron_cut:
                 continue
             if piece >= 0 and refract1 and not (mask >> piece) & 1:
                 continue
@@ -118,8 +119,8 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
                     s_in2 = -sigma2 * (1.0 if side3 > 0 else -1.0)
                     eta_in2 = 1.0 if s_in2 > 0 else eta
                     eta_out2 = eta if s_in2 > 0 else 1.0
-                biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
-                da, db = tb._build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2, eta_out2, flat2,
+                biv = np.zeros((params.N_SLOTS, params.MAXD + 1, params.MAXD + 1))
+                da, db = system.build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2, eta_out2, flat2,
                                           (c2[0], c2[1], c2[2]), geo_l, biv)
                 a = biv[0, :da + 1, :da + 1].copy()
                 b = biv[1, :db + 1, :db + 1].copy()
@@ -127,13 +128,13 @@ def systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta):
                 b /= np.abs(b).max()
                 a[np.abs(a) <= 1e-14] = 0.0
                 b[np.abs(b) <= 1e-15] = 0.0
-                A = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
-                B = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
+                A = np.zeros((params.MAXD + 1, params.MAXD + 1))
+                B = np.zeros((params.MAXD + 1, params.MAXD + 1))
                 A[:da + 1, :da + 1] = a
                 B[:db + 1, :db + 1] = b
-                blo, bhi = tb._sqrt_band(piece, S * S, refract1)
+                blo, bhi = sqrt.sqrt_band(piece, S * S, refract1)
                 label = f"o1={o1} piece={'heron>=%.3g' % heron_cut if piece < 0 else piece} o2={o2}"
-                hit = biv[tb.HIT_SLOT:tb.HIT_SLOT + 4].copy()  # the map to triangle 2 for the pre-pass's hit test
+                hit = biv[params.HIT_SLOT:params.HIT_SLOT + 4].copy()  # the map to triangle 2 for the pre-pass's hit test
                 yield label, A, da, B, db, margin, geo, (blo, bhi, beta_poly, hit)
 
 
@@ -156,37 +157,37 @@ def _list_roots(rel):
 
 
 def v_major(P, d):
-    """P in the layout the determinant family reads (``tb.v_major``)."""
-    out = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
-    tb.v_major(np.ascontiguousarray(P), d, out)
+    """P in the layout the determinant family reads (``resultant.v_major``)."""
+    out = np.zeros((params.MAXD + 1, params.MAXD + 1))
+    resultant.v_major(np.ascontiguousarray(P), d, out)
     return out
 
 
 def det(A, da, B, db, n, v):
-    cf = np.zeros((2, tb.MAXD + 2))
-    mat = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
-    return tb.det_bezout(v_major(A, da), da, v_major(B, db), db, n, v, cf, mat)
+    cf = np.zeros((2, params.MAXD + 2))
+    mat = np.zeros((params.MAXD + 1, params.MAXD + 1))
+    return resultant.det_bezout(v_major(A, da), da, v_major(B, db), db, n, v, cf, mat)
 
 
 def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, math.inf, None, None)):
-    cf = np.zeros((2, tb.MAXD + 2))
-    mat = np.zeros((tb.MAXD + 1, tb.MAXD + 1))
-    scan = np.zeros((9, tb.MAX_PIECES + 1))
-    roots = np.zeros(4 * tb.MAX_PIECES)
-    stats = np.zeros(tb.N_STATS, np.int64)
+    cf = np.zeros((2, params.MAXD + 2))
+    mat = np.zeros((params.MAXD + 1, params.MAXD + 1))
+    scan = np.zeros((9, params.MAX_PIECES + 1))
+    roots = np.zeros(4 * params.MAX_PIECES)
+    stats = np.zeros(params.N_STATS, np.int64)
     live = scan[7]  # the solver's live pre-pass (pieces where a and b can vanish together)
     live[:pieces] = 1
-    if tb.LIVE_PREPASS:
-        biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
+    if params.LIVE_PREPASS:
+        biv = np.zeros((params.N_SLOTS, params.MAXD + 1, params.MAXD + 1))
         blo, bhi, beta_poly, hit = band
         if beta_poly is not None:
-            biv[tb.BETA_SLOT] = beta_poly
+            biv[params.BETA_SLOT] = beta_poly
         if hit is not None:
-            biv[tb.HIT_SLOT:tb.HIT_SLOT + 4] = hit
-        if tb.live_pieces_band(A, da, B, db, margin, pieces, biv, np.zeros((tb.LIVE_STACK, 4)), live, blo, bhi) == 0:
+            biv[params.HIT_SLOT:params.HIT_SLOT + 4] = hit
+        if prepass.live_pieces_band(A, da, B, db, margin, pieces, biv, np.zeros((params.LIVE_STACK, 4)), live, blo, bhi) == 0:
             return None, None, "no live piece (the pre-pass excluded the whole square)"
     At, Bt = v_major(A, da), v_major(B, db)
-    nv = tb.find_v_roots(At, da, Bt, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, roots, stats)
+    nv = resultant.find_v_roots(At, da, Bt, db, n, -margin, 1.0 + margin, pieces, live, cf, mat, scan, roots, stats)
     if nv < 0:
         return None, None, None
     grid = (scan[0, :pieces + 1].copy(), scan[1, :pieces + 1].copy(), scan[2, :pieces + 1].copy(), live[:pieces].copy())
@@ -194,14 +195,14 @@ def scan_roots(A, da, B, db, n, margin, pieces, productive_v, band=(-math.inf, m
     for i in range(nv):
         productive[i] = 1.0 if any(abs(roots[i] - pv) < 1e-5 for pv in productive_v) else 0.0
     scan[5] = productive
-    nall = tb.refine_v_roots(At, da, Bt, db, n, pieces, live, cf, mat, scan, roots, nv, scan[5], stats)
+    nall = resultant.refine_v_roots(At, da, Bt, db, n, pieces, live, cf, mat, scan, roots, nv, scan[5], stats)
     return roots[:nv].copy(), roots[nv:nall].copy(), grid
 
 
 def candidates(A, da, B, db, v, margin, geo_or, refract1, eta):
-    """u-roots of a(., v) in range with their relative |b| (what _candidates_at ranks)."""
-    na = int(tb._u_degree(A.copy(), da, 1e-14))
-    nb = int(tb._u_degree(B.copy(), db, 1e-15))
+    """u-roots of a(., v) in range with their relative |b| (what candidates_at ranks)."""
+    na = int(bivariate.u_degree(A.copy(), da, 1e-14))
+    nb = int(bivariate.u_degree(B.copy(), db, 1e-15))
     coeffs = np.zeros(MAX_DEGREE + 1)
     for i in range(na + 1):
         coeffs[i] = sum(A[i, j] * v ** j for j in range(da - i + 1))
@@ -224,12 +225,12 @@ def polish_from(u1, v1, geo_or, refract1, refract2, eta, rev, geo_fwd):
     th = np.array([u2, v2, u1, v1]) if rev else np.array([u1, v1, u2, v2])
     work = np.zeros((25, 6))
     r1, r2 = (refract2, refract1) if rev else (refract1, refract2)
-    acc, err, sig = polish_and_validate2(th, geo_fwd, r1, r2, eta, tb.POLISH_STEPS, tb.ACCEPT_RESIDUAL, work)
+    acc, err, sig = polish_and_validate2(th, geo_fwd, r1, r2, eta, params.POLISH_STEPS, params.ACCEPT_RESIDUAL, work)
     return th, f"accepted={bool(acc)} err={err:.2g} sigma~{sig:.2g}"
 
 
 def diagnose_path(chain, d, t, uv_missed, pieces=None, all_uv=None):
-    pieces = pieces or tb.DEFAULT_PIECES
+    pieces = pieces or params.DEFAULT_PIECES
     refract1, refract2 = chain[0] == "T", chain[1] == "T"
     x0, x3, P, N, eta = d["x0"][t], d["x3"][t], d["P"][t], d["N"][t], float(d["eta"][t])
     same = d["bf_uv"][d["bf_t"] == t]
@@ -256,8 +257,8 @@ def diagnose_path(chain, d, t, uv_missed, pieces=None, all_uv=None):
             out.append(f"  [{name}] no system")
             continue
         _, label, A, da, B, db, margin, geo_or, ra, rb, band = best
-        na = int(tb._u_degree(A.copy(), da, 1e-14))
-        nb = int(tb._u_degree(B.copy(), db, 1e-15))
+        na = int(bivariate.u_degree(A.copy(), da, 1e-14))
+        nb = int(bivariate.u_degree(B.copy(), db, 1e-15))
         n = max(na, nb)
         sr, rr, grid = scan_roots(A, da, B, db, n, margin, pieces, prod_v, band)
         head = f"  [{name}] system {label} (rel |a|={ra:.2g}, |b|={rb:.2g}) n={n}; hidden v*={vs:.12f} u*={us:.9f}"
@@ -292,7 +293,7 @@ def diagnose_path(chain, d, t, uv_missed, pieces=None, all_uv=None):
             best_rel = min((c[1] for c in cands), default=None)
             for u, rel in cands:
                 mark = "*" if abs(u - us) < 1e-4 else " "
-                taken = rel == best_rel or rel < tb.B_RELATIVE
+                taken = rel == best_rel or rel < params.B_RELATIVE
                 u1, v1 = min(max(u, 0.0), 1.0), min(max(vr, 0.0), 1.0)
                 if u1 + v1 > 1.0:
                     ex = 0.5 * (u1 + v1 - 1.0)
@@ -344,8 +345,8 @@ def _padded_bezout(A, B, n, zero):
 
 
 def _coeff_vectors(A, da, B, db, n, v):
-    na = int(tb._top_row(v_major(A, da), da, n))
-    nb = int(tb._top_row(v_major(B, db), db, n))
+    na = int(resultant.top_row(v_major(A, da), da, n))
+    nb = int(resultant.top_row(v_major(B, db), db, n))
     a = np.array([sum(A[i, j] * v ** j for j in range(da - i, -1, -1)) if i <= na else 0.0 for i in range(n + 1)])
     b = np.array([sum(B[i, j] * v ** j for j in range(db - i, -1, -1)) if i <= nb else 0.0 for i in range(n + 1)])
     return a / np.abs(a).max(), b / np.abs(b).max(), na, nb
@@ -372,7 +373,7 @@ def exact_check(chain, d, t, uv_path, rev=False, width=0.004, npts=7):
         if best is None or r < best[0]:
             best = (r, A, da, B, db)
     _, A, da, B, db = best
-    n = max(int(tb._u_degree(A.copy(), da, 1e-14)), int(tb._u_degree(B.copy(), db, 1e-15)))
+    n = max(int(bivariate.u_degree(A.copy(), da, 1e-14)), int(bivariate.u_degree(B.copy(), db, 1e-15)))
     out = {"det_bezout": [], "padded": []}
     for v in vs + np.linspace(-width, width, npts):
         a, b, na, nb = _coeff_vectors(A, da, B, db, n, v)

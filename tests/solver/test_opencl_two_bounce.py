@@ -1,6 +1,6 @@
 """The two-bounce OpenCL path (RR, RT, TR, TT) returns the Numba back end's paths.
 
-device="opencl" runs the staged pipeline of addon/solver/spoly/two_bounce_staged.py: systems built
+device="opencl" runs the staged pipeline of addon/solver/spoly/two_bounce/staged.py: systems built
 and paths polished on Numba, the Bézout determinants (Fan et al. 2024, eq 29), the sign scan's
 Illinois brackets and the refinement's sub-samples (§4.2) on the device
 (addon/solver/opencl/two_bounce.cl).  PoCL on the CPU in CI; tests that need a device skip
@@ -95,8 +95,8 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
     """Stages A-E with the determinants on Numba (no OpenCL needed): the staging itself
     changes nothing — same paths, and here the same counts — also with small batches and
     with tuples pushed to the one-kernel path (sys_cap=1)."""
-    from addon.solver.spoly.two_bounce import MAX_PATHS_TWO_BOUNCE, N_STATS
-    from addon.solver.spoly.two_bounce_staged import NumbaDeterminants, solve_staged
+    from addon.solver.spoly.two_bounce.params import MAX_PATHS_TWO_BOUNCE, N_STATS
+    from addon.solver.spoly.two_bounce.staged import NumbaDeterminants, solve_staged
 
     x0, x3, P, N, eta = _tuples(chain, 8)
     expected = SpecularPolynomialSolver().solve(chain, x0, x3, P, N, eta)
@@ -122,8 +122,9 @@ def test_opencl_determinant_equals_det_bezout():
     """sign and log|det R(v1)| (eq 29) of real TT systems: OpenCL against Numba's det_bezout."""
     index = _opencl_device_or_skip()
     from addon.solver.opencl.backend import OpenCLDeterminants
-    from addon.solver.spoly.two_bounce import MAXD, N_STATS, det_bezout
-    from addon.solver.spoly.two_bounce_staged import SYS_CAP, _unpack_v_major, layout, stage_a
+    from addon.solver.spoly.two_bounce.params import MAXD, N_STATS
+    from addon.solver.spoly.two_bounce.resultant import det_bezout
+    from addon.solver.spoly.two_bounce.staged import SYS_CAP, _unpack_v_major, layout, stage_a
 
     x0, x3, P, N, eta = _tuples("TT", 6)
     n = x0.shape[0]

@@ -15,7 +15,7 @@ from numba import njit
 from addon.solver.runtime.simd import (SMALL_BOX_DEGREE, casteljau_halves, lanes_abs_argmax, rows_add_scaled,
                                rows_add_scaled_exact, rows_scale, rows_scale_add, small_box_range, square_min_max_abs,
                                transpose_blocks)
-from addon.solver.spoly.two_bounce import _binomial_ratios, _tensor_bernstein_box
+from addon.solver.spoly.two_bounce.prepass import binomial_ratios, tensor_bernstein_box
 
 RNG_SEED = 20261126
 
@@ -168,7 +168,7 @@ def _small_box(p, d, u0, v0, w, R):
 
 @njit
 def _box_by_rows(p, d, u0, v0, w, R, out, t0, t1):
-    _tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1)
+    tensor_bernstein_box(p, d, u0, v0, w, R, out, t0, t1)
     lo, hi, _ = square_min_max_abs(out, d)
     return lo, hi
 
@@ -186,7 +186,7 @@ def test_small_box_range_is_the_row_by_row_conversion():
         p = _graded(rng, (48, 48))
         u0, v0 = rng.uniform(-0.1, 1.0, 2)
         w = float(rng.uniform(1e-3, 1.1))
-        _binomial_ratios(d, R)
+        binomial_ratios(d, R)
         got = _small_box(p, d, u0, v0, w, R)
         want = _box_by_rows(p, d, u0, v0, w, R, out, t0, t1)
         assert got == want, (d, got, want)

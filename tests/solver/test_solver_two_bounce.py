@@ -76,10 +76,10 @@ def test_det_bezout_is_the_resultant(m, n):
     polynomial pairs with coefficients graded over 8 orders of magnitude: the same log|det|
     and a sign that differs from the Sylvester determinant's by one constant per (m, n);
     the dense elimination of the full matrix gives the same numbers bit for bit."""
-    from addon.solver.spoly import two_bounce as tb
+    from addon.solver.spoly.two_bounce.params import MAXD
+    from addon.solver.spoly.two_bounce.resultant import det_bezout, det_hybrid_dense, det_hybrid_window, v_major
 
     rng = np.random.default_rng([m, n])
-    MAXD = tb.MAXD
     ratio = set()
     for trial in range(40):
         A = np.zeros((MAXD + 1, MAXD + 1))
@@ -89,9 +89,9 @@ def test_det_bezout_is_the_resultant(m, n):
         cf = np.zeros((2, MAXD + 2))
         mat = np.zeros((MAXD, MAXD))
         At, Bt = np.zeros_like(A), np.zeros_like(B)
-        tb.v_major(A, m, At)
-        tb.v_major(B, n, Bt)
-        sign, logdet = tb.det_bezout(At, m, Bt, n, n, 0.5, cf, mat)  # constant in v: a(u), b(u)
+        v_major(A, m, At)
+        v_major(B, n, Bt)
+        sign, logdet = det_bezout(At, m, Bt, n, n, 0.5, cf, mat)  # constant in v: a(u), b(u)
         F = B[:n + 1, 0] / np.abs(B[:n + 1, 0]).max()
         G = A[:m + 1, 0] / np.abs(A[:m + 1, 0]).max()
         s_ref, l_ref = _sylvester_slogdet(F, G)
@@ -101,8 +101,8 @@ def test_det_bezout_is_the_resultant(m, n):
         if m > 0:
             Fw, Gw = np.zeros(MAXD + 2), np.zeros(MAXD + 2)
             Fw[:n + 1], Gw[:m + 1] = F, G
-            dense = tb._det_hybrid_dense(Fw.copy(), Gw, n, m, np.zeros(MAXD + 2), np.zeros((MAXD, MAXD)))
-            window = tb._det_hybrid_window(Fw.copy(), Gw, n, m, np.zeros((MAXD, MAXD)))
+            dense = det_hybrid_dense(Fw.copy(), Gw, n, m, np.zeros(MAXD + 2), np.zeros((MAXD, MAXD)))
+            window = det_hybrid_window(Fw.copy(), Gw, n, m, np.zeros((MAXD, MAXD)))
             assert dense == window, (trial, dense, window)
     assert len(ratio) == 1
 
@@ -114,10 +114,10 @@ def test_det_bezout_depends_on_v_as_the_resultant(m, n):
     matrix of the coefficient vectors a_i(v), b_i(v) evaluated here with numpy's polyval,
     and a sign that differs from the Sylvester determinant's by one constant per (m, n) —
     the layout, the Horner in v and the elimination against an independent evaluation."""
-    from addon.solver.spoly import two_bounce as tb
+    from addon.solver.spoly.two_bounce.params import MAXD
+    from addon.solver.spoly.two_bounce.resultant import det_bezout, v_major
 
     rng = np.random.default_rng([m, n, 1])
-    MAXD = tb.MAXD
     ratio = set()
     for trial in range(30):
         A = np.zeros((MAXD + 1, MAXD + 1))
@@ -127,10 +127,10 @@ def test_det_bezout_depends_on_v_as_the_resultant(m, n):
                 P[i, :d + 1 - i] = rng.normal(size=d + 1 - i) * 10.0 ** rng.uniform(-4, 0, d + 1 - i)
             P[:, :] = np.where(np.add.outer(np.arange(MAXD + 1), np.arange(MAXD + 1)) <= d, P, 0.0)
         At, Bt = np.zeros_like(A), np.zeros_like(B)
-        tb.v_major(A, m, At)
-        tb.v_major(B, n, Bt)
+        v_major(A, m, At)
+        v_major(B, n, Bt)
         v = float(rng.uniform(-0.02, 1.02))
-        sign, logdet = tb.det_bezout(At, m, Bt, n, n, v, np.zeros((2, MAXD + 2)), np.zeros((MAXD, MAXD)))
+        sign, logdet = det_bezout(At, m, Bt, n, n, v, np.zeros((2, MAXD + 2)), np.zeros((MAXD, MAXD)))
         G = np.array([np.polyval(A[i, :m + 1 - i][::-1], v) for i in range(m + 1)])
         F = np.array([np.polyval(B[i, :n + 1 - i][::-1], v) for i in range(n + 1)])
         s_ref, l_ref = _sylvester_slogdet(F / np.abs(F).max(), G / np.abs(G).max())
@@ -142,7 +142,8 @@ def test_det_bezout_depends_on_v_as_the_resultant(m, n):
 
 def test_sqrt_fit():
     """The piecewise rational √ (eq 23) errs by < 1e-4 on [0, 1], including next to 0."""
-    from addon.solver.spoly.two_bounce import SQRT_PIECES, sqrt_approx
+    from addon.solver.spoly.two_bounce.params import SQRT_PIECES
+    from addon.solver.spoly.two_bounce.sqrt import sqrt_approx
 
     x = np.unique(np.concatenate([[0.0], np.logspace(-300, 0, 20001), np.linspace(0, 1, 200001),
                                   SQRT_PIECES[:, 0], SQRT_PIECES[:, 1],
@@ -162,8 +163,9 @@ def test_heron_sqrt_fit():
     at random points of the widened triangle with β/S² above the cut (the check grid is
     finite: 3x slack), the cut is the first of HERON_CUTS where the fit is accepted, and the
     TT system built with it has total degrees (12, 34) instead of the √ pieces' (16, 46)."""
-    from addon.solver.spoly.two_bounce import (HERON_CUTS, HERON_TOL, MAXD, N_SLOTS, V_MARGIN_APPROX, _beta_local,
-                                         _build_system, heron_sqrt_cut, heron_sqrt_fit)
+    from addon.solver.spoly.two_bounce.params import HERON_CUTS, HERON_TOL, MAXD, N_SLOTS, V_MARGIN_APPROX
+    from addon.solver.spoly.two_bounce.sqrt import beta_local, heron_sqrt_cut, heron_sqrt_fit
+    from addon.solver.spoly.two_bounce.system import build_system
 
     rng = np.random.default_rng(7)
     accepted = 0
@@ -195,7 +197,7 @@ def test_heron_sqrt_fit():
         uv = rng.uniform(-m, 1 + 2 * m, size=(400, 2))
         uv = uv[uv.sum(1) <= 1 + m]
         for u, v in uv:
-            beta = _beta_local(u, v, geo_l, r)
+            beta = beta_local(u, v, geo_l, r)
             if beta < cut * S2:
                 continue
             q = c[0] + u * c[1] + v * c[2] + u * u * c[3] + u * v * c[4] + v * v * c[5]
@@ -204,8 +206,8 @@ def test_heron_sqrt_fit():
             biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
             c2 = np.cross(geo_l[0], ng)
             c2 /= np.linalg.norm(c2)
-            heron_deg = _build_system(True, True, 1.0, r, -1, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
-            piece_deg = _build_system(True, True, 1.0, r, 12, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
+            heron_deg = build_system(True, True, 1.0, r, -1, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
+            piece_deg = build_system(True, True, 1.0, r, 12, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
             assert heron_deg == (12, 34) and piece_deg == (16, 46)
     print(f"\n[heron sqrt] accepted {accepted}/200 configurations ({above_first} above the first cut); worst relative "
           f"error {worst:.3g} (HERON_TOL {HERON_TOL})")
@@ -235,20 +237,22 @@ def test_live_prepass():
     common zeros all lie outside the triangle keeps none."""
     from math import comb
 
-    from addon.solver.spoly import two_bounce as tb
+    from addon.solver.spoly.two_bounce.params import (LIVE_DEPTH, LIVE_DEPTH_LOW, LIVE_LOW_DEGREE, LIVE_STACK,
+                                                      MAX_PIECES, MAXD, N_SLOTS, V_MARGIN_APPROX)
+    from addon.solver.spoly.two_bounce.prepass import binomial_ratios, live_pieces, tensor_bernstein
 
     rng = np.random.default_rng(3)
-    biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
+    biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
     # 1. the Bernstein form of a random degree-46 polynomial over [-m, 1 + m]²
     d = 46
     p = np.zeros((48, 48))
     for i in range(d + 1):
         p[i, :d + 1 - i] = rng.normal(size=d + 1 - i)
-    m = tb.V_MARGIN_APPROX
+    m = V_MARGIN_APPROX
     R = np.zeros((48, 48))
     out = np.zeros((48, 48))
-    tb._binomial_ratios(d, R)
-    tb._tensor_bernstein(p, d, -m, 1 + 2 * m, R, out, np.zeros((48, 48)), np.zeros((48, 48)))
+    binomial_ratios(d, R)
+    tensor_bernstein(p, d, -m, 1 + 2 * m, R, out, np.zeros((48, 48)), np.zeros((48, 48)))
     worst = 0.0
     for s, t in rng.random((6, 2)):
         bs = np.array([comb(d, k) * s ** k * (1 - s) ** (d - k) for k in range(d + 1)])
@@ -260,8 +264,8 @@ def test_live_prepass():
 
     # 2. known common zeros of products of lines (a's and b's lines crossing)
     pieces = 100
-    boxes = np.zeros((tb.LIVE_STACK, 4))
-    live = np.zeros(tb.MAX_PIECES + 1)
+    boxes = np.zeros((LIVE_STACK, 4))
+    live = np.zeros(MAX_PIECES + 1)
     h = (1 + 2 * m) / pieces
     cases = [
         # (a factors, b factors (b of degree > 16 for the deep pre-pass), common zeros (u, v))
@@ -272,7 +276,7 @@ def test_live_prepass():
     for fa, fb, zeros in cases:
         a, da = _poly_from_factors(fa)
         b, db = _poly_from_factors(fb)
-        n_live = tb.live_pieces(a, da, b, db, m, pieces, biv, boxes, live)
+        n_live = live_pieces(a, da, b, db, m, pieces, biv, boxes, live)
         for u, v in zeros:
             if -m <= u and -m <= v <= 1 + m and u + v <= 1 + m:
                 k = int((v + m) / h)
@@ -280,30 +284,34 @@ def test_live_prepass():
         inside = sum(1 for u, v in zeros if -m <= u and -m <= v and u + v <= 1 + m)
         # around a crossing the leaves that hold both lines span at most 3 leaves in v (plus
         # one piece each side): the rest of the range is not scanned
-        leaf = (1 + 2 * m) / 2 ** (tb.LIVE_DEPTH_LOW if db <= tb.LIVE_LOW_DEGREE else tb.LIVE_DEPTH)
+        leaf = (1 + 2 * m) / 2 ** (LIVE_DEPTH_LOW if db <= LIVE_LOW_DEGREE else LIVE_DEPTH)
         print(f"[live pre-pass] {inside} common zeros inside: {n_live} of {pieces} pieces live")
         assert 0 < n_live <= inside * (3 * leaf / h + 3) and n_live == int(live[:pieces].sum())
     # 3. common zeros only outside the triangle: a = u - 0.9, b = v - 0.8 (u + v = 1.7)
     a, da = _poly_from_factors([(-0.9, 1, 0)] + [(1.5, 0.1, 0.2)] * 5)
     b, db = _poly_from_factors([(-0.8, 0, 1)] + [(2.0, 0.3, 0.1)] * 20)
-    assert tb.live_pieces(a, da, b, db, m, pieces, biv, boxes, live) == 0
+    assert live_pieces(a, da, b, db, m, pieces, biv, boxes, live) == 0
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("refract1", [False, True])
 def test_prepass_hit_test(refract1):
-    """The pre-pass's test that a box of (u1, v1) cannot reach triangle 2 (``_misses_second``,
-    on the map x1 -> x2 of eq 14-17 that ``_build_system`` stores): at 12 x 12 points of every
+    """The pre-pass's test that a box of (u1, v1) cannot reach triangle 2 (``misses_second``,
+    on the map x1 -> x2 of eq 14-17 that ``build_system`` stores): at 12 x 12 points of every
     box it drops, the exact scattered ray (numpy, exact √ for refraction) either points away
     from triangle 2's plane or meets it outside triangle 2 widened by the margin — the whole
     margin for the exact reflected map, half of it for the √-approximated refracted one (the
     rest is the approximation's allowance) — and it drops a good share of boxes of random
     configurations (not vacuous)."""
-    from addon.solver.spoly import two_bounce as tb
+    from addon.solver.spoly.two_bounce.params import (HIT_MARGIN_APPROX, HIT_MARGIN_EXACT, MAXD, N_SLOTS,
+                                                      V_MARGIN_APPROX, V_MARGIN_EXACT)
+    from addon.solver.spoly.two_bounce.prepass import misses_second
+    from addon.solver.spoly.two_bounce.sqrt import heron_sqrt_cut
+    from addon.solver.spoly.two_bounce.system import build_system
 
     rng = np.random.default_rng(11)
-    m = tb.V_MARGIN_APPROX if refract1 else tb.V_MARGIN_EXACT
-    margin2 = tb.HIT_MARGIN_APPROX if refract1 else tb.HIT_MARGIN_EXACT
+    m = V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT
+    margin2 = HIT_MARGIN_APPROX if refract1 else HIT_MARGIN_EXACT
     allowed = 0.5 * margin2 if refract1 else margin2 - 1e-9
     dropped = tested = configs = 0
     for _ in range(60):
@@ -324,14 +332,14 @@ def test_prepass_hit_test(refract1):
         heron = (0.0,) * 6
         piece = 0
         if refract1:
-            ok, cut, heron = tb.heron_sqrt_cut(geo_l, r, m, S2, np.zeros((6, 7)))
+            ok, cut, heron = heron_sqrt_cut(geo_l, r, m, S2, np.zeros((6, 7)))
             if not ok:
                 continue
             piece = -1
-        biv = np.zeros((tb.N_SLOTS, tb.MAXD + 1, tb.MAXD + 1))
+        biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
         c2 = np.cross(geo_l[1], geo_l[10])
         c2 /= np.linalg.norm(c2)
-        tb._build_system(refract1, False, 1.0, r, piece, np.sqrt(S2), heron, 1.0, 1.0, True, c2, geo_l, biv)
+        build_system(refract1, False, 1.0, r, piece, np.sqrt(S2), heron, 1.0, 1.0, True, c2, geo_l, biv)
         configs += 1
         e21, e22, p20 = geo_l[8], geo_l[9], geo_l[7]
         for level in (1, 2, 3):
@@ -340,7 +348,7 @@ def test_prepass_hit_test(refract1):
                 for iv in range(2 ** level - iu):
                     u0, v0 = -m + iu * w, -m + iv * w
                     tested += 1
-                    if not tb._misses_second(biv, u0, v0, w, (0.0, 0.0, 0.0, 0.0)):
+                    if not misses_second(biv, u0, v0, w, (0.0, 0.0, 0.0, 0.0)):
                         continue
                     dropped += 1
                     for u in np.linspace(u0, u0 + w, 12):

@@ -2,7 +2,7 @@
 
 One bounce: the kernel (``opencl/one_bounce.cl``) is the Numba pipeline of ``one_bounce.py``
 written in OpenCL C, step for step, so both return the same paths.  Two bounces: the
-pipeline of ``two_bounce.py`` runs in stages over a batch (``two_bounce_staged.py``); the
+pipeline of ``spoly/two_bounce`` runs in stages over a batch (``two_bounce/staged.py``); the
 Bézout determinants (Fan et al. 2024, eq 29) of the sign scan, the Illinois brackets and the
 refinement's sub-samples run on the device (``opencl/two_bounce.cl``), the systems'
 construction and the path-space polish on Numba.
@@ -350,7 +350,7 @@ def two_bounce_device_name(index):
 
 
 class OpenCLDeterminants:
-    """Stages B and D of ``two_bounce_staged`` on an OpenCL device: batches of sign and
+    """Stages B and D of ``two_bounce.staged`` on an OpenCL device: batches of sign and
     log|det| of Bézout matrices at given v1 (eq 29) and of Illinois brackets, over the
     packed systems given to :meth:`load`.  One work-item per job; the device buffers are
     the device's kept ones (by role), written without waiting, and each batch waits once,
@@ -382,7 +382,7 @@ class OpenCLDeterminants:
 
     def dets(self, job_sys, job_v):
         """(sign (J,) int32, log|det| (J,), determinant evaluations (J,)) of system job_sys
-        at v1 = job_v (``_det_checked``: an exact zero is re-checked a hair away)."""
+        at v1 = job_v (``resultant.det_checked``: an exact zero is re-checked a hair away)."""
         n = job_sys.shape[0]
         sign = np.zeros(n, dtype=np.int32)
         log = np.zeros(n)
@@ -394,7 +394,7 @@ class OpenCLDeterminants:
         return sign, log, dets
 
     def illinois(self, job_sys, job_f, job_s):
-        """Roots pinned to ROOT_TOL (``_illinois``) in brackets job_f (J, 4) = (lo, hi,
+        """Roots pinned to ROOT_TOL (``resultant.illinois``) in brackets job_f (J, 4) = (lo, hi,
         log|det(lo)|, log|det(hi)|) with signs job_s (J, 2); returns (root, evaluations)."""
         n = job_sys.shape[0]
         root = np.zeros(n)
@@ -409,6 +409,6 @@ class OpenCLDeterminants:
 def solve_two_bounce_opencl(index, refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats):
     """The two-bounce solve with its determinant work on OpenCL device index; fills the
     arrays as ``two_bounce.solve_two_bounce_batch`` does."""
-    from ..spoly.two_bounce_staged import solve_staged
+    from ..spoly.two_bounce.staged import solve_staged
 
     solve_staged(OpenCLDeterminants(index), refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats)

@@ -1,10 +1,10 @@
 // Two-bounce Specular Polynomials (RR, RT, TR, TT) in OpenCL C: the determinant work of
-// addon/solver/two_bounce.py (Fan et al. 2024, §4.2, eq 28-31), written step for step as
-// det_bezout, _det_checked and _illinois there, so that both back ends see the same signs
-// and pin the same roots.
+// addon/solver/spoly/two_bounce/resultant.py (Fan et al. 2024, §4.2, eq 28-31), written
+// step for step as det_bezout, det_checked and illinois there, so that both back ends see
+// the same signs and pin the same roots.
 //
 // The bivariate systems {a(u1, v1) = 0, b(u1, v1) = 0} are built and normalised by Numba
-// (addon/solver/two_bounce_staged.py, stage A) and packed row by row: row i of a
+// (addon/solver/spoly/two_bounce/staged.py, stage A) and packed row by row: row i of a
 // polynomial of total degree d holds the coefficients of u^i v^j, j = 0 .. d - i.  One
 // system is `stride` doubles: a at offset 0, b at offset `b_offset`.  sysint holds, per
 // system, (da, db, n) with n the u-degree of the Bézout matrix (eq 29).
@@ -19,8 +19,8 @@
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
 
-#define MAXN 46            // u-degree of b at most (TT: 46); n < MAXD = 47 in two_bounce.py
-#define ROOT_TOL 1e-4   // = two_bounce.ROOT_TOL
+#define MAXN 46            // u-degree of b at most (TT: 46); n < MAXD = 47 in two_bounce/params.py
+#define ROOT_TOL 1e-4   // = two_bounce.params.ROOT_TOL
 #define LN2 0.6931471805599453
 
 // p_i(v) for i <= n (row i of the packed polynomial p of total degree d), scaled to unit
@@ -43,7 +43,7 @@ static double coeffs_at(__global const double *p, int d, int n, double v, double
 }
 
 // The u-degree of the packed polynomial p of total degree d, at most n (rows above it were
-// zeroed by _u_degree), as _top_row.
+// zeroed by u_degree), as top_row.
 static int top_row(__global const double *p, int d, int n) {
     int i = min(n, d);
     while (i > 0) {
@@ -144,7 +144,7 @@ static System load_system(__global const double *coef, __global const int *sysin
     return S;
 }
 
-// det_bezout, with an exact zero re-checked a hair away (as _det_checked).
+// det_bezout, with an exact zero re-checked a hair away (as det_checked).
 static int det_checked(const System *S, double v, double *lg, int *dets) {
     *dets += 1;
     int s = det_bezout(S->a, S->da, S->b, S->db, S->n, v, lg);
@@ -175,7 +175,7 @@ __kernel void det_batch(__global const double *coef, __global const int *sysint,
 
 // Root of det in [lo, hi] (opposite signs slo, shi at the ends) pinned to ROOT_TOL: the
 // Illinois variant of regula falsi on the signed log-magnitude, a bisection step every
-// fourth iteration unless the bracket shrank well (as _illinois).
+// fourth iteration unless the bracket shrank well (as illinois).
 __kernel void illinois_batch(__global const double *coef, __global const int *sysint, const int stride, const int b_offset,
                              __global const int *job_sys, __global const double *job_f, __global const int *job_s,
                              const int n_jobs, __global double *out_root, __global int *out_dets) {

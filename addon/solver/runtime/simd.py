@@ -245,7 +245,7 @@ SMALL_BOX_DEGREE = CHUNK - 1  # the largest degree small_box_range takes (its ro
 def small_box_range(typingctx, p, d, u0, v0, w, R):
     """(min, max) of the tensor Bernstein coefficients of p (p[i, j] u^i v^j, total degree
     1 ≤ d ≤ SMALL_BOX_DEGREE) over the box [u0, u0 + w] × [v0, v0 + w], R the power ->
-    Bernstein weights of degree d: two_bounce's ``_tensor_bernstein_box`` then
+    Bernstein weights of degree d: two_bounce.prepass's ``tensor_bernstein_box`` then
     ``square_min_max_abs`` with every row in a register.  Each degree's steps are unrolled
     (a switch on d): the Taylor shift and scaling along u, a transpose, along v, a transpose,
     the weights along u, a transpose, along v — the row operations' arithmetic on each

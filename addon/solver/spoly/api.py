@@ -141,7 +141,8 @@ class SpecularPolynomialSolver:
         return index
 
     def _solve_two_bounce(self, chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0, device_index=None):
-        from .two_bounce import DEFAULT_PIECES, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, N_STATS, solve_two_bounce_batch
+        from .two_bounce.params import DEFAULT_PIECES, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, N_STATS
+        from .two_bounce.solve import solve_two_bounce_batch
 
         pieces = DEFAULT_PIECES if pieces is None else int(pieces)
         if not 1 <= pieces <= MAX_PIECES:
@@ -153,7 +154,7 @@ class SpecularPolynomialSolver:
         t1 = time.perf_counter()
         if device_index is not None and not stop_after:
             # the staged pipeline: Bézout determinants and brackets on the device, systems and
-            # path-space polish on Numba (two_bounce_staged.py); the same paths
+            # path-space polish on Numba (two_bounce/staged.py); the same paths
             from ..opencl.backend import solve_two_bounce_opencl
 
             if n:

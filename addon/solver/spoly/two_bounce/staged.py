@@ -1,4 +1,4 @@
-"""The two-bounce pipeline of ``two_bounce.py`` cut into batch stages, for the OpenCL back end.
+"""The two-bounce pipeline of ``solve.py`` cut into batch stages, for the OpenCL back end.
 
 ``solve_two_bounce_batch`` runs every tuple start to end in one Numba kernel.  Here the same
 algorithm (Fan et al. 2024, §4.2-4.3: the Bézout resultant of eq 28-29 scanned in v1, its
@@ -10,12 +10,12 @@ device (``opencl/two_bounce.cl``), many systems at once:
 A (Numba)   per tuple and orientation (forward, reversed): the side tests, then every
             bivariate system {a = 0, b = 0} (eq 6 with 10 or 13; the Heron-step √ of
             ``heron_sqrt_fit`` where it fits and the √ pieces of eq 23 below its cut, or all
-            the pieces; the refraction's two normal orientations) built by ``_build_system``, normalised
+            the pieces; the refraction's two normal orientations) built by ``build_system``, normalised
             and rejected early (Bernstein test) exactly as ``_solve_system`` does, and
             packed (row i of a total-degree-d polynomial: the coefficients of u^i v^j).
 B (device)  the piecewise sign scan of ``find_v_roots``: det R(v) at the pieces' ends,
             then every sign change pinned to ROOT_TOL by the Illinois iteration.
-C (Numba)   ``_candidates_at`` at each scan root (u1 from a(·, v1), exact map to triangle
+C (Numba)   ``candidates_at`` at each scan root (u1 from a(·, v1), exact map to triangle
             2, Gauss-Newton polish in path space): the paths, and which roots were
             productive.
 D (device)  ``refine_v_roots``: the ghost samples outside the range, the sub-samples
@@ -24,11 +24,11 @@ D (device)  ``refine_v_roots``: the ghost samples outside the range, the sub-sam
             flagged pieces) on the device, new sign changes pinned on the device; the
             bookkeeping (kink rule, deflation, noisy pieces, one-signed dips) runs here, in
             the same order as there, and so do the few determinants that resolve a dip
-            (``_resolve_dip``: Numba on the host, 3-8 per dip).
+            (``resolve_dip``: Numba on the host, 3-8 per dip).
 E (Numba)   candidates at the refined roots, the seeded polish of degenerate systems,
             the straight-line candidate, the statistics.
 
-Every stage reuses the inner functions of ``two_bounce.py``; only the order in which
+Every stage reuses the inner functions of the package's modules; only the order in which
 candidates of different systems of one tuple are tried differs (all scan roots of a tuple
 before its refined roots), which can change which of two copies of one path is kept
 (both polished to ~1e-15) but not the set of paths.  A stage-B/D "device" written in Numba
@@ -37,8 +37,8 @@ before its refined roots), which can change which of two copies of one path is k
 Stage A repeats ``_solve_oriented``'s set-up (side tests, frame, √ pieces, orientations) so
 that the one-kernel path stays exactly as it is; the two must change together
 (tests/solver/test_opencl_two_bounce.py compares the staging on Numba with the one-kernel solver).
-Limits: one projection (``TWO_PROJECTIONS`` False) and ``REFINE_LEVELS`` ≤ 1, the settings
-of two_bounce.py; a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel
+Limits: ``REFINE_LEVELS`` ≤ 1, the settings
+of ``params.py``; a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel
 path in stage E.
 """
 
@@ -46,16 +46,18 @@ import math
 
 import numpy as np
 
-from ..runtime.jit import kernel, prange
-from ..paths.two_vertex import pack_geometry
-from .two_bounce import (BOTH_DIRECTIONS, CHUNK, KINK, MAX_PATHS_TWO_BOUNCE, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES,
-                         REFINE_LEVELS, SQRT_ALL_PIECES, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS,
-                         STAT_SKIPPED, SUB_SAMPLES, TWO_PROJECTIONS, V_MARGIN_APPROX, V_MARGIN_EXACT, LIVE_PREPASS,
-                         LIVE_STACK, MAX_PIECES, live_pieces_band, SQRT_BANDS, _beta_mask, _beta_poly, _centroid_piece,
-                         _sqrt_band, _bernstein_has_zero, _bmax, _build_system, _candidates_at, heron_sqrt_cut,
-                         HERON_SQRT, HERON_CUT, _deflate, _det_checked, _illinois, _resolve_dip, _seeded, _sqrt_piece,
-                         _straight_candidate, _u_degree, make_scratch2, refine_flags_one, solve_two_bounce_tuple,
-                         v_major)
+from ...runtime.jit import kernel, prange
+from ...paths.two_vertex import pack_geometry
+from .params import (BOTH_DIRECTIONS, CHUNK, HERON_CUT, HERON_SQRT, KINK, LIVE_PREPASS, LIVE_STACK,
+                     MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS, SQRT_BANDS,
+                     SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
+                     V_MARGIN_APPROX, V_MARGIN_EXACT)
+from ...polynomials.bivariate import bernstein_has_zero, bmax, u_degree
+from .prepass import live_pieces_band
+from .sqrt import beta_mask, beta_poly, centroid_piece, heron_sqrt_cut, sqrt_band, sqrt_piece
+from .system import build_system
+from .resultant import deflate, det_checked, illinois, refine_flags_one, resolve_dip, v_major
+from .solve import candidates_at, make_scratch2, seeded, solve_two_bounce_tuple, straight_candidate
 
 SYS_CAP = 24  # systems per tuple held by stage A; a tuple with more is solved by the one-kernel path
 MAX_ROOTS = 4096  # roots per system (the capacity of the one-kernel path's root list)
@@ -96,7 +98,7 @@ def _unpack(src, off, d, p):
 
 @kernel
 def _unpack_v_major(src, off, d, scratch, pt):
-    """``_unpack`` into pt in the layout the determinants read (two_bounce.v_major), by way
+    """``_unpack`` into pt in the layout the determinants read (``resultant.v_major``), by way
     of scratch (48 x 48)."""
     _unpack(src, off, d, scratch)
     v_major(scratch, d, pt)
@@ -109,8 +111,8 @@ def _prepare_system(biv, da, db, refract1, stats):
     solve, 0 rejected early, -1 degenerate (seeded polish)."""
     a = biv[0]
     b = biv[1]
-    ma = _bmax(a, da)
-    mb = _bmax(b, db)
+    ma = bmax(a, da)
+    mb = bmax(b, db)
     if not (ma > 0.0 and mb > 0.0) or not (np.isfinite(ma) and np.isfinite(mb)):
         return -1, 0, 0, 0
     for i in range(da + 1):
@@ -123,11 +125,11 @@ def _prepare_system(biv, da, db, refract1, stats):
             b[i, j] /= mb
             if abs(b[i, j]) <= 1e-15:
                 b[i, j] = 0.0
-    if da <= 20 and not _bernstein_has_zero(a, da, 1e-2 if refract1 else 1e-9, biv[2, 0]):
+    if da <= 20 and not bernstein_has_zero(a, da, 1e-2 if refract1 else 1e-9, biv[2, 0]):
         stats[STAT_SKIPPED] = 1
         return 0, 0, 0, 0
-    na = _u_degree(a, da, 1e-14)
-    nb = _u_degree(b, db, 1e-15)
+    na = u_degree(a, da, 1e-14)
+    nb = u_degree(b, db, 1e-15)
     n = max(na, nb)
     if n == 0 or n >= MAXD:
         return -1, na, nb, n
@@ -275,7 +277,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                     xlo = min(xlo, x)
                     xhi = max(xhi, x)
                     if x >= 0.0:
-                        mask |= 1 << _sqrt_piece(x)
+                        mask |= 1 << sqrt_piece(x)
             nn = (geo[4, 0] + (geo[5, 0] + geo[6, 0]) / 3.0, geo[4, 1] + (geo[5, 1] + geo[6, 1]) / 3.0, geo[4, 2] + (geo[5, 2] + geo[6, 2]) / 3.0)
             dv = ((cx[0] - geo[0, 0]) * inv, (cx[1] - geo[0, 1]) * inv, (cx[2] - geo[0, 2]) * inv)
             n2_ = nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2
@@ -284,15 +286,11 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
             xc = min(1.0, max(0.0, (n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn) / (S * S)))
             if xhi <= 0.0:
                 continue
-            if SQRT_ALL_PIECES:
-                xlo = max(0.0, xlo * 0.8)
-                xhi = min(1.0, xhi * 1.25)
-            else:
-                mask, fallback_piece = _centroid_piece(xc, mask)
+            mask, fallback_piece = centroid_piece(xc, mask)
         if refract1 and SQRT_BANDS:
-            _beta_poly(geo_l, r1, biv)
+            beta_poly(geo_l, r1, biv)
             if xlo > 0.0:
-                mask |= _beta_mask(biv, V_MARGIN_APPROX, S * S)
+                mask |= beta_mask(biv, V_MARGIN_APPROX, S * S)
         heron_ok = False
         heron_cut = HERON_CUT
         heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -305,9 +303,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 continue
             if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= heron_cut:
                 continue
-            if piece >= 0 and refract1 and SQRT_ALL_PIECES and (SQRT_PIECES[piece, 1] < xlo or SQRT_PIECES[piece, 0] > xhi):
-                continue
-            if piece >= 0 and refract1 and not SQRT_ALL_PIECES and not (mask >> piece) & 1:
+            if piece >= 0 and refract1 and not (mask >> piece) & 1:
                 continue
             for o2 in range(n_side2):
                 eta_in2 = 1.0
@@ -319,7 +315,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                     s_in2 = -sigma2 * (1.0 if side3 > 0.0 else -1.0)
                     eta_in2 = 1.0 if s_in2 > 0.0 else eta
                     eta_out2 = eta if s_in2 > 0.0 else 1.0
-                da, db = _build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2, eta_out2,
+                da, db = build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2, eta_out2,
                                        flat2, c2, geo_l, biv)
                 status, na, nb, n = _prepare_system(biv, da, db, refract1, stats)
                 if status == 0:
@@ -328,7 +324,7 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
                 if status == 1:
                     if LIVE_PREPASS:
                         boxes = live_work[1, 0:LIVE_STACK * 4].reshape((LIVE_STACK, 4))
-                        blo, bhi = _sqrt_band(piece, S * S, refract1)
+                        blo, bhi = sqrt_band(piece, S * S, refract1)
                         if live_pieces_band(biv[0], da, biv[1], db, V_MARGIN_APPROX if refract1 else V_MARGIN_EXACT,
                                             pieces, biv, boxes, live, blo, bhi) == 0:
                             continue  # as ``_eliminate``: no common zero near the triangle
@@ -440,7 +436,7 @@ def _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef
         g = geo[2] if rev else geo[0]
         for iv in range(nv[s]):
             near = stats[t, STAT_NEAR]
-            count = _candidates_at(roots[s, iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], False, r1, r2,
+            count = candidates_at(roots[s, iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], r1, r2,
                                    margin, g, eta[t], work, th, u_roots, coeffs, chain, lists, rev, geo[0], out_uv[t],
                                    meta[t], count, stats[t])
             productive[s, iv] = 1.0 if stats[t, STAT_NEAR] > near else 0.0
@@ -485,13 +481,13 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
     for s in range(sys_first[t], sys_first[t + 1]):
         rev = (sysint[s, 0] & 1) == 1
         if rev and not straight:
-            count = _straight_candidate(geo[0], refract1, refract2, eta[t], work, th, out_uv[t], meta[t], count,
+            count = straight_candidate(geo[0], refract1, refract2, eta[t], work, th, out_uv[t], meta[t], count,
                                         stats[t])
             straight = True
         r1, r2 = _oriented(refract1, refract2, rev)
         g = geo[2] if rev else geo[0]
         if sysint[s, 1] == -1:
-            count = _seeded(g, r1, r2, eta[t], rev, geo[0], work, th, out_uv[t], meta[t], count, stats[t])
+            count = seeded(g, r1, r2, eta[t], rev, geo[0], work, th, out_uv[t], meta[t], count, stats[t])
             continue
         da = sysint[s, 2]
         db = sysint[s, 3]
@@ -500,12 +496,12 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
             _unpack(coef[s], b_offset, db, biv[1])
             margin = V_MARGIN_APPROX if r1 else V_MARGIN_EXACT
             for iv in range(ref_first[s], ref_first[s] + ref_count[s]):
-                count = _candidates_at(ref_roots[iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], False, r1,
+                count = candidates_at(ref_roots[iv], biv[0], da, biv[1], db, sysint[s, 4], sysint[s, 5], r1,
                                        r2, margin, g, eta[t], work, th, u_roots, coeffs, chain, lists, rev, geo[0],
                                        out_uv[t], meta[t], count, stats[t])
         stats[t, STAT_ROOTS] += nv[s] + ref_count[s]
     if not straight:
-        count = _straight_candidate(geo[0], refract1, refract2, eta[t], work, th, out_uv[t], meta[t], count, stats[t])
+        count = straight_candidate(geo[0], refract1, refract2, eta[t], work, th, out_uv[t], meta[t], count, stats[t])
     stats[t, STAT_SKIPPED] = 1 if stats[t, STAT_SKIPPED] >= (2 if BOTH_DIRECTIONS else 1) else 0
     stats[t, STAT_PATHS] = count
     out_count[t] = count
@@ -522,10 +518,10 @@ def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, live, 
     (``refine_flags_one``)."""
     for s in prange(vs.shape[0]):
         h = vs[s, 1] - vs[s, 0]
-        g_lo = _deflate(vs[s, 0] - h, ghost[s, 0], roots[s], nv[s])
-        g_hi = _deflate(vs[s, pieces] + h, ghost[s, 1], roots[s], nv[s])
+        g_lo = deflate(vs[s, 0] - h, ghost[s, 0], roots[s], nv[s])
+        g_hi = deflate(vs[s, pieces] + h, ghost[s, 1], roots[s], nv[s])
         for k in range(pieces + 1):
-            lgs[s, k] = _deflate(vs[s, k], lgs[s, k], roots[s], nv[s])
+            lgs[s, k] = deflate(vs[s, k], lgs[s, k], roots[s], nv[s])
         refine_flags_one(lgs[s], g_lo, g_hi, roots[s], nv[s], piece_of[s], productive[s], pieces, live[s], flags[s])
 
 
@@ -564,7 +560,7 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
     svx, ssx, slx (F, M + 3): per flagged piece its M + 1 sub-samples at 1 .. M + 1, the
     sample before it at 0 (the previous piece's of the run, or the extra one of a run's
     first piece) and, for the last piece of a run (``has_right``), the extra one after it at
-    M + 2.  A dip is resolved (``_resolve_dip``) with Numba's determinants on the host, the
+    M + 2.  A dip is resolved (``resolve_dip``) with Numba's determinants on the host, the
     one-kernel path's own function: 3-8 determinants per dip, a few per cent of the work
     (dip_dets[s] counts them)."""
     M = svx.shape[1] - 3
@@ -597,7 +593,7 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
                     count += 1
             k_hi = M + 2 if has_right[f] else M + 1
             for k in range(k_hi + 1):
-                lg[k] = _deflate(svx[f, k], slx[f, k], buf, count)
+                lg[k] = deflate(svx[f, k], slx[f, k], buf, count)
             for k in range(1, (M + 1 if has_right[f] else M) + 1):
                 if count < cap and lg[k - 1] + lg[k + 1] - 2.0 * lg[k] > KINK and ssx[f, k] == ssx[f, k - 1] \
                         and ssx[f, k] == ssx[f, k + 1] and ssx[f, k] != 0 and lg[k] < lg[k - 1] and lg[k] < lg[k + 1]:
@@ -606,7 +602,7 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
                             _unpack_v_major(coef[s], 0, sysint3[s, 0], scratch, a)
                             _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
                             loaded = True
-                        count = _resolve_dip(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], svx[f, k - 1], svx[f, k],
+                        count = resolve_dip(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], svx[f, k - 1], svx[f, k],
                                              svx[f, k + 1], ssx[f, k], lg[k - 1], lg[k], lg[k + 1], cf, mat, out, count, st)
                     else:
                         buf[count] = svx[f, k]  # noise dip: its deepest sample is a candidate
@@ -622,7 +618,7 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
 
 @kernel(parallel=True)
 def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, out_dets):
-    """det jobs with ``_det_checked`` (the one-kernel path's own function)."""
+    """det jobs with ``det_checked`` (the one-kernel path's own function)."""
     n_jobs = job_sys.shape[0]
     chunk = 32
     for c in prange((n_jobs + chunk - 1) // chunk):
@@ -640,7 +636,7 @@ def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, 
                 _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
                 loaded = s
             before = st[STAT_DETS]
-            sg, lg = _det_checked(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_v[t], cf, mat, st)
+            sg, lg = det_checked(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_v[t], cf, mat, st)
             out_sign[t] = sg
             out_log[t] = lg
             out_dets[t] = st[STAT_DETS] - before
@@ -648,7 +644,7 @@ def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, 
 
 @kernel(parallel=True)
 def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_root, out_dets):
-    """Illinois jobs (lo, hi, log lo, log hi; sign lo, sign hi) with ``_illinois``."""
+    """Illinois jobs (lo, hi, log lo, log hi; sign lo, sign hi) with ``illinois``."""
     n_jobs = job_sys.shape[0]
     chunk = 8
     for c in prange((n_jobs + chunk - 1) // chunk):
@@ -666,7 +662,7 @@ def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_roo
                 _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
                 loaded = s
             before = st[STAT_DETS]
-            out_root[t] = _illinois(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_f[t, 0], job_f[t, 1],
+            out_root[t] = illinois(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_f[t, 0], job_f[t, 1],
                                     job_s[t, 0], job_f[t, 2], job_s[t, 1], job_f[t, 3], cf, mat, st)
             out_dets[t] = st[STAT_DETS] - before
 
@@ -711,8 +707,8 @@ def solve_staged(det_device, refract1, refract2, x_start, x_end, P, N, eta, piec
     (:class:`NumbaDeterminants`, ``opencl.backend.OpenCLDeterminants``).  ``batch``: tuples
     per pass (default: stage A's store within BATCH_BYTES); ``sys_cap``: systems per tuple
     held by stage A (a tuple with more is solved by the one-kernel path)."""
-    if TWO_PROJECTIONS or REFINE_LEVELS not in (0, 1):
-        raise NotImplementedError("the staged two-bounce path implements one projection and REFINE_LEVELS <= 1")
+    if REFINE_LEVELS not in (0, 1):
+        raise NotImplementedError("the staged two-bounce path implements REFINE_LEVELS <= 1")
     stride, b_offset = layout(refract1, refract2)
     n = x_start.shape[0]
     if batch is None:

@@ -331,8 +331,8 @@ def section(rows, notes, args):
             knobs = " / ".join(knob_label(method, r["knob"]) for r in rs)
             sec = " / ".join("–" if r["seconds"] is None else f"{r['seconds']:.2f}" for r in rs)
             err = " / ".join("–" if r["relmse"] is None else f"{r['relmse']:.1e}" for r in rs)
-            notes = "; ".join(dict.fromkeys(r["note"] for r in rs if r["note"]))
-            lines.append(f"| {method} | {knobs} | {sec} | {err} | {notes} |")
+            row_notes = "; ".join(dict.fromkeys(r["note"] for r in rs if r["note"]))
+            lines.append(f"| {method} | {knobs} | {sec} | {err} | {row_notes} |")
         for method, sk in n["skipped"].items():
             lines.append(f"\n{method}: " + "; ".join(sorted(set(sk))))
         lines.append("")

@@ -336,15 +336,7 @@ def section(rows, notes, args):
         for method, sk in n["skipped"].items():
             lines.append(f"\n{method}: " + "; ".join(sorted(set(sk))))
         lines.append("")
-    lines.append("Reading the chart: path-points and forward-flux are deterministic, so their error is the supersample "
-                 "(aliasing) error of the texel average (forward-flux: the density of each sub-triangle's image taken linear, "
-                 "its border approximated) plus whatever paths the solver misses (newton, sms) or chains it skips (newton/sms: "
-                 "R and T only; curve: T only), which no knob recovers; photon's error is noise, falling as 1/photons. "
-                 "cycles (Cycles' MNEE) is nearly noise-free here from 16 spp on and its error is bias: light its seeding "
-                 "misses (the caustic ends at the caster's straight-line silhouette, one path per sample, a failed "
-                 "Newton walk in a disc under the light through the glass slab), its clamp of the geometry term (the "
-                 "glass sphere's focus) and the reflection chains it cannot render; see bench/cycles_bake.py. "
-                 "A chain or method shown as too slow was cut at the limit, not hung.")
+    lines.append("Reading the chart: path-points and forward-flux are deterministic: their error is the texel average's supersample error plus the paths a solver misses (newton, sms) or the chains it skips (newton/sms: R, T; curve: T), which no knob recovers; photon's error is noise (1/photons); cycles (MNEE) is bias: light its seeding misses, its clamp of the geometry term, and no reflection chains (bench/cycles_bake.py). Too slow: cut at the limit.")
     return "\n".join(lines)
 
 

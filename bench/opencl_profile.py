@@ -15,8 +15,9 @@ number of launches and of host waits.  Every row gives the OpenCL wall time (bes
 ratio, and whether the paths are the same.
 
 The device is the first with double precision, or ``--device N`` / ``OPENCL_DEVICE=N``.
-Prints the tables and writes them into BENCHMARKS.md between
-``<!-- opencl-profile:begin -->`` and ``<!-- opencl-profile:end -->`` (unless --no-write).
+Prints the tables and writes them to bench/results/opencl_profile_{cpu,gpu}.md (by the device's
+type), and the index of those pages into BENCHMARKS.md between ``<!-- opencl-profile:begin -->``
+and ``<!-- opencl-profile:end -->`` (unless --no-write).
 """
 
 import argparse
@@ -275,8 +276,24 @@ def main():
     print()
     print(section)
     if not args.no_write:
+        kind = "gpu" if "GPU" in info["type"] else "cpu"
+        with open(os.path.join(ROOT, "bench", "results", f"opencl_profile_{kind}.md"), "w") as fh:
+            fh.write(f"# OpenCL back end, stage by stage (`bench/opencl_profile.py`)\n\n{section}\n")
         write_section(os.path.join(ROOT, "BENCHMARKS.md"), "opencl-profile",
-                      "OpenCL back end, stage by stage (`bench/opencl_profile.py`)", section)
+                      "OpenCL back end, stage by stage (`bench/opencl_profile.py`)", profile_index())
+
+
+def profile_index():
+    """The BENCHMARKS.md section: where the stage-by-stage pages are, one line each."""
+    lines = ["Where the time of an OpenCL solve goes (host checks, transfers, each kernel by profiling events, "
+             "the Numba stages between two-bounce kernels), next to Numba on the same tuples; one page per kind of "
+             "device, each written by the last run on it:", ""]
+    for kind, label in (("cpu", "CPU (PoCL)"), ("gpu", "GPU")):
+        page = os.path.join(ROOT, "bench", "results", f"opencl_profile_{kind}.md")
+        if os.path.exists(page):
+            first = next((l for l in open(page) if l.startswith("Device ")), "").strip()
+            lines.append(f"- [{label}](bench/results/opencl_profile_{kind}.md): {first}")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -645,6 +645,7 @@ class TupleCull:
 
 REACH_DEPTH = 6  # levels of the target sphere tree below its root: 64 leaves
 REACH_PIECES = 1 << 14  # target triangles are cut to at most about this many pieces
+REACH_BLOCK = 256  # emitters per parallel work item of the reach test
 
 
 def _split_large(tri_p, max_radius, max_pieces):
@@ -701,25 +702,29 @@ def sphere_tree(tri_p, depth=REACH_DEPTH, pieces=REACH_PIECES):
 
 @kernel(parallel=True)
 def _reach_tree(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c, node_r, keep):
+    """keep[t] = some leaf of the sphere tree passes the cone test of emitter t (depth first,
+    a node that fails prunes its subtree).  The stack holds at most depth + 1 nodes."""
     n_nodes = node_r.shape[0]
-    for t in prange(side_req.shape[0]):
-        stack = np.empty(64, dtype=np.int64)
-        top = 0
-        stack[0] = 0
-        top = 1
-        while top > 0:
-            top -= 1
-            k = stack[top]
-            if node_r[k] < 0.0:
-                continue
-            if not _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c, node_r):
-                continue
-            if 2 * k + 2 >= n_nodes:  # a leaf
-                keep[t] = True
-                break
-            stack[top] = 2 * k + 2
-            stack[top + 1] = 2 * k + 1
-            top += 2
+    n = side_req.shape[0]
+    for block in prange((n + REACH_BLOCK - 1) // REACH_BLOCK):
+        stack = np.empty(64, dtype=np.int64)  # one per block of emitters, not per emitter
+        for t in range(block * REACH_BLOCK, min(n, (block + 1) * REACH_BLOCK)):
+            stack[0] = 0
+            top = 1
+            while top > 0:
+                top -= 1
+                k = stack[top]
+                if node_r[k] < 0.0:
+                    continue
+                if not _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c,
+                                node_r):
+                    continue
+                if 2 * k + 2 >= n_nodes:  # a leaf
+                    keep[t] = True
+                    break
+                stack[top] = 2 * k + 2
+                stack[top + 1] = 2 * k + 1
+                top += 2
 
 
 def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p):

@@ -120,8 +120,8 @@ def image_state(ctx, item, ls, m, mode):
     if second.size:
         targets = scene.tri_p[second]
     else:
-        only = range(len(ctx.receivers)) if item.receivers is None else item.receivers
-        targets = scene.tri_p[np.concatenate([ctx.receivers[r].tri_index for r in only] or [np.zeros(0, dtype=np.int64)])]
+        targets = scene.tri_p[np.concatenate([ctx.receivers[r].tri_index for r in item.receivers]
+                                             or [np.zeros(0, dtype=np.int64)])]
     reach = first_casters_reaching(item.chain, x0_all[lit], scene.tri_p[cast1[lit]], scene.tri_n[cast1[lit]],
                                    scene.tri_ior[cast1[lit]], targets)
     keep[lit[~reach]] = False

@@ -13,11 +13,11 @@ import time
 import numpy as np
 
 from reference import bruteforce as bf
+from reference.truth import match_paths  # noqa: F401  (re-exported: the same rule on (u1, v1, u2, v2))
 from reference.two_bounce_data import plant_two_bounce, random_two_bounce
 
 SEED = 20261121
 TUPLES = int(os.environ.get("TWO_BOUNCE_TUPLES", "300"))
-MATCH_TOL = 1e-6
 FALSE_TOL = 1e-6
 RECALL_MARGIN = 1e-7
 GRAZE_MARGIN = 1e-4
@@ -51,20 +51,3 @@ def dataset_with_truth(chain):
         d.update(bf_t=ti, bf_uv=uv, bf_chk=chk, bf_sigma=sig, t_bf=time.time() - t)
         _CACHE[chain] = d
     return _CACHE[chain]
-
-
-def match_paths(ta, ua, tb, ub, tol=MATCH_TOL):
-    out = np.full(len(ta), -1, np.int64)
-    if len(tb) == 0 or len(ta) == 0:
-        return out
-    order = np.argsort(tb, kind="stable")
-    tbs = tb[order]
-    lo = np.searchsorted(tbs, ta, "left")
-    hi = np.searchsorted(tbs, ta, "right")
-    for i in np.flatnonzero(hi > lo):
-        cand = order[lo[i]:hi[i]]
-        dist = np.abs(ub[cand] - ua[i]).max(1)
-        j = np.argmin(dist)
-        if dist[j] < tol:
-            out[i] = cand[j]
-    return out

@@ -23,10 +23,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-ROLE_NONE = 0  # occluder only
-ROLE_REFLECT = 1  # mirror / metal: chain R, reflectance = tint
-ROLE_REFRACT = 2  # single refracting interface (water): chain T, 1 - F (dielectric) x tint
-ROLE_BOTH = 3  # glass: R with dielectric Fresnel F, T with 1 - F, x tint
+from ..solver.geometry.optics import ROLE_BOTH, ROLE_NONE, ROLE_REFLECT, ROLE_REFRACT
+
+# Surface roles (the solver's codes, addon.solver.geometry.optics): none = occluder only;
+# reflect = mirror / metal (chain R, reflectance = tint); refract = one refracting interface
+# such as water (chain T, 1 - F x tint); both = glass (R with dielectric Fresnel F, T with 1 - F).
 ROLE_NAMES = {"none": ROLE_NONE, "reflect": ROLE_REFLECT, "refract": ROLE_REFRACT, "both": ROLE_BOTH}
 ROLE_LABELS = {v: k for k, v in ROLE_NAMES.items()}
 

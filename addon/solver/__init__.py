@@ -11,7 +11,8 @@ Public API (see CONTRACT.md):
 
 from .runtime import jit  # noqa: F401  (configures the Numba cache before any kernel module loads)
 from .spoly.api import SolveReport, SolveResult, SpecularPolynomialSolver, solve_tuples, validate_inputs  # noqa: F401
-from .paths.irradiance import PathIrradiance, fresnel_conductor, fresnel_dielectric, path_irradiance  # noqa: F401
+from .geometry.optics import fresnel_conductor, fresnel_dielectric  # noqa: F401
+from .paths.irradiance import PathIrradiance, path_irradiance  # noqa: F401
 
 
 def warm_up(bounces=2):

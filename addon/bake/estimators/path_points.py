@@ -25,6 +25,7 @@ import numpy as np
 from ...solver import path_irradiance, solve_tuples
 from ...solver.spoly.api import CHAIN_LENGTH
 from ...solver.geometry.bvh import segments_occluded
+from ...solver.geometry.optics import fresnel_dielectric_many
 from ..bounds_select import bounds_cull
 from ..cull import TupleCull, one_bounce_emitters, two_bounce_emitters
 from ..lights import emission_factor, light_points, lit_casters
@@ -258,18 +259,6 @@ def accumulate_paths(ctx, item, ls, m, band, rec_index, sums, tri, x_start, x_en
     timer.add("accumulate", time.perf_counter() - t0)
 
 
-def _fresnel_dielectric(cos_i, eta_i, eta_t):
-    """Unpolarised dielectric Fresnel reflectance (vectorised; 1 under total internal reflection)."""
-    cos_i = np.clip(cos_i, 0.0, 1.0)
-    sin_t = eta_i / eta_t * np.sqrt(np.maximum(0.0, 1.0 - cos_i * cos_i))
-    tir = sin_t >= 1.0
-    cos_t = np.sqrt(np.maximum(0.0, 1.0 - sin_t * sin_t))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rs = (eta_i * cos_i - eta_t * cos_t) / (eta_i * cos_i + eta_t * cos_t)
-        rp = (eta_i * cos_t - eta_t * cos_i) / (eta_i * cos_t + eta_t * cos_i)
-    return np.where(tir, 1.0, 0.5 * (rs * rs + rp * rp))
-
-
 def path_values(scene, chain, ls, m, x_start, x_end, P, N, eta, tri, ti, uv, band, s):
     """Per path: scalar weight (W/m² per unit RGB), front-facing mask, RGB factor (m,3), and the
     specular vertices [x1, ..., xk] ((m,3) each)."""
@@ -308,7 +297,10 @@ def path_values(scene, chain, ls, m, x_start, x_end, P, N, eta, tri, ti, uv, ban
             wi /= np.linalg.norm(wi, axis=1, keepdims=True)
             outside = np.sum(wi * ng, axis=1) < 0
             e = eta[ti[glass]]
-            extra[glass] *= _fresnel_dielectric(np.abs(np.sum(wi * n, axis=1)), np.where(outside, 1.0, e), np.where(outside, e, 1.0))
+            cos_i = np.ascontiguousarray(np.abs(np.sum(wi * n, axis=1)), dtype=np.float64)
+            eta_i = np.ascontiguousarray(np.where(outside, 1.0, e), dtype=np.float64)
+            eta_t = np.ascontiguousarray(np.where(outside, e, 1.0), dtype=np.float64)
+            extra[glass] *= fresnel_dielectric_many(cos_i, eta_i, eta_t)
     for model, mask in groups:
         idx = np.flatnonzero(mask)
         if idx.size == 0:

@@ -26,7 +26,7 @@ curve and looks for sign changes of a scalar refraction function f on it (eq 16-
   here the bracket is the curve piece between two marching samples, halved and projected
   back onto the conic), then the project's Newton polish and validation
   (``one_vertex.polish_and_validate``) and its rule for "one physical path"
-  (``one_bounce._store_path``), the same as the other baselines;
+  (``one_bounce.store_path``), the same as the other baselines;
 * the ellipse wholly inside one triangle (§3.4.4): no edge crossing, the closed curve is
   marched all the way round from a point on it;
 * the walk across a caster mesh (§3.3.3, §3.4.2-3.4.3, §4): start at M0, where the straight
@@ -60,7 +60,7 @@ import numpy as np
 from ..spoly.api import SolveReport, SolveResult, compact_paths, validate_inputs
 from ..paths.irradiance import PathIrradiance, fresnel_dielectric
 from ..runtime.jit import kernel, prange
-from ..spoly.one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, POLISH_STEPS, _store_path
+from ..spoly.one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, POLISH_STEPS, store_path
 from ..paths.one_vertex import geometric_normal, line_crossing_barycentrics, polish_and_validate, triangle_frame
 from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
 
@@ -495,7 +495,7 @@ def _polish_store(ur, vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta, buf, out_uv, 
     ok, uu, vv, err, sig = polish_and_validate(ur, vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, True, eta,
                                                POLISH_STEPS, ACCEPT_RESIDUAL)
     if ok:
-        count = _store_path(uu, vv, err, sig, buf, out_uv, count)
+        count = store_path(uu, vv, err, sig, buf, out_uv, count)
     return count
 
 

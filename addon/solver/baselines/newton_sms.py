@@ -11,7 +11,7 @@
   the number of threads.
 
 Both use the same Newton (``one_vertex.polish_and_validate``) and the same rule for "one
-physical path" (``one_bounce._store_path``) as the polynomial solver, so differences in the
+physical path" (``one_bounce.store_path``) as the polynomial solver, so differences in the
 comparison come from the seeding alone.
 """
 
@@ -21,9 +21,9 @@ import numpy as np
 
 from ..spoly.api import ONE_BOUNCE_CHAINS, SolveReport, SolveResult, compact_paths, validate_inputs
 from ..runtime.jit import kernel, prange
-from ..spoly.one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, _store_path
+from ..spoly.one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, store_path
 from ..paths.one_vertex import geometric_normal, polish_and_validate, triangle_frame
-from ..geometry.vec3 import dot, madd, norm, row, sub
+from ..geometry.vec3 import dot, madd, row, sub
 
 NEWTON_STEPS = 20  # MNEE's usual iteration budget
 
@@ -88,7 +88,7 @@ def _seeded_newton_batch(refract, mode, n_seeds, seed, x_start, x_end, P, N, eta
                     ok, uu, vv, err, sig = polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta[t],
                                                                NEWTON_STEPS, ACCEPT_RESIDUAL)
                     if ok:
-                        count = _store_path(uu, vv, err, sig, buf, out_uv[t], count)
+                        count = store_path(uu, vv, err, sig, buf, out_uv[t], count)
             out_count[t] = count
             stats[t, 0] = tried
             stats[t, 1] = count

@@ -40,12 +40,12 @@ import math
 
 import numpy as np
 
-from ..geometry.bvh import _ray_closest
+from ..geometry.bvh import ray_closest
 from ..runtime.jit import kernel, prange
 from ..paths.two_vertex import pack_geometry, polish_and_validate2
-from .photon import ROLE_BOTH, ROLE_REFLECT, _fresnel
+from ..geometry.optics import ROLE_BOTH, ROLE_REFLECT, fresnel_dielectric
+from ..geometry.optics import scatter_direction as _scatter
 from ..geometry.surface import plane_barycentrics as _hit_bary
-from ..geometry.surface import scatter_direction as _scatter
 from ..geometry.surface import triangle_frame
 
 POLISH_STEPS = 40
@@ -73,7 +73,7 @@ def _weight(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract, eta, role):
         return 1.0
     outside = dx * gx + dy * gy + dz * gz < 0.0
     ci = abs(dx * nx + dy * ny + dz * nz)
-    F = _fresnel(ci, 1.0, eta) if outside else _fresnel(ci, eta, 1.0)
+    F = fresnel_dielectric(ci, 1.0, eta) if outside else fresnel_dielectric(ci, eta, 1.0)
     if refract:
         return 1.0 - F
     return F if role == ROLE_BOTH else 1.0
@@ -84,7 +84,7 @@ def _land(x, y, z, dx, dy, dz, prev, tri_rec, tri_p, tri_n, node_min, node_max, 
           v0, e1, e2, eps, stack):
     """The last segment: the closest hit must be the front of a receiver.  Returns (receiver
     triangle or -1, barycentrics, cos_shading / cos_geometric there)."""
-    tr, th = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
+    tr, th = ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
                           eps, np.inf, prev, stack)
     if tr < 0 or tri_rec[tr] < 0:
         return -1, 0.0, 0.0, 0.0
@@ -116,7 +116,7 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok
     # the light must reach the point: a shadowed point is lost like a missed receiver, so a
     # shadow's edge across a first triangle is refined and cut as a border, not decided for
     # a whole sub-triangle at its centre
-    sh, _sh_t = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x0x, x0y, x0z,
+    sh, _sh_t = ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x0x, x0y, x0z,
                              dx, dy, dz, eps, ln * (1.0 - 1e-9) - eps, t1, stack)
     if sh >= 0:
         return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
@@ -128,7 +128,7 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok
         tr, ur, vr, c = _land(x, y, z, dx, dy, dz, t1, tri_rec, tri_p, tri_n, node_min, node_max, node_child, node_start,
                               node_count, order, v0, e1, e2, eps, stack)
         return -1, 0.0, 0.0, tr, ur, vr, fac * c
-    t2, th = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
+    t2, th = ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
                           eps, np.inf, t1, stack)
     if t2 < 0 or not second_ok[t2]:
         return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0

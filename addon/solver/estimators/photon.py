@@ -52,12 +52,12 @@ from collections import namedtuple
 
 import numpy as np
 
-from ..geometry.bvh import _ray_closest, build_bvh
+from ..geometry.bvh import ray_closest, build_bvh
 from ..runtime.jit import kernel, prange
-from ..geometry.surface import plane_barycentrics, scatter_direction, triangle_frame
+from ..geometry.optics import ROLE_BOTH, ROLE_REFLECT, ROLE_REFRACT, fresnel_dielectric, scatter_direction
+from ..geometry.surface import plane_barycentrics, triangle_frame
 
 CHAINS = ("R", "T", "RR", "RT", "TR", "TT")
-ROLE_REFLECT, ROLE_REFRACT, ROLE_BOTH = 1, 2, 3  # the codes of addon.bake.scene
 RR_THRESHOLD = 0.05  # Russian roulette below this fraction of the emitted throughput
 BLOCK = 1024  # photons per parallel work item
 BATCH = 1 << 20  # photons per kernel call (deposit slots: 32 bytes each)
@@ -186,17 +186,6 @@ def _rand(seed, g, dim):
 
 
 @kernel(inline="always")
-def _fresnel(ci, n1, n2):
-    s = n1 / n2 * math.sqrt(max(0.0, 1.0 - ci * ci))
-    if s >= 1.0:
-        return 1.0
-    ct = math.sqrt(1.0 - s * s)
-    rs = (n1 * ci - n2 * ct) / (n1 * ci + n2 * ct)
-    rp = (n1 * ct - n2 * ci) / (n1 * ct + n2 * ci)
-    return 0.5 * (rs * rs + rp * rp)
-
-
-@kernel(inline="always")
 def _frame(ax, ay, az):
     if abs(ax) < 0.9:
         hx, hy, hz = 1.0, 0.0, 0.0
@@ -282,7 +271,7 @@ def _trace_batch(g0, g1, seed, em_kind, em_pos, em_axis, em_cos, em_radius, em_r
             prev = -1
             depth = 0
             while True:
-                tid, t = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2,
+                tid, t = ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2,
                                       ox, oy, oz, dx, dy, dz, eps, np.inf, prev, stack)
                 if tid < 0:
                     break
@@ -328,7 +317,7 @@ def _trace_batch(g0, g1, seed, em_kind, em_pos, em_axis, em_cos, em_radius, em_r
                 n2 = eta if outside else 1.0
                 can_r = (role == ROLE_REFLECT or role == ROLE_BOTH) and prefix[2 * code]
                 can_t = (role == ROLE_REFRACT or role == ROLE_BOTH) and prefix[2 * code + 1]
-                F = 1.0 if role == ROLE_REFLECT else _fresnel(ci, n1, n2)
+                F = 1.0 if role == ROLE_REFLECT else fresnel_dielectric(ci, n1, n2)
                 rx, ry, rz = 0.0, 0.0, 0.0
                 tx, ty, tz = 0.0, 0.0, 0.0
                 if can_r:

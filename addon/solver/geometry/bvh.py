@@ -315,7 +315,7 @@ def segments_occluded(bvh, a, b, ignore=None, eps=1e-6):
 
 
 @kernel
-def _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2,
+def ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2,
                  ox, oy, oz, dx, dy, dz, tmin, tmax, ig, stack):
     ix = 1.0 / dx if dx != 0.0 else np.inf
     iy = 1.0 / dy if dy != 0.0 else np.inf
@@ -354,7 +354,7 @@ def _rays_closest(node_min, node_max, node_child, node_start, node_count, order,
     for ch in prange(n_chunks):
         stack = np.empty(256, dtype=np.int64)
         for s in range(ch * 256, min(n, ch * 256 + 256)):
-            tri, t = _ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2,
+            tri, t = ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2,
                                   o[s, 0], o[s, 1], o[s, 2], d[s, 0], d[s, 1], d[s, 2], tmin, np.inf, ignore[s], stack)
             out_tri[s] = tri
             out_t[s] = t

@@ -1,6 +1,6 @@
 """Surface queries shared by the forward tracers (photon.py, forward_image.py): the point and
-frame of a triangle at barycentrics, where a ray crosses a triangle's plane, and the mirror /
-refracted direction at a vertex.
+frame of a triangle at barycentrics and where a ray crosses a triangle's plane (the scattered
+direction at a vertex is :func:`addon.solver.geometry.optics.scatter_direction`).
 
 Conventions as the bake's (CONTRACT.md): the shading normal is the normalised interpolation
 of the corner normals; the geometric normal e1 x e2, normalised and turned to the shading
@@ -63,37 +63,3 @@ def plane_barycentrics(tri_p, t, ox, oy, oz, dx, dy, dz):
     qz = sx * e1y - sy * e1x
     v = (dx * qx + dy * qy + dz * qz) * inv
     return u, v
-
-
-@kernel(inline="always")
-def scatter_direction(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract, eta):
-    """Scatter the unit direction d at a vertex with unit shading normal n and geometric normal
-    g (on n's side): mirror reflection, or refraction 1 -> eta entering (against g) and
-    eta -> 1 leaving; the side rules of CONTRACT.md (cos_i > 0 against the normal turned to
-    the incoming side; a reflection stays on that side, a refraction crosses).  Returns
-    (ok, unit direction)."""
-    outside = dx * gx + dy * gy + dz * gz < 0.0
-    sg = 1.0 if outside else -1.0
-    nox, noy, noz = sg * nx, sg * ny, sg * nz
-    ngx, ngy, ngz = sg * gx, sg * gy, sg * gz
-    ci = -(dx * nox + dy * noy + dz * noz)
-    if not ci > 0.0:
-        return False, 0.0, 0.0, 0.0
-    if refract:
-        rr = 1.0 / eta if outside else eta
-        kk = 1.0 - rr * rr * (1.0 - ci * ci)
-        if not kk > 0.0:
-            return False, 0.0, 0.0, 0.0
-        c2 = rr * ci - math.sqrt(kk)
-        ox, oy, oz = rr * dx + c2 * nox, rr * dy + c2 * noy, rr * dz + c2 * noz
-        ln = math.sqrt(ox * ox + oy * oy + oz * oz)
-        ox, oy, oz = ox / ln, oy / ln, oz / ln
-        if not ox * ngx + oy * ngy + oz * ngz < 0.0:
-            return False, 0.0, 0.0, 0.0
-        return True, ox, oy, oz
-    ox, oy, oz = dx + 2.0 * ci * nox, dy + 2.0 * ci * noy, dz + 2.0 * ci * noz
-    ln = math.sqrt(ox * ox + oy * oy + oz * oz)
-    ox, oy, oz = ox / ln, oy / ln, oz / ln
-    if not ox * ngx + oy * ngy + oz * ngz > 0.0:
-        return False, 0.0, 0.0, 0.0
-    return True, ox, oy, oz

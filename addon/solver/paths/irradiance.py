@@ -21,41 +21,10 @@ from ..spoly.api import CHAIN_LENGTH, validate_inputs
 from ..runtime.jit import kernel, prange
 from .one_vertex import geometric_normal, scatter_residual, triangle_frame
 from .two_vertex import pack_geometry, two_bounce_footprint
+from ..geometry.optics import REFLECTANCE_MODELS, fresnel_conductor, fresnel_dielectric, vertex_fresnel
 from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
 
 PathIrradiance = namedtuple("PathIrradiance", "irradiance geometry fresnel cos_receiver direction")
-
-REFLECTANCE_MODELS = {"mirror": 0, "dielectric": 1, "conductor": 2}
-
-
-@kernel
-def fresnel_dielectric(cos_i, eta_i, eta_t):
-    """Unpolarised Fresnel reflectance at a dielectric interface (1 under total internal reflection)."""
-    cos_i = min(max(cos_i, 0.0), 1.0)
-    sin_t = eta_i / eta_t * math.sqrt(max(0.0, 1.0 - cos_i * cos_i))
-    if sin_t >= 1.0:
-        return 1.0
-    cos_t = math.sqrt(max(0.0, 1.0 - sin_t * sin_t))
-    rs = (eta_i * cos_i - eta_t * cos_t) / (eta_i * cos_i + eta_t * cos_t)
-    rp = (eta_i * cos_t - eta_t * cos_i) / (eta_i * cos_t + eta_t * cos_i)
-    return 0.5 * (rs * rs + rp * rp)
-
-
-@kernel
-def fresnel_conductor(cos_i, eta, k):
-    """Unpolarised Fresnel reflectance of a conductor with complex IOR eta + i k (from air)."""
-    c = min(max(cos_i, 0.0), 1.0)
-    c2 = c * c
-    s2 = 1.0 - c2
-    t0 = eta * eta - k * k - s2
-    a2b2 = math.sqrt(t0 * t0 + 4.0 * eta * eta * k * k)
-    a = math.sqrt(max(0.0, 0.5 * (a2b2 + t0)))
-    rs = (a2b2 - 2.0 * a * c + c2) / (a2b2 + 2.0 * a * c + c2)
-    t1 = c2 * a2b2 + s2 * s2
-    t2 = 2.0 * a * c * s2
-    rp = rs * (t1 - t2) / (t1 + t2)
-    return 0.5 * (rs + rp)
-
 
 @kernel(inline="always")
 def _write_solution(out, s, geometry, fresnel, w, receiver_normal, t, has_receiver):
@@ -127,20 +96,6 @@ def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tup
         _write_solution(out, s, geometry, fresnel, wo, receiver_normal, t, has_receiver)
 
 
-@kernel
-def _vertex_fresnel(refract, model, cos_i, side, eta, kappa):
-    """Fresnel factor of one vertex; side > 0: the light arrives from outside (IOR 1)."""
-    eta_i = 1.0 if side > 0.0 else eta
-    eta_t = eta if side > 0.0 else 1.0
-    if refract:
-        return 1.0 - fresnel_dielectric(cos_i, eta_i, eta_t)
-    if model == 1:
-        return fresnel_dielectric(cos_i, eta_i, eta_t)
-    if model == 2:
-        return fresnel_conductor(cos_i, eta, kappa)
-    return 1.0
-
-
 @kernel(parallel=True)
 def _two_bounce_irradiance(refract1, refract2, model, x_start, x_end, P, N, eta, kappa, tuple_index, uv, receiver_normal,
                            has_receiver, out):
@@ -161,8 +116,8 @@ def _two_bounce_irradiance(refract1, refract2, model, x_start, x_end, P, N, eta,
         ok, geometry, c1, s1, c2, s2, w2 = two_bounce_footprint(th, geo, refract1, refract2, eta[t])
         if not ok:
             continue
-        fresnel = _vertex_fresnel(refract1, model, c1, s1, eta[t], kappa[t]) * \
-            _vertex_fresnel(refract2, model, c2, s2, eta[t], kappa[t])
+        fresnel = vertex_fresnel(refract1, model, c1, s1, eta[t], kappa[t]) * \
+            vertex_fresnel(refract2, model, c2, s2, eta[t], kappa[t])
         _write_solution(out, s, geometry, fresnel, w2, receiver_normal, t, has_receiver)
 
 

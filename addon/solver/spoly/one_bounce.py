@@ -409,7 +409,7 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
             if not ok:
                 continue
             before = count
-            count = _store_path(uu, vv, err, sig, root_buf, out_uv, count)
+            count = store_path(uu, vv, err, sig, root_buf, out_uv, count)
             if count == before:
                 continue
             count = _probe_fold(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count)
@@ -417,7 +417,7 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
 
 
 @kernel
-def _store_path(uu, vv, err, sigma_min, root_buf, out_uv, count):
+def store_path(uu, vv, err, sigma_min, root_buf, out_uv, count):
     """Append (uu, vv) unless it is a path already stored; returns the new count.
 
     Two polished candidates are one path when they are closer than the residuals can tell
@@ -483,7 +483,7 @@ def _probe_fold(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf
         ok2, uu, vv, err, sig = polish_and_validate(u + step * su, v + step * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
         if not ok2:
             continue
-        count = _store_path(uu, vv, err, sig, root_buf, out_uv, count)
+        count = store_path(uu, vv, err, sig, root_buf, out_uv, count)
     return count
 
 
@@ -618,7 +618,7 @@ def _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_bu
     stats[STAT_CANDIDATES] += 1
     ok, uu, vv, err, sig = polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
     if ok:
-        count = _store_path(uu, vv, err, sig, root_buf, out_uv, count)
+        count = store_path(uu, vv, err, sig, root_buf, out_uv, count)
     return count
 
 

@@ -2,7 +2,7 @@
 
 Rows: plane7k R, pool4k T, pool20k T (one-bounce chains), slab10k TT and ball80/320/1280 TT
 (two-bounce: BVH tuple construction + position bounds with remainder variables + the irradiance
-bound of ``irradiance_two``, eq 14–16 in affine arithmetic).  Light positions and receivers are chosen here (the paper does not
+bound of ``two_bounce_irradiance``, eq 14–16 in affine arithmetic).  Light positions and receivers are chosen here (the paper does not
 publish them) and printed.  Per row: cold time (a fresh process with an empty Numba cache
 directory: compile + run, as a user's first bake), warm time (cached kernels, second run in
 process), new-process time (a second fresh process on that cache: start-up with cached kernels), tuples,
@@ -35,7 +35,7 @@ SETTINGS = {
     "plane7k": dict(max_depth=3, sigma=1e-4, alpha=2.0),
     "pool4k": dict(max_depth=1, sigma=1e-4, alpha=2.0),
     "pool20k": dict(max_depth=1, sigma=1e-4, alpha=2.0),
-    "pool20k_refine2": dict(max_depth=1, sigma=1e-4, alpha=2.0, irr_refine=2),  # Ē = ∞ leaves refined (chain1_fast)
+    "pool20k_refine2": dict(max_depth=1, sigma=1e-4, alpha=2.0, irr_refine=2),  # Ē = ∞ leaves refined (one_bounce.refine_irradiance)
     # two-bounce rows (position bounds only): the meshes README's max subdivision level 1 for the slab; the paper's
     # levels 4 / 3 / 2 for the balls are about irradiance-driven refinement, position pieces stop at σ here
     "slab10k": dict(max_depth=1, sigma=1e-4),
@@ -55,7 +55,7 @@ def run_row_two(name, check=True, samples=16):
     import resource
 
     from fixtures import bounds_scenes as S
-    from addon.solver.bounds.chain2 import bound_two_bounce
+    from addon.solver.bounds.two_bounce import bound_two_bounce
     from addon.solver.bounds.tuples import two_bounce_pairs
 
     sc = S.scene(name)
@@ -91,7 +91,7 @@ def run_row(name, check=True, samples=4):
 
     if len(S.SCENES[name.split("_")[0]][0]) == 2:
         return run_row_two(name, check)
-    from addon.solver.bounds.chain1 import bound_one_bounce
+    from addon.solver.bounds.one_bounce import bound_one_bounce
 
     sc = S.scene(name.split("_")[0])
     t0 = time.perf_counter()
@@ -136,13 +136,13 @@ def warm_up():
     import numpy as np
 
     from fixtures import bounds_scenes as S
-    from addon.solver.bounds.chain1 import bound_one_bounce
+    from addon.solver.bounds.one_bounce import bound_one_bounce
 
     P, N = S.curved_plane(2, 0.3)
     RP, RUV = S.floor(-2.0, -4, 4, -4, 4)
     for chain in ("R", "T"):
         bound_one_bounce(chain, np.array([0.1, 0.2, 3.0]), P, N, RP, RUV, eta=1.33, max_depth=1)
-    from addon.solver.bounds.chain2 import bound_two_bounce
+    from addon.solver.bounds.two_bounce import bound_two_bounce
     from addon.solver.bounds.tuples import two_bounce_pairs
 
     sc = S.scene("ball80")
@@ -195,7 +195,7 @@ def main():
              "irradiance pass could not prove empty; 'of N BVH pairs' counts the (T1, T2) found through the BVH (§6.1), "
              "the number before it the pairs left with a tuple (the authors' tuples are such pairs); precompute = pairs + bounds; validity: 16 forward-traced exact paths per "
              "first triangle, each checked against its tuple's piece (position and Ē: path_irradiance of the chain); "
-             "precompute includes the irradiance pass (irradiance_two: affine arithmetic on the exact map, refined inside "
+             "precompute includes the irradiance pass (two_bounce_irradiance: affine arithmetic on the exact map, refined inside "
              "each piece up to 4 levels while Ē = ∞ or Ē/E̲ > 2); Ē = ∞ pieces are focal, grazing-refraction or parallel-ray "
              "boxes, counted per reason in the JSON rows.")
     print(notes)

@@ -3,22 +3,22 @@ path-points estimator solves (Fan et al. 2025, "Bernstein Bounds for Caustics").
 
 Path-points (``BakeSettings(cull="bounds")``, the default; ``estimators.path_points.chain_pass``):
 
-* one bounce (R, T): :class:`BoundsCull` (chain1's position bounds, §4.2–4.3,
+* one bounce (R, T): :class:`BoundsCull` (``one_bounce``'s position bounds, §4.2–4.3,
   eq 3–13, §6.1 subdivision); from the sun (a far light point per caster, lights.light_points)
   the bounds are taken with every caster's own point (:func:`one_bounce_bounds_points`), so the
   selection stays exact for the points the solver is given;
 * two bounces (RR, RT, TR, TT): :class:`TwoBounceBoundsCull`.  Per (light point, receiver) the
   (t1, t2) pairs of the chain's cone emitters (``cull.two_bounce_emitters``) are intersected
-  with the BVH pairs of §6.1 "Tuple construction" (``tuples._pairs_of``), each (pair, receiver
+  with the BVH pairs of §6.1 "Tuple construction" (``tuples.two_bounce_pairs``), each (pair, receiver
   triangle) that the cone test of ``cull.py`` admits gets the reach grid of
-  ``irradiance_two.receivers_reached`` (the exact two-vertex map in affine arithmetic on 4 x 4
-  cells of t1) and then the position quadtree of ``chain2_fast`` (§4.3 with the remainder
+  ``two_bounce_irradiance.receivers_reached`` (the exact two-vertex map in affine arithmetic on 4 x 4
+  cells of t1) and then the position quadtree of ``two_bounce_position`` (§4.3 with the remainder
   variables of eq 12–13 and the degree reduction of §6.1); the irradiance pass (eq 14–16,
-  ``irradiance_two.piece_irradiance_two``) drops the pieces it proves empty and gives Ē for
+  ``two_bounce_irradiance.piece_irradiance_two``) drops the pieces it proves empty and gives Ē for
   γ-sampling (§5, eq 21, 24, 28).  Each piece's (u1, v1) box is then cut into
   ``image_split``² sub-boxes whose receiver box is the piece's Bernstein box intersected with
   the enclosure of the exact map (eq 6–11 with the exact √β, eq 9 at both planes) in the affine
-  arithmetic of ``irradiance_two`` (:func:`_image_box`): where only part of a box's light meets
+  arithmetic of ``affine`` (``two_bounce_image.image_box``): where only part of a box's light meets
   triangle 2 the position bound falls back to a constant form of (u2, v2) and loses the
   correlation of x2 with x1, the affine map keeps it (a 32 x 16 glass sphere's TT at 64², one
   sample per texel: the same paths from about a third of the pairs).  A band then keeps a sample for an emitter when a piece
@@ -28,8 +28,7 @@ Path-points (``BakeSettings(cull="bounds")``, the default; ``estimators.path_poi
   Each step is conservative (no path is lost), so the selection is a subset of the cone cull's
   and holds every pair with a path; ``tests/bake/test_bake_bounds_select.py`` checks both against
   the exact paths of the cone cull.  The light point may differ per first triangle (the sun):
-  every kernel here takes one light point per pair, calling the engines' per-tuple functions
-  (the engines' batch drivers take a single point).
+  the engines' drivers take one light point per caster, pair or piece.
 
   Fallback: where the bounds do not apply path-points keeps the cone cull
   (:class:`addon.bake.cull.TupleCull`): ``BakeSettings.cull`` other than "bounds", a chain
@@ -45,29 +44,22 @@ import time
 
 import numpy as np
 
-from ..solver.bounds.chain1 import P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, push_children
-from ..solver.bounds.chain1_fast import _setup_caster, tuple_pieces_fast
-from ..solver.bounds.chain1_fast import workspace as workspace1
-from ..solver.bounds.chain2 import CHAIN_CODES
-from ..solver.bounds.chain2_fast import _box_bounds
-from ..solver.bounds.chain2_fast import workspace as workspace2
-from ..solver.bounds.chain1 import POS_PAD, _eta_ratio, orientation_mask
-from ..solver.bounds.irradiance_two import (BOUNDED, EDGE_TOL, NO_PATH, UNBOUNDED, _c3, _dadd, _daddc, _drange, _dscale, _hit, _scatter,
-                                            _vdotc, _vertex_one, box_reached, piece_irradiance_two, sub_box_irradiance)
-from ..solver.bounds.tuples import _pairs_of
-from ..solver.bounds.chain1 import bound_one_bounce
+from ..solver.bounds.layout import CHAIN_CODES, P_EHI, P_ELO, P_RECEIVER, PIECE_FIELDS
+from ..solver.bounds.one_bounce import batch as one_bounce_batch
+from ..solver.bounds.one_bounce import bound_one_bounce
+from ..solver.bounds.tuples import two_bounce_pairs
+from ..solver.bounds.two_bounce_image import split_pieces_chunk
+from ..solver.bounds.two_bounce_irradiance import irradiance_chunk, reach_chunk
+from ..solver.bounds.two_bounce_position import pair_pieces_chunk
 from ..solver.runtime.jit import kernel, prange, run_chunks
-from .cull import _pairs_count, _pairs_fill, _sample_ok, one_bounce_emitters, tri_spheres, two_bounce_emitters
-
-P_RECEIVER = PIECE_FIELDS  # the receiver column of the two-bounce rows (as chain2.P_RECEIVER)
-
+from .cull import count_cone_pairs, fill_cone_pairs, sample_in_cones, one_bounce_emitters, tri_spheres, two_bounce_emitters
 
 # ---------------------------------------------------------------------------------------
 # Bounds-driven cull (Fan et al. 2025; two bounces and the sun below,
 # on :class:`PieceCull`): per (light point, caster triangle, receiver triangle)
-# the Bernstein position bound (addon.solver.bounds.chain1) says which receiver points any
+# the Bernstein position bound (addon.solver.bounds.one_bounce) says which receiver points any
 # admissible path can reach; only samples inside a piece's box are kept.  The cone test of
-# the sample (``_sample_ok``) is applied as well, so this cull keeps a subset of the cone
+# the sample (``sample_in_cones``) is applied as well, so this cull keeps a subset of the cone
 # cull's tuples, and every (caster, sample) pair holding a path survives both (both are
 # conservative: no path is lost).  Optional γ-sampling (§5, eq 24, 28): each kept pair is
 # solved with probability P = min(γ Ẽ, 1), Ẽ the largest Ē of the pieces covering the sample
@@ -141,7 +133,7 @@ def _bounds_pairs(fill, tup_e, tup_r, piece_start, pieces, tex_start, tex_order,
                                 best = max(best, pieces[k, 12])
                         if best < 0.0:
                             continue
-                        if not _sample_ok(e, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos,
+                        if not sample_in_cones(e, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos,
                                           rec_ng):
                             continue
                         if fill:
@@ -158,10 +150,10 @@ class PieceCull:
     eq 4–5; the position bounds of :func:`one_bounce_bounds`, or of the two-bounce bounds of
     ``addon.bake.bounds_select``): a sample of receiver triangle r is kept for emitter e when
     the tuple (e, r) has a piece whose receiver-barycentric box holds it (``BOUNDS_MARGIN``
-    wider) and the emitter's cone accepts it (``_sample_ok``), so the selection is a subset of
+    wider) and the emitter's cone accepts it (``sample_in_cones``), so the selection is a subset of
     :class:`TupleCull`'s.  ``tuples`` (m, 2) (emitter index, local receiver index into
     ``rec_tri``), pieces of tuple t at rows piece_start[t]:piece_start[t+1] of ``pieces``
-    (chain1's P_* layout).  ``gamma``: inf enumerates, else each pair is kept with
+    (the P_* columns of ``bounds.layout``).  ``gamma``: inf enumerates, else each pair is kept with
     P = min(γ Ẽ, 1) (eq 28, Ẽ the largest Ē of the pieces holding the sample, eq 21 with
     m = 1); :meth:`batches` yields (emitter index, sample index, 1/P or None)."""
 
@@ -273,295 +265,6 @@ ROW_BUDGET = 1 << 25  # float64s of piece rows (or reach cells) per chunk of pai
 
 
 # ---------------------------------------------------------------------------------------
-# kernels: the engines' batch loops with one light point (and one IOR) per tuple
-
-
-@kernel
-def _one_chunk(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, irr_refine, out, counts, stats,
-               start, stop):
-    """``chain1_fast._batch_chunk`` with the light point x0[c] of caster c (eq 3–13, §6.1)."""
-    W, work, scr, U = workspace1()
-    stack = np.empty((4 * (max_depth + 2), 5))
-    rstack = np.empty((4 * (irr_refine + 2), 5))
-    last = -1
-    for t in range(start, stop):
-        c = pairs[t, 0]
-        r = pairs[t, 1]
-        if c != last:
-            _setup_caster(W, refract, x0[c], P[c], N[c])
-            last = c
-        counts[t] = tuple_pieces_fast(W, U, work, scr, stack, rstack, refract, x0[c], P[c], N[c], Q[r], UV[r], eta, max_depth,
-                                      sigma, alpha, irradiance, irr_refine, out[t], stats[t])
-
-
-@kernel
-def _pairs_chunk(refract, x0, P, N, eta, levels, refine, first, node_min, node_max, node_child, node_count, node_start, order,
-                 out, counts, stats, start, stop):
-    """``tuples._pairs_chunk`` (§6.1 tuple construction) with light point x0[i] and IOR eta[i]
-    for first triangle first[i]."""
-    for i in range(start, stop):
-        counts[i] = _pairs_of(first[i], refract, x0[i], P, N, eta[i], levels, refine, node_min, node_max, node_child,
-                              node_count, node_start, order, out[i], stats[i])
-
-
-@kernel
-def _reach_chunk(chain_code, x0, P, N, Q, eta, pairs, mask, reach, start, stop):
-    """``irradiance_two._reach_chunk`` with light point x0[t], IOR eta[t] per pair, and only for
-    the receivers with mask[t, r] (the others stay unreached: the cone test proved them empty)."""
-    refract1 = (chain_code & 1) != 0
-    refract2 = (chain_code & 2) != 0
-    box = np.empty(4)
-    rbox = np.empty(4)
-    rbox[0], rbox[1], rbox[2], rbox[3] = 0.0, 1.0, 0.0, 1.0
-    cells = reach.shape[2]
-    h = 1.0 / cells
-    for t in range(start, stop):
-        a = pairs[t, 0]
-        b = pairs[t, 1]
-        for r in range(Q.shape[0]):
-            grid = reach[t, r]
-            grid[:, :] = False
-            if not mask[t, r]:
-                continue
-            box[0], box[1], box[2], box[3] = 0.0, 1.0, 0.0, 1.0
-            st, bh, bl = sub_box_irradiance(refract1, refract2, x0[t], P[a], N[a], P[b], N[b], Q[r], eta[t], box, rbox)
-            if st == NO_PATH:
-                continue
-            if cells == 1:
-                grid[0, 0] = True
-                continue
-            for i in range(cells):
-                for j in range(cells - i):
-                    box[0], box[1], box[2], box[3] = i * h, (i + 1) * h, j * h, (j + 1) * h
-                    st, bh, bl = sub_box_irradiance(refract1, refract2, x0[t], P[a], N[a], P[b], N[b], Q[r], eta[t], box, rbox)
-                    grid[i, j] = st != NO_PATH
-
-
-@kernel
-def _two_chunk(chain_code, x0, P, N, Q, UV, eta, pairs, reach, n_alive, row_start, max_depth, sigma, rows, counts, stats,
-               start, stop):
-    """``chain2_fast._chunk`` (the pair-level position quadtree of every receiver, §6.1 stopping
-    rules, eq 3–13) with light point x0[t] and IOR eta[t] per pair, writing pair t's rows into
-    rows[row_start[t]:row_start[t+1]] (room for ``capacity`` pieces per receiver it reaches;
-    n_alive[t] of them: a box emits at most that many rows)."""
-    nr = Q.shape[0]
-    W, E = workspace2()
-    size = 4 * (max_depth + 2)
-    stack = np.empty((size, 5))
-    alive = np.zeros((size, nr), dtype=np.bool_)
-    pos = np.zeros((nr, 8))
-    found = np.zeros(nr, dtype=np.bool_)
-    node_alive = np.zeros(nr, dtype=np.bool_)
-    child = np.zeros(nr, dtype=np.bool_)
-    lo = np.zeros(2)
-    hi = np.zeros(2)
-    for t in range(start, stop):
-        counts[t] = 0
-        r0 = row_start[t]
-        cap = row_start[t + 1] - r0
-        if cap == 0:
-            continue
-        a = pairs[t, 0]
-        b = pairs[t, 1]
-        stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0.0, 1.0, 0.0, 1.0, 0.0
-        alive[0, :] = True
-        top = 1
-        count = 0
-        while top > 0:
-            top -= 1
-            lo[0], hi[0], lo[1], hi[1] = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
-            depth = int(stack[top, 4])
-            any_alive = False
-            for r in range(nr):
-                node_alive[r] = alive[top, r] and box_reached(reach[t, r], lo, hi)
-                any_alive = any_alive or node_alive[r]
-            if not any_alive:
-                continue
-            stats[t, 0] += 1
-            _box_bounds(W, E, chain_code, x0[t], P[a], N[a], P[b], N[b], Q, UV, node_alive, eta[t], lo, hi, pos, found, stats[t])
-            can_split = depth < max_depth and count + (top + 4) * n_alive[t] <= cap
-            any_child = False
-            for r in range(nr):
-                child[r] = False
-                if not found[r]:
-                    continue
-                area = (pos[r, 1] - pos[r, 0]) * (pos[r, 3] - pos[r, 2])
-                if area >= sigma and can_split:
-                    child[r] = True
-                    any_child = True
-                    continue
-                if depth < max_depth and area >= sigma:
-                    stats[t, 3] += 1
-                row = rows[r0 + count]
-                row[P_U0], row[P_U1], row[P_V0], row[P_V1] = lo[0], hi[0], lo[1], hi[1]
-                for k in range(8):
-                    row[P_BU0 + k] = pos[r, k]
-                row[P_EHI] = np.inf
-                row[P_ELO] = 0.0
-                row[P_DEPTH] = depth
-                row[P_RECEIVER] = r
-                count += 1
-            if any_child:
-                pushed = push_children(stack, top, lo, hi, depth)
-                for k in range(top, pushed):
-                    alive[k] = child
-                top = pushed
-        counts[t] = count
-
-
-@kernel
-def _irr_chunk(chain_code, x0, P, N, Q, eta, piece_pair, piece_receiver, pieces, irr_depth, irr_ratio, stats, start, stop):
-    """``irradiance_two._irradiance_chunk`` (eq 14–16) with light point x0[i] and IOR eta[i] per piece."""
-    lo = np.empty(2)
-    hi = np.empty(2)
-    rbox = np.empty(4)
-    for i in range(start, stop):
-        a = piece_pair[i, 0]
-        b = piece_pair[i, 1]
-        lo[0], hi[0], lo[1], hi[1] = pieces[i, P_U0], pieces[i, P_U1], pieces[i, P_V0], pieces[i, P_V1]
-        for k in range(4):
-            rbox[k] = pieces[i, P_BU0 + k]
-        eh, el = piece_irradiance_two(chain_code, x0[i], P[a], N[a], P[b], N[b], Q[piece_receiver[i]], eta[i], lo, hi, rbox,
-                                      irr_depth, irr_ratio, stats[i])
-        pieces[i, P_EHI] = eh
-        pieces[i, P_ELO] = el
-
-
-IMAGE_NONE, IMAGE_BOX, IMAGE_UNKNOWN = 0, 1, 2
-
-
-@kernel
-def _image_box(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, out):
-    """Enclosure of the receiver barycentrics (uk, vk) of every admissible path x0 -> x1 -> x2
-    -> receiver Q with x1 in the box (u_lo, u_hi, v_lo, v_hi) of triangle 1 and x2 on triangle
-    2's plane: the exact map of eq 6–11 and eq 9 (exact √β) in the affine arithmetic of
-    ``irradiance_two`` (the forward map ``sub_box_irradiance`` bounds eq 15 with), value forms
-    only, the union over the orientations CONTRACT.md allows.  Writes out[0:4] = (uk_lo,
-    uk_hi, vk_lo, vk_hi) and returns IMAGE_BOX; IMAGE_NONE when no admissible path of the box
-    reaches the receiver triangle (total internal reflection, backward rays, u2 or uk
-    enclosures outside their triangles); IMAGE_UNKNOWN where a ray can be parallel to a plane
-    (no enclosure).  Conservative: where d̃ is grazing (√β's derivative unbounded) its value
-    forms still enclose it."""
-    if box[0] + box[2] > 1.0 + EDGE_TOL:
-        return IMAGE_NONE
-    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
-    f1 = P2[1] - P2[0]
-    f2 = P2[2] - P2[0]
-    g1 = N2[1] - N2[0]
-    g2 = N2[2] - N2[0]
-    ng2 = _c3(f1, f2)
-    out[0] = np.inf
-    out[1] = -np.inf
-    out[2] = np.inf
-    out[3] = -np.inf
-    found = False
-    for k1 in range(2):
-        if not (mask1 >> k1) & 1:
-            continue
-        if not refract1 and k1 == 1 and (mask1 & 1):
-            continue
-        o1 = 1.0 if k1 == 0 else -1.0
-        st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
-        if st == NO_PATH:
-            continue
-        st, u2, v2 = _hit(x1, dt1, P2)
-        if st == NO_PATH:
-            continue
-        if st >= UNBOUNDED:
-            return IMAGE_UNKNOWN
-        x2 = (_daddc(_dadd(_dscale(u2, f1[0]), _dscale(v2, f2[0])), P2[0, 0]),
-              _daddc(_dadd(_dscale(u2, f1[1]), _dscale(v2, f2[1])), P2[0, 1]),
-              _daddc(_dadd(_dscale(u2, f1[2]), _dscale(v2, f2[2])), P2[0, 2]))
-        n2 = (_daddc(_dadd(_dscale(u2, g1[0]), _dscale(v2, g2[0])), N2[0, 0]),
-              _daddc(_dadd(_dscale(u2, g1[1]), _dscale(v2, g2[1])), N2[0, 1]),
-              _daddc(_dadd(_dscale(u2, g1[2]), _dscale(v2, g2[2])), N2[0, 2]))
-        slo, shi = _drange(_vdotc(dt1, ng2))
-        nlo2, nhi2 = _drange(_vdotc(n2, ng2))
-        mask2 = orientation_mask(-shi, -slo, nlo2, nhi2)
-        for k2 in range(2):
-            if not (mask2 >> k2) & 1:
-                continue
-            if not refract2 and k2 == 1 and (mask2 & 1):
-                continue
-            o2 = 1.0 if k2 == 0 else -1.0
-            st, dt2 = _scatter(refract2, o2, _eta_ratio(o2, eta), n2, dt1)
-            if st == NO_PATH:
-                continue
-            st, uk, vk = _hit(x2, dt2, Q)
-            if st == NO_PATH:
-                continue
-            if st != BOUNDED:  # the last ray can be parallel to the receiver
-                return IMAGE_UNKNOWN
-            ulo, uhi = _drange(uk)
-            vlo, vhi = _drange(vk)
-            if not (math.isfinite(ulo) and math.isfinite(uhi) and math.isfinite(vlo) and math.isfinite(vhi)):
-                return IMAGE_UNKNOWN
-            out[0] = min(out[0], ulo)
-            out[1] = max(out[1], uhi)
-            out[2] = min(out[2], vlo)
-            out[3] = max(out[3], vhi)
-            found = True
-    return IMAGE_BOX if found else IMAGE_NONE
-
-
-@kernel
-def _split_chunk(chain_code, x0, P, N, Q, UV, eta, pairs, piece_pair, piece_receiver, pieces, split, rows, counts, start, stop):
-    """Cut the (u1, v1) box of pieces start..stop-1 into split x split sub-boxes and give each the
-    intersection of its piece's Bernstein bound (eq 3–5) with the affine image of the sub-box
-    (:func:`_image_box`); sub-boxes without an admissible path are dropped.  Piece i's rows go
-    to rows[i * split², ...], counts[i] of them; Ē and E̲ stay the piece's (they bound every
-    sub-box of it)."""
-    refract1 = (chain_code & 1) != 0
-    refract2 = (chain_code & 2) != 0
-    box = np.empty(4)
-    img = np.empty(4)
-    for i in range(start, stop):
-        t = piece_pair[i]
-        a = pairs[t, 0]
-        b = pairs[t, 1]
-        r = piece_receiver[i]
-        pc = pieces[i]
-        hu = (pc[P_U1] - pc[P_U0]) / split
-        hv = (pc[P_V1] - pc[P_V0]) / split
-        c = 0
-        for ia in range(split):
-            for ib in range(split):
-                box[0] = pc[P_U0] + ia * hu
-                box[1] = pc[P_U0] + (ia + 1) * hu if ia + 1 < split else pc[P_U1]
-                box[2] = pc[P_V0] + ib * hv
-                box[3] = pc[P_V0] + (ib + 1) * hv if ib + 1 < split else pc[P_V1]
-                st = _image_box(refract1, refract2, x0[t], P[a], N[a], P[b], N[b], Q[r], eta[t], box, img)
-                if st == IMAGE_NONE:
-                    continue
-                row = rows[i * split * split + c]
-                for k in range(PIECE_FIELDS):
-                    row[k] = pc[k]
-                row[P_U0], row[P_U1], row[P_V0], row[P_V1] = box[0], box[1], box[2], box[3]
-                if st == IMAGE_BOX:
-                    row[4] = max(row[4], img[0] - POS_PAD)
-                    row[5] = min(row[5], img[1] + POS_PAD)
-                    row[6] = max(row[6], img[2] - POS_PAD)
-                    row[7] = min(row[7], img[3] + POS_PAD)
-                    if row[4] > row[5] or row[6] > row[7]:
-                        continue
-                    # UV box of the barycentric box (UV is affine in (uk, vk): extremes at the corners)
-                    for d in range(2):
-                        lo = np.inf
-                        hi = -np.inf
-                        for cu in range(2):
-                            for cv in range(2):
-                                uu = row[4 + cu]
-                                vv = row[6 + cv]
-                                x = UV[r, 0, d] + uu * (UV[r, 1, d] - UV[r, 0, d]) + vv * (UV[r, 2, d] - UV[r, 0, d])
-                                lo = min(lo, x)
-                                hi = max(hi, x)
-                        row[8 + 2 * d] = max(row[8 + 2 * d], lo - POS_PAD)
-                        row[9 + 2 * d] = min(row[9 + 2 * d], hi + POS_PAD)
-                c += 1
-        counts[i] = c
-
-
-# ---------------------------------------------------------------------------------------
 # bounds with a light point per caster / pair
 
 
@@ -580,18 +283,18 @@ def _cone_pairs(emitters, rec_p):
     c = np.ascontiguousarray(c)
     r = np.ascontiguousarray(r)
     if e.size and c.shape[0]:
-        _pairs_count(*arrays, c, r, count)
+        count_cone_pairs(*arrays, c, r, count)
     offset = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
     out = np.zeros(offset[-1], dtype=np.int64)
     if offset[-1]:
-        _pairs_fill(*arrays, c, r, offset[:-1].copy(), out)
+        fill_cone_pairs(*arrays, c, r, offset[:-1].copy(), out)
     return np.stack([np.repeat(np.arange(e.size, dtype=np.int64), count), out], axis=1)
 
 
 def one_bounce_bounds_points(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv, irradiance=False, irr_refine=2, pairs=None,
                              settings=None):
     """Position (and irradiance) bounds of every (caster, receiver triangle) pair with a light
-    point per caster (Fan et al. 2025 §4.2–4.4, eq 3–19, §6.1; chain1_fast's per-tuple engine):
+    point per caster (Fan et al. 2025 §4.2–4.4, eq 3–19, §6.1; ``one_bounce.batch``):
     ``x0`` (T, 3) or (3,), ``eta`` (T,) or scalar; ``pairs`` (m, 2) candidate (caster, receiver)
     pairs (default all).  Returns (tuples (m, 2), piece_start (m+1,), pieces, report) as
     ``cull.one_bounce_bounds``."""
@@ -619,9 +322,8 @@ def one_bounce_bounds_points(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv, irradi
             out = np.empty((n, capacity, PIECE_FIELDS))
             counts = np.zeros(n, dtype=np.int64)
             stats = np.zeros((n, 4), dtype=np.int64)
-            run_chunks(_one_chunk, (chain == "T", x0, P, N, Q, UV, float(e), pr, int(s["max_depth"]), float(s["sigma"]),
-                                    float(s["alpha"]), bool(irradiance), int(irr_refine), out, counts, stats), n,
-                       max(1, -(-n // 32)))
+            one_bounce_batch(chain == "T", x0, P, N, Q, UV, float(e), pr, int(s["max_depth"]), float(s["sigma"]),
+                             float(s["alpha"]), bool(irradiance), int(irr_refine), out, counts, stats, 32)
             keep = np.flatnonzero(counts > 0)
             kc = counts[keep]
             owner = np.repeat(keep, kc)
@@ -642,45 +344,18 @@ def bvh_pairs(chain, x0_first, P, N, eta_first, first, levels=1, refine=2, capac
     """The (t1, t2) pairs of §6.1 "Tuple construction" (``tuples.two_bounce_pairs``: BVH over
     ``P``, bounds of x1 and d̃1 per box of t1, eq 9–10 in affine arithmetic) with a light point
     x0_first[i] and IOR eta_first[i] per first triangle first[i].  Returns (m, 2) int64 sorted."""
-    from ..solver.geometry.bvh import build_bvh
-
     first = np.ascontiguousarray(first, dtype=np.int64)
-    n = first.shape[0]
-    if n == 0:
+    if first.shape[0] == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    P = np.ascontiguousarray(P, dtype=np.float64)
-    N = np.ascontiguousarray(N, dtype=np.float64)
-    bvh = build_bvh(P)
-    tree = (bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_count, bvh.node_start, bvh.order)
-    x0_first = _points(x0_first, n)
-    eta_first = np.ascontiguousarray(np.broadcast_to(np.asarray(eta_first, dtype=np.float64), (n,)))
-    refract = chain[0] == "T"
-    counts = np.zeros(n, dtype=np.int64)
-    stats = np.zeros((n, 2), dtype=np.int64)
-    out = np.full((n, capacity), -1, dtype=np.int64)
-    args = (refract, x0_first, P, N, eta_first, int(levels), int(refine))
-    run_chunks(_pairs_chunk, args + (first,) + tree + (out, counts, stats), n, 256)
-    kept = np.where(counts <= capacity, counts, 0)
-    firsts = [np.repeat(first, kept)]
-    seconds = [out[np.arange(capacity)[None, :] < kept[:, None]]]
-    over = np.flatnonzero(counts > capacity)
-    if over.size:  # the few first triangles with more second triangles than fit: again with room for all
-        big = int(counts[over].max())
-        out2 = np.full((over.size, big), -1, dtype=np.int64)
-        c2 = np.zeros(over.size, dtype=np.int64)
-        s2 = np.zeros((over.size, 2), dtype=np.int64)
-        args2 = (refract, np.ascontiguousarray(x0_first[over]), P, N, np.ascontiguousarray(eta_first[over]), int(levels), int(refine))
-        run_chunks(_pairs_chunk, args2 + (np.ascontiguousarray(first[over]),) + tree + (out2, c2, s2), over.size, 256)
-        firsts.append(np.repeat(first[over], c2))
-        seconds.append(out2[np.arange(big)[None, :] < c2[:, None]])
-    pairs = np.stack([np.concatenate(firsts), np.concatenate(seconds)], axis=1).astype(np.int64)
-    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    pairs, _ = two_bounce_pairs(chain, _points(x0_first, first.shape[0]), P, N, eta=eta_first, levels=levels, first=first,
+                                capacity=capacity, refine=refine)
+    return pairs.astype(np.int64)
 
 
 def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=None, settings=None):
     """Position bounds of two-bounce tuples (pair, receiver triangle) with a light point and an
     IOR per pair (Fan et al. 2025 §4.3, eq 3–13 with remainder variables; §6.1 subdivision), as
-    ``chain2.bound_two_bounce`` with engine "fast" and ``irradiance_two.receivers_reached``
+    ``two_bounce.bound_two_bounce`` and ``two_bounce_irradiance.receivers_reached``
     (depth ``reach_depth``) before it; then, with ``prune``, the irradiance pass (eq 14–16) drops
     the pieces it proves to hold no path and fills Ē, E̲.
 
@@ -733,7 +408,7 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
             mk = np.ascontiguousarray(mask[a:b], dtype=np.bool_)
         reach = np.zeros((m, nr, cells, cells), dtype=np.bool_)
         if m and nr:
-            run_chunks(_reach_chunk, (code, xs, P, N, Q, es, pr, mk, reach), m, 256)
+            run_chunks(reach_chunk, (code, xs, P, N, Q, es, pr, mk, reach), m, 256)
         alive = reach.any(axis=(2, 3))
         n_alive = alive.sum(axis=1).astype(np.int64)
         rep["reach_tuples"] += int(n_alive.sum())
@@ -744,7 +419,7 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
         counts = np.zeros(m, dtype=np.int64)
         stats = np.zeros((m, 4), dtype=np.int64)
         if row_start[-1]:
-            run_chunks(_two_chunk, (code, xs, P, N, Q, UV, es, pr, reach, n_alive, row_start, depth, float(s["sigma"]), rows,
+            run_chunks(pair_pieces_chunk, (code, xs, P, N, Q, UV, es, pr, reach, n_alive, row_start, depth, float(s["sigma"]), rows,
                                     counts, stats), m, 256)
         rep["box_evaluations"] += int(stats[:, 0].sum())
         rep["capacity_stops"] += int(stats[:, 3].sum())
@@ -758,7 +433,7 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
             t2 = time.perf_counter()
             pp = np.ascontiguousarray(pr[owner])
             istats = np.zeros((pieces.shape[0], 6), dtype=np.int64)
-            run_chunks(_irr_chunk, (code, np.ascontiguousarray(xs[owner]), P, N, Q, np.ascontiguousarray(es[owner]), pp,
+            run_chunks(irradiance_chunk, (code, np.ascontiguousarray(xs[owner]), P, N, Q, np.ascontiguousarray(es[owner]), pp,
                                     np.ascontiguousarray(receiver), pieces, int(s["irr_depth"]), float(s["irr_ratio"]), istats),
                        pieces.shape[0], 256)
             keep = ~((pieces[:, P_EHI] == 0.0) & (pieces[:, P_ELO] == 0.0))
@@ -770,7 +445,7 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
             k = split * split
             srows = np.empty((pieces.shape[0] * k, PIECE_FIELDS))
             scount = np.zeros(pieces.shape[0], dtype=np.int64)
-            run_chunks(_split_chunk, (code, xs, P, N, Q, UV, es, pr, np.ascontiguousarray(owner), np.ascontiguousarray(receiver),
+            run_chunks(split_pieces_chunk, (code, xs, P, N, Q, UV, es, pr, np.ascontiguousarray(owner), np.ascontiguousarray(receiver),
                                       pieces, split, srows, scount), pieces.shape[0], 256)
             within = np.arange(int(scount.sum())) - np.repeat(np.cumsum(scount) - scount, scount)
             idx = np.repeat(np.arange(pieces.shape[0]) * k, scount) + within
@@ -934,11 +609,11 @@ def reachable_first(chain, x0, tri_p1, tri_n1, eta1, rec_p, tri_p2=None, tri_n2=
     numpy in, numpy out.
 
     One bounce: the cone caps of ``cull.py`` per (triangle, receiver triangle) (its sphere as a
-    tile), then the Bernstein position bound of chain1 (Fan et al. 2025 §4.2–4.3, eq 3–13; the
+    tile), then the Bernstein position bound of ``one_bounce`` (Fan et al. 2025 §4.2–4.3, eq 3–13; the
     quadtree of §6.1 to ``max_depth`` 2 with σ = 0: a triangle stays when some piece's bound
     meets a receiver triangle).  Two bounces: the BVH pairs of §6.1 "Tuple construction"
     (bounds of x1 and d̃1, eq 9–10 in affine arithmetic), the reach grid of
-    ``irradiance_two.receivers_reached`` per (pair, receiver triangle) and the position quadtree
+    ``two_bounce_irradiance.receivers_reached`` per (pair, receiver triangle) and the position quadtree
     of §4.3 (eq 3–13, ``max_depth`` 1): a triangle stays when one of its pairs has a piece (no
     cone pairs: ``two_bounce_emitters`` costs O(T1 T2)).  ``use_bounds=False``: the cone tests
     of ``cull.py`` alone (one bounce: caps per (triangle, receiver triangle); two: the pairs of

@@ -505,7 +505,7 @@ def _cap_meets(dx, dy, dz, cx, cy, cz, theta, reach):
 
 
 @kernel(parallel=True)
-def _pairs_count(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, count):
+def count_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, count):
     for t in prange(side_req.shape[0]):
         c = 0
         for k in range(tile_c.shape[0]):
@@ -515,7 +515,7 @@ def _pairs_count(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, sid
 
 
 @kernel(parallel=True)
-def _pairs_fill(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, offset, out_tile):
+def fill_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, offset, out_tile):
     for t in prange(side_req.shape[0]):
         o = offset[t]
         for k in range(tile_c.shape[0]):
@@ -542,7 +542,7 @@ def _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, s
 
 
 @kernel(inline="always")
-def _sample_ok(t, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng):
+def sample_in_cones(t, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng):
     req = side_req[t]
     sd = ((pos[s, 0] - tri_p0[t, 0]) * tri_ng[t, 0] + (pos[s, 1] - tri_p0[t, 1]) * tri_ng[t, 1]
           + (pos[s, 2] - tri_p0[t, 2]) * tri_ng[t, 2])
@@ -568,7 +568,7 @@ def _emit_count(pair_tri, pair_tile, tile_start, order, part_start, part_c, part
         k = pair_tile[q]
         c = 0
         for z in range(tile_start[k], tile_start[k + 1]):
-            if _sample_ok(t, order[z], part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng):
+            if sample_in_cones(t, order[z], part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng):
                 c += 1
         count[q] = c
 
@@ -582,7 +582,7 @@ def _emit_fill(pair_tri, pair_tile, tile_start, order, part_start, part_c, part_
         o = offset[q]
         for z in range(tile_start[k], tile_start[k + 1]):
             s = order[z]
-            if _sample_ok(t, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng):
+            if sample_in_cones(t, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng):
                 out_tri[o] = t
                 out_sample[o] = s
                 o += 1
@@ -607,11 +607,11 @@ class TupleCull:
         count = np.zeros(T, dtype=np.int64)
         args = self.arrays + (self.tile_c, self.tile_r)
         if T and self.tile_c.shape[0]:
-            _pairs_count(*args, count)
+            count_cone_pairs(*args, count)
         offset = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
         self.pair_tile = np.zeros(offset[-1], dtype=np.int64)
         if offset[-1]:
-            _pairs_fill(*args, offset[:-1].copy(), self.pair_tile)
+            fill_cone_pairs(*args, offset[:-1].copy(), self.pair_tile)
         self.pair_tri = np.repeat(np.arange(T, dtype=np.int64), count)
         self.pair_size = np.diff(self.tile_start)[self.pair_tile] if self.pair_tile.size else np.zeros(0, dtype=np.int64)
 

@@ -9,7 +9,7 @@
 * γ-sampling on the two-bounce Ē and on the sun's bounds keeps the energy; at γ = ∞ the
   texture equals the cone cull's.
 * The per-pair kernels reproduce the engines' own drivers for one light point
-  (``tuples.two_bounce_pairs``, ``chain2.bound_two_bounce``): the same pairs and pieces.
+  (``tuples.two_bounce_pairs``, ``two_bounce.bound_two_bounce``): the same pairs and pieces.
 * ``reachable_first`` never drops a first-vertex triangle from which a forward-traced exact
   path (``bounds_scenes.forward_trace`` / ``forward_trace_two``, numpy, no solver) lands on a
   receiver, and drops some.
@@ -118,8 +118,8 @@ def test_bounded_selection_keeps_every_exact_path_with_fewer_pairs(name):
 
 def test_per_pair_kernels_reproduce_the_engines():
     """One light point: ``bvh_pairs`` = ``tuples.two_bounce_pairs`` and ``two_bounce_bounds_points``
-    (no pruning) = ``chain2.bound_two_bounce`` (no irradiance pass), piece for piece."""
-    from addon.solver.bounds.chain2 import bound_two_bounce
+    (no pruning) = ``two_bounce.bound_two_bounce`` (no irradiance pass), piece for piece."""
+    from addon.solver.bounds.two_bounce import bound_two_bounce
     from addon.solver.bounds.tuples import two_bounce_pairs
 
     sc = glass_sphere_scene(resolution=8, segments=12, rings=6)

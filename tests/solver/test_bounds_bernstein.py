@@ -161,8 +161,8 @@ def _interval_reflect_uk(x0, P, N, Q, lo, hi):
 @pytest.mark.slow
 def test_bernstein_position_bound_is_tighter_than_interval_arithmetic():
     """Same reflector pieces: width of the uk bound, Bernstein (eq 3, 9) vs interval arithmetic."""
-    from addon.solver.bounds import chain1 as C
     from fixtures.bounds_scenes import curved_plane
+    from reference import bounds_one_bounce as C
 
     P, N = curved_plane(4, 0.3)
     Q = np.array([[-40, -40, 3.0], [40, -40, 3.0], [-40, 40, 3.0]])

@@ -1,5 +1,5 @@
 """Two-bounce Bernstein bounds (Fan et al. 2025 §4.3 with remainder variables, §6.1 tuples) and
-the two-bounce irradiance bound (eq 14–16, ``irradiance_two``: affine arithmetic on the exact map).
+the two-bounce irradiance bound (eq 14–16, ``two_bounce_irradiance``: affine arithmetic on the exact map).
 
 * Tuple construction through the BVH keeps every (T1, T2) pair that an exact forward-traced
   path uses, on the paper's slab and ball meshes, with a tuple count near the authors'.
@@ -8,7 +8,7 @@ the two-bounce irradiance bound (eq 14–16, ``irradiance_two``: affine arithmet
   barycentrics and UV) and its irradiance (``path_irradiance``, an independent path-space
   computation) is <= the piece's Ē: zero violations; the bounds are tight (median width and
   median Ē/E asserted) and the share of paths under Ē = ∞ (focal, grazing) is capped.
-* The reach grid (``irradiance_two.receivers_reached``, the quadtree's root test) never drops
+* The reach grid (``two_bounce_irradiance.receivers_reached``, the quadtree's root test) never drops
   the cell of a traced path and proves most neighbour tuples on the slab empty; the affine √
   (Chebyshev form) encloses √x down to ranges that touch 0.
 * Convergence: on a small box the position bound approaches the exact image of the box, and
@@ -23,7 +23,9 @@ import numpy as np
 import pytest
 
 from fixtures import bounds_scenes as S
-from addon.solver.bounds.chain2 import bound_two_bounce, piece_position_two, CHAIN_CODES
+from addon.solver.bounds.layout import CHAIN_CODES, ior_ratio
+from addon.solver.bounds.two_bounce import bound_two_bounce
+from reference.bounds_two_bounce import piece_position_two
 from addon.solver.bounds.tuples import two_bounce_pairs
 
 
@@ -67,7 +69,7 @@ def test_reach_grid_keeps_every_traced_path_and_prunes(name, chain, n_first, mos
     """``receivers_reached`` (the root test of the position quadtree): the grid cell of every
     forward-traced exact path's (u1, v1) is reached for its pair and receiver; on the slab most
     (pair, receiver) tuples of neighbouring triangles are proven empty."""
-    from addon.solver.bounds.irradiance_two import receivers_reached
+    from addon.solver.bounds.two_bounce_irradiance import receivers_reached
 
     sc = _scene(name, chain)
     first = np.random.default_rng(8).choice(sc["caster_P"].shape[0], n_first, replace=False)
@@ -89,11 +91,11 @@ def test_reach_grid_keeps_every_traced_path_and_prunes(name, chain, n_first, mos
 
 
 def test_affine_sqrt_encloses_near_zero():
-    """The Chebyshev √ of ``irradiance_two`` contains √x at sampled points of random affine
+    """The Chebyshev √ of ``affine.aff_sqrt`` contains √x at sampled points of random affine
     forms whose range reaches down to 1e-9 of its top, and its total radius stays within
     5/4 of the exact range's half-width (the Taylor form's remainder grew without bound as the
     range approached 0)."""
-    import addon.solver.bounds.irradiance_two as I
+    import addon.solver.bounds.affine as A
 
     rng = np.random.default_rng(12)
     worst = 0.0
@@ -103,7 +105,7 @@ def test_affine_sqrt_encloses_near_zero():
         mid, half = 0.5 * (hi + lo), 0.5 * (hi - lo)
         wa, wb, _ = rng.dirichlet([1.0, 1.0, 1.0]) * half
         p = (mid, wa * rng.choice([-1, 1]), wb * rng.choice([-1, 1]), half - wa - wb)
-        c, a, b, r = I._asqrt(p)
+        c, a, b, r = A.aff_sqrt(p)
         du, dv, e = rng.uniform(-1, 1, (3, 200))
         x = p[0] + p[1] * du + p[2] * dv + p[3] * e
         err = np.abs(np.sqrt(x) - (c + a * du + b * dv))
@@ -143,7 +145,7 @@ def test_irradiance_bound_shrinks_onto_the_path_geometry_term():
     G = dΩ0/dA_k of the path computed independently (two_vertex's chained footprint, Fresnel
     left out), and Ē/E̲ < 1.01: the affine enclosure of eq 16 converges to the exact Jacobian."""
     from addon.solver import path_irradiance
-    from addon.solver.bounds.irradiance_two import piece_irradiance_two
+    from addon.solver.bounds.two_bounce_irradiance import piece_irradiance_two
 
     stats = np.zeros(6, dtype=np.int64)
     checked = 0
@@ -189,11 +191,12 @@ def _path_geometry(sc, chain, t1, t2, r, uv, uv2, buv):
 
 @pytest.mark.parametrize("name,chain", [("slab10k", "TT"), ("slab10k", "RT"), ("slab10k", "TR"), ("ball1280", "TT")])
 def test_implicit_last_vertex_bound_brackets_the_path_jacobian(name, chain):
-    """The implicit form at the last vertex (eq 17–19; ``irradiance_two``'s fallback where the
+    """The implicit form at the last vertex (eq 17–19; ``two_bounce_irradiance``'s fallback where the
     explicit Jacobian cannot be bounded) over a (u1, v1) box times a (uk, vk) box around a traced
     path brackets the path's |det ∂u1/∂uk| (from its independently computed geometry term), for
     boxes of 1e-2 and 1e-4, with both tangent vectors b."""
-    import addon.solver.bounds.irradiance_two as I
+    import addon.solver.bounds.affine as A
+    import addon.solver.bounds.two_bounce_irradiance as I
 
     sc = _scene(name, chain)
     n = sc["caster_P"].shape[0]
@@ -209,29 +212,29 @@ def test_implicit_last_vertex_bound_brackets_the_path_jacobian(name, chain):
         for w in (1e-2, 1e-4):
             box = np.array([uv[0] - w, uv[0] + w, uv[1] - w, uv[1] + w])
             e1, e2 = P1[1] - P1[0], P1[2] - P1[0]
-            x1 = tuple(I._daffine(P1[0, k], e1[k], e2[k], box) for k in range(3))
-            n1 = tuple(I._daffine(N1[0, k], N1[1, k] - N1[0, k], N1[2, k] - N1[0, k], box) for k in range(3))
-            d0 = tuple(I._daddc(x1[k], -x0[k]) for k in range(3))
+            x1 = tuple(A.dual_affine(P1[0, k], e1[k], e2[k], box) for k in range(3))
+            n1 = tuple(A.dual_affine(N1[0, k], N1[1, k] - N1[0, k], N1[2, k] - N1[0, k], box) for k in range(3))
+            d0 = tuple(A.dual_add_const(x1[k], -x0[k]) for k in range(3))
             ng1 = np.cross(e1, e2)
             o1 = np.sign((x0 - P1[0]) @ ng1) * np.sign(N1[0] @ ng1)  # the path's side (interpolated normals turn slowly)
-            st, dt1 = I._scatter(r1, o1, I._eta_ratio(o1, eta), n1, d0)
+            st, dt1 = I.scatter_dual(r1, o1, ior_ratio(o1, eta), n1, d0)
             if st != I.BOUNDED:
                 continue
-            st, u2, v2 = I._hit(x1, dt1, P2)
+            st, u2, v2 = I.hit_dual(x1, dt1, P2)
             if st != I.BOUNDED:
                 continue
             f1, f2, g1, g2 = P2[1] - P2[0], P2[2] - P2[0], N2[1] - N2[0], N2[2] - N2[0]
-            x2 = tuple(I._daddc(I._dadd(I._dscale(u2, f1[k]), I._dscale(v2, f2[k])), P2[0, k]) for k in range(3))
-            n2 = tuple(I._daddc(I._dadd(I._dscale(u2, g1[k]), I._dscale(v2, g2[k])), N2[0, k]) for k in range(3))
+            x2 = tuple(A.dual_add_const(A.dual_add(A.dual_scale(u2, f1[k]), A.dual_scale(v2, f2[k])), P2[0, k]) for k in range(3))
+            n2 = tuple(A.dual_add_const(A.dual_add(A.dual_scale(u2, g1[k]), A.dual_scale(v2, g2[k])), N2[0, k]) for k in range(3))
             ng2 = np.cross(f1, f2)
             o2 = -np.sign(sum(dt1[k][0][0] * ng2[k] for k in range(3))) * np.sign(N2[0] @ ng2)
-            eta_f = 1.0 / I._eta_ratio(o2, eta) if r2 else 1.0
+            eta_f = 1.0 / ior_ratio(o2, eta) if r2 else 1.0
             t_a = f1 / np.linalg.norm(f1)
             t_b = np.cross(ng2, t_a)
             t_b /= np.linalg.norm(t_b)
             rbox = np.array([buv[0] - 30 * w, buv[0] + 30 * w, buv[1] - 30 * w, buv[1] + 30 * w])
             for b in (t_a, t_b):
-                lo, hi = I._implicit_last_vertex(dt1, n2, x2, Q, rbox, eta_f, b)
+                lo, hi = I.implicit_last_vertex(dt1, n2, x2, Q, rbox, eta_f, b)
                 if not np.isfinite(hi):
                     continue
                 finite += 1
@@ -254,7 +257,7 @@ def test_irradiance_bound_flat_slab_analytic():
     boxes of triangle 1 around the analytic entry point, every corner's analytic irradiance lies
     in [E̲, Ē], and the bound is tight (Ē within 1 + 60 × the box's half-width in barycentrics of
     the analytic maximum over the box, E̲ of the minimum)."""
-    from addon.solver.bounds.irradiance_two import piece_irradiance_two
+    from addon.solver.bounds.two_bounce_irradiance import piece_irradiance_two
 
     eta, t, h0, h3 = 1.5, 0.7, 2.0, 1.3
     big = 20.0
@@ -293,7 +296,7 @@ def test_irradiance_bound_flat_slab_analytic():
 def test_irradiance_bound_degenerate_inputs_never_nan():
     """Zero-area triangles, a light in the first triangle's plane, coincident triangles, NaN-free
     grazing boxes: the bound is a number (0, finite or inf), never NaN, and no crash."""
-    from addon.solver.bounds.irradiance_two import piece_irradiance_two
+    from addon.solver.bounds.two_bounce_irradiance import piece_irradiance_two
 
     stats = np.zeros(6, dtype=np.int64)
     rng = np.random.default_rng(9)
@@ -354,9 +357,9 @@ def test_position_bound_converges_to_the_image_of_a_small_box():
 
 def test_remainder_endpoint_bound_contains_the_function_of_the_remainder_variable():
     """pu/q with pu = (1-ξ) p0 + ξ p1, q likewise: eq 3 over the ξ = 0 and ξ = 1 coefficient sets
-    together (chain2's handling of ξ2) bounds it over the 5-variable box."""
-    from addon.solver.polynomials.bernstein import _bound_of_coefficients, evaluate, power_to_bernstein
-    from addon.solver.bounds.chain2 import _flat_common
+    together (the position engines' handling of ξ2) bounds it over the 5-variable box."""
+    from addon.solver.polynomials.bernstein import bound_of_coefficients, evaluate, power_to_bernstein
+    from reference.bounds_two_bounce import _flat_common
 
     rng = np.random.default_rng(11)
     for _ in range(20):
@@ -365,7 +368,7 @@ def test_remainder_endpoint_bound_contains_the_function_of_the_remainder_variabl
         q0 = power_to_bernstein(np.abs(rng.normal(size=(2, 2, 1, 1))) + 0.5)
         q1 = power_to_bernstein(np.abs(rng.normal(size=(2, 2, 1, 1))) + 0.5)
         fp, _, fq = _flat_common(p0, p0, q0, p1, p1, q1)
-        lo, hi, lo2, hi2 = _bound_of_coefficients(fp, fq)
+        lo, hi, lo2, hi2 = bound_of_coefficients(fp, fq)
         assert lo2 > hi2  # q has one sign: a single interval
         x = rng.random((400, 5))
         vals = []
@@ -383,20 +386,23 @@ def test_remainder_endpoint_bound_contains_the_function_of_the_remainder_variabl
 @pytest.mark.parametrize("name,chain,n_first", [("slab10k", "TT", 40), ("slab10k", "RR", 40), ("slab10k", "RT", 40),
                                                  ("slab10k", "TR", 40), ("ball80", "TT", 80)])
 def test_fast_engine_gives_the_reference_pieces(name, chain, n_first):
-    """chain2_fast (the default engine) against chain2's own functions: the same tuples and pieces
+    """The production engine (``two_bounce_position``) against the reference engine
+    (tests/reference/bounds_two_bounce.py): the same tuples and pieces
     (boxes, depths, receivers); position bounds equal up to rounding (the fast engine
     re-associates eq 9 and works in scaled Bernstein form), except where rounding flips the sign
     of a near-zero numerator coefficient in the reciprocal case of eq 3 (one piece of ball80 TT):
     there the fast bound is the wider one.  Never narrower than the reference's."""
-    from addon.solver.bounds.chain1 import P_BU0, P_BU1, P_BV0, P_BV1, P_X0, P_X1, P_Y0, P_Y1
+    from addon.solver.bounds.layout import P_BU0, P_BU1, P_BV0, P_BV1, P_X0, P_X1, P_Y0, P_Y1
 
     sc = _scene(name, chain)
     first = np.random.default_rng(8).choice(sc["caster_P"].shape[0], n_first, replace=False)
     pairs, _ = two_bounce_pairs(chain, sc["light"], sc["caster_P"], sc["caster_N"], sc["eta"], first=first)
+    from reference.bounds_two_bounce import batch as reference_batch
+
     res = {}
-    for engine in ("reference", "fast"):
+    for engine, batch in (("reference", reference_batch), ("fast", None)):
         res[engine] = bound_two_bounce(chain, sc["light"], sc["caster_P"], sc["caster_N"], sc["receiver_P"], sc["receiver_UV"],
-                                       eta=sc["eta"], pairs=pairs, max_depth=2 if name.startswith("ball") else 1, engine=engine,
+                                       eta=sc["eta"], pairs=pairs, max_depth=2 if name.startswith("ball") else 1, engine=batch,
                                        irradiance=False)  # the position engines alone
     a, b = res["reference"], res["fast"]
     assert a.tuples.shape[0] > 20

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from fixtures import bounds_scenes as S
-from addon.solver.bounds.chain1 import bound_one_bounce
+from addon.solver.bounds.one_bounce import bound_one_bounce
 
 TOTAL = {}
 
@@ -60,8 +60,8 @@ def test_pool4k_water():
 def test_ball1280_glass_ball_two_bounce():
     """The glass ball (1,280 triangles, interpolated normals) over the floor, TT through both
     surfaces: every (T1, T2) pair from the BVH, position bounds (max depth 1) and the two-bounce
-    irradiance bound (``irradiance_two``); 96 forward-traced paths per first triangle."""
-    from addon.solver.bounds.chain2 import bound_two_bounce
+    irradiance bound (``two_bounce_irradiance``); 96 forward-traced paths per first triangle."""
+    from addon.solver.bounds.two_bounce import bound_two_bounce
     from addon.solver.bounds.tuples import two_bounce_pairs
 
     sc = S.scene("ball1280")
@@ -91,14 +91,14 @@ def test_total_paths_at_least_100k():
 
 @pytest.mark.slow
 def test_fast_refraction_irradiance_matches_reference_engine():
-    """chain1_fast builds the implicit refraction bound (eq 17–19) from 2-D products per monomial
-    of the (uk, vk) box coordinates; chain1 builds the same polynomials as tensor 4-D products.
+    """The production engine builds the implicit refraction bound (eq 17–19) from 2-D products per monomial
+    of the (uk, vk) box coordinates; the reference engine builds the same polynomials as tensor 4-D products.
     Same polynomials: the same Ē, E̲ up to rounding, except where the reference drops a degree
     (a gradient component that is exactly 0: this caster's grid-aligned edges) and the fast
     engine bounds the same polynomial at the generic, higher degree, which is at least as tight
     (degree elevation averages coefficients)."""
-    from addon.solver.bounds.chain1 import piece_irradiance_refract, piece_position
-    from addon.solver.bounds.chain1_fast import eval_box
+    from reference.bounds_one_bounce import piece_irradiance_refract, piece_position
+    from addon.solver.bounds.one_bounce import eval_box
 
     P, N = S.curved_plane(3, 0.3)  # water-like caster facing +z, light above, receiver plane z = -2 below
     RP = np.array([[[-4, -4, -2.0], [4, -4, -2.0], [4, 4, -2.0]], [[-4, -4, -2.0], [4, 4, -2.0], [-4, 4, -2.0]]])

@@ -1,18 +1,17 @@
 """Tuple construction of two-bounce chains through a BVH (Fan et al. 2025 §6.1).
 
 For each first triangle T1 the bound of x1 and of the outgoing direction d̃1 is taken over the
-sub-boxes of a quadtree of T1's domain (``irradiance_two.first_bounce_rays``: the exact map
+sub-boxes of a quadtree of T1's domain (``two_bounce_irradiance.first_bounce_rays``: the exact map
 x1 -> d̃1 of eq 10 in affine arithmetic, √β by its Chebyshev enclosure).  A BVH over the caster
 triangles is then traversed and a node (or triangle) is kept while the interval bound of
 (x2 - x1) × d̃1 covers zero in every component and (x2 - x1)·d̃1 can be positive, with x2 in
 the node's box: a path x1 -> x2 along d̃1 needs x2 - x1 = t d̃1 with t > 0.  A candidate T2
 becomes a tuple when light leaving some sub-box can meet T2 forwards and inside it
-(``irradiance_two.first_bounce_reaches``: eq 9 in affine arithmetic, sub-boxes refined up to
+(``two_bounce_irradiance.first_bounce_reaches``: eq 9 in affine arithmetic, sub-boxes refined up to
 ``refine`` levels where undecided).  Both tests are conservative, so every tuple with a path is
 kept.  The work per T1 is a BVH traversal, so tuples grow with the triangles reached, not with
-the square of the mesh.  (The affine tests replaced chain1's Bernstein position bound here:
-fewer pairs — slab10k TT 146,217 -> 144,757, ball1280 13,823 -> 10,553 — in a third of the
-time, and ~5 s less compilation, as they share irradiance_two's compiled kernels.)
+the square of the mesh.  Tested in tests/solver/test_bounds_two_bounce.py (every pair with an
+exact path is kept).
 """
 
 import time
@@ -20,8 +19,8 @@ import time
 import numpy as np
 
 from ..geometry.bvh import build_bvh
-from ..runtime.jit import kernel
-from .irradiance_two import first_bounce_reaches, first_bounce_rays
+from ..runtime.jit import kernel, run_chunks
+from .two_bounce_irradiance import first_bounce_reaches, first_bounce_rays
 
 
 @kernel(inline="always")
@@ -143,20 +142,20 @@ def _pairs_of(t1, refract, x0, P, N, eta, levels, refine, node_min, node_max, no
 
 
 @kernel
-def _pairs_chunk(refract, x0, P, N, eta, levels, refine, first, node_min, node_max, node_child, node_count, node_start, order, out, counts, stats,
-                 start, stop):
+def pairs_chunk(refract, x0, P, N, eta, levels, refine, first, node_min, node_max, node_child, node_count, node_start, order, out,
+                counts, stats, start, stop):
+    """Second triangles of first triangles first[start:stop] (``_pairs_of``), first[i] lit from
+    x0[i] through IOR eta[i]."""
     for i in range(start, stop):
-        counts[i] = _pairs_of(first[i], refract, x0, P, N, eta, levels, refine, node_min, node_max, node_child, node_count, node_start,
-                              order, out[i], stats[i])
+        counts[i] = _pairs_of(first[i], refract, x0[i], P, N, eta[i], levels, refine, node_min, node_max, node_child, node_count,
+                              node_start, order, out[i], stats[i])
 
 
 def _all_pairs(refract, x0, P, N, eta, levels, refine, first, node_min, node_max, node_child, node_count, node_start, order, out, counts, stats,
                chunks=256):
     """``_pairs_of`` for every first triangle, in about ``chunks`` chunks on Python threads
     (``jit.run_chunks``: ``_pairs_chunk`` releases the GIL)."""
-    from ..runtime.jit import run_chunks
-
-    run_chunks(_pairs_chunk, (refract, x0, P, N, eta, levels, refine, first, node_min, node_max, node_child, node_count, node_start,
+    run_chunks(pairs_chunk, (refract, x0, P, N, eta, levels, refine, first, node_min, node_max, node_child, node_count, node_start,
                               order, out, counts, stats), first.shape[0], chunks)
 
 
@@ -166,28 +165,32 @@ def two_bounce_pairs(chain, light, caster_P, caster_N, eta=1.5, levels=1, first=
     chain: "RR", "RT", "TR" or "TT" (only the first letter matters here: how light leaves T1);
     levels: T1's domain is cut into the boxes of a quadtree this deep (bounds of x1 and d̃1 per
     box); refine: most extra quadtree levels of a box's hit test on T2; first: the T1 indices to
-    extend (default all).  Returns (pairs (m,2) int64, report)."""
+    extend (default all); light (3,) or one point per entry of ``first`` (the sun's far points in
+    the bake), eta a scalar or one IOR per entry of ``first``.  Returns (pairs (m,2) int64, sorted,
+    report)."""
     t0 = time.perf_counter()
-    light = np.ascontiguousarray(light, dtype=np.float64).reshape(3)
     P = np.ascontiguousarray(caster_P, dtype=np.float64)
     N = np.ascontiguousarray(caster_N, dtype=np.float64)
     first = np.arange(P.shape[0], dtype=np.int64) if first is None else np.ascontiguousarray(first, dtype=np.int64)
+    nf = first.shape[0]
+    light = np.ascontiguousarray(np.broadcast_to(np.asarray(light, dtype=np.float64).reshape(-1, 3), (nf, 3)))
+    eta = np.ascontiguousarray(np.broadcast_to(np.asarray(eta, dtype=np.float64), (nf,)))
     bvh = build_bvh(P)
     t1 = time.perf_counter()
     refract = chain[0] == "T"
     counts = np.zeros(first.shape[0], dtype=np.int64)
     stats = np.zeros((first.shape[0], 2), dtype=np.int64)
     out = np.full((first.shape[0], capacity), -1, dtype=np.int64)
-    args = (refract, light, P, N, float(eta), int(levels), int(refine))
     tree = (bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_count, bvh.node_start, bvh.order)
-    _all_pairs(*args, first, *tree, out, counts, stats)
+    _all_pairs(refract, light, P, N, eta, int(levels), int(refine), first, *tree, out, counts, stats)
     over = np.flatnonzero(counts > capacity)
     if over.size:  # the few T1 with more second triangles than fit: again with room for all
         big = int(counts[over].max())
         out2 = np.full((over.size, big), -1, dtype=np.int64)
         c2 = np.zeros(over.size, dtype=np.int64)
         s2 = np.zeros((over.size, 2), dtype=np.int64)
-        _all_pairs(*args, first[over], *tree, out2, c2, s2)
+        _all_pairs(refract, np.ascontiguousarray(light[over]), P, N, np.ascontiguousarray(eta[over]), int(levels), int(refine),
+                   np.ascontiguousarray(first[over]), *tree, out2, c2, s2)
     t2 = time.perf_counter()
     small = counts <= capacity
     kept = np.where(small, counts, 0)

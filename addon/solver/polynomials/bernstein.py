@@ -6,7 +6,7 @@ variables have degree 0 (extent 1).  The box itself is not stored: every functio
 the unit box of the local coordinates, and callers that differentiate pass the box widths.
 
 Everything is Numba (``kernel``: cached, nopython) so that the per-piece bound code in
-``chain1.py`` can call it without Python overhead.  Results are fresh arrays; inputs are never
+the bounds engines can call it without Python overhead.  Results are fresh arrays; inputs are never
 modified.  The range property used throughout is
 
     min_i b_i(p) / b_i(q) <= p(x)/q(x) <= max_i b_i(p) / b_i(q)     (eq 3)
@@ -48,7 +48,7 @@ def _split(shape, dim):
 
 
 @kernel
-def _with_extent(shape, dim, k):
+def with_extent(shape, dim, k):
     return (k if dim == 0 else shape[0], k if dim == 1 else shape[1], k if dim == 2 else shape[2], k if dim == 3 else shape[3])
 
 
@@ -104,7 +104,7 @@ def elevate(a, shape):
                 for p in range(pre):
                     for q in range(post):
                         res[p, k, q] += w * src[p, i, q]
-        out = res.reshape(_with_extent(out.shape, dim, n1))
+        out = res.reshape(with_extent(out.shape, dim, n1))
     if out is a:
         return a.copy()
     return out
@@ -356,11 +356,11 @@ def rational_bound(p, q):
     p and q are first elevated to a common degree.
     """
     pp, qq = _common(p, q)
-    return _bound_of_coefficients(pp, qq)
+    return bound_of_coefficients(pp, qq)
 
 
 @kernel
-def _bound_of_coefficients(pp, qq):
+def bound_of_coefficients(pp, qq):
     """The three cases of ``rational_bound`` on coefficient arrays of one shape."""
     ok, lo, hi = _ratio_range(pp, qq)
     if ok:

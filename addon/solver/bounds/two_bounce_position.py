@@ -1,13 +1,13 @@
-"""Fast engine of the two-bounce position bounds (Fan et al. 2025 §4.2–4.3, eq 3–13; §6.1): the
-maths of ``chain2.py`` (the readable reference, whose module doc this follows step by step)
-without allocation per box and with the receiver-independent work done once per box.
+"""Two-bounce position bounds (Fan et al. 2025 §4.2–4.3, eq 3–13; §6.1): the production engine.
 
-Steps 1–2 (vertex 1 -> triangle 2 and the affine forms with remainder of (u2, v2)) are the
-reference's own ``chain2._stage_one``, so the forms are bit-identical.  (Keeping x1, d̃1 per
-box of triangle 1 across its pairs saved 10 % of the bound but cost more compilation than that
-on a cold slab10k run.)  Step 3 (vertex 2 -> the receivers) runs here on a per-thread workspace.
+The readable reference engine, whose module doc this follows step by step, is
+tests/reference/bounds_two_bounce.py; this engine computes the same bounds without allocation
+per box and with the receiver-independent work done once per box.  Steps 1–2 (vertex 1 ->
+triangle 2 and the affine forms with remainder of (u2, v2)) are :func:`stage_one`, shared with
+the reference, so the forms are bit-identical.  Step 3 (vertex 2 -> the receivers) runs on a
+per-thread workspace.
 
-Representation (as ``chain1_fast``): a polynomial is a row ("slot") of the workspace W holding
+Representation (as ``slot_algebra``): a polynomial is a row ("slot") of the workspace W holding
 its *scaled* Bernstein coefficients c_i = b_i Π C(n_d, i_d) in C order, its extents (degree + 1
 per variable) in the matching row of E.  In scaled form the Bernstein product is a plain
 convolution (Farouki 2012), degree elevation by r a convolution with the binomial row C(r, ·)
@@ -36,14 +36,12 @@ then one of the two engines returns the unbounded (clipped, wider) interval.
 
 import numpy as np
 
-from ..runtime.jit import kernel
+from ..runtime.jit import kernel, run_chunks
 from ..polynomials.bernstein import BINOM, clip_hull, sqrt_linearisation
-from .chain1 import P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, PIECE_FIELDS, POS_PAD, orientation_mask, push_children
-from .chain1_fast import ratio_bound
-from .chain2 import _stage_one
-from .irradiance_two import box_reached
-
-P_RECEIVER = PIECE_FIELDS  # extra column of the pair-level rows (as chain2.P_RECEIVER)
+from .layout import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_RECEIVER, P_U0, P_U1, P_V0, P_V1, POS_PAD, ior_ratio, orientation_mask,
+                     push_children)
+from .slot_algebra import ratio_bound
+from .two_bounce_irradiance import box_reached, first_bounce_forms
 
 MAXC4 = 7 * 7 * 7 * 7  # largest polynomial: the vertex-2 numerators, degree 6 in each of (u1, v1, ξa, ξb)
 WIDTH = 2 * MAXC4      # slot width: the two coefficient sets (ξ2 = 0 and 1) of one receiver numerator
@@ -313,7 +311,7 @@ def _add_constant(W, E, s, c):
 
 @kernel
 def _orientations_one(x0, P, N, lo, hi):
-    """``chain1._orientations`` on the box (same arithmetic on the four corner coefficients)."""
+    """The reference engine's ``_orientations`` on the box (same arithmetic on the four corner coefficients)."""
     e1 = P[1] - P[0]
     e2 = P[2] - P[0]
     ng0 = e1[1] * e2[2] - e1[2] * e2[1]
@@ -340,11 +338,6 @@ def _orientations_one(x0, P, N, lo, hi):
     if nlo < 0.0:
         mask |= 2 if s > 0.0 else 1
     return mask
-
-
-@kernel
-def _eta_ratio(o, eta):
-    return 1.0 / eta if o > 0.0 else eta
 
 
 @kernel
@@ -409,7 +402,7 @@ def _one_signed(a, n):
 
 @kernel
 def _receiver_bound(W, pu, pv, q, n, UV, res):
-    """``chain1.receiver_box`` on the coefficient sets W[pu][:n], W[pv][:n], W[q][:n] of one degree.  When q has one sign, eq 3 of uk = pu/q,
+    """The reference engine's ``receiver_box`` on the coefficient sets W[pu][:n], W[pv][:n], W[q][:n] of one degree.  When q has one sign, eq 3 of uk = pu/q,
     vk = pv/q, 1 - uk - vk and of the UV coordinates (affine in uk, vk) is read from the
     quotients pu/q and pv/q; otherwise each numerator goes through ``ratio_bound`` (the
     reciprocal and unbounded cases of §4.1)."""
@@ -489,7 +482,7 @@ def _receiver_bound(W, pu, pv, q, n, UV, res):
 
 @kernel
 def _vertex_two(W, E, P1, P2, N2, origin, fu, fv, lo4, hi4):
-    """``chain2._vertex_two``: x2 - O2, n2 (eq 6–7) and d1 = x2 - x1 (eq 8), affine in
+    """The reference engine's ``_vertex_two``: x2 - O2, n2 (eq 6–7) and d1 = x2 - x1 (eq 8), affine in
     (u1, v1, ξa, ξb), with the reference's coefficients."""
     e1 = P2[1] - P2[0]
     e2 = P2[2] - P2[0]
@@ -511,7 +504,7 @@ def _vertex_two(W, E, P1, P2, N2, origin, fu, fv, lo4, hi4):
 
 @kernel
 def _orientations_two(W, E, P1, P2, lo, hi):
-    """``chain2._orientations_two`` from n2's slots (the sign of (x1 - p2_0)·ng2 at the box
+    """The reference engine's ``_orientations_two`` from n2's slots (the sign of (x1 - p2_0)·ng2 at the box
     corners times the sign range of n2·ng2's coefficients)."""
     e1 = P2[1] - P2[0]
     e2 = P2[2] - P2[0]
@@ -558,7 +551,7 @@ def _orientations_two(W, E, P1, P2, lo, hi):
 
 @kernel
 def _directions_two(W, E, refract, o, eta_ratio):
-    """``chain2._directions_two``: d̃2 at ξ2 = 0 in slots S2_DT.. (eq 10; refraction with
+    """The reference engine's ``_directions_two``: d̃2 at ξ2 = 0 in slots S2_DT.. (eq 10; refraction with
     √β2 -> aβ2 + b + δ_lo, eq 12–13) and the scale s of the ξ2 direction m = s n2.  Returns
     (ok, has_m, s); ok = False where β2 < 0 on the whole box (total internal reflection).
 
@@ -606,10 +599,20 @@ def _directions_two(W, E, refract, o, eta_ratio):
 
 
 @kernel
+def stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
+    """Steps 1–2 (vertex 1 -> triangle 2) for orientation o1 at vertex 1: the forms with remainder of
+    (u2, v2) in fu, fv (``two_bounce_irradiance.first_bounce_forms``).  Returns False when the light
+    of the box misses triangle 2."""
+    box = np.empty(4)
+    box[0], box[1], box[2], box[3] = lo[0], hi[0], lo[1], hi[1]
+    return first_bounce_forms(refract1, o1, x0, P1, N1, P2, eta, box, fu, fv, stats)
+
+
+@kernel
 def _box_bounds(W, E, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, found,
                 stats):
-    """``chain2._box_bounds`` (same outputs: out[r, 0:8] and found[r] for every receiver r with
-    alive[r]): steps 1–2 by the reference (``chain2._stage_one``), the products of step 3 once
+    """The reference engine's ``_box_bounds`` (same outputs: out[r, 0:8] and found[r] for every receiver r with
+    alive[r]): steps 1–2 by the reference (:func:`stage_one`), the products of step 3 once
     for all receivers, then eq 9 and eq 3 per receiver."""
     for r in range(Q.shape[0]):
         found[r] = False
@@ -625,7 +628,6 @@ def _box_bounds(W, E, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi,
         return
     fu = np.zeros(4)
     fv = np.zeros(4)
-    box = np.empty(4)
     res = np.zeros(8)
     origin2 = Q[0, 0]
     reached = False
@@ -635,7 +637,7 @@ def _box_bounds(W, E, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi,
         if not refract1 and v1 == 1 and (mask1 & 1):
             continue  # reflection does not depend on the normal's sign
         o1 = 1.0 if v1 == 0 else -1.0
-        if not _stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
+        if not stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
             continue
         reached = True
         _vertex_two(W, E, P1, P2, N2, origin2, fu, fv, lo4, hi4)
@@ -646,7 +648,7 @@ def _box_bounds(W, E, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi,
             if not refract2 and v2 == 1 and (mask2 & 1):
                 continue
             o2 = 1.0 if v2 == 0 else -1.0
-            ok, has_m, s = _directions_two(W, E, refract2, o2, _eta_ratio(o2, eta))
+            ok, has_m, s = _directions_two(W, E, refract2, o2, ior_ratio(o2, eta))
             if not ok:
                 continue
             # the products of eq 9 shared by every receiver, at the common degree; ξ2 = 1: eq 9 is
@@ -697,11 +699,15 @@ def _box_bounds(W, E, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi,
 
 
 @kernel
-def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out, counts, stats, start, stop):
-    """``chain2.pair_pieces_two`` (the pair-level quadtree of every receiver, §6.1 stopping rules)
-    for pairs start..stop-1 on one workspace (one function: every level of calls above the
-    polynomial kernels costs compilation); a box lives for receiver r while
-    ``box_reached(reach[t, r], ...)`` (``irradiance_two.receivers_reached``)."""
+def pair_pieces_chunk(chain_code, x0, P, N, Q, UV, eta, pairs, reach, per_box, row_start, max_depth, sigma, rows, counts, stats,
+               start, stop):
+    """The pair-level position quadtree of every receiver (§6.1 stopping rules, eq 3–13) for
+    pairs start..stop-1 on one workspace (one function: every level of calls above the
+    polynomial kernels costs compilation), pair t lit from x0[t] through IOR eta[t]; a box
+    lives for receiver r while ``box_reached(reach[t, r], ...)``
+    (``two_bounce_irradiance.receivers_reached``).  Pair t's rows go to
+    rows[row_start[t]:row_start[t+1]]; one box emits at most per_box[t] rows (the receivers it
+    can reach), and a box is split only while the rows of the pending boxes still fit."""
     nr = Q.shape[0]
     W, E = workspace()
     size = 4 * (max_depth + 2)
@@ -714,10 +720,13 @@ def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out
     lo = np.zeros(2)
     hi = np.zeros(2)
     for t in range(start, stop):
+        counts[t] = 0
+        r0 = row_start[t]
+        cap = row_start[t + 1] - r0
+        if cap == 0:
+            continue
         a = pairs[t, 0]
         b = pairs[t, 1]
-        rows = out[t]
-        cap = rows.shape[0]
         stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0.0, 1.0, 0.0, 1.0, 0.0
         alive[0, :] = True
         top = 1
@@ -733,8 +742,8 @@ def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out
             if not any_alive:
                 continue
             stats[t, 0] += 1
-            _box_bounds(W, E, chain_code, x0, P[a], N[a], P[b], N[b], Q, UV, node_alive, eta, lo, hi, pos, found, stats[t])
-            can_split = depth < max_depth and count + (top + 4) * nr <= cap
+            _box_bounds(W, E, chain_code, x0[t], P[a], N[a], P[b], N[b], Q, UV, node_alive, eta[t], lo, hi, pos, found, stats[t])
+            can_split = depth < max_depth and count + (top + 4) * per_box[t] <= cap
             any_child = False
             for r in range(nr):
                 child[r] = False
@@ -747,7 +756,7 @@ def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out
                     continue
                 if depth < max_depth and area >= sigma:
                     stats[t, 3] += 1
-                row = rows[count]
+                row = rows[r0 + count]
                 row[P_U0], row[P_U1], row[P_V0], row[P_V1] = lo[0], hi[0], lo[1], hi[1]
                 for k in range(8):
                     row[P_BU0 + k] = pos[r, k]
@@ -764,19 +773,17 @@ def _chunk(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out
         counts[t] = count
 
 
-def batch_fast(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out, counts, stats, chunks=256):
-    """Every pair (rows of ``pairs``; reach[t, r]: receiver r's reach grid), in about
-    ``chunks`` chunks on Python threads (``jit.run_chunks``: ``_chunk`` releases the GIL; a
+def batch(chain_code, x0, P, N, Q, UV, eta, pairs, reach, per_box, row_start, max_depth, sigma, rows, counts, stats, chunks=256):
+    """Every pair (rows of ``pairs``; :func:`pair_pieces_chunk`'s arguments), in about ``chunks``
+    chunks on Python threads (``jit.run_chunks``: the chunk kernel releases the GIL; a
     ``parallel=True`` wrapper took about 14 s to compile)."""
-    from ..runtime.jit import run_chunks
-
-    run_chunks(_chunk, (chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out, counts, stats), pairs.shape[0],
-               chunks)
+    run_chunks(pair_pieces_chunk, (chain_code, x0, P, N, Q, UV, eta, pairs, reach, per_box, row_start, max_depth, sigma, rows,
+                                   counts, stats), pairs.shape[0], chunks)
 
 
 @kernel
 def box_bounds_one(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, lo, hi, out, found, stats):
-    """One box of one pair for every receiver (tests): as ``chain2._box_bounds`` with all alive."""
+    """One box of one pair for every receiver (tests): ``_box_bounds`` with every receiver alive."""
     W, E = workspace()
     alive = np.ones(Q.shape[0], dtype=np.bool_)
     _box_bounds(W, E, chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, found, stats)

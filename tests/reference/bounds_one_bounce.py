@@ -1,4 +1,9 @@
-"""Position and irradiance bounds of one-bounce chains (R, T) from a point light (Fan et al. 2025).
+"""Reference engine of the one-bounce Bernstein bounds (Fan et al. 2025): readable, allocating.
+
+The production engine is ``addon.solver.bounds.one_bounce`` (same maths, no allocation per
+piece); the tests run both and compare (tests/solver/test_bounds_validity.py,
+test_bounds_bernstein.py).  :func:`batch` has the production driver's signature, so
+``bound_one_bounce(..., engine=batch)`` gives this engine's pieces.
 
 For a tuple (light x0, caster triangle 1, receiver triangle k) and a box U1 of the caster's
 barycentrics (u1, v1), a *piece* gets
@@ -37,26 +42,14 @@ the ~40 where the paper reduces degree, so no degree reduction is needed for one
 """
 
 import math
-import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..runtime.jit import kernel, prange
-from ..polynomials.bernstein import (_bound_of_coefficients, abs_lower, abs_upper, affine, affine_map, clip_hull,
+from addon.solver.bounds.layout import (IRR_PAD, MIN_WIDTH, P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, POS_PAD, ior_ratio,
+                                        push_children)
+from addon.solver.runtime.jit import kernel, prange
+from addon.solver.polynomials.bernstein import (bound_of_coefficients, abs_lower, abs_upper, affine, affine_map, clip_hull,
                                      coef_range, deriv, elevate, lincomb, mul, rational_bound, sqrt_linearisation, sub)
-
-# Piece record layout (one row of ``pieces``).
-P_U0, P_U1, P_V0, P_V1 = 0, 1, 2, 3          # caster (u1, v1) box
-P_BU0, P_BU1, P_BV0, P_BV1 = 4, 5, 6, 7      # receiver barycentric (uk, vk) bound
-P_X0, P_X1, P_Y0, P_Y1 = 8, 9, 10, 11        # receiver UV texture-space bound
-P_EHI, P_ELO, P_DEPTH = 12, 13, 14           # irradiance bound Ē, lower bound E̲, depth
-PIECE_FIELDS = 15
-N_STATS = 4  # position evaluations, irradiance evaluations, unbounded-irradiance leaves, capacity stops
-
-POS_PAD = 1e-9  # absolute outward padding of barycentric / UV bounds (rounding of the coefficients)
-IRR_PAD = 1e-9  # relative padding of the irradiance bound
-
 
 @kernel(inline="always")
 def _d3(a, b):
@@ -77,7 +70,6 @@ def _n3(a):
     return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
 
 
-MIN_WIDTH = 1e-6  # smallest (uk, vk) box side used in the implicit irradiance bound (enlarged, so still conservative)
 
 
 @kernel
@@ -143,7 +135,7 @@ def _caster(x0, P, N, lo, hi):
 @kernel
 def _orientations(x0, P, N, lo, hi):
     """Which signs o of the shading normal turned to the incoming side (n_o = o n) occur on
-    the box: bit 1 for +1, bit 2 for -1 (CONTRACT.md: s = sign((x0-x1)·ng), ng turned to n).
+    the box: bit 1 for +1, bit 2 for -1 (docs/design.md: s = sign((x0-x1)·ng), ng turned to n).
     Returns 0 when x0 lies in the caster's plane (no path)."""
     ng = _c3(P[1] - P[0], P[2] - P[0])
     side = _d3(x0 - P[0], ng)
@@ -200,29 +192,8 @@ def _receiver_numerators(x, dt, Q):
     return pu, pv, q
 
 
-@kernel
-def orientation_mask(side_lo, side_hi, ndot_lo, ndot_hi):
-    """Orientations o = sign(side)·sign(n·ng) (CONTRACT.md: the light's side of the geometric
-    normal turned to the shading normal) possible when the side (x_source - x)·ng ranges over
-    [side_lo, side_hi] and n·ng over [ndot_lo, ndot_hi]: bit 1 for o = +1, bit 2 for -1."""
-    mask = 0
-    if side_hi > 0.0:
-        if ndot_hi > 0.0:
-            mask |= 1
-        if ndot_lo < 0.0:
-            mask |= 2
-    if side_lo < 0.0:
-        if ndot_hi > 0.0:
-            mask |= 2
-        if ndot_lo < 0.0:
-            mask |= 1
-    return mask
 
 
-@kernel
-def _eta_ratio(o, eta):
-    """η' = η_i/η_t for the side o (o > 0: light arrives from outside, IOR 1 -> eta)."""
-    return 1.0 / eta if o > 0.0 else eta
 
 
 @kernel
@@ -240,18 +211,18 @@ def barycentric_box(pu, pv, q, res):
     arrays of one degree (one or several coefficient sets laid end to end), clipped to the
     triangle: uk, vk and 1 - uk - vk each in [0, 1].  Writes res[0:4] = (uk_lo, uk_hi, vk_lo,
     vk_hi); returns False when the bound misses the triangle."""
-    a, b, c, e = _bound_of_coefficients(pu, q)
+    a, b, c, e = bound_of_coefficients(pu, q)
     ulo, uhi = clip_hull(a, b, c, e, 0.0, 1.0)
     if ulo > uhi:
         return False
-    a, b, c, e = _bound_of_coefficients(pv, q)
+    a, b, c, e = bound_of_coefficients(pv, q)
     vlo, vhi = clip_hull(a, b, c, e, 0.0, 1.0)
     if vlo > vhi or ulo + vlo > 1.0:
         return False
     num = np.empty(pu.shape[0])
     for i in range(pu.shape[0]):
         num[i] = q[i] - pu[i] - pv[i]
-    a, b, c, e = _bound_of_coefficients(num, q)
+    a, b, c, e = bound_of_coefficients(num, q)
     wlo, whi = clip_hull(a, b, c, e, 0.0, 1.0)
     if wlo > whi:
         return False
@@ -277,7 +248,7 @@ def receiver_box(pu, pv, q, UV, res):
         c2 = UV[2, axis] - UV[0, axis]
         for i in range(pu.shape[0]):
             num[i] = c0 * q[i] + c1 * pu[i] + c2 * pv[i]
-        a, b, c, e = _bound_of_coefficients(num, q)
+        a, b, c, e = bound_of_coefficients(num, q)
         lo, hi = clip_hull(a, b, c, e, min(UV[0, axis], UV[1, axis], UV[2, axis]), max(UV[0, axis], UV[1, axis], UV[2, axis]))
         if lo > hi:
             return False
@@ -286,22 +257,6 @@ def receiver_box(pu, pv, q, UV, res):
     return True
 
 
-@kernel
-def push_children(stack, top, lo, hi, depth):
-    """Push the four midpoint children of the box lo <= (u1, v1) <= hi (§6.1 subdivision) that
-    reach into the triangle (lower corner with u1 + v1 < 1) as rows (u_lo, u_hi, v_lo, v_hi,
-    depth + 1) at stack[top:]; returns the new top."""
-    um = 0.5 * (lo[0] + hi[0])
-    vm = 0.5 * (lo[1] + hi[1])
-    for k in range(4):
-        a0 = lo[0] if k & 1 == 0 else um
-        a1 = um if k & 1 == 0 else hi[0]
-        b0 = lo[1] if k & 2 == 0 else vm
-        b1 = vm if k & 2 == 0 else hi[1]
-        if a0 + b0 < 1.0:
-            stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], stack[top, 4] = a0, a1, b0, b1, depth + 1
-            top += 1
-    return top
 
 
 @kernel
@@ -334,7 +289,7 @@ def piece_position(refract, x0, P, N, Q, UV, eta, lo, hi, out):
         o = 1.0 if variant == 0 else -1.0
         if not refract and variant == 1 and (mask & 1):
             continue  # reflection does not depend on the normal's sign
-        ok, dt = _direction(refract, o, _eta_ratio(o, eta), n, d, lo4, hi4)
+        ok, dt = _direction(refract, o, ior_ratio(o, eta), n, d, lo4, hi4)
         if not ok:
             continue
         pu, pv, q = _receiver_numerators(x, dt, Q)
@@ -449,7 +404,7 @@ def piece_irradiance_refract(x0, P, N, Q, eta, lo, hi, pos):
         if not (mask >> variant) & 1:
             continue
         o = 1.0 if variant == 0 else -1.0
-        eta_f = 1.0 / _eta_ratio(o, eta)
+        eta_f = 1.0 / ior_ratio(o, eta)
         hi_v = np.inf
         lo_v = 0.0
         for bi in range(2):
@@ -540,105 +495,11 @@ def _batch(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradi
     for t in prange(pairs.shape[0]):
         c = pairs[t, 0]
         r = pairs[t, 1]
-        counts[t] = tuple_pieces(refract, x0, P[c], N[c], Q[r], UV[r], eta, max_depth, sigma, alpha, irradiance,
+        counts[t] = tuple_pieces(refract, x0[c], P[c], N[c], Q[r], UV[r], eta, max_depth, sigma, alpha, irradiance,
                                  out[t], stats[t])
 
 
-@dataclass
-class OneBounceBounds:
-    """Result of :func:`bound_one_bounce`.
-
-    tuples: (m, 2) int64 (caster index, receiver index) of the tuples with at least one piece;
-    piece_tuple: (p,) index into ``tuples`` per piece; pieces: (p, PIECE_FIELDS) rows (P_*).
-    tuple_uv_box: (m, 4) hull of the pieces' UV boxes (x_lo, x_hi, y_lo, y_hi);
-    tuple_E: (m,) Ẽ = m_solutions · max piece Ē (eq 21, inf where some piece is unbounded).
-    """
-
-    chain: str
-    tuples: np.ndarray
-    piece_tuple: np.ndarray
-    pieces: np.ndarray
-    tuple_uv_box: np.ndarray
-    tuple_E: np.ndarray
-    report: dict = field(default_factory=dict)
-
-
-def bound_one_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=4,
-                     sigma=1e-4, alpha=2.0, irradiance=True, capacity=64, solutions_per_tuple=1, engine="fast",
-                     irr_refine=0):
-    """Position and irradiance bounds of every (caster triangle, receiver triangle) tuple for
-    a point light (Fan et al. 2025 §4, eq 3–19; subdivision §6.1).
-
-    chain: "R" or "T"; light: (3,) point-light position; caster_P, caster_N: (n,3,3) caster
-    triangle corners and corner normals; receiver_P: (r,3,3); receiver_UV: (r,3,2) UV per
-    corner; eta: IOR behind the caster surface (normals point away from it; T only);
-    pairs: (t,2) candidate (caster, receiver) index pairs (default all n·r);
-    max_depth, sigma, alpha: the stopping rules (α = 2 for single scattering);
-    irradiance: also compute Ē (else Ē = inf); capacity: most pieces per tuple;
-    solutions_per_tuple: m of eq 21 (1 by default: one path per tuple);
-    engine: "fast" (``chain1_fast``: per-tuple polynomials restricted by de Casteljau, no
-    allocation per piece) or "reference" (the piece functions of this module);
-    irr_refine: fast engine only: a leaf piece whose Ē is infinite gets Ē, E̲ as the max / min
-    over sub-boxes of its (u1, v1) box, up to this many quadtree levels deep (pieces and
-    position bounds unchanged; see ``chain1_fast.refine_irradiance``).
-    """
-    if chain not in ("R", "T"):
-        raise ValueError(f"bound_one_bounce handles chains R and T, got {chain!r}")
-    t0 = time.perf_counter()
-    light = np.ascontiguousarray(light, dtype=np.float64).reshape(3)
-    caster_P = np.ascontiguousarray(caster_P, dtype=np.float64)
-    caster_N = np.ascontiguousarray(caster_N, dtype=np.float64)
-    receiver_P = np.ascontiguousarray(receiver_P, dtype=np.float64)
-    receiver_UV = np.ascontiguousarray(receiver_UV, dtype=np.float64)
-    if pairs is None:
-        ci, ri = np.meshgrid(np.arange(caster_P.shape[0]), np.arange(receiver_P.shape[0]), indexing="ij")
-        pairs = np.stack([ci.ravel(), ri.ravel()], axis=1)
-    pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
-    n = pairs.shape[0]
-    # A quadtree of depth max_depth has at most 4**max_depth leaves, and the split test
-    # (count + pending + 4 <= capacity) never refuses a split below that many rows (finished
-    # leaves, pending boxes and the split box's children lie in disjoint subtrees), so the
-    # smaller capacity gives the same pieces.  It keeps the row buffer small: 64 rows x 40k
-    # tuples would be 307 MB whose first-touch page faults cost more than the pool20k bound.
-    capacity = max(1, min(int(capacity), 4 ** int(max_depth)))
-    out = np.empty((n, capacity, PIECE_FIELDS))
-    counts = np.zeros(n, dtype=np.int64)
-    stats = np.zeros((n, N_STATS), dtype=np.int64)
-    t1 = time.perf_counter()
-    if n and engine == "fast":
-        from .chain1_fast import batch_fast
-
-        batch_fast(chain == "T", light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, int(max_depth),
-                   float(sigma), float(alpha), bool(irradiance), int(irr_refine), out, counts, stats,
-                   max(32, n // 128))  # one workspace per chunk: about 128 chunks, not n / 32 allocations
-    elif n:
-        _batch(chain == "T", light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, int(max_depth),
-               float(sigma), float(alpha), bool(irradiance), out, counts, stats)
-    t2 = time.perf_counter()
-    keep = np.flatnonzero(counts > 0)
-    kept_counts = counts[keep]
-    piece_tuple = np.repeat(np.arange(keep.shape[0]), kept_counts)
-    slot = np.arange(piece_tuple.shape[0]) - np.repeat(np.cumsum(kept_counts) - kept_counts, kept_counts)
-    pieces = out[keep[piece_tuple], slot] if piece_tuple.shape[0] else np.empty((0, PIECE_FIELDS))
-    del out
-    m = keep.shape[0]
-    box = np.empty((m, 4))
-    tuple_E = np.zeros(m)
-    if m:
-        starts = np.cumsum(kept_counts) - kept_counts
-        box[:, 0] = np.minimum.reduceat(pieces[:, P_X0], starts)
-        box[:, 1] = np.maximum.reduceat(pieces[:, P_X1], starts)
-        box[:, 2] = np.minimum.reduceat(pieces[:, P_Y0], starts)
-        box[:, 3] = np.maximum.reduceat(pieces[:, P_Y1], starts)
-        tuple_E = solutions_per_tuple * np.maximum.reduceat(pieces[:, P_EHI], starts)
-    t3 = time.perf_counter()
-    total = stats.sum(axis=0)
-    report = {
-        "tuples_tried": int(n), "tuples": int(m), "pieces": int(pieces.shape[0]),
-        "pieces_per_tuple": float(pieces.shape[0] / m) if m else 0.0,
-        "position_evaluations": int(total[0]), "irradiance_evaluations": int(total[1]),
-        "unbounded_pieces": int(total[2]), "capacity_stops": int(total[3]),
-        "memory_mb": (pieces.nbytes + box.nbytes + tuple_E.nbytes + piece_tuple.nbytes) / 2**20,
-        "seconds": {"prepare": t1 - t0, "bound": t2 - t1, "compact": t3 - t2},
-    }
-    return OneBounceBounds(chain, pairs[keep], piece_tuple, pieces, box, tuple_E, report)
+def batch(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, irr_refine, out, counts, stats, chunk):
+    """``one_bounce.batch``'s signature (x0: a light point per caster); irr_refine and chunk are
+    not used by this engine."""
+    _batch(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, out, counts, stats)

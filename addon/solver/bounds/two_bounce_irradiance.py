@@ -9,7 +9,7 @@ x0 -> x1 -> x2 -> xk with x1 in U1:
 
 with the Jacobian taken explicitly, as the reciprocal of det ∂(uk,vk)/∂(u1,v1) (eq 16).
 
-Why not the Bernstein form of eq 16 as in ``chain1``: through two vertices uk is rational in
+Why not the Bernstein form of eq 16 as for one bounce: through two vertices uk is rational in
 (u1, v1) only after both square roots of the refractions are approximated; the remainder
 variables that keep the *position* bound conservative (eq 12–13 and the degree reduction of
 §6.1) say nothing about derivatives, and the paper's implicit form (eq 17–19) for the last
@@ -23,7 +23,7 @@ arithmetic, one shared pair of noise symbols).  Products keep the linear parts e
 only second-order terms into r, so the derivatives — and eq 16's determinant built from them —
 are enclosed up to O(box²): unlike plain interval arithmetic, the correlated terms of eq 9's
 numerators and of the determinant's two products cancel as they do in the exact function.  No
-approximation of √β is left unbounded (``_asqrt``: its Chebyshev affine form carries the error
+approximation of √β is left unbounded (``aff_sqrt``: its Chebyshev affine form carries the error
 in its remainder), so the bound is conservative:
 
 * Ē = max |d0·(e1×e2)| / min |d0|³ / (min |det| · |e_k1 × e_k2|), E̲ with min/max swapped;
@@ -31,7 +31,7 @@ in its remainder), so the bound is conservative:
   0 (focal points, caustic curves), where β of a refraction reaches 0 inside the box (grazing
   refraction or the onset of total internal reflection: √β has an unbounded derivative there)
   or where a ray can be parallel to the next plane.  At the last vertex such boxes get a second
-  try with the paper's implicit form (eq 17–19, ``_implicit_last_vertex``: u1 and uk independent
+  try with the paper's implicit form (eq 17–19, ``implicit_last_vertex``: u1 and uk independent
   over the box × the piece's receiver bound, no √); it is valid but rarely finite there, because
   near grazing exit the receiver bound is wide (measured on the benchmark scenes: ball1280 TT
   unbounded pieces 253 -> 251, slab10k TT unchanged).  Most grazing boxes of the benchmarks are
@@ -46,7 +46,7 @@ At vertex 2 the incoming direction is d̃1 itself rather than x2 - x1 (the same 
 every path, t > 0): for triangle 2 adjacent to triangle 1 on one surface, x2 - x1 can vanish
 and would take β2 to 0 with it.  The enclosures shrink with the box, so the piece is split
 (quadtree of at most ``irr_depth`` levels, inside the piece only) while the bound is unbounded
-or Ē/E̲ > ``irr_ratio``.  Orientation at each vertex follows CONTRACT.md as in ``chain2``
+or Ē/E̲ > ``irr_ratio``.  Orientation at each vertex follows docs/design.md as in ``two_bounce_position``
 (o = sign((source - x)·ng) · sign(ng·n), η' = 1/η for o > 0, η otherwise); where the sign is
 not fixed over a box both orientations are bounded and the larger Ē kept.  Floating-point
 rounding: every affine operation widens r by a relative ROUND, and the final bound is padded by
@@ -58,8 +58,12 @@ import time
 
 import numpy as np
 
-from ..runtime.jit import kernel
-from .chain1 import IRR_PAD, P_BU0, P_ELO, P_EHI, P_U0, P_U1, P_V0, P_V1, _eta_ratio, orientation_mask, push_children
+from .affine import (ROUND, abs_range, aff_mul, aff_range, aff_sub, cross3, dual_add, dual_add_const, dual_affine,
+                     dual_div, dual_mul, dual_range, dual_scale, dual_sqrt, dual_sub, vec_cross, vec_cross_const,
+                     vec_dot, vec_dot_const)
+
+from ..runtime.jit import kernel, run_chunks
+from .layout import CHAIN_CODES, IRR_PAD, P_BU0, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, ior_ratio, orientation_mask, push_children
 
 NO_PATH = 0
 BOUNDED = 1
@@ -74,215 +78,24 @@ N_IRR_STATS = 6      # sub-box evaluations, no-path leaves, then unbounded leave
 
 
 # --------------------------------------------------------------------------------------------
-# Affine forms over the box: x = c + a δu + b δv + e with δu, δv in [-1, 1] (u1 = u_c + h_u δu,
-# v1 = v_c + h_v δv) and |e| <= r, as 4-tuples (c, a, b, r).  Products keep the linear parts
-# exact and put only second-order terms into r, so correlated quantities (x1 and d̃1, q and its
-# numerator, the two products of a determinant) do not lose their correlation as in plain
-# interval arithmetic.  ROUND widens r by a relative amount per operation for rounding.
-
-ROUND = 4e-16
-
-
-@kernel
-def _iabs_range(lo, hi):
-    """(min |x|, max |x|) over [lo, hi]."""
-    if lo >= 0.0:
-        return lo, hi
-    if hi <= 0.0:
-        return -hi, -lo
-    return 0.0, max(-lo, hi)
-
-
-@kernel
-def _arange(p):
-    rad = abs(p[1]) + abs(p[2]) + p[3]
-    return p[0] - rad, p[0] + rad
-
-
-@kernel
-def _aadd(p, q):
-    c = p[0] + q[0]
-    a = p[1] + q[1]
-    b = p[2] + q[2]
-    return (c, a, b, p[3] + q[3] + ROUND * (abs(c) + abs(a) + abs(b)))
-
-
-@kernel
-def _asub(p, q):
-    c = p[0] - q[0]
-    a = p[1] - q[1]
-    b = p[2] - q[2]
-    return (c, a, b, p[3] + q[3] + ROUND * (abs(c) + abs(a) + abs(b)))
-
-
-@kernel
-def _ascale(p, k):
-    return (p[0] * k, p[1] * k, p[2] * k, p[3] * abs(k) + ROUND * abs(k) * (abs(p[0]) + abs(p[1]) + abs(p[2])))
-
-
-@kernel
-def _amul(p, q):
-    """Product; (a1 δu + b1 δv)(a2 δu + b2 δv) contributes its mean (a1a2 + b1b2)/2 to c and
-    its half-range to r (δu², δv² in [0, 1], δu δv in [-1, 1])."""
-    c1, a1, b1, r1 = p
-    c2, a2, b2, r2 = q
-    uu = a1 * a2
-    vv = b1 * b2
-    uv = a1 * b2 + a2 * b1
-    c = c1 * c2 + 0.5 * (uu + vv)
-    a = c1 * a2 + c2 * a1
-    b = c1 * b2 + c2 * b1
-    r = 0.5 * (abs(uu) + abs(vv)) + abs(uv) + abs(c1) * r2 + abs(c2) * r1 \
-        + (abs(a1) + abs(b1)) * r2 + (abs(a2) + abs(b2)) * r1 + r1 * r2
-    return (c, a, b, r + ROUND * (abs(c) + abs(a) + abs(b) + r + abs(c1 * c2)))
-
-
-@kernel
-def _arecip(p):
-    """1/x about c (|x| >= m > 0 on the box): 1/c - (x - c)/c² with the Taylor remainder
-    <= rad²/m³."""
-    c, a, b, r = p
-    rad = abs(a) + abs(b) + r
-    m = abs(c) - rad
-    ic = 1.0 / c
-    ic2 = ic * ic
-    rem = r * ic2 + rad * rad / (m * m * m)
-    return (ic, -a * ic2, -b * ic2, rem + ROUND * 4.0 * (abs(ic) + rad * ic2))
-
-
-@kernel
-def _asqrt(p):
-    """√x (x >= lo > 0 on the box) by its Chebyshev (min-range) affine approximation on
-    [lo, hi] (Stolfi & de Figueiredo): the chord slope α = 1/(√lo + √hi); √ is concave, so
-    √x - (√lo + α (x - lo)) lies in [0, δ], δ = (√hi - √lo)² / (4 (√lo + √hi)).  Unlike the
-    Taylor form about the centre (remainder rad²/(8 lo^1.5)) the error stays below √hi/4 as lo
-    approaches 0, near total internal reflection."""
-    c, a, b, r = p
-    rad = abs(a) + abs(b) + r
-    lo = c - rad
-    sl = math.sqrt(lo)
-    sh = math.sqrt(c + rad)
-    alpha = 1.0 / (sl + sh)
-    delta = (sh - sl) * (sh - sl) * 0.25 * alpha
-    c2 = sl + alpha * (c - lo) + 0.5 * delta  # the chord at x = c, lifted by half the gap
-    return (c2, alpha * a, alpha * b, alpha * r + 0.5 * delta + ROUND * 8.0 * (sh + abs(c2)))
-
-
-# --------------------------------------------------------------------------------------------
-# First-order "dual" affine forms: (value, ∂/∂u1, ∂/∂v1), each an affine form over the box.
-# The derivative forms keep their own linear variation over the box, so the Jacobian entries
-# are enclosed to second order in the box size.
-
-@kernel
-def _daffine(c0, gu, gv, box):
-    """c0 + gu u1 + gv v1 on box = (u_lo, u_hi, v_lo, v_hi)."""
-    hu = 0.5 * (box[1] - box[0])
-    hv = 0.5 * (box[3] - box[2])
-    c = c0 + gu * (box[0] + hu) + gv * (box[2] + hv)
-    return ((c, gu * hu, gv * hv, ROUND * 4.0 * (abs(c) + abs(gu * hu) + abs(gv * hv))), (gu, 0.0, 0.0, 0.0), (gv, 0.0, 0.0, 0.0))
-
-
-@kernel
-def _dadd(x, y):
-    return (_aadd(x[0], y[0]), _aadd(x[1], y[1]), _aadd(x[2], y[2]))
-
-
-@kernel
-def _dsub(x, y):
-    return (_asub(x[0], y[0]), _asub(x[1], y[1]), _asub(x[2], y[2]))
-
-
-@kernel
-def _dscale(x, k):
-    return (_ascale(x[0], k), _ascale(x[1], k), _ascale(x[2], k))
-
-
-@kernel
-def _daddc(x, k):
-    v = x[0]
-    c = v[0] + k
-    return ((c, v[1], v[2], v[3] + ROUND * abs(c)), x[1], x[2])
-
-
-@kernel
-def _dmul(x, y):
-    return (_amul(x[0], y[0]), _aadd(_amul(x[1], y[0]), _amul(x[0], y[1])), _aadd(_amul(x[2], y[0]), _amul(x[0], y[2])))
-
-
-@kernel
-def _drange(x):
-    return _arange(x[0])
-
-
-@kernel
-def _ddiv(x, y):
-    """x / y; ok = False when y's range contains 0.  ∂(x/y) = (∂x - (x/y) ∂y) / y."""
-    lo, hi = _arange(y[0])
-    if not (lo > 0.0 or hi < 0.0):
-        return False, x
-    r = _arecip(y[0])
-    q = _amul(x[0], r)
-    return True, (q, _amul(_asub(x[1], _amul(q, y[1])), r), _amul(_asub(x[2], _amul(q, y[2])), r))
-
-
-@kernel
-def _dsqrt(x):
-    """√x for x > 0 on the whole box; ∂√x = ∂x / (2√x)."""
-    s = _asqrt(x[0])
-    r = _ascale(_arecip(s), 0.5)
-    return (s, _amul(x[1], r), _amul(x[2], r))
-
-
-# 3-vectors of duals -----------------------------------------------------------------------
-
-@kernel
-def _vdot(a, b):
-    return _dadd(_dadd(_dmul(a[0], b[0]), _dmul(a[1], b[1])), _dmul(a[2], b[2]))
-
-
-@kernel
-def _vdotc(a, k):
-    return _dadd(_dadd(_dscale(a[0], k[0]), _dscale(a[1], k[1])), _dscale(a[2], k[2]))
-
-
-@kernel
-def _vcrossc(a, k):
-    """a × k for a constant vector k."""
-    return (_dsub(_dscale(a[1], k[2]), _dscale(a[2], k[1])),
-            _dsub(_dscale(a[2], k[0]), _dscale(a[0], k[2])),
-            _dsub(_dscale(a[0], k[1]), _dscale(a[1], k[0])))
-
-
-@kernel
-def _vcross(a, b):
-    return (_dsub(_dmul(a[1], b[2]), _dmul(a[2], b[1])), _dsub(_dmul(a[2], b[0]), _dmul(a[0], b[2])),
-            _dsub(_dmul(a[0], b[1]), _dmul(a[1], b[0])))
-
-
-@kernel
-def _c3(a, b):
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
-# --------------------------------------------------------------------------------------------
 # The exact forward map in dual intervals.
 
 @kernel
-def _scatter(refract, o, eta_ratio, n, d):
+def scatter_dual(refract, o, eta_ratio, n, d):
     """Outgoing direction d̃ (eq 10) of incoming d at unnormalised normal n (orientation o),
     with the exact √β (eq 11).  Returns (status, d̃): NO_PATH (total internal reflection on
     the whole box), BOUNDED, or UNBOUNDED_GRAZING (β reaches 0: d̃'s values are enclosed, its
     derivatives are not)."""
-    nn = _vdot(n, n)
-    dn = _vdot(d, n)
+    nn = vec_dot(n, n)
+    dn = vec_dot(d, n)
     if not refract:
-        two_dn = _dscale(dn, 2.0)
-        return BOUNDED, (_dsub(_dmul(nn, d[0]), _dmul(two_dn, n[0])), _dsub(_dmul(nn, d[1]), _dmul(two_dn, n[1])),
-                         _dsub(_dmul(nn, d[2]), _dmul(two_dn, n[2])))
+        two_dn = dual_scale(dn, 2.0)
+        return BOUNDED, (dual_sub(dual_mul(nn, d[0]), dual_mul(two_dn, n[0])), dual_sub(dual_mul(nn, d[1]), dual_mul(two_dn, n[1])),
+                         dual_sub(dual_mul(nn, d[2]), dual_mul(two_dn, n[2])))
     e2 = eta_ratio * eta_ratio
-    dd = _vdot(d, d)
-    beta = _dadd(_dscale(_dmul(nn, dd), 1.0 - e2), _dscale(_dmul(dn, dn), e2))
-    blo, bhi = _drange(beta)
+    dd = vec_dot(d, d)
+    beta = dual_add(dual_scale(dual_mul(nn, dd), 1.0 - e2), dual_scale(dual_mul(dn, dn), e2))
+    blo, bhi = dual_range(beta)
     if bhi <= 0.0:
         return NO_PATH, d  # total internal reflection on the whole box
     if blo <= BETA_MIN:
@@ -294,16 +107,16 @@ def _scatter(refract, o, eta_ratio, n, d):
         root = ((-o * 0.5 * (slo + shi), 0.0, 0.0, 0.5 * (shi - slo) * (1.0 + 4.0 * ROUND) + ROUND * shi), unknown, unknown)
         status = UNBOUNDED_GRAZING
     else:
-        root = _dscale(_dsqrt(beta), -o)
+        root = dual_scale(dual_sqrt(beta), -o)
         status = BOUNDED
-    out0 = _dadd(_dscale(_dsub(_dmul(nn, d[0]), _dmul(dn, n[0])), eta_ratio), _dmul(root, n[0]))
-    out1 = _dadd(_dscale(_dsub(_dmul(nn, d[1]), _dmul(dn, n[1])), eta_ratio), _dmul(root, n[1]))
-    out2 = _dadd(_dscale(_dsub(_dmul(nn, d[2]), _dmul(dn, n[2])), eta_ratio), _dmul(root, n[2]))
+    out0 = dual_add(dual_scale(dual_sub(dual_mul(nn, d[0]), dual_mul(dn, n[0])), eta_ratio), dual_mul(root, n[0]))
+    out1 = dual_add(dual_scale(dual_sub(dual_mul(nn, d[1]), dual_mul(dn, n[1])), eta_ratio), dual_mul(root, n[1]))
+    out2 = dual_add(dual_scale(dual_sub(dual_mul(nn, d[2]), dual_mul(dn, n[2])), eta_ratio), dual_mul(root, n[2]))
     return status, (out0, out1, out2)
 
 
 @kernel
-def _hit(x, dt, Q):
+def hit_dual(x, dt, Q):
     """Barycentrics (u, v) on triangle Q of the line x + t d̃ (eq 9).  Returns (status, u, v);
     NO_PATH when the enclosures miss the triangle, UNBOUNDED when the line can be parallel to
     the plane.
@@ -315,10 +128,10 @@ def _hit(x, dt, Q):
     the large u_c ∂q terms that cancel in the original form (interval dependency)."""
     e1 = Q[1] - Q[0]
     e2 = Q[2] - Q[0]
-    ng = _c3(e1, e2)
+    ng = cross3(e1, e2)
     # forward only: t = ((Q0 - x)·ng) / (d̃·ng) must be positive somewhere on the box
-    hlo, hhi = _drange(_vdotc((_daddc(x[0], -Q[0, 0]), _daddc(x[1], -Q[0, 1]), _daddc(x[2], -Q[0, 2])), ng))  # -(numerator)
-    glo, ghi = _drange(_vdotc(dt, ng))
+    hlo, hhi = dual_range(vec_dot_const((dual_add_const(x[0], -Q[0, 0]), dual_add_const(x[1], -Q[0, 1]), dual_add_const(x[2], -Q[0, 2])), ng))  # -(numerator)
+    glo, ghi = dual_range(vec_dot_const(dt, ng))
     if (hlo >= 0.0 and glo > 0.0) or (hhi <= 0.0 and ghi < 0.0):
         return NO_PATH, x[0], x[1]
     xc0, xc1, xc2 = x[0][0][0], x[1][0][0], x[2][0][0]
@@ -341,22 +154,22 @@ def _hit(x, dt, Q):
     uc = (g22 * b1 - g12 * b2) / gd
     vc = (g11 * b2 - g12 * b1) / gd
     Xc = Q[0] + uc * e1 + vc * e2  # on the plane exactly as far as rounding allows
-    Y = (_daddc(x[0], -Xc[0]), _daddc(x[1], -Xc[1]), _daddc(x[2], -Xc[2]))
-    c = _vcrossc(dt, e2)
-    pu = _vdot(c, Y)
-    q = _vdotc(c, e1)
-    rk = _vcrossc(Y, e1)
-    pv = _vdot(rk, dt)
-    ok, u = _ddiv(pu, q)
+    Y = (dual_add_const(x[0], -Xc[0]), dual_add_const(x[1], -Xc[1]), dual_add_const(x[2], -Xc[2]))
+    c = vec_cross_const(dt, e2)
+    pu = vec_dot(c, Y)
+    q = vec_dot_const(c, e1)
+    rk = vec_cross_const(Y, e1)
+    pv = vec_dot(rk, dt)
+    ok, u = dual_div(pu, q)
     if not ok:
         return UNBOUNDED_PARALLEL, pu, pv
-    ok, v = _ddiv(pv, q)
+    ok, v = dual_div(pv, q)
     if not ok:
         return UNBOUNDED_PARALLEL, pu, pv
-    u = _daddc(u, uc)
-    v = _daddc(v, vc)
-    ulo, uhi = _drange(u)
-    vlo, vhi = _drange(v)
+    u = dual_add_const(u, uc)
+    v = dual_add_const(v, vc)
+    ulo, uhi = dual_range(u)
+    vlo, vhi = dual_range(v)
     if ulo > 1.0 + EDGE_TOL or uhi < -EDGE_TOL or vlo > 1.0 + EDGE_TOL or vhi < -EDGE_TOL or ulo + vlo > 1.0 + EDGE_TOL:
         return NO_PATH, u, v
     return BOUNDED, u, v
@@ -366,8 +179,8 @@ def _hit(x, dt, Q):
 def _jacobian_abs_det(uk, vk):
     """Enclosure (min, max) of |det ∂(uk,vk)/∂(u1,v1)| (eq 16) over the box: the determinant
     of the derivative forms in affine arithmetic.  (0, inf) when it may vanish."""
-    det = _asub(_amul(uk[1], vk[2]), _amul(uk[2], vk[1]))
-    lo, hi = _arange(det)
+    det = aff_sub(aff_mul(uk[1], vk[2]), aff_mul(uk[2], vk[1]))
+    lo, hi = aff_range(det)
     if lo > 0.0:
         return lo, hi
     if hi < 0.0:
@@ -376,7 +189,7 @@ def _jacobian_abs_det(uk, vk):
 
 
 @kernel
-def _implicit_last_vertex(d1, n2, x2, Q, rbox, eta_f, b):
+def implicit_last_vertex(d1, n2, x2, Q, rbox, eta_f, b):
     """|det ∂(u1,v1)/∂(uk,vk)| enclosure (lo, hi) by implicit differentiation of the specular
     constraint at the last vertex x2 (eq 17–19), over the box of (u1, v1) times the receiver
     box rbox = (uk_lo, uk_hi, vk_lo, vk_hi):
@@ -400,53 +213,53 @@ def _implicit_last_vertex(d1, n2, x2, Q, rbox, eta_f, b):
     xk0 = ((Q[0, 0] + uc * ek1[0] + vc * ek2[0], 0.0, 0.0, abs(ek1[0]) * hu + abs(ek2[0]) * hv), zero, zero)
     xk1 = ((Q[0, 1] + uc * ek1[1] + vc * ek2[1], 0.0, 0.0, abs(ek1[1]) * hu + abs(ek2[1]) * hv), zero, zero)
     xk2 = ((Q[0, 2] + uc * ek1[2] + vc * ek2[2], 0.0, 0.0, abs(ek1[2]) * hu + abs(ek2[2]) * hv), zero, zero)
-    d2 = (_dsub(xk0, x2[0]), _dsub(xk1, x2[1]), _dsub(xk2, x2[2]))
-    p = _vcross(d1, n2)
-    A = _vdotc(p, b)
-    B = _vdotc(_vcross(d2, n2), b)
-    l1 = _vdot(d1, d1)
-    l2 = _vdot(d2, d2)
+    d2 = (dual_sub(xk0, x2[0]), dual_sub(xk1, x2[1]), dual_sub(xk2, x2[2]))
+    p = vec_cross(d1, n2)
+    A = vec_dot_const(p, b)
+    B = vec_dot_const(vec_cross(d2, n2), b)
+    l1 = vec_dot(d1, d1)
+    l2 = vec_dot(d2, d2)
     e2 = eta_f * eta_f
-    F = _dsub(_dmul(l2, _dmul(A, A)), _dscale(_dmul(l1, _dmul(B, B)), e2))
-    G = _vdot(p, d2)
-    det_u1 = _asub(_amul(F[1], G[2]), _amul(F[2], G[1]))
-    lo1, hi1 = _arange(det_u1)
-    lo1, hi1 = _iabs_range(lo1, hi1)
+    F = dual_sub(dual_mul(l2, dual_mul(A, A)), dual_scale(dual_mul(l1, dual_mul(B, B)), e2))
+    G = vec_dot(p, d2)
+    det_u1 = aff_sub(aff_mul(F[1], G[2]), aff_mul(F[2], G[1]))
+    lo1, hi1 = aff_range(det_u1)
+    lo1, hi1 = abs_range(lo1, hi1)
     if not (lo1 > 0.0):
         return 0.0, np.inf
     # ∇_d2 F (value forms only)
-    nb = _vcrossc(n2, b)
-    two_a2 = _dscale(_dmul(A, A), 2.0)
-    k = _dscale(_dmul(l1, B), 2.0 * e2)
-    g0 = _dsub(_dmul(two_a2, d2[0]), _dmul(k, nb[0]))
-    g1 = _dsub(_dmul(two_a2, d2[1]), _dmul(k, nb[1]))
-    g2 = _dsub(_dmul(two_a2, d2[2]), _dmul(k, nb[2]))
+    nb = vec_cross_const(n2, b)
+    two_a2 = dual_scale(dual_mul(A, A), 2.0)
+    k = dual_scale(dual_mul(l1, B), 2.0 * e2)
+    g0 = dual_sub(dual_mul(two_a2, d2[0]), dual_mul(k, nb[0]))
+    g1 = dual_sub(dual_mul(two_a2, d2[1]), dual_mul(k, nb[1]))
+    g2 = dual_sub(dual_mul(two_a2, d2[2]), dual_mul(k, nb[2]))
     grad = (g0, g1, g2)
-    f_uk = _vdotc(grad, ek1)[0]
-    f_vk = _vdotc(grad, ek2)[0]
-    g_uk = _vdotc(p, ek1)[0]
-    g_vk = _vdotc(p, ek2)[0]
-    lok, hik = _arange(_asub(_amul(f_uk, g_vk), _amul(f_vk, g_uk)))
-    lok, hik = _iabs_range(lok, hik)
+    f_uk = vec_dot_const(grad, ek1)[0]
+    f_vk = vec_dot_const(grad, ek2)[0]
+    g_uk = vec_dot_const(p, ek1)[0]
+    g_vk = vec_dot_const(p, ek2)[0]
+    lok, hik = aff_range(aff_sub(aff_mul(f_uk, g_vk), aff_mul(f_vk, g_uk)))
+    lok, hik = abs_range(lok, hik)
     if not math.isfinite(hik):
         return 0.0, np.inf
     return lok / hi1, hik / lo1
 
 
 @kernel
-def _vertex_one(x0, P1, N1, box):
+def vertex_one_dual(x0, P1, N1, box):
     """x1 and n1 on triangle 1 over the box of (u1, v1), d0 = x1 - x0 (dual forms), triangle
-    1's geometric normal and its orientation mask (``chain1.orientation_mask``)."""
+    1's geometric normal and its orientation mask (``layout.orientation_mask``)."""
     e1 = P1[1] - P1[0]
     e2 = P1[2] - P1[0]
-    ng1 = _c3(e1, e2)
+    ng1 = cross3(e1, e2)
     m1 = N1[1] - N1[0]
     m2 = N1[2] - N1[0]
-    x1 = (_daffine(P1[0, 0], e1[0], e2[0], box), _daffine(P1[0, 1], e1[1], e2[1], box), _daffine(P1[0, 2], e1[2], e2[2], box))
-    n1 = (_daffine(N1[0, 0], m1[0], m2[0], box), _daffine(N1[0, 1], m1[1], m2[1], box), _daffine(N1[0, 2], m1[2], m2[2], box))
-    d0 = (_daddc(x1[0], -x0[0]), _daddc(x1[1], -x0[1]), _daddc(x1[2], -x0[2]))
+    x1 = (dual_affine(P1[0, 0], e1[0], e2[0], box), dual_affine(P1[0, 1], e1[1], e2[1], box), dual_affine(P1[0, 2], e1[2], e2[2], box))
+    n1 = (dual_affine(N1[0, 0], m1[0], m2[0], box), dual_affine(N1[0, 1], m1[1], m2[1], box), dual_affine(N1[0, 2], m1[2], m2[2], box))
+    d0 = (dual_add_const(x1[0], -x0[0]), dual_add_const(x1[1], -x0[1]), dual_add_const(x1[2], -x0[2]))
     side1 = (x0[0] - P1[0, 0]) * ng1[0] + (x0[1] - P1[0, 1]) * ng1[1] + (x0[2] - P1[0, 2]) * ng1[2]
-    nlo, nhi = _drange(_vdotc(n1, ng1))
+    nlo, nhi = dual_range(vec_dot_const(n1, ng1))
     return x1, n1, d0, ng1, orientation_mask(side1, side1, nlo, nhi)
 
 
@@ -458,9 +271,9 @@ def first_bounce_rays(refract1, x0, P1, N1, eta, box, xlo, xhi, dlo, dhi):
     light out (0: none — x0 in the plane, or total internal reflection on the whole box)."""
     if box[0] + box[2] > 1.0 + EDGE_TOL:
         return 0
-    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
+    x1, n1, d0, ng1, mask1 = vertex_one_dual(x0, P1, N1, box)
     for i in range(3):
-        xlo[i], xhi[i] = _drange(x1[i])
+        xlo[i], xhi[i] = dual_range(x1[i])
         dlo[i] = np.inf
         dhi[i] = -np.inf
     bits = 0
@@ -470,12 +283,12 @@ def first_bounce_rays(refract1, x0, P1, N1, eta, box, xlo, xhi, dlo, dhi):
         if not refract1 and k1 == 1 and (mask1 & 1):
             continue
         o1 = 1.0 if k1 == 0 else -1.0
-        st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+        st, dt1 = scatter_dual(refract1, o1, ior_ratio(o1, eta), n1, d0)
         if st == NO_PATH:
             continue
         bits |= 1 << k1
         for i in range(3):
-            a, b = _drange(dt1[i])
+            a, b = dual_range(dt1[i])
             dlo[i] = min(dlo[i], a)
             dhi[i] = max(dhi[i], b)
     return bits
@@ -487,15 +300,15 @@ def _first_hit_status(refract1, x0, P1, N1, P2, eta, box, bits):
     triangle 2 forwards, else the status of the first orientation that may (eq 9)."""
     if box[0] + box[2] > 1.0 + EDGE_TOL:
         return NO_PATH
-    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
+    x1, n1, d0, ng1, mask1 = vertex_one_dual(x0, P1, N1, box)
     for k1 in range(2):
         if not (bits >> k1) & 1 or not (mask1 >> k1) & 1:
             continue
         o1 = 1.0 if k1 == 0 else -1.0
-        st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+        st, dt1 = scatter_dual(refract1, o1, ior_ratio(o1, eta), n1, d0)
         if st == NO_PATH:
             continue
-        st, u2, v2 = _hit(x1, dt1, P2)
+        st, u2, v2 = hit_dual(x1, dt1, P2)
         if st != NO_PATH:
             return st
     return NO_PATH
@@ -558,17 +371,17 @@ def _linear_form(val, box, form):
 
 @kernel
 def first_bounce_forms(refract1, o1, x0, P1, N1, P2, eta, box, fu, fv, stats):
-    """Step 1–2 of ``chain2`` (vertex 1 -> 2) for orientation o1 at vertex 1: u2 and v2 on
+    """Steps 1–2 of the two-bounce position bound (vertex 1 -> 2) for orientation o1 at vertex 1: u2 and v2 on
     triangle 2 over the box of (u1, v1) as forms c + g_u u1 + g_v v1 + g_xi ξ (ξ in [0, 1], one
     remainder variable each; ``_linear_form``), from the exact map x1 -> d̃1 (eq 10, exact √β)
     -> (u2, v2) (eq 9) in affine arithmetic.  Returns False when no light of the box reaches
     triangle 2; stats[2] += 1 per constant form (the line can be parallel to triangle 2, or the
     remainder is wider than the triangle)."""
-    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
-    st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+    x1, n1, d0, ng1, mask1 = vertex_one_dual(x0, P1, N1, box)
+    st, dt1 = scatter_dual(refract1, o1, ior_ratio(o1, eta), n1, d0)
     if st == NO_PATH:
         return False
-    st, u2, v2 = _hit(x1, dt1, P2)
+    st, u2, v2 = hit_dual(x1, dt1, P2)
     if st == NO_PATH:
         return False
     if st != BOUNDED:  # the line can be parallel to triangle 2: all of it
@@ -592,26 +405,26 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
 
     The last vertex uses the explicit Jacobian (eq 16); where that cannot be bounded because
     β2 reaches 0 (grazing refraction) or the last ray can be parallel to the receiver, the
-    implicit form (eq 17–19, ``_implicit_last_vertex``, two tangent vectors b, the smaller
+    implicit form (eq 17–19, ``implicit_last_vertex``, two tangent vectors b, the smaller
     bound kept) is used instead."""
     if box[0] + box[2] > 1.0 + EDGE_TOL:
         return NO_PATH, 0.0, 0.0
-    x1, n1, d0, ng1, mask1 = _vertex_one(x0, P1, N1, box)
+    x1, n1, d0, ng1, mask1 = vertex_one_dual(x0, P1, N1, box)
     # light factor |d0·(e1×e2)| / |d0|³ (value enclosures only)
-    clo, chi = _drange(_vdotc(d0, ng1))
-    clo, chi = _iabs_range(clo, chi)
-    dlo, dhi = _drange(_vdot(d0, d0))
+    clo, chi = dual_range(vec_dot_const(d0, ng1))
+    clo, chi = abs_range(clo, chi)
+    dlo, dhi = dual_range(vec_dot(d0, d0))
     if dlo <= 0.0:
         return UNBOUNDED, np.inf, 0.0
     light_hi = chi / dlo ** 1.5
     light_lo = clo / dhi ** 1.5
-    ak = math.sqrt(np.sum(_c3(Q[1] - Q[0], Q[2] - Q[0]) ** 2))
-    ng2 = _c3(P2[1] - P2[0], P2[2] - P2[0])
+    ak = math.sqrt(np.sum(cross3(Q[1] - Q[0], Q[2] - Q[0]) ** 2))
+    ng2 = cross3(P2[1] - P2[0], P2[2] - P2[0])
     f1 = P2[1] - P2[0]
     f2 = P2[2] - P2[0]
     # two unit tangents of triangle 2 for the implicit bound's vectors b (eq 17)
     tb1 = f1 / math.sqrt(np.sum(f1 * f1))
-    tb2 = _c3(ng2, tb1)
+    tb2 = cross3(ng2, tb1)
     tb2 = tb2 / math.sqrt(np.sum(tb2 * tb2))
     g1 = N2[1] - N2[0]
     g2 = N2[2] - N2[0]
@@ -624,30 +437,30 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
         if not refract1 and k1 == 1 and (mask1 & 1):
             continue  # reflection does not depend on the orientation
         o1 = 1.0 if k1 == 0 else -1.0
-        st, dt1 = _scatter(refract1, o1, _eta_ratio(o1, eta), n1, d0)
+        st, dt1 = scatter_dual(refract1, o1, ior_ratio(o1, eta), n1, d0)
         if st == NO_PATH:
             continue
         # grazing at vertex 1: Ē = inf if a path can get through, but d̃1's values are still
         # enclosed, so the rest of the path can still prove the box empty
         grazing1 = st == UNBOUNDED_GRAZING
-        st, u2, v2 = _hit(x1, dt1, P2)
+        st, u2, v2 = hit_dual(x1, dt1, P2)
         if st >= UNBOUNDED:
             return st, np.inf, 0.0
         if st == NO_PATH:
             continue
-        x2 = (_daddc(_dadd(_dscale(u2, f1[0]), _dscale(v2, f2[0])), P2[0, 0]),
-              _daddc(_dadd(_dscale(u2, f1[1]), _dscale(v2, f2[1])), P2[0, 1]),
-              _daddc(_dadd(_dscale(u2, f1[2]), _dscale(v2, f2[2])), P2[0, 2]))
-        n2 = (_daddc(_dadd(_dscale(u2, g1[0]), _dscale(v2, g2[0])), N2[0, 0]),
-              _daddc(_dadd(_dscale(u2, g1[1]), _dscale(v2, g2[1])), N2[0, 1]),
-              _daddc(_dadd(_dscale(u2, g1[2]), _dscale(v2, g2[2])), N2[0, 2]))
+        x2 = (dual_add_const(dual_add(dual_scale(u2, f1[0]), dual_scale(v2, f2[0])), P2[0, 0]),
+              dual_add_const(dual_add(dual_scale(u2, f1[1]), dual_scale(v2, f2[1])), P2[0, 1]),
+              dual_add_const(dual_add(dual_scale(u2, f1[2]), dual_scale(v2, f2[2])), P2[0, 2]))
+        n2 = (dual_add_const(dual_add(dual_scale(u2, g1[0]), dual_scale(v2, g2[0])), N2[0, 0]),
+              dual_add_const(dual_add(dual_scale(u2, g1[1]), dual_scale(v2, g2[1])), N2[0, 1]),
+              dual_add_const(dual_add(dual_scale(u2, g1[2]), dual_scale(v2, g2[2])), N2[0, 2]))
         # The incoming direction at x2 is d̃1 itself (d1 = x2 - x1 = t d̃1, t > 0 for every
         # path; eq 10 is homogeneous in d, so the scale does not matter).  Using d̃1 instead
         # of x2 - x1 keeps the forms well conditioned when x2 comes close to x1 (adjacent
         # triangles of one surface), where |d1| -> 0 would make β2 vanish with it.
         d1 = dt1
-        slo, shi = _drange(_vdotc(d1, ng2))  # side of x1: (x1 - x2)·ng2 = -t d̃1·ng2
-        nlo2, nhi2 = _drange(_vdotc(n2, ng2))
+        slo, shi = dual_range(vec_dot_const(d1, ng2))  # side of x1: (x1 - x2)·ng2 = -t d̃1·ng2
+        nlo2, nhi2 = dual_range(vec_dot_const(n2, ng2))
         mask2 = orientation_mask(-shi, -slo, nlo2, nhi2)
         for k2 in range(2):
             if not (mask2 >> k2) & 1:
@@ -655,14 +468,14 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
             if not refract2 and k2 == 1 and (mask2 & 1):
                 continue
             o2 = 1.0 if k2 == 0 else -1.0
-            st, dt2 = _scatter(refract2, o2, _eta_ratio(o2, eta), n2, d1)
+            st, dt2 = scatter_dual(refract2, o2, ior_ratio(o2, eta), n2, d1)
             if st == NO_PATH:
                 continue
             if st == BOUNDED:
-                st, uk, vk = _hit(x2, dt2, Q)
+                st, uk, vk = hit_dual(x2, dt2, Q)
                 if st == NO_PATH:
                     continue
-            elif _hit(x2, dt2, Q)[0] == NO_PATH:  # grazing: d̃2's values are enclosed all the same
+            elif hit_dual(x2, dt2, Q)[0] == NO_PATH:  # grazing: d̃2's values are enclosed all the same
                 continue
             if grazing1:
                 return UNBOUNDED_GRAZING, np.inf, 0.0
@@ -678,12 +491,12 @@ def sub_box_irradiance(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, rbox
             if st != UNBOUNDED_GRAZING and st != UNBOUNDED_PARALLEL:
                 return st, np.inf, 0.0
             # implicit differentiation at the last vertex (eq 17–19)
-            eta_f = 1.0 / _eta_ratio(o2, eta) if refract2 else 1.0
+            eta_f = 1.0 / ior_ratio(o2, eta) if refract2 else 1.0
             rhi = np.inf
             rlo = 0.0
             for bi in range(2):
                 b = tb1 if bi == 0 else tb2
-                a_lo, a_hi = _implicit_last_vertex(d1, n2, x2, Q, rbox, eta_f, b)
+                a_lo, a_hi = implicit_last_vertex(d1, n2, x2, Q, rbox, eta_f, b)
                 rhi = min(rhi, a_hi)
                 rlo = max(rlo, a_lo)
             if not math.isfinite(rhi):
@@ -704,7 +517,7 @@ def piece_irradiance_two(chain_code, x0, P1, N1, P2, N2, Q, eta, lo, hi, rbox, i
     triangle 2, receiver Q) (eq 15–16 in affine arithmetic, module doc); rbox = the piece's
     receiver barycentric bound (uk_lo, uk_hi, vk_lo, vk_hi), used by the implicit fallback.
 
-    chain_code as ``chain2.CHAIN_CODES`` (bit 0: vertex 1 refracts, bit 1: vertex 2 refracts).
+    chain_code as ``layout.CHAIN_CODES`` (bit 0: vertex 1 refracts, bit 1: vertex 2 refracts).
     The piece is split into a quadtree of at most irr_depth levels while a sub-box is
     unbounded or its Ē/E̲ > irr_ratio; Ē is the largest of the leaves', E̲ the smallest.
     stats[0] += sub-box evaluations, stats[1] += leaves without a path, stats[s] += 1 for the
@@ -745,8 +558,9 @@ def piece_irradiance_two(chain_code, x0, P1, N1, P2, N2, Q, eta, lo, hi, rbox, i
 
 
 @kernel
-def _reach_chunk(chain_code, x0, P, N, Q, eta, pairs, reach, start, stop):
-    """reach[t, r] for pairs start..stop-1 (``receivers_reached``)."""
+def reach_chunk(chain_code, x0, P, N, Q, eta, pairs, mask, reach, start, stop):
+    """reach[t, r] of ``receivers_reached`` for pairs start..stop-1, with light point x0[t] and IOR
+    eta[t] of pair t, and only for the receivers with mask[t, r] (the others stay unreached)."""
     refract1 = (chain_code & 1) != 0
     refract2 = (chain_code & 2) != 0
     box = np.empty(4)
@@ -760,17 +574,19 @@ def _reach_chunk(chain_code, x0, P, N, Q, eta, pairs, reach, start, stop):
         for r in range(Q.shape[0]):
             grid = reach[t, r]
             grid[:, :] = False
+            if not mask[t, r]:
+                continue
             box[0], box[1], box[2], box[3] = 0.0, 1.0, 0.0, 1.0
-            st, bh, bl = sub_box_irradiance(refract1, refract2, x0, P[a], N[a], P[b], N[b], Q[r], eta, box, rbox)
+            st, bh, bl = sub_box_irradiance(refract1, refract2, x0[t], P[a], N[a], P[b], N[b], Q[r], eta[t], box, rbox)
             if st == NO_PATH:
                 continue
             if cells == 1:
                 grid[0, 0] = True
                 continue
             for i in range(cells):
-                for j in range(cells - i):  # the cells with u + v < 1 somewhere
+                for j in range(cells - i):
                     box[0], box[1], box[2], box[3] = i * h, (i + 1) * h, j * h, (j + 1) * h
-                    st, bh, bl = sub_box_irradiance(refract1, refract2, x0, P[a], N[a], P[b], N[b], Q[r], eta, box, rbox)
+                    st, bh, bl = sub_box_irradiance(refract1, refract2, x0[t], P[a], N[a], P[b], N[b], Q[r], eta[t], box, rbox)
                     grid[i, j] = st != NO_PATH
 
 
@@ -798,32 +614,32 @@ def receivers_reached(chain, light, caster_P, caster_N, receiver_P, pairs, eta=1
     every cell is False when triangle 1 as a whole is proven empty.  Conservative: a cell
     holding a path is always True.
 
-    ``chain2.bound_two_bounce`` starts and prunes its position quadtree with it (a box lives
+    ``two_bounce.bound_two_bounce`` starts and prunes its position quadtree with it (a box lives
     for a receiver while ``box_reached``): it removes the (pair, receiver) tuples whose
     position bound cannot see the emptiness — neighbouring triangles of one surface, whose
     x2 - x1 relaxation spans the whole receiver (slab10k TT: 55 % of the position tuples proven
     empty on the whole triangle, 63 % with depth 1).  depth 2 is ``bound_two_bounce``'s default
     (slab10k reach + bounds 13.7 s against 14.8 s at depth 1)."""
-    from ..runtime.jit import run_chunks
-    from .chain2 import CHAIN_CODES
-
     pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
     receiver_P = np.ascontiguousarray(receiver_P, dtype=np.float64)
     cells = 1 << int(depth)
     reach = np.zeros((pairs.shape[0], receiver_P.shape[0], cells, cells), dtype=np.bool_)
     if reach.size:
-        run_chunks(_reach_chunk, (CHAIN_CODES[chain], np.ascontiguousarray(light, dtype=np.float64).reshape(3),
-                                  np.ascontiguousarray(caster_P, dtype=np.float64),
-                                  np.ascontiguousarray(caster_N, dtype=np.float64), receiver_P, float(eta), pairs,
-                                  reach), pairs.shape[0])
+        n = pairs.shape[0]
+        points = np.ascontiguousarray(np.broadcast_to(np.asarray(light, dtype=np.float64).reshape(3), (n, 3)))
+        mask = np.ones((n, receiver_P.shape[0]), dtype=np.bool_)
+        run_chunks(reach_chunk, (CHAIN_CODES[chain], points, np.ascontiguousarray(caster_P, dtype=np.float64),
+                                 np.ascontiguousarray(caster_N, dtype=np.float64), receiver_P, np.full(n, float(eta)), pairs,
+                                 mask, reach), n)
     return reach
 
 
 @kernel
-def _irradiance_chunk(chain_code, x0, P, N, Q, eta, piece_pair, piece_receiver, pieces, irr_depth, irr_ratio, stats,
+def irradiance_chunk(chain_code, x0, P, N, Q, eta, piece_pair, piece_receiver, pieces, irr_depth, irr_ratio, stats,
                       start, stop):
-    """Ē, E̲ of pieces start..stop-1 (``bound_irradiance_two``; on ``jit.run_chunks`` threads,
-    which compile in a fraction of a ``parallel=True`` loop's time)."""
+    """Ē, E̲ of pieces start..stop-1 (``bound_irradiance_two``), piece i lit from x0[i] through IOR
+    eta[i]; on ``jit.run_chunks`` threads, which compile in a fraction of a ``parallel=True``
+    loop's time."""
     lo = np.empty(2)
     hi = np.empty(2)
     rbox = np.empty(4)
@@ -833,31 +649,30 @@ def _irradiance_chunk(chain_code, x0, P, N, Q, eta, piece_pair, piece_receiver, 
         lo[0], hi[0], lo[1], hi[1] = pieces[i, P_U0], pieces[i, P_U1], pieces[i, P_V0], pieces[i, P_V1]
         for k in range(4):
             rbox[k] = pieces[i, P_BU0 + k]
-        eh, el = piece_irradiance_two(chain_code, x0, P[a], N[a], P[b], N[b], Q[piece_receiver[i]], eta, lo, hi, rbox,
+        eh, el = piece_irradiance_two(chain_code, x0[i], P[a], N[a], P[b], N[b], Q[piece_receiver[i]], eta[i], lo, hi, rbox,
                                       irr_depth, irr_ratio, stats[i])
         pieces[i, P_EHI] = eh
         pieces[i, P_ELO] = el
 
 
 def bound_irradiance_two(bounds, light, caster_P, caster_N, receiver_P, eta=1.5, irr_depth=2, irr_ratio=2.0):
-    """Fill Ē and E̲ (columns P_EHI, P_ELO) of every piece of a ``chain2.TwoBounceBounds`` in
+    """Fill Ē and E̲ (columns P_EHI, P_ELO) of every piece of a ``two_bounce.TwoBounceBounds`` in
     place (Fan et al. 2025 eq 14–16, module doc) and add the counts to its report.
 
     irr_depth: most quadtree levels inside a piece for the irradiance bound (0: the piece as
     it is); irr_ratio: split while Ē/E̲ exceeds it.  Returns ``bounds``."""
-    from ..runtime.jit import run_chunks
-    from .chain2 import CHAIN_CODES
-
     t0 = time.perf_counter()
     tuples = bounds.tuples
     pair = np.ascontiguousarray(tuples[bounds.piece_tuple, :2], dtype=np.int64)
     receiver = np.ascontiguousarray(tuples[bounds.piece_tuple, 2], dtype=np.int64)
     stats = np.zeros((bounds.pieces.shape[0], N_IRR_STATS), dtype=np.int64)
     if bounds.pieces.shape[0]:
-        run_chunks(_irradiance_chunk, (CHAIN_CODES[bounds.chain], np.ascontiguousarray(light, dtype=np.float64).reshape(3),
+        n = bounds.pieces.shape[0]
+        points = np.ascontiguousarray(np.broadcast_to(np.asarray(light, dtype=np.float64).reshape(3), (n, 3)))
+        run_chunks(irradiance_chunk, (CHAIN_CODES[bounds.chain], points,
                                        np.ascontiguousarray(caster_P, dtype=np.float64),
                                        np.ascontiguousarray(caster_N, dtype=np.float64),
-                                       np.ascontiguousarray(receiver_P, dtype=np.float64), float(eta), pair, receiver,
+                                       np.ascontiguousarray(receiver_P, dtype=np.float64), np.full(n, float(eta)), pair, receiver,
                                        bounds.pieces, int(irr_depth), float(irr_ratio), stats), bounds.pieces.shape[0])
     total = stats.sum(axis=0)
     ehi = bounds.pieces[:, P_EHI]

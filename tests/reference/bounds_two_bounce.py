@@ -1,4 +1,8 @@
-"""Position bounds of two-bounce chains (RR, RT, TR, TT) from a point light (Fan et al. 2025).
+"""Reference engine of the two-bounce position bounds (RR, RT, TR, TT; Fan et al. 2025): readable, allocating.
+
+The production engine is ``addon.solver.bounds.two_bounce_position`` (the same steps without
+allocation per box); tests/solver/test_bounds_two_bounce.py runs both through
+``bound_two_bounce(..., engine=batch)`` and compares the pieces.
 
 For a tuple (light x0, caster triangle 1, caster triangle 2, receiver triangle k) and a box U1
 of triangle 1's barycentrics (u1, v1), a *piece* gets the position bound (eq 4–5): a box of
@@ -11,59 +15,55 @@ so the bound stays conservative:
 
 1. Vertex 1 -> 2: x1, n1 affine in (u1, v1) (eq 6–7), d̃1 from eq 10 with the exact √β1 and
    u2, v2 by eq 9 with triangle 2 as the "receiver", all in affine arithmetic over the box
-   (``irradiance_two.first_bounce_forms``; √ by its Chebyshev enclosure, so no approximation
+   (``addon.solver.bounds.two_bounce_irradiance.first_bounce_forms``; √ by its Chebyshev enclosure, so no approximation
    error is left out).
 2. Degree reduction (§6.1 "Degree reduction", with a linear approximant): the affine form of u2,
    L_u(u1, v1) ± r, becomes u2 = L_u - r + ξa 2r with a new remainder variable ξa in [0, 1]; the
    same for v2 with ξb.  When the remainder is wider than the clipped range [u2_lo, u2_hi] ∩
    [0, 1] itself, or the line can be parallel to triangle 2, the constant form
    u2 = u2_lo + ξa (u2_hi - u2_lo) is used instead (it drops the correlation of x2 with x1 that
-   the affine part keeps).  (Until 2026-11 this stage was the Bernstein form of ``chain1`` with
-   ξ1 for √β1 and a least-squares plane with a rational remainder bound: about 7 % fewer
-   slab10k tuples, but 8 s more compilation on a user's first bake.)
+   the affine part keeps).
 3. Vertex 2 -> receiver: x2, n2 (eq 6–7) and d1 = x2 - x1 (eq 8) are affine in the four
    variables (u1, v1, ξa, ξb); d̃2 from eq 10 (refraction: √β2 -> aβ2 + b + δ with δ spanning
    [δ_lo, δ_hi] through a remainder variable ξ2) and (uk, vk) by eq 9.  The receiver
    coordinates are linear fractional in ξ2 (d̃2 is affine in ξ2 and eq 9 is linear in d̃2), so
    their 5-variable Bernstein coefficients are those at ξ2 = 0 and ξ2 = 1: the bound (eq 3) is
-   taken over both coefficient sets together (``_flat_common``, ``chain1.receiver_box``), exact for
+   taken over both coefficient sets together (``_flat_common``, ``bounds_one_bounce.receiver_box``), exact for
    the 5-variable polynomial without a fifth array dimension.  Every receiver quantity bounded
    (uk, vk, 1 - uk - vk, UV) is affine in (uk, vk), so one elevation of pu, pv, q serves all.
 4. The steps before eq 9 do not depend on the receiver: a pair (triangle 1, triangle 2) is
    subdivided once for all receiver triangles (``pair_pieces_two``), each keeping its own
    quadtree of the §6.1 stopping rules.  A box lives for a receiver only where the reach grid
-   of ``irradiance_two.receivers_reached`` (the exact map in affine arithmetic on triangle 1's
+   of ``addon.solver.bounds.two_bounce_irradiance.receivers_reached`` (the exact map in affine arithmetic on triangle 1's
    2^d x 2^d cells) does not prove that no path of the cell reaches it: the relaxation
    d1 = x2 - x1 of step 3 cannot see that light leaving triangle 1 misses the neighbouring
-   triangles of its own surface, and those (pair, receiver) tuples were most of the work
-   (slab10k TT: 520,044 -> 156,208 position boxes).
+   triangles of its own surface, and those (pair, receiver) tuples were most of the work.
 
 Degrees stay at most 6 per variable (TT), far below the ~40 where the paper reduces degree.
 The bound converges as U1 shrinks: the remainders of step 2 are O(|U1|²) away from focal points.
 
-Orientation at each vertex follows CONTRACT.md (the light's side of the geometric normal turned
+Orientation at each vertex follows docs/design.md (the light's side of the geometric normal turned
 to the shading normal); at vertex 2 the "light" is x1, whose side of triangle 2's plane is
 taken over the corners of U1.  η' = 1/η entering the medium (shading normal towards the
 incoming light), η leaving it.  The irradiance bound (Ē, E̲ of every final piece) is a
-separate pass, ``irradiance_two.bound_irradiance_two`` (eq 14–16 in affine arithmetic);
+separate pass, ``addon.solver.bounds.two_bounce_irradiance.bound_irradiance_two`` (eq 14–16 in affine arithmetic);
 ``bound_two_bounce`` runs it unless ``irradiance=False``.  Subdivision here follows the
 position rules only (σ, depth), not the ratio α of §6.1: the irradiance pass refines inside
 each piece by itself.
 """
 
-import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..runtime.jit import kernel, prange
-from ..polynomials.bernstein import (_with_extent, add, affine, affine_map, coef_range, elevate, lincomb, mul,
+from addon.solver.runtime.jit import kernel, prange
+from addon.solver.polynomials.bernstein import (with_extent, add, affine, affine_map, coef_range, elevate, lincomb, mul,
                                      sqrt_linearisation)
-from .chain1 import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, P_X0, P_X1, P_Y0, P_Y1, PIECE_FIELDS, POS_PAD, _c3, _d3,
-                     _dot, _eta_ratio, _orientations, _receiver_numerators, orientation_mask, push_children, receiver_box)
-from .irradiance_two import box_reached, first_bounce_forms
+from addon.solver.bounds.layout import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_RECEIVER, P_U0, P_U1, P_V0, P_V1, POS_PAD,
+                                        ior_ratio, orientation_mask, push_children)
+from addon.solver.bounds.two_bounce_irradiance import box_reached
+from addon.solver.bounds.two_bounce_position import stage_one
+from reference.bounds_one_bounce import _c3, _d3, _dot, _orientations, _receiver_numerators, receiver_box
 
-N_STATS = 4  # position evaluations, stage-1 misses (light of the piece misses triangle 2), constant-form fallbacks, capacity stops
 
 
 @kernel
@@ -160,7 +160,7 @@ def _flat_common(a, b, c, d, e, f):
     coefficient sets: (a | d), (b | e), (c | f) (the ξ2 = 0 and ξ2 = 1 sets of pu, pv, q)."""
     shape = a.shape
     for k in range(4):
-        shape = _with_extent(shape, k, max(a.shape[k], b.shape[k], c.shape[k], d.shape[k], e.shape[k], f.shape[k]))
+        shape = with_extent(shape, k, max(a.shape[k], b.shape[k], c.shape[k], d.shape[k], e.shape[k], f.shape[k]))
     n = shape[0] * shape[1] * shape[2] * shape[3]
     x = np.empty(2 * n)
     y = np.empty(2 * n)
@@ -174,14 +174,6 @@ def _flat_common(a, b, c, d, e, f):
     return x, y, z
 
 
-@kernel
-def _stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
-    """Steps 1–2 of the module doc for orientation o1 at vertex 1: the forms with remainder of
-    (u2, v2) in fu, fv (``irradiance_two.first_bounce_forms``).  Returns False when the light
-    of the box misses triangle 2."""
-    box = np.empty(4)
-    box[0], box[1], box[2], box[3] = lo[0], hi[0], lo[1], hi[1]
-    return first_bounce_forms(refract1, o1, x0, P1, N1, P2, eta, box, fu, fv, stats)
 
 
 @kernel
@@ -211,7 +203,7 @@ def _box_bounds(chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, 
         if not refract1 and v1 == 1 and (mask1 & 1):
             continue  # reflection does not depend on the normal's sign
         o1 = 1.0 if v1 == 0 else -1.0
-        if not _stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
+        if not stage_one(refract1, o1, x0, P1, N1, P2, eta, lo, hi, fu, fv, stats):
             continue
         reached = True
         x, n, d = _vertex_two(P1, P2, N2, fu, fv, lo4, hi4)
@@ -222,7 +214,7 @@ def _box_bounds(chain_code, x0, P1, N1, P2, N2, Q, UV, alive, eta, lo, hi, out, 
             if not refract2 and v2 == 1 and (mask2 & 1):
                 continue
             o2 = 1.0 if v2 == 0 else -1.0
-            ok, has_m, dt, m = _directions_two(refract2, o2, _eta_ratio(o2, eta), n, d)
+            ok, has_m, dt, m = _directions_two(refract2, o2, ior_ratio(o2, eta), n, d)
             if not ok:
                 continue
             for r in range(Q.shape[0]):
@@ -267,7 +259,6 @@ def piece_position_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, lo, hi, out, 
     return found[0]
 
 
-P_RECEIVER = PIECE_FIELDS  # extra column of the pair-level rows: the receiver triangle of the piece
 
 
 @kernel
@@ -279,7 +270,7 @@ def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma
     a box emits its piece there and is not evaluated in the sub-boxes; the shared work of a box
     (vertex 1 -> 2 and d̃2) is done once for all receivers still splitting.
 
-    reach[r]: receiver r's ``irradiance_two.receivers_reached`` grid (a box lives for r while
+    reach[r]: receiver r's ``addon.solver.bounds.two_bounce_irradiance.receivers_reached`` grid (a box lives for r while
     ``box_reached``).  Writes rows of chain1's P_* layout plus the receiver index in column
     P_RECEIVER (Ē = inf, E̲ = 0) and returns their number; when the rows might not fit, boxes
     stop splitting (stats[3])."""
@@ -341,156 +332,15 @@ def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma
 
 
 @kernel(parallel=True)
-def _batch_two(chain_code, x0, P, N, Q, UV, eta, pairs, reach, max_depth, sigma, out, counts, stats):
+def _batch_two(chain_code, x0, P, N, Q, UV, eta, pairs, reach, row_start, max_depth, sigma, rows, counts, stats):
     for t in prange(pairs.shape[0]):
         a = pairs[t, 0]
         b = pairs[t, 1]
-        counts[t] = pair_pieces_two(chain_code, x0, P[a], N[a], P[b], N[b], Q, UV, eta, max_depth, sigma, out[t], stats[t],
-                                    reach[t])
+        counts[t] = pair_pieces_two(chain_code, x0[t], P[a], N[a], P[b], N[b], Q, UV, eta[t], max_depth, sigma,
+                                    rows[row_start[t]:row_start[t + 1]], stats[t], reach[t])
 
 
-CHAIN_CODES = {"RR": 0, "TR": 1, "RT": 2, "TT": 3}
-
-
-@dataclass
-class TwoBounceBounds:
-    """Result of :func:`bound_two_bounce`.
-
-    tuples: (m, 3) int64 (triangle 1, triangle 2, receiver) of the tuples with at least one piece;
-    piece_tuple, pieces, tuple_uv_box as ``chain1.OneBounceBounds`` (Ē = inf where the irradiance
-    pass did not run or could not bound the piece)."""
-
-    chain: str
-    tuples: np.ndarray
-    piece_tuple: np.ndarray
-    pieces: np.ndarray
-    tuple_uv_box: np.ndarray
-    report: dict = field(default_factory=dict)
-
-
-def _tuple_uv_boxes(pieces, starts):
-    """UV box of each tuple: the union of its pieces' UV bounds (pieces of a tuple contiguous,
-    starting at ``starts``)."""
-    box = np.empty((starts.shape[0], 4))
-    if starts.shape[0]:
-        box[:, 0] = np.minimum.reduceat(pieces[:, P_X0], starts)
-        box[:, 1] = np.maximum.reduceat(pieces[:, P_X1], starts)
-        box[:, 2] = np.minimum.reduceat(pieces[:, P_Y0], starts)
-        box[:, 3] = np.maximum.reduceat(pieces[:, P_Y1], starts)
-    return box
-
-
-def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, eta=1.5, pairs=None, max_depth=1,
-                     sigma=1e-4, capacity=16, engine="fast", irradiance=True, irr_depth=4, irr_ratio=2.0, prune=True,
-                     reach_depth=2):
-    """Position bounds of two-bounce tuples (Fan et al. 2025 §4.2–4.3, eq 3–13; subdivision §6.1).
-
-    chain: "RR", "RT", "TR" or "TT"; caster_P, caster_N: (n,3,3) corners and corner normals of
-    the specular triangles (both vertices index into them); receiver_P (r,3,3), receiver_UV
-    (r,3,2); eta: IOR behind the caster surfaces (normals point away from it);
-    pairs: (t,2) (triangle 1, triangle 2) candidates, each bounded against every receiver
-    (``tuples.two_bounce_pairs`` builds them; default all n·(n-1), only for tiny meshes);
-    max_depth, sigma: the stopping rules; capacity: most pieces per tuple;
-    engine: "fast" (``chain2_fast``: workspace slots, eq 9's products shared by the receivers;
-    the same pieces up to rounding) or "reference" (the functions of this module);
-    irradiance: also bound Ē, E̲ per piece (``irradiance_two.bound_irradiance_two`` with
-    irr_depth, irr_ratio), else Ē = inf; prune: then drop the pieces (and tuples) that pass
-    proved to hold no path; reach_depth: a box of the position quadtree lives for a receiver
-    only where ``irradiance_two.receivers_reached`` (triangle 1 and its 2^reach_depth grid)
-    does not prove it empty (None: no such test)."""
-    if chain not in CHAIN_CODES:
-        raise ValueError(f"bound_two_bounce handles chains RR, RT, TR and TT, got {chain!r}")
-    t0 = time.perf_counter()
-    light = np.ascontiguousarray(light, dtype=np.float64).reshape(3)
-    caster_P = np.ascontiguousarray(caster_P, dtype=np.float64)
-    caster_N = np.ascontiguousarray(caster_N, dtype=np.float64)
-    receiver_P = np.ascontiguousarray(receiver_P, dtype=np.float64)
-    receiver_UV = np.ascontiguousarray(receiver_UV, dtype=np.float64)
-    if pairs is None:
-        n = caster_P.shape[0]
-        a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-        keep = (a != b).ravel()
-        pairs = np.stack([a.ravel()[keep], b.ravel()[keep]], axis=1)
-    pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
-    n = pairs.shape[0]
-    nr = receiver_P.shape[0]
-    capacity = max(1, min(int(capacity), 4 ** int(max_depth)))
-    out = np.empty((n, capacity * nr, PIECE_FIELDS + 1))
-    counts = np.zeros(n, dtype=np.int64)
-    stats = np.zeros((n, N_STATS), dtype=np.int64)
-    t1 = time.perf_counter()
-    if reach_depth is None or not (n and nr):
-        reach = np.ones((n, nr, 1, 1), dtype=np.bool_)
-    else:
-        from .irradiance_two import receivers_reached
-
-        reach = receivers_reached(chain, light, caster_P, caster_N, receiver_P, pairs, eta, int(reach_depth))
-    t_reach = time.perf_counter()
-    if n and nr and engine == "fast":
-        from .chain2_fast import batch_fast
-
-        batch_fast(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, reach,
-                   int(max_depth), float(sigma), out, counts, stats)
-    elif n and nr:
-        _batch_two(CHAIN_CODES[chain], light, caster_P, caster_N, receiver_P, receiver_UV, float(eta), pairs, reach,
-                   int(max_depth), float(sigma), out, counts, stats)
-    t2 = time.perf_counter()
-    pair_of = np.repeat(np.arange(n), counts)
-    slot = np.arange(pair_of.shape[0]) - np.repeat(np.cumsum(counts) - counts, counts)
-    rows = out[pair_of, slot]
-    del out
-    receiver = rows[:, P_RECEIVER].astype(np.int64)
-    order = np.lexsort((receiver, pair_of))  # tuples (pair, receiver) contiguous
-    rows, pair_of, receiver = rows[order], pair_of[order], receiver[order]
-    key = pair_of * max(nr, 1) + receiver
-    new = np.ones(key.shape[0], dtype=bool)
-    new[1:] = key[1:] != key[:-1]
-    starts = np.flatnonzero(new)
-    piece_tuple = np.cumsum(new) - 1
-    tuples = np.stack([pairs[pair_of[starts], 0], pairs[pair_of[starts], 1], receiver[starts]], axis=1) if starts.size \
-        else np.zeros((0, 3), dtype=np.int64)
-    pieces = np.ascontiguousarray(rows[:, :PIECE_FIELDS])
-    m = starts.shape[0]
-    box = _tuple_uv_boxes(pieces, starts)
-    t3 = time.perf_counter()
-    total = stats.sum(axis=0)
-    report = {
-        "pairs": int(n), "receivers": int(nr), "tuples": int(m), "pieces": int(pieces.shape[0]),
-        "pieces_per_tuple": float(pieces.shape[0] / m) if m else 0.0,
-        "box_evaluations": int(total[0]), "stage_one_misses": int(total[1]), "constant_forms": int(total[2]),
-        "capacity_stops": int(total[3]), "reach_tuples": int(reach.any(axis=(2, 3)).sum()), "reach_depth": reach_depth,
-        "memory_mb": (pieces.nbytes + box.nbytes + piece_tuple.nbytes + tuples.nbytes) / 2**20,
-        "seconds": {"prepare": t1 - t0, "reach": t_reach - t1, "bound": t2 - t_reach, "compact": t3 - t2},
-    }
-    result = TwoBounceBounds(chain, tuples, piece_tuple, pieces, box, report)
-    if irradiance:
-        from .irradiance_two import bound_irradiance_two
-
-        bound_irradiance_two(result, light, caster_P, caster_N, receiver_P, eta, irr_depth=irr_depth, irr_ratio=irr_ratio)
-        if prune:
-            result = drop_pieces_without_paths(result)
-    return result
-
-
-def drop_pieces_without_paths(bounds):
-    """Remove the pieces the irradiance pass proved empty (Ē = E̲ = 0: no admissible path in the
-    box reaches the receiver — backward rays, u2 outside triangle 2 or total internal reflection
-    on the whole box, which the position bound's relaxations cannot see) and the tuples left
-    without a piece.  Returns a new ``TwoBounceBounds``; the report keeps the counts before."""
-    from .chain1 import P_EHI, P_ELO
-
-    keep = ~((bounds.pieces[:, P_EHI] == 0.0) & (bounds.pieces[:, P_ELO] == 0.0))
-    pieces = np.ascontiguousarray(bounds.pieces[keep])
-    old_tuple = bounds.piece_tuple[keep]
-    used, piece_tuple = np.unique(old_tuple, return_inverse=True)  # old_tuple is sorted: order kept
-    tuples = bounds.tuples[used]
-    m = tuples.shape[0]
-    box = _tuple_uv_boxes(pieces, np.flatnonzero(np.r_[True, piece_tuple[1:] != piece_tuple[:-1]]))
-    report = dict(bounds.report)
-    report.update({
-        "tuples_before_pruning": bounds.report["tuples"], "pieces_before_pruning": bounds.report["pieces"],
-        "pairs_with_tuples": int(np.unique(tuples[:, :2], axis=0).shape[0]),
-        "tuples": int(m), "pieces": int(pieces.shape[0]), "pieces_per_tuple": float(pieces.shape[0] / m) if m else 0.0,
-        "memory_mb": (pieces.nbytes + box.nbytes + piece_tuple.nbytes + tuples.nbytes) / 2**20,
-    })
-    return TwoBounceBounds(bounds.chain, tuples, piece_tuple.astype(np.int64), pieces, box, report)
+def batch(chain_code, x0, P, N, Q, UV, eta, pairs, reach, per_box, row_start, max_depth, sigma, rows, counts, stats, chunks=256):
+    """``two_bounce_position.batch``'s signature; this engine assumes per_box = the receiver count
+    (``bound_two_bounce``'s rows) and does not use ``chunks``."""
+    _batch_two(chain_code, x0, P, N, Q, UV, eta, pairs, reach, row_start, max_depth, sigma, rows, counts, stats)

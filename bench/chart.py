@@ -38,8 +38,9 @@ knobs are then skipped.  Chains a method cannot solve are skipped by the bake (n
 R, T; curve: T only) and listed; their light is missing, which the error shows.
 
 Writes bench/results/chart.csv (scene,method,knob,seconds,relmse; empty seconds / relmse:
-too slow or unavailable), bench/results/chart_<scene>.png (log-log error against time) and
-the "chart" section of BENCHMARKS.md.  ``--quick``: 48² textures, 3 knob values, a 40 M photon
+too slow or unavailable), bench/results/chart.json (the run, for ``--rewrite``),
+bench/results/chart_<scene>.png (log-log error against time), bench/results/chart.md (every
+sweep) and the "chart" section of BENCHMARKS.md (each estimator's most accurate point).  ``--quick``: 48² textures, 3 knob values, a 40 M photon
 reference, bounces 2 only where the scene needs them (glass: TT), 15 s limit.
 """
 
@@ -301,27 +302,31 @@ def knob_label(method, knob):
     return f"{knob} spp"
 
 
-def section(rows, notes, args):
+def _preamble(args, date):
     import numba
 
-    lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores ({numba.config.NUMBA_NUM_THREADS} Numba threads, shared "
-             f"with other jobs: timings are noisy), Python {platform.python_version()}; {args.res}² textures, one light "
-             f"sample, date {time.strftime('%Y-%m-%d')}; {'`--quick`' if args.quick else 'full'} sweep.",
-             "",
-             "Knobs: supersamples per texel (path-points with the spoly, newton, curve solvers: every exact R/T path "
-             "the solver finds at every supersample; the two-bounce chains by forward-flux), subdivision depth of "
-             "the forward-image sub-triangles (forward-flux, **the default estimator**), "
-             "random seeds per tuple at 4 supersamples (path-points/sms), photons (photon), Cycles samples (cycles: "
-             "Cycles' MNEE shadow caustics baked by bpy, two bakes per point, see bench/cycles_bake.py; refraction "
-             "chains only). Error: relMSE (rel_mse of tests/fixtures/checks.py, all receivers and channels) against a "
-             f"{args.ref_photons:,}-photon reference of every chain the scene has (bounces 2 for the glass scenes: TT); "
-             "'floor' is the reference's own noise (relMSE of its two halves / 4), under which no error can be measured. "
-             f"Bakes over {args.limit:.0f} s are cancelled and marked too slow (cycles: cannot be cancelled, measured "
-             "to the end and marked).", ""]
+    return [f"Machine: {platform.machine()}, {os.cpu_count()} cores ({numba.config.NUMBA_NUM_THREADS} Numba threads, shared "
+            f"with other jobs: timings are noisy), Python {platform.python_version()}; {args['res']}² textures, one light "
+            f"sample, date {date}; {'`--quick`' if args['quick'] else 'full'} sweep.", ""]
+
+
+def results_page(rows, notes, args, date):
+    """bench/results/chart.md: every estimator's sweep per scene (the knobs, times, errors, notes)."""
+    lines = ["# Speed against accuracy: every sweep (`bench/chart.py`)", ""] + _preamble(args, date)
+    lines += ["Knobs: supersamples per texel (path-points with the spoly, newton, curve solvers: every exact R/T path "
+              "the solver finds at every supersample; the two-bounce chains by forward-flux), subdivision depth of "
+              "the forward-image sub-triangles (forward-flux, **the default estimator**), "
+              "random seeds per tuple at 4 supersamples (path-points/sms), photons (photon), Cycles samples (cycles: "
+              "Cycles' MNEE shadow caustics baked by bpy, two bakes per point, see bench/cycles_bake.py; refraction "
+              "chains only). Error: relMSE (rel_mse of tests/fixtures/checks.py, all receivers and channels) against a "
+              f"{args['ref_photons']:,}-photon reference of every chain the scene has (bounces 2 for the glass scenes: TT); "
+              "'floor' is the reference's own noise (relMSE of its two halves / 4), under which no error can be measured. "
+              f"Bakes over {args['limit']:.0f} s are cancelled and marked too slow (cycles: cannot be cancelled, measured "
+              "to the end and marked).", ""]
     for scene in notes:
         n = notes[scene]
         lines.append(f"**{scene}** (bounces {n['bounces']}; reference floor relMSE {n['floor']:.1e}) "
-                     f"![{scene}](bench/results/chart_{scene}.png)")
+                     f"![{scene}](chart_{scene}.png)")
         lines.append("")
         lines.append("| estimator | knobs | seconds | relMSE | note |")
         lines.append("|---|---|---|---|---|")
@@ -336,8 +341,54 @@ def section(rows, notes, args):
         for method, sk in n["skipped"].items():
             lines.append(f"\n{method}: " + "; ".join(sorted(set(sk))))
         lines.append("")
-    lines.append("Reading the chart: path-points and forward-flux are deterministic: their error is the texel average's supersample error plus the paths a solver misses (newton, sms) or the chains it skips (newton/sms: R, T; curve: T), which no knob recovers; photon's error is noise (1/photons); cycles (MNEE) is bias: light its seeding misses, its clamp of the geometry term, and no reflection chains (bench/cycles_bake.py). Too slow: cut at the limit.")
+    lines.append(READING)
+    return "\n".join(lines) + "\n"
+
+
+READING = ("Reading the chart: path-points and forward-flux are deterministic: their error is the texel average's "
+           "supersample error plus the paths a solver misses (newton, sms) or the chains it skips (newton/sms: R, T; "
+           "curve: T), which no knob recovers; photon's error is noise (1/photons); cycles (MNEE) is bias: light its "
+           "seeding misses, its clamp of the geometry term, and no reflection chains (bench/cycles_bake.py). Too slow: "
+           "cut at the limit.")
+
+
+def section(rows, notes, args, date):
+    """The BENCHMARKS.md section: per scene and estimator the most accurate point of its sweep
+    (lowest relMSE, then the fastest), as "relMSE · seconds"; the sweeps are on the results page."""
+    lines = _preamble(args, date)
+    lines += [f"Question: for each estimator, how close to a {args['ref_photons'] / 1e6:g} M-photon reference does it get, "
+              "and at what time? Each cell is the estimator's most accurate point of its sweep, *relMSE · seconds* "
+              "(– : no chain of the scene baked, or too slow); 'floor' is the reference's own noise. Every sweep, knob "
+              "and note: [bench/results/chart.md](bench/results/chart.md); charts: "
+              + ", ".join(f"[{sc}](bench/results/chart_{sc}.png)" for sc in notes) + ".", ""]
+    methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
+    lines.append("| scene (floor) | " + " | ".join(methods) + " |")
+    lines.append("|---|" + "---|" * len(methods))
+    for scene in notes:
+        cells = []
+        for method in methods:
+            rs = [r for r in rows if r["scene"] == scene and r["method"] == method and r["relmse"] is not None
+                  and r["seconds"] is not None]
+            if not rs:
+                cells.append("–")
+                continue
+            best = min(rs, key=lambda r: (float(f"{r['relmse']:.1e}"), r["seconds"]))
+            cells.append(f"{best['relmse']:.1e} · {best['seconds']:.2f}")
+        lines.append(f"| {scene} ({notes[scene]['floor']:.1e}) | " + " | ".join(cells) + " |")
+    lines += ["", READING]
     return "\n".join(lines)
+
+
+def publish(rows, notes, args, date, write):
+    """Write the results page and (``write``) the BENCHMARKS.md section; print the section."""
+    with open(os.path.join(RESULTS, "chart.md"), "w") as fh:
+        fh.write(results_page(rows, notes, args, date))
+    body = section(rows, notes, args, date)
+    print(body)
+    if write:
+        from solver import write_section
+
+        write_section(os.path.join(ROOT, "BENCHMARKS.md"), "chart", "Speed against accuracy (`bench/chart.py`)", body)
 
 
 def main(argv=None):
@@ -349,7 +400,15 @@ def main(argv=None):
     ap.add_argument("--ref-photons", type=int, default=None, help="reference photons (default 5M quick, 64M full)")
     ap.add_argument("--limit", type=float, default=None, help="seconds before a bake counts as too slow (15 quick, 120 full)")
     ap.add_argument("--no-write", action="store_true", help="do not touch BENCHMARKS.md")
+    ap.add_argument("--rewrite", action="store_true",
+                    help="re-write the results page and the section from bench/results/chart.json (no bakes)")
     args = ap.parse_args(argv)
+    saved = os.path.join(RESULTS, "chart.json")
+    if args.rewrite:
+        with open(saved) as fh:
+            run = json.load(fh)
+        publish(run["rows"], run["notes"], run["args"], run["date"], not args.no_write)
+        return 0
     args.res = args.res or (48 if args.quick else 128)
     args.ref_photons = args.ref_photons or (40_000_000 if args.quick else 64_000_000)
     args.limit = args.limit or (15.0 if args.quick else 120.0)
@@ -361,12 +420,11 @@ def main(argv=None):
     write_csv(rows, os.path.join(RESULTS, "chart.csv"))
     for scene in notes:
         plot(rows, notes, scene, os.path.join(RESULTS, f"chart_{scene}.png"), knob_label)
-    body = section(rows, notes, args)
-    print(body)
-    if not args.no_write:
-        from solver import write_section
-
-        write_section(os.path.join(ROOT, "BENCHMARKS.md"), "chart", "Speed against accuracy (`bench/chart.py`)", body)
+    run = {"date": time.strftime("%Y-%m-%d"), "rows": rows, "notes": notes,
+           "args": {"res": args.res, "quick": args.quick, "ref_photons": args.ref_photons, "limit": args.limit}}
+    with open(saved, "w") as fh:
+        json.dump(run, fh, indent=1)
+    publish(rows, notes, run["args"], run["date"], not args.no_write)
     return 0
 
 

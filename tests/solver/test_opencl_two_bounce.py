@@ -20,6 +20,7 @@ if os.path.join(ROOT, "bench") not in sys.path:
     sys.path.insert(0, os.path.join(ROOT, "bench"))
 
 from addon.solver.opencl import backend as opencl_backend
+from fixtures.opencl import opencl_device_or_skip
 from addon.solver import solve_tuples  # noqa: E402
 from addon.solver.spoly.api import SpecularPolynomialSolver, compact_paths  # noqa: E402
 from reference.two_bounce_data import plant_two_bounce, random_two_bounce as random_pairs  # noqa: E402
@@ -27,17 +28,6 @@ from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
 
 CHAINS = ("RR", "RT", "TR", "TT")
 N_EACH = 24  # tuples per source: ~1 min for the file on a loaded 2-core PoCL machine (warm Numba cache)
-
-
-def _opencl_device_or_skip():
-    try:
-        devices = opencl_backend.list_devices()
-    except opencl_backend.OpenCLUnavailable as ex:
-        pytest.skip(f"no OpenCL here: {ex}")
-    usable = [d for d in devices if d[3]]
-    if not usable:
-        pytest.skip("no OpenCL device with double precision")
-    return usable[0][0]
 
 
 def _tuples(chain, n=N_EACH):
@@ -68,7 +58,7 @@ def _assert_same_paths(got, expected, n, what=""):
 @pytest.mark.slow  # the first builds the two-bounce OpenCL kernels: ~3 min on PoCL here
 @pytest.mark.parametrize("chain", CHAINS)
 def test_opencl_two_bounce_returns_the_numba_paths(chain):
-    index = _opencl_device_or_skip()
+    index = opencl_device_or_skip()
     x0, x3, P, N, eta = _tuples(chain)
     solver = SpecularPolynomialSolver()
     numba = solver.solve(chain, x0, x3, P, N, eta)
@@ -120,7 +110,7 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
 @pytest.mark.slow  # builds the two-bounce OpenCL kernels
 def test_opencl_determinant_equals_det_bezout():
     """sign and log|det R(v1)| (eq 29) of real TT systems: OpenCL against Numba's det_bezout."""
-    index = _opencl_device_or_skip()
+    index = opencl_device_or_skip()
     from addon.solver.opencl.backend import OpenCLDeterminants
     from addon.solver.spoly.two_bounce.params import MAXD, N_STATS
     from addon.solver.spoly.two_bounce.resultant import det_bezout
@@ -170,7 +160,7 @@ def test_opencl_determinant_equals_det_bezout():
 def test_opencl_two_bounce_degenerate_tuples(chain):
     """Degenerate, grazing and near-TIR tuples (as test_solver_two_bounce.py): no NaN, no
     crash, the Numba back end's paths."""
-    index = _opencl_device_or_skip()
+    index = opencl_device_or_skip()
     rng = np.random.default_rng([20261121, 9, ord(chain[0]), ord(chain[1])])
     d = plant_two_bounce(rng, chain, 40, max_theta_deg=89.9)
     x0, x3, P, N, eta = d["x0"].copy(), d["x3"].copy(), d["P"].copy(), d["N"].copy(), d["eta"].copy()
@@ -197,7 +187,7 @@ def test_opencl_two_bounce_degenerate_tuples(chain):
 
 @pytest.mark.opencl
 def test_two_bounce_missing_device_warns_and_uses_numba():
-    _opencl_device_or_skip()
+    opencl_device_or_skip()
     x0, x3, P, N, _ = planted_two_bounce(12, "RR", seed=34)
     expected = solve_tuples("RR", x0, x3, P, N, 1.5)
     with pytest.warns(RuntimeWarning, match="OpenCL unavailable.*does not exist"):

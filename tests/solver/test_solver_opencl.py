@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from addon.solver.opencl import backend as opencl_backend
+from fixtures.opencl import opencl_device_or_skip
 from addon.solver import solve_tuples
 from addon.solver.spoly.api import SpecularPolynomialSolver
 
@@ -14,21 +15,10 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(
 from workloads import planted_tuples, random_tuples  # noqa: E402
 
 
-def _opencl_device_or_skip():
-    try:
-        devices = opencl_backend.list_devices()
-    except opencl_backend.OpenCLUnavailable as ex:
-        pytest.skip(f"no OpenCL here: {ex}")
-    usable = [d for d in devices if d[3]]
-    if not usable:
-        pytest.skip("no OpenCL device with double precision")
-    return usable[0][0]
-
-
 @pytest.mark.opencl
 @pytest.mark.parametrize("chain", ["R", "T"])
 def test_opencl_returns_the_numba_paths(chain):
-    index = _opencl_device_or_skip()
+    index = opencl_device_or_skip()
     x0, x2, P, N, _ = planted_tuples(6000, chain, seed=21)
     r0, r2, rP, rN = random_tuples(6000, seed=22)
     x0, x2, P, N = np.vstack([x0, r0]), np.vstack([x2, r2]), np.vstack([P, rP]), np.vstack([N, rN])
@@ -55,7 +45,7 @@ def test_bad_device_names_are_value_errors():
 
 @pytest.mark.opencl
 def test_missing_device_warns_and_uses_numba():
-    _opencl_device_or_skip()
+    opencl_device_or_skip()
     x0, x2, P, N, _ = planted_tuples(200, "R", seed=23)
     expected = solve_tuples("R", x0, x2, P, N, 1.5)
     with pytest.warns(RuntimeWarning, match="OpenCL unavailable.*does not exist"):
@@ -135,7 +125,7 @@ def test_opencl_compaction_and_buffer_reuse(chain, monkeypatch):
     (the device buffers kept from a larger call serve a smaller one and are replaced for a
     larger one), and when the path records overflow the device buffers (they grow and the
     kernel runs again)."""
-    index = _opencl_device_or_skip()
+    index = opencl_device_or_skip()
     solver = SpecularPolynomialSolver()
     dev = opencl_backend._context(index)
     monkeypatch.setattr(dev, "buffers", {})  # as on a device's first call
@@ -183,7 +173,7 @@ def test_opencl_compaction_and_buffer_reuse(chain, monkeypatch):
 def test_opencl_launches_in_batches_and_empty_calls(chain, monkeypatch):
     """A call larger than ONE_BOUNCE_BATCH runs in several launches (tuple offsets, summed
     statistics) with Numba's paths; a call without tuples returns nothing."""
-    index = _opencl_device_or_skip()
+    index = opencl_device_or_skip()
     solver = SpecularPolynomialSolver()
     x0, x2, P, N = _mixed_batch(7000, 700, chain, seed=60)
     numba = solver.solve(chain, x0, x2, P, N, 1.5)

@@ -7,8 +7,8 @@ the Blender operator gives a sequence), each frame's report ``DIR/report.<frame>
 ``DIR/report.json``, the index of every frame reported in ``DIR`` (so jobs that bake different
 frames into one folder, e.g. render-farm chunks, add up to one sequence).  ``--dask ADDRESS``
 or ``--dask-local N`` bakes the frames on the workers of a Dask cluster
-(:func:`bake_frame_task`, one task per frame; the workers need the bpy module, this package
-importable and the .blend and ``DIR`` at the same paths).  Wrong input exits with code 2 and a
+(:func:`bake_frame_task`, one task per frame; dask is imported only then; the workers need the
+bpy module, this package importable and the .blend and ``DIR`` at the same paths).  Wrong input exits with code 2 and a
 one-line reason on stderr (no traceback).
 """
 
@@ -136,9 +136,7 @@ def _run(args):
     settings = settings_from_args(args)
     resolution = args.resolution or 256
     if args.dask is not None or args.dask_local is not None:
-        from .dask_frames import bake_frames_on_dask
-
-        results = bake_frames_on_dask(path, frames, os.path.abspath(args.out), settings, resolution,
+        results = _bake_frames_on_dask(path, frames, os.path.abspath(args.out), settings, resolution,
                                       address=args.dask, local_workers=args.dask_local)
         _print_frames(results)
         return 0
@@ -217,6 +215,63 @@ def bake_frame_task(frame, blend, out_dir, settings, resolution):
         return bake_frame(blend, frame, out_dir, settings, resolution)
     except UserError as ex:
         return {"frame": frame, "error": str(ex)}
+
+
+DASK_MISSING = ("--dask and --dask-local need dask.distributed, which is not installed: "
+                "pip install 'dask[distributed]==2026.8.0'")
+
+
+def _import_distributed():
+    try:
+        import distributed
+    except ImportError:
+        raise UserError(DASK_MISSING) from None
+    return distributed
+
+
+def _bake_frames_on_dask(blend, frames, out_dir, settings, resolution, address=None, local_workers=None,
+                         connect_timeout=30):
+    """Bake ``frames`` of ``blend`` into ``out_dir`` on the Dask cluster at ``address``, or on a
+    local cluster of ``local_workers`` processes (one thread each); returns the frames' results
+    ({"frame", "line", "warnings", "files"}) in frame order.  One task per frame,
+    :func:`bake_frame_task`: the serial loop's :func:`bake_frame` on a worker process, so the
+    textures are the serial bake's bit for bit (the bake is deterministic for its settings,
+    whichever process runs it); this process prints each frame's line as it finishes and
+    rebuilds ``report.json`` from the frame reports at the end.  A frame that fails stops the
+    bake with its one-line reason (:class:`UserError`); frames already written stay."""
+    distributed = _import_distributed()
+    from .pipeline import write_sequence_report
+
+    cluster = None
+    results = {}
+    try:
+        if local_workers is not None:
+            cluster = distributed.LocalCluster(n_workers=int(local_workers), processes=True, threads_per_worker=1,
+                                               dashboard_address=None)
+            client = distributed.Client(cluster)
+        else:
+            try:
+                client = distributed.Client(address, timeout=connect_timeout)
+            except (OSError, TimeoutError, ValueError) as ex:
+                raise UserError(f"cannot reach the Dask scheduler at {address}: {ex}") from None
+        with client:
+            futures = client.map(bake_frame_task, frames, blend=blend, out_dir=out_dir, settings=settings,
+                                 resolution=resolution, pure=False)
+            try:
+                for fut in distributed.as_completed(futures):
+                    r = fut.result()
+                    if "error" in r:
+                        raise UserError(r["error"])
+                    results[r["frame"]] = r
+                    _print_frames([r])
+            finally:
+                client.cancel([f for f in futures if not f.done()])
+    finally:
+        if cluster is not None:
+            cluster.close()
+        if results:
+            write_sequence_report(out_dir)
+    return [results[f] for f in frames]
 
 
 def _forget_bpy_script_paths():

@@ -13,7 +13,7 @@ bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.bpy
 
 from addon.__main__ import main  # noqa: E402
-from addon.bake import dask_frames  # noqa: E402
+from addon.bake import cli  # noqa: E402
 from addon.bake.exr import read_exr  # noqa: E402
 from addon.bake.extract import extract_scene, open_blend  # noqa: E402
 from addon.bake.pipeline import BakeSettings, bake, texture_filename  # noqa: E402
@@ -94,8 +94,17 @@ def test_frame_and_dask_errors_are_one_line(animated_blend, tmp_path, capsys, mo
     monkeypatch.setitem(sys.modules, "distributed", None)
     assert main(["bake", animated_blend, "--out", out, "--frames", "1:2", "--dask-local", "2"]) == 2
     line = _err_line(capsys)
-    assert line == "error: " + dask_frames.DASK_MISSING
+    assert line == "error: " + cli.DASK_MISSING
     assert not os.path.exists(out)
+
+
+def test_an_unreachable_scheduler_is_one_line(tmp_path):
+    pytest.importorskip("distributed")
+    out = tmp_path / "o"
+    with pytest.raises(cli.UserError, match="^cannot reach the Dask scheduler at tcp://127.0.0.1:1: "):
+        cli._bake_frames_on_dask(str(tmp_path / "x.blend"), [1, 2], str(out), BakeSettings(), 8,
+                                 address="tcp://127.0.0.1:1", connect_timeout=1)
+    assert not out.exists()
 
 
 @pytest.mark.slow

@@ -43,7 +43,8 @@ def add_arguments(parser):
                         "(e.g. tcp://farm:8786; needs dask[distributed]; the workers need the bpy module, this "
                         "package on their PYTHONPATH and the .blend and --out at the same paths)")
     parser.add_argument("--dask-local", type=int, default=None, metavar="N",
-                        help="bake the --frames on a local Dask cluster of N worker processes (one thread each)")
+                        help="bake the --frames on a local Dask cluster of N worker processes (one task at a time "
+                        "each; without --threads each bakes with cores / N threads)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (supersample jitter, light samples)")
     parser.add_argument("--light-samples", type=int, default=1, help="samples of light radius / area / sun angle (default 1: point lights)")
     parser.add_argument("--margin", type=int, default=16, help="texels of padding over UV seams (default 16)")
@@ -135,6 +136,9 @@ def _run(args):
         raise UserError(f"not a .blend file: {args.blend}")
     settings = settings_from_args(args)
     resolution = args.resolution or 256
+    if args.dask_local is not None and not settings.threads:
+        # the local workers share this machine's cores (the texture does not depend on the count)
+        settings.threads = max(1, (os.cpu_count() or 1) // args.dask_local)
     if args.dask is not None or args.dask_local is not None:
         results = _bake_frames_on_dask(path, frames, os.path.abspath(args.out), settings, resolution,
                                       address=args.dask, local_workers=args.dask_local)

@@ -151,8 +151,16 @@ def _run(args):
     except RuntimeError as ex:
         raise UserError(f"could not open {args.blend}: {str(ex).strip().splitlines()[-1]}") from None
     if frames:
-        for frame in frames:
-            _print_frames([bake_frame(path, frame, args.out, settings, resolution)])
+        from .pipeline import write_sequence_report
+
+        done = 0
+        try:
+            for frame in frames:
+                _print_frames([bake_frame(path, frame, args.out, settings, resolution)])
+                done += 1
+        finally:
+            if done:
+                write_sequence_report(args.out)  # the index of every frame in the folder
         return 0
     scene, result = _bake_open_scene(path, None, settings, resolution)
     try:

@@ -53,8 +53,8 @@ class BakeResult:
         """Write the textures and the report into ``out_dir``: per receiver the file
         :func:`texture_filename` names (``<receiver>.exr``, or ``<receiver>.<frame>.exr`` with
         ``frame``) and ``report.json``, or with ``frame`` that frame's report
-        (:func:`frame_report_filename`) and ``report.json`` rebuilt as the sequence's index
-        (:func:`write_sequence_report`).  Returns {receiver: file name}."""
+        (:func:`frame_report_filename`; :func:`write_sequence_report` then indexes the
+        frames).  Returns {receiver: file name}."""
         os.makedirs(out_dir, exist_ok=True)
         t0 = time.perf_counter()
         files = {}
@@ -68,7 +68,6 @@ class BakeResult:
             _write_json(os.path.join(out_dir, "report.json"), self.report)
         else:
             _write_json(os.path.join(out_dir, frame_report_filename(frame)), self.report)
-            write_sequence_report(out_dir)
         return files
 
 
@@ -78,11 +77,12 @@ _FRAME_REPORT = re.compile(r"report\.(\d+)\.json")
 
 def write_sequence_report(out_dir):
     """Rebuild ``out_dir/report.json`` from the frame reports in ``out_dir`` (the files
-    :func:`frame_report_filename` names, written by whichever process baked that frame, so
-    that jobs baking different frames into one folder never write the same report) and
-    return it: ``frames`` (sorted), ``files`` ({receiver: [file per frame]}), ``timings``
-    (``bake_total``: the frames' sum), ``warnings`` (each prefixed with its frame) and
-    ``per_frame`` ({frame: that frame's report})."""
+    :func:`frame_report_filename` names, each written once by whichever process baked that
+    frame, so that jobs baking different frames into one folder never write the same report)
+    and return it: ``frames`` (sorted), ``files`` ({receiver: [file per frame]}), ``timings``
+    (the frames' sums), ``warnings`` (each prefixed with its frame) and ``per_frame``: per
+    frame its report's file and the essentials of it (input, files, plan summary, estimators'
+    names, timings, counts, per-receiver figures, warnings)."""
     per_frame = {}
     for fname in sorted(os.listdir(out_dir)):
         m = _FRAME_REPORT.fullmatch(fname)
@@ -90,21 +90,29 @@ def write_sequence_report(out_dir):
             continue
         try:
             with open(os.path.join(out_dir, fname), encoding="utf-8") as fh:
-                per_frame[int(m.group(1))] = json.load(fh)
+                per_frame[int(m.group(1))] = (fname, json.load(fh))
         except (OSError, ValueError):
-            continue  # being written by another job: the next rebuild has it
+            continue  # not a report this module wrote (they are written whole, by renaming)
     frames = sorted(per_frame)
-    files = {}
+    files, timings, entries = {}, {}, {}
     for f in frames:
-        for name, fname in per_frame[f].get("files", {}).items():
-            files.setdefault(name, []).append(fname)
+        fname, rep = per_frame[f]
+        for name, tex in rep.get("files", {}).items():
+            files.setdefault(name, []).append(tex)
+        for stage, t in rep.get("timings", {}).items():
+            timings[stage] = timings.get(stage, 0.0) + t
+        entries[str(f)] = {"report": fname, "input": rep.get("input", {}), "files": rep.get("files", {}),
+                           "plan_summary": rep.get("plan", {}).get("summary", []),
+                           "estimators": sorted(rep.get("estimators", {})), "timings": rep.get("timings", {}),
+                           "counts": rep.get("counts", {}), "receivers": rep.get("receivers", {}),
+                           "warnings": rep.get("warnings", [])}
     report = {
         "sequence": True,
         "frames": frames,
         "files": files,
-        "timings": {"bake_total": sum(per_frame[f].get("timings", {}).get("bake_total", 0.0) for f in frames)},
-        "warnings": [f"frame {f}: {w}" for f in frames for w in per_frame[f].get("warnings", [])],
-        "per_frame": {str(f): per_frame[f] for f in frames},
+        "timings": timings,
+        "warnings": [f"frame {f}: {w}" for f in frames for w in per_frame[f][1].get("warnings", [])],
+        "per_frame": entries,
     }
     _write_json(os.path.join(out_dir, SEQUENCE_REPORT), report)
     return report

@@ -66,11 +66,15 @@ def test_frames_write_the_sequence_each_frame_equal_to_its_single_frame_bake(ani
     assert index["files"] == {"Floor": ["Floor.0001.exr", "Floor.0002.exr", "Floor.0003.exr"]}
     for f in (1, 2, 3):
         per = index["per_frame"][str(f)]
-        assert per == json.loads((out / f"report.{f:04d}.json").read_text())
-        assert per["input"]["frame"] == f and per["scene"]["frame"] == f and per["files"] == {"Floor": f"Floor.{f:04d}.exr"}
+        full = json.loads((out / per["report"]).read_text())
+        assert per["report"] == f"report.{f:04d}.json" and full["scene"]["frame"] == f
+        assert per["input"]["frame"] == f and per["files"] == {"Floor": f"Floor.{f:04d}.exr"}
+        assert per["receivers"] == full["receivers"] and per["plan_summary"] == full["plan"]["summary"]
+        assert per["estimators"] == ["forward-flux"] and per["counts"]["sub_triangles"] > 0
         assert per["receivers"]["Floor"]["max_irradiance"] == pytest.approx(float(seq[f - 1].max()), rel=1e-6)
     assert index["timings"]["bake_total"] == pytest.approx(sum(index["per_frame"][str(f)]["timings"]["bake_total"]
                                                                for f in (1, 2, 3)))
+    assert len((out / "report.json").read_bytes()) < 3 * len((out / "report.0001.json").read_bytes())
     # A second job with other frames into the same folder (a farm chunk) extends the index.
     assert main(["bake", animated_blend, "--out", str(out), "--frames", "4:4"] + ARGS) == 0
     assert json.loads((out / "report.json").read_text())["frames"] == [1, 2, 3, 4]

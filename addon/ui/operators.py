@@ -6,10 +6,11 @@
   progress bar and status text; Esc / right-click cancels and leaves the scene exactly as it
   was (nothing is applied before the bake is complete).  With the frame range (the panel's
   *Animation*) it bakes frame after frame (progress "frame k/N"), writes each finished frame's
-  EXRs, and shows them as image sequences; Esc then keeps the finished frames and shows those.  From scripts and in background mode
-  (``blender -b``) execute() bakes synchronously; in background mode it then saves the .blend
-  (``save_blend``, default: yes there if the file has a path).  Undo restores the state before
-  the bake (everything the bake changes is Blender data: images, node group, materials).
+  EXRs, and shows them as image sequences; Esc then keeps the finished frames and shows those.
+  From scripts and in background mode (``blender -b``) execute() bakes synchronously; in
+  background mode it then saves the .blend (``save_blend``, default: yes there if the file has a
+  path).  Undo restores the Blender data as it was before the bake (images, node group,
+  materials); files written or deleted on disk stay so.
 - ``caustics.clear``: removes what the bake added (images, node group, material copies, nodes)
   and the files of baked image sequences (only files Caustic Bake wrote).
 

@@ -25,6 +25,9 @@ class UserError(Exception):
     """Bad input: reported as one line, exit code 2."""
 
 
+BPY_MISSING = "the bake needs Blender's Python module: pip install bpy==5.0.1 (Python 3.11)"
+
+
 def add_arguments(parser):
     parser.add_argument("blend", help="the .blend file to bake")
     parser.add_argument("--out", required=True, help="output directory")
@@ -126,10 +129,11 @@ def _run(args):
         raise UserError("--dask-local must be at least 1 (worker processes)")
     if (args.dask is not None or args.dask_local is not None) and not frames:
         raise UserError("--dask and --dask-local spread a frame range: give --frames A:B")
-    try:
-        import bpy  # noqa: F401
-    except ImportError:
-        raise UserError("the bake needs Blender's Python module: pip install bpy==5.0.1 (Python 3.11)") from None
+    if args.dask is None:  # on a remote cluster only the workers need bpy
+        try:
+            import bpy  # noqa: F401
+        except ImportError:
+            raise UserError(BPY_MISSING) from None
     with open(path, "rb") as fh:
         magic = fh.read(7)
     if magic != b"BLENDER" and magic[:2] not in (b"\x1f\x8b", b"\x28\xb5"):  # plain, gzip or zstd
@@ -217,7 +221,12 @@ def bake_frame_task(frame, blend, out_dir, settings, resolution):
     frame ``frame`` and write its files into ``out_dir``, as the serial ``--frames`` loop
     does (:func:`bake_frame`).  A bad scene comes back as {"frame", "error": one line}."""
     _forget_bpy_script_paths()
-    from .extract import open_blend
+    try:
+        from .extract import open_blend
+    except ImportError as ex:
+        if (getattr(ex, "name", None) or "").split(".")[0] not in ("bpy", "_bpy"):
+            raise
+        return {"frame": frame, "error": f"{BPY_MISSING} (on the Dask worker {socket.gethostname()})"}
 
     try:
         open_blend(blend)

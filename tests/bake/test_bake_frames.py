@@ -111,6 +111,21 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path):
     assert not out.exists()
 
 
+def test_a_worker_without_bpy_answers_one_line(tmp_path):
+    """A Dask worker without the bpy module: the frame's task says so (the driver stops the
+    bake with that line) instead of a traceback."""
+    import ast
+    import subprocess
+
+    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    code = ("import sys; sys.modules['bpy'] = None; from addon.bake.cli import bake_frame_task; "
+            f"print(bake_frame_task(3, 'x.blend', {str(tmp_path)!r}, None, 8))")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    result = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    assert result["frame"] == 3 and result["error"].startswith(cli.BPY_MISSING + " (on the Dask worker ")
+
+
 @pytest.mark.slow
 def test_dask_local_cluster_equals_the_serial_bake_bit_for_bit(animated_blend, tmp_path, capsys):
     pytest.importorskip("distributed")

@@ -14,11 +14,23 @@ they would show direct light.  (Receivers under a refractive surface: Cycles' ow
 caustics give about E / n² there because it skips the n² radiance scaling; this bakes the
 physical irradiance.)
 
+A frame range (:func:`write_sequence_frame` per finished frame, then :func:`apply_sequence`)
+gives every receiver an Image with source ``SEQUENCE`` over the EXR sequence named by
+:func:`addon.bake.pipeline.texture_filename` (``<receiver>.<frame>.exr``, the CLI's names), and
+its Image Texture node's image user maps the scene frame to the file of that frame
+(``frame_start`` = first frame, ``frame_offset`` = first frame - 1, ``frame_duration`` = the
+frames baked, auto refresh on), so that timeline playback and Cycles and EEVEE renders show each
+frame's caustic; after the last frame the last one shows (before the first, Blender's image user
+asks for the frame before it, which was not baked).  A sequence is never packed (Blender cannot
+pack image sequences).
+
 What changed is recorded on the data itself (a JSON custom property on each material and
 object touched, and a tag on images), so ``clear_bake`` removes all of it and restores the
 materials exactly: the added nodes go, the original surface links come back, material copies
 made for receivers that share a material with other objects are removed and the slots
-restored, and the images and node group are deleted.
+restored, and the images and node group are deleted.  With ``delete_files`` it also deletes
+the sequence files the images list (``caustic_bake_files``) that Caustic Bake wrote (the
+folder's manifest, :data:`FILES_MANIFEST`); a user's file is never deleted or overwritten.
 """
 
 import json
@@ -27,11 +39,14 @@ import os
 
 import bpy
 
+from .names import texture_filename
+
 GROUP_NAME = "CausticBake"
 NODE_PREFIX = "CausticBake"
 STATE_KEY = "caustic_bake_state"
 SLOT_KEY = "caustic_bake_slots"
 TAG_KEY = "caustic_bake"
+FILES_KEY = "caustic_bake_files"  # on a sequence image: JSON [absolute folder, [file names]]
 BASE_COLOR_INPUTS = {"BSDF_PRINCIPLED": "Base Color", "BSDF_DIFFUSE": "Color", "BSDF_SHEEN": "Color", "BSDF_TOON": "Color"}
 
 
@@ -98,8 +113,9 @@ def _written_here(abs_dir):
         return set()
 
 
-def _record_written(abs_dir, fname):
-    names = _written_here(abs_dir) | {fname}
+def _record_written(abs_dir, fname, forget=()):
+    names = (_written_here(abs_dir) | {fname}) - set(forget)
+    names.discard(None)
     with open(os.path.join(abs_dir, FILES_MANIFEST), "w", encoding="utf-8") as fh:
         json.dump(sorted(names), fh, indent=1)
 
@@ -109,18 +125,46 @@ def image_file(name, directory):
     return bpy.path.abspath(directory), bpy.path.clean_name(name) + ".exr"
 
 
-def foreign_files(object_names, directory):
-    """The files :func:`apply_bake` would write over in ``directory`` that Caustic Bake did not
-    write there itself (a user's own files, never overwritten); [] when ``directory`` is None."""
+def foreign_files(object_names, directory, frames=None):
+    """The files :func:`apply_bake` (or with ``frames``, :func:`write_sequence_frame` for those
+    frames) would write over in ``directory`` that Caustic Bake did not write there itself (a
+    user's own files, never overwritten); [] when ``directory`` is None."""
     if directory is None:
         return []
     out = []
     for obj_name in object_names:
-        abs_dir, fname = image_file(f"{NODE_PREFIX} {obj_name}", directory)
-        path = os.path.join(abs_dir, fname)
-        if os.path.exists(path) and fname not in _written_here(abs_dir):
-            out.append(path)
+        if frames is None:
+            abs_dir, fname = image_file(f"{NODE_PREFIX} {obj_name}", directory)
+            names = [fname]
+        else:
+            abs_dir = bpy.path.abspath(directory)
+            names = [texture_filename(obj_name, f) for f in frames]
+        written = _written_here(abs_dir)
+        out += [os.path.join(abs_dir, n) for n in names if n not in written and os.path.exists(os.path.join(abs_dir, n))]
     return out
+
+
+def write_sequence_frame(images, directory, frame):
+    """Write one frame of a sequence: per receiver ``images[name]`` ((H, W, 3) irradiance) to
+    ``directory``/:func:`~addon.bake.pipeline.texture_filename` (name, frame), recorded as
+    written by Caustic Bake.  A file there that Caustic Bake did not write is never overwritten
+    (FileExistsError).  Returns {receiver name: absolute path}."""
+    from .exr import write_exr
+
+    abs_dir = bpy.path.abspath(directory)
+    os.makedirs(abs_dir, exist_ok=True)
+    written = _written_here(abs_dir)
+    paths = {}
+    for name in images:
+        fname = texture_filename(name, frame)
+        path = os.path.join(abs_dir, fname)
+        if os.path.exists(path) and fname not in written:
+            raise FileExistsError(f"{path} exists and was not written by Caustic Bake; choose another output folder")
+        paths[name] = path
+    for name, pixels in images.items():
+        write_exr(paths[name], pixels)
+        _record_written(abs_dir, os.path.basename(paths[name]))
+    return paths
 
 
 def make_image(name, pixels_rgb, directory=None, pack=False, source=None):
@@ -172,8 +216,10 @@ def make_image(name, pixels_rgb, directory=None, pack=False, source=None):
     return img
 
 
-def _insert_nodes(mat, image, uv_map, group):
-    """Insert the CausticBake nodes into ``mat``; return its state record."""
+def _insert_nodes(mat, image, uv_map, group, frames=None):
+    """Insert the CausticBake nodes into ``mat``; return its state record.  ``frames`` (a
+    sequence image's contiguous frames): the texture node's image user maps scene frame f to
+    the file of frame f."""
     nt = mat.node_tree
     outputs = []
     for target in ("CYCLES", "EEVEE", "ALL"):
@@ -192,6 +238,13 @@ def _insert_nodes(mat, image, uv_map, group):
     tex.image = image
     tex.interpolation = "Linear"
     tex.extension = "EXTEND"
+    if frames:
+        iu = tex.image_user
+        iu.frame_duration = len(frames)
+        iu.frame_start = frames[0]
+        iu.frame_offset = frames[0] - 1
+        iu.use_cyclic = False
+        iu.use_auto_refresh = True
     uvn = nt.nodes.new("ShaderNodeUVMap")
     uvn.name = uvn.label = NODE_PREFIX + " UV"
     uvn.uv_map = uv_map
@@ -246,40 +299,81 @@ def apply_bake(images, uv_maps, directory=None, pack=False, files=None):
         if ob is None or ob.type != "MESH":
             continue
         img = make_image(f"{NODE_PREFIX} {obj_name}", pixels, directory, pack, source=(files or {}).get(obj_name))
-        slot_state = []
-        if len(ob.material_slots) == 0:
-            mat = bpy.data.materials.new(f"{NODE_PREFIX} {obj_name}")
-            mat[TAG_KEY] = True
-            ob.data.materials.append(mat)
-            slot_state.append({"added_slot": True, "material": mat.name})
-        for k, slot in enumerate(ob.material_slots):
-            mat = slot.material
-            if mat is None or (mat.get(STATE_KEY) is None and mat.get(TAG_KEY) is None and _material_users(mat) != [ob]):
-                # Empty slot, or a material other objects use too: this object gets its own copy.
-                if mat is None:
-                    new = bpy.data.materials.new(f"{NODE_PREFIX} {obj_name} {k}")
-                else:
-                    new = mat.copy()
-                    new.name = f"{mat.name} ({NODE_PREFIX} {obj_name})"
-                new[TAG_KEY] = True
-                orig_link = slot.link
-                slot.link = "OBJECT"
-                obj_mat = slot.material
-                slot_state.append({"slot": k, "link": orig_link, "object_material": obj_mat.name if obj_mat else None})
-                slot.material = new
-                mat = new
-            if mat.get(STATE_KEY) is not None:
-                continue  # a material used by several slots of this object: done once
-            if getattr(mat, "node_tree", None) is None:
-                continue
-            state = _insert_nodes(mat, img, uv_maps.get(obj_name, ""), group)
-            state["object"] = obj_name
-            state["image"] = img.name
-            mat[STATE_KEY] = json.dumps(state)
-        if slot_state:
-            ob[SLOT_KEY] = json.dumps(slot_state)
+        _hook_object(ob, img, uv_maps.get(obj_name, ""), group)
         done[obj_name] = img.name
     return done
+
+
+def apply_sequence(object_names, uv_maps, directory, frames):
+    """Show a baked frame range on receivers: per object an Image with source ``SEQUENCE``
+    over the files :func:`write_sequence_frame` wrote to ``directory`` for ``frames`` (a
+    contiguous, increasing list), its texture node's image user set to play them at their
+    frames.  Re-applying replaces an earlier bake.  Returns {object name: image name}."""
+    frames = [int(f) for f in frames]
+    if not frames or frames != list(range(frames[0], frames[0] + len(frames))):
+        raise ValueError(f"a sequence needs contiguous increasing frames, got {frames}")
+    clear_bake(list(object_names))
+    group = ensure_node_group()
+    abs_dir = bpy.path.abspath(directory)
+    done = {}
+    for obj_name in object_names:
+        ob = bpy.data.objects.get(obj_name)
+        if ob is None or ob.type != "MESH":
+            continue
+        names = [texture_filename(obj_name, f) for f in frames]
+        name = f"{NODE_PREFIX} {obj_name}"
+        old = bpy.data.images.get(name)
+        if old is not None and old.get(TAG_KEY):
+            bpy.data.images.remove(old)
+        img = bpy.data.images.load(os.path.join(abs_dir, names[0]), check_existing=False)
+        img.name = name
+        img.source = "SEQUENCE"
+        if directory.startswith("//"):
+            img.filepath = directory.rstrip("/") + "/" + names[0]
+        img.colorspace_settings.name = "Non-Color"
+        img[TAG_KEY] = True
+        img[FILES_KEY] = json.dumps([abs_dir, names])
+        _hook_object(ob, img, uv_maps.get(obj_name, ""), group, frames)
+        done[obj_name] = img.name
+    return done
+
+
+def _hook_object(ob, img, uv_map, group, frames=None):
+    """Insert the CausticBake nodes showing ``img`` into every material of ``ob`` (a material
+    other objects share is copied for ``ob`` first; an object without materials gets one)."""
+    obj_name = ob.name
+    slot_state = []
+    if len(ob.material_slots) == 0:
+        mat = bpy.data.materials.new(f"{NODE_PREFIX} {obj_name}")
+        mat[TAG_KEY] = True
+        ob.data.materials.append(mat)
+        slot_state.append({"added_slot": True, "material": mat.name})
+    for k, slot in enumerate(ob.material_slots):
+        mat = slot.material
+        if mat is None or (mat.get(STATE_KEY) is None and mat.get(TAG_KEY) is None and _material_users(mat) != [ob]):
+            # Empty slot, or a material other objects use too: this object gets its own copy.
+            if mat is None:
+                new = bpy.data.materials.new(f"{NODE_PREFIX} {obj_name} {k}")
+            else:
+                new = mat.copy()
+                new.name = f"{mat.name} ({NODE_PREFIX} {obj_name})"
+            new[TAG_KEY] = True
+            orig_link = slot.link
+            slot.link = "OBJECT"
+            obj_mat = slot.material
+            slot_state.append({"slot": k, "link": orig_link, "object_material": obj_mat.name if obj_mat else None})
+            slot.material = new
+            mat = new
+        if mat.get(STATE_KEY) is not None:
+            continue  # a material used by several slots of this object: done once
+        if getattr(mat, "node_tree", None) is None:
+            continue
+        state = _insert_nodes(mat, img, uv_map, group, frames)
+        state["object"] = obj_name
+        state["image"] = img.name
+        mat[STATE_KEY] = json.dumps(state)
+    if slot_state:
+        ob[SLOT_KEY] = json.dumps(slot_state)
 
 
 def _restore_material(mat):
@@ -301,9 +395,12 @@ def _restore_material(mat):
     del mat[STATE_KEY]
 
 
-def clear_bake(object_names=None):
-    """Remove what :func:`apply_bake` added (for the named objects, or everywhere)."""
+def clear_bake(object_names=None, delete_files=False, keep_files=()):
+    """Remove what :func:`apply_bake` and :func:`apply_sequence` added (for the named objects,
+    or everywhere).  ``delete_files``: also delete the files of the sequence images removed
+    that Caustic Bake wrote, except the absolute paths in ``keep_files``."""
     wanted = None if object_names is None else set(object_names)
+    keep = {os.path.normpath(p) for p in keep_files}
     for mat in list(bpy.data.materials):
         raw = mat.get(STATE_KEY)
         if raw is None:
@@ -336,10 +433,33 @@ def clear_bake(object_names=None):
         if img.get(TAG_KEY):
             name = img.name[len(NODE_PREFIX) + 1:] if img.name.startswith(NODE_PREFIX + " ") else None
             if wanted is None or name in wanted or img.users == 0:
+                if delete_files and img.get(FILES_KEY):
+                    _delete_sequence_files(img[FILES_KEY], keep)
                 bpy.data.images.remove(img)
     group = bpy.data.node_groups.get(GROUP_NAME)
     if group is not None and group.get(TAG_KEY) and group.users == 0:
         bpy.data.node_groups.remove(group)
+
+
+def _delete_sequence_files(record, keep):
+    """Delete the files of a sequence image's record ([folder, [names]]) that the folder's
+    manifest says Caustic Bake wrote, except those in ``keep``; forget them in the manifest."""
+    try:
+        abs_dir, names = json.loads(record)
+    except (TypeError, ValueError):
+        return
+    written = _written_here(abs_dir)
+    gone = []
+    for fname in names:
+        path = os.path.join(abs_dir, fname)
+        if fname in written and os.path.normpath(path) not in keep:
+            try:
+                os.remove(path)
+            except FileNotFoundError:
+                pass
+            gone.append(fname)
+    if gone and os.path.isdir(abs_dir):
+        _record_written(abs_dir, None, forget=gone)
 
 
 def receivers_uv_maps(scene_model):

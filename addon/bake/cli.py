@@ -1,12 +1,20 @@
 """``python -m addon bake SCENE.blend --out DIR ...``: bake a .blend with the bpy module.
 
-Writes ``DIR/<receiver object name>.exr`` (float32 RGB irradiance, W/m²) and ``DIR/report.json``,
-or with ``--frames A:B`` the same per frame in ``DIR/<frame>/``.  Wrong input exits with code 2
-and a one-line reason on stderr (no traceback).
+Writes ``DIR/<receiver object name>.exr`` (float32 RGB irradiance, W/m²) and ``DIR/report.json``.
+With ``--frames A:B`` it writes an EXR sequence per receiver into ``DIR``:
+``DIR/<receiver>.<frame, 4 digits>.exr`` (:func:`addon.bake.pipeline.texture_filename`, the names
+the Blender operator gives a sequence), each frame's report ``DIR/report.<frame>.json`` and
+``DIR/report.json``, the index of every frame reported in ``DIR`` (so jobs that bake different
+frames into one folder, e.g. render-farm chunks, add up to one sequence).  ``--dask ADDRESS``
+or ``--dask-local N`` bakes the frames on the workers of a Dask cluster
+(:func:`bake_frame_task`, one task per frame; dask is imported only then; the workers need the
+bpy module, this package importable and the .blend and ``DIR`` at the same paths).  Wrong input exits with code 2 and a
+one-line reason on stderr (no traceback).
 """
 
 import os
 import re
+import socket
 import sys
 import time
 
@@ -15,6 +23,9 @@ from .settings import DEFAULT_PLAN_THRESHOLD, ESTIMATORS, SOLVERS
 
 class UserError(Exception):
     """Bad input: reported as one line, exit code 2."""
+
+
+BPY_MISSING = "the bake needs Blender's Python module: pip install bpy==5.0.1 (Python 3.11)"
 
 
 def add_arguments(parser):
@@ -28,7 +39,15 @@ def add_arguments(parser):
                         "of up to that many bounces")
     parser.add_argument("--plan-threshold", type=float, default=DEFAULT_PLAN_THRESHOLD, metavar="SHARE",
                         help="--bounces auto: skip chains below this share of a receiver's caustic energy (default 0.005)")
-    parser.add_argument("--frames", default=None, help="frame range A:B (inclusive); default: the current frame")
+    parser.add_argument("--frames", default=None, help="frame range A:B (inclusive, A >= 0): an EXR sequence per receiver, "
+                        "DIR/<receiver>.<frame>.exr; default: the current frame, DIR/<receiver>.exr")
+    parser.add_argument("--dask", default=None, metavar="ADDRESS",
+                        help="bake the --frames on the workers of the Dask cluster whose scheduler is at ADDRESS "
+                        "(e.g. tcp://farm:8786; needs dask[distributed]; the workers need the bpy module, this "
+                        "package on their PYTHONPATH and the .blend and --out at the same paths)")
+    parser.add_argument("--dask-local", type=int, default=None, metavar="N",
+                        help="bake the --frames on a local Dask cluster of N worker processes (one task at a time "
+                        "each; without --threads each bakes with cores / N threads)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (supersample jitter, light samples)")
     parser.add_argument("--light-samples", type=int, default=1, help="samples of light radius / area / sun angle (default 1: point lights)")
     parser.add_argument("--margin", type=int, default=16, help="texels of padding over UV seams (default 16)")
@@ -71,6 +90,8 @@ def _frames(spec):
         raise UserError(f"--frames must look like A:B (for example 1:24), got {spec!r}") from None
     if b < a:
         raise UserError(f"--frames {spec}: the last frame is before the first")
+    if a < 0:
+        raise UserError(f"--frames {spec}: frames must be 0 or more (they number the sequence's files)")
     return list(range(a, b + 1))
 
 
@@ -84,8 +105,6 @@ def run(args):
 
 
 def _run(args):
-    from .scene import SceneError
-
     path = os.path.abspath(args.blend)
     if not os.path.isfile(path):
         raise UserError(f"no such file: {args.blend}")
@@ -104,49 +123,193 @@ def _run(args):
     frames = _frames(args.frames)
     if args.preview and frames:
         raise UserError("--preview renders one frame; leave out --frames")
-    try:
-        import bpy  # noqa: F401
-    except ImportError:
-        raise UserError("the bake needs Blender's Python module: pip install bpy==5.0.1 (Python 3.11)") from None
+    if args.dask is not None and args.dask_local is not None:
+        raise UserError("--dask and --dask-local exclude each other: give one")
+    if args.dask_local is not None and args.dask_local < 1:
+        raise UserError("--dask-local must be at least 1 (worker processes)")
+    if (args.dask is not None or args.dask_local is not None) and not frames:
+        raise UserError("--dask and --dask-local spread a frame range: give --frames A:B")
+    if args.dask is None:  # on a remote cluster only the workers need bpy
+        try:
+            import bpy  # noqa: F401
+        except ImportError:
+            raise UserError(BPY_MISSING) from None
     with open(path, "rb") as fh:
         magic = fh.read(7)
     if magic != b"BLENDER" and magic[:2] not in (b"\x1f\x8b", b"\x28\xb5"):  # plain, gzip or zstd
         raise UserError(f"not a .blend file: {args.blend}")
-    from .pipeline import bake
-    from .settings import BakeSettings
-    from .extract import extract_scene, open_blend
+    settings = settings_from_args(args)
+    resolution = args.resolution or 256
+    if args.dask_local is not None and not settings.threads:
+        # the local workers share this machine's cores (the texture does not depend on the count)
+        settings.threads = max(1, (os.cpu_count() or 1) // args.dask_local)
+    if args.dask is not None or args.dask_local is not None:
+        results = _bake_frames_on_dask(path, frames, os.path.abspath(args.out), settings, resolution,
+                                      address=args.dask, local_workers=args.dask_local)
+        _print_frames(results)
+        return 0
+    from .extract import open_blend
 
     try:
         open_blend(path)
     except RuntimeError as ex:
         raise UserError(f"could not open {args.blend}: {str(ex).strip().splitlines()[-1]}") from None
+    if frames:
+        from .pipeline import write_sequence_report
+
+        done = 0
+        try:
+            for frame in frames:
+                _print_frames([bake_frame(path, frame, args.out, settings, resolution)])
+                done += 1
+        finally:
+            if done:
+                write_sequence_report(args.out)  # the index of every frame in the folder
+        return 0
+    scene, result = _bake_open_scene(path, None, settings, resolution)
+    try:
+        result.write(args.out)
+    except OSError as ex:
+        raise UserError(f"cannot write to {args.out}: {ex.strerror or ex}") from None
+    print(f"{summary_line(result.report)} -> {args.out}")
+    for w in result.report["warnings"]:
+        print(f"warning: {w}")
+    if args.preview:
+        render_preview(scene, result, args.out, args.preview, args.preview_samples)
+        print(f"preview -> {args.preview}")
+    return 0
+
+
+def _bake_open_scene(path, frame, settings, resolution):
+    """Extract the open scene (at ``frame``, or the current frame) and bake it; returns
+    (scene model, BakeResult) with ``report["input"]`` and the extraction time filled in."""
     import bpy
 
-    settings = settings_from_args(args)
-    default_res = args.resolution or 256
-    for frame in frames or [None]:
-        t0 = time.perf_counter()
-        try:
-            scene = extract_scene(resolution=default_res, frame=frame)
-            t_extract = time.perf_counter() - t0
-            result = bake(scene, settings)
-        except SceneError as ex:
-            where = f" (frame {frame})" if frame is not None else ""
-            raise UserError(f"{ex}{where}") from None
-        out_dir = args.out if frame is None else os.path.join(args.out, str(frame))
-        result.report["input"] = {"blend": path, "frame": int(bpy.context.scene.frame_current)}
-        result.report["timings"]["extract"] = t_extract
-        try:
-            result.write(out_dir)
-        except OSError as ex:
-            raise UserError(f"cannot write to {out_dir}: {ex.strerror or ex}") from None
-        print(f"{'frame ' + str(frame) + ': ' if frame is not None else ''}{summary_line(result.report)} -> {out_dir}")
-        for w in result.report["warnings"]:
-            print(f"warning: {w}")
-        if args.preview:
-            render_preview(scene, result, out_dir, args.preview, args.preview_samples)
-            print(f"preview -> {args.preview}")
-    return 0
+    from .extract import extract_scene
+    from .pipeline import bake
+    from .scene import SceneError
+
+    t0 = time.perf_counter()
+    try:
+        scene = extract_scene(resolution=resolution, frame=frame)
+        t_extract = time.perf_counter() - t0
+        result = bake(scene, settings)
+    except SceneError as ex:
+        where = f" (frame {frame})" if frame is not None else ""
+        raise UserError(f"{ex}{where}") from None
+    result.report["input"] = {"blend": path, "frame": int(bpy.context.scene.frame_current),
+                              "host": socket.gethostname(), "pid": os.getpid()}
+    result.report["timings"]["extract"] = t_extract
+    return scene, result
+
+
+def bake_frame(path, frame, out_dir, settings, resolution):
+    """Bake frame ``frame`` of the open .blend (``path``, for the report) and write that
+    frame's files of the sequence in ``out_dir`` (:meth:`BakeResult.write` with the frame).
+    Returns {"frame", "line" (the summary line), "warnings", "files"}."""
+    _, result = _bake_open_scene(path, frame, settings, resolution)
+    try:
+        files = result.write(out_dir, frame=frame)
+    except OSError as ex:
+        raise UserError(f"cannot write to {out_dir}: {ex.strerror or ex}") from None
+    return {"frame": frame, "line": f"{summary_line(result.report)} -> {out_dir}",
+            "warnings": list(result.report["warnings"]), "files": files}
+
+
+def bake_frame_task(frame, blend, out_dir, settings, resolution):
+    """One frame on a worker process (the Dask task): open ``blend`` with the bpy module, bake
+    frame ``frame`` and write its files into ``out_dir``, as the serial ``--frames`` loop
+    does (:func:`bake_frame`).  A bad scene comes back as {"frame", "error": one line}."""
+    _forget_bpy_script_paths()
+    try:
+        from .extract import open_blend
+    except ImportError as ex:
+        if (getattr(ex, "name", None) or "").split(".")[0] not in ("bpy", "_bpy"):
+            raise
+        return {"frame": frame, "error": f"{BPY_MISSING} (on the Dask worker {socket.gethostname()})"}
+
+    try:
+        open_blend(blend)
+    except RuntimeError as ex:
+        return {"frame": frame, "error": f"could not open {blend}: {str(ex).strip().splitlines()[-1]}"}
+    try:
+        return bake_frame(blend, frame, out_dir, settings, resolution)
+    except UserError as ex:
+        return {"frame": frame, "error": str(ex)}
+
+
+DASK_MISSING = ("--dask and --dask-local need dask.distributed, which is not installed: "
+                "pip install 'dask[distributed]==2026.8.0'")
+
+
+def _import_distributed():
+    try:
+        import distributed
+    except ImportError:
+        raise UserError(DASK_MISSING) from None
+    return distributed
+
+
+def _bake_frames_on_dask(blend, frames, out_dir, settings, resolution, address=None, local_workers=None,
+                         connect_timeout=30):
+    """Bake ``frames`` of ``blend`` into ``out_dir`` on the Dask cluster at ``address``, or on a
+    local cluster of ``local_workers`` processes (one thread each); returns the frames' results
+    ({"frame", "line", "warnings", "files"}) in frame order.  One task per frame,
+    :func:`bake_frame_task`: the serial loop's :func:`bake_frame` on a worker process, so the
+    textures are the serial bake's bit for bit (the bake is deterministic for its settings,
+    whichever process runs it); this process prints each frame's line as it finishes and
+    rebuilds ``report.json`` from the frame reports at the end.  A frame that fails stops the
+    bake with its one-line reason (:class:`UserError`); frames already written stay."""
+    distributed = _import_distributed()
+    from .pipeline import write_sequence_report
+
+    cluster = None
+    results = {}
+    try:
+        if local_workers is not None:
+            cluster = distributed.LocalCluster(n_workers=int(local_workers), processes=True, threads_per_worker=1,
+                                               dashboard_address=None)
+            client = distributed.Client(cluster)
+        else:
+            try:
+                client = distributed.Client(address, timeout=connect_timeout)
+            except (OSError, TimeoutError, ValueError) as ex:
+                raise UserError(f"cannot reach the Dask scheduler at {address}: {ex}") from None
+        with client:
+            futures = client.map(bake_frame_task, frames, blend=blend, out_dir=out_dir, settings=settings,
+                                 resolution=resolution, pure=False)
+            try:
+                for fut in distributed.as_completed(futures):
+                    r = fut.result()
+                    if "error" in r:
+                        raise UserError(r["error"])
+                    results[r["frame"]] = r
+                    _print_frames([r])
+            finally:
+                client.cancel([f for f in futures if not f.done()])
+    finally:
+        if cluster is not None:
+            cluster.close()
+        if results:
+            write_sequence_report(out_dir)
+    return [results[f] for f in frames]
+
+
+def _forget_bpy_script_paths():
+    """Before the first ``import bpy`` of a process: drop the folders of Blender's own Python
+    scripts (``.../bpy/<version>/scripts/...``) from ``sys.path``.  A worker process spawned by a
+    process that had imported bpy inherits them, and there ``import bpy`` would find the
+    scripts' ``bpy`` package instead of the module itself."""
+    if "bpy" in sys.modules:
+        return
+    sys.path[:] = [p for p in sys.path if not re.search(r"[\\/]bpy[\\/]\d+\.\d+[\\/]scripts([\\/]|$)", p)]
+
+
+def _print_frames(results):
+    for r in results:
+        print(f"frame {r['frame']}: {r['line']}")
+        for w in r["warnings"]:
+            print(f"warning: frame {r['frame']}: {w}")
 
 
 def settings_from_args(args):

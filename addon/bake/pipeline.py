@@ -19,6 +19,8 @@ a fixed order.  What a texel holds (units, front side, cosine) is in addon/bake/
 import dataclasses
 import json
 import os
+import re
+import tempfile
 import time
 from dataclasses import dataclass, field
 
@@ -29,13 +31,15 @@ from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolut
 from .estimators import make_estimator
 from .exr import write_exr
 from .lights import emission_factor, sample_light
+from .names import frame_report_filename, safe_filename, texture_filename
 from .plan import CHAINS, make_plan
 from .raster import bands, grid_side, pad, rasterise
 from .scene import SceneError
 from .settings import BakeSettings, check_settings, resolve_aliases
 
 __all__ = ["BakeSettings", "BakeResult", "BakeCancelled", "bake", "bake_steps", "make_context", "safe_filename",
-           "direct_light", "texel_areas", "VISIBILITY_OFFSET"]
+           "texture_filename", "frame_report_filename", "write_sequence_report", "direct_light", "texel_areas",
+           "VISIBILITY_OFFSET"]
 
 
 @dataclass
@@ -45,26 +49,88 @@ class BakeResult:
     raw: dict  # receiver name -> (H, W, 3) float64 before padding
     report: dict = field(default_factory=dict)
 
-    def write(self, out_dir):
-        """Write ``<receiver>.exr`` per receiver and ``report.json`` into ``out_dir``."""
+    def write(self, out_dir, frame=None):
+        """Write the textures and the report into ``out_dir``: per receiver the file
+        :func:`texture_filename` names (``<receiver>.exr``, or ``<receiver>.<frame>.exr`` with
+        ``frame``) and ``report.json``, or with ``frame`` that frame's report
+        (:func:`frame_report_filename`; :func:`write_sequence_report` then indexes the
+        frames).  Returns {receiver: file name}."""
         os.makedirs(out_dir, exist_ok=True)
         t0 = time.perf_counter()
         files = {}
         for name, img in self.images.items():
-            path = os.path.join(out_dir, safe_filename(name) + ".exr")
-            write_exr(path, img)
-            files[name] = os.path.basename(path)
+            fname = texture_filename(name, frame)
+            write_exr(os.path.join(out_dir, fname), img)
+            files[name] = fname
         self.report.setdefault("timings", {})["write"] = time.perf_counter() - t0
         self.report["files"] = files
-        with open(os.path.join(out_dir, "report.json"), "w") as fh:
-            json.dump(self.report, fh, indent=2, default=_json_default)
+        if frame is None:
+            _write_json(os.path.join(out_dir, "report.json"), self.report)
+        else:
+            _write_json(os.path.join(out_dir, frame_report_filename(frame)), self.report)
         return files
 
 
-def safe_filename(name):
-    bad = '<>:"/\\|?*\0'
-    out = "".join("_" if (c in bad or ord(c) < 32) else c for c in name).strip().rstrip(".")
-    return out or "receiver"
+SEQUENCE_REPORT = "report.json"
+_FRAME_REPORT = re.compile(r"report\.(\d+)\.json")
+
+
+def write_sequence_report(out_dir):
+    """Rebuild ``out_dir/report.json`` from the frame reports in ``out_dir`` (the files
+    :func:`frame_report_filename` names, each written once by whichever process baked that
+    frame, so that jobs baking different frames into one folder never write the same report)
+    and return it: ``frames`` (sorted), ``files`` ({receiver: [file per frame]}), ``timings``
+    (the frames' sums), ``warnings`` (each prefixed with its frame) and ``per_frame``: per
+    frame its report's file and the essentials of it (input, files, plan summary, estimators'
+    names, timings, counts, per-receiver figures, warnings)."""
+    per_frame = {}
+    for fname in sorted(os.listdir(out_dir)):
+        m = _FRAME_REPORT.fullmatch(fname)
+        if m is None:
+            continue
+        try:
+            with open(os.path.join(out_dir, fname), encoding="utf-8") as fh:
+                per_frame[int(m.group(1))] = (fname, json.load(fh))
+        except (OSError, ValueError):
+            continue  # not a report this module wrote (they are written whole, by renaming)
+    frames = sorted(per_frame)
+    files, timings, entries = {}, {}, {}
+    for f in frames:
+        fname, rep = per_frame[f]
+        for name, tex in rep.get("files", {}).items():
+            files.setdefault(name, []).append(tex)
+        for stage, t in rep.get("timings", {}).items():
+            timings[stage] = timings.get(stage, 0.0) + t
+        entries[str(f)] = {"report": fname, "input": rep.get("input", {}), "files": rep.get("files", {}),
+                           "plan_summary": rep.get("plan", {}).get("summary", []),
+                           "estimators": sorted(rep.get("estimators", {})), "timings": rep.get("timings", {}),
+                           "counts": rep.get("counts", {}), "receivers": rep.get("receivers", {}),
+                           "warnings": rep.get("warnings", [])}
+    report = {
+        "sequence": True,
+        "frames": frames,
+        "files": files,
+        "timings": timings,
+        "warnings": [f"frame {f}: {w}" for f in frames for w in per_frame[f][1].get("warnings", [])],
+        "per_frame": entries,
+    }
+    _write_json(os.path.join(out_dir, SEQUENCE_REPORT), report)
+    return report
+
+
+def _write_json(path, data):
+    """Write ``data`` as JSON to ``path`` through a temporary file renamed over it (a reader
+    never sees half a file)."""
+    fd, tmp = tempfile.mkstemp(prefix=".report-", suffix=".tmp", dir=os.path.dirname(path) or ".")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(data, fh, indent=2, default=_json_default)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
 
 
 def _json_default(o):

@@ -4,11 +4,15 @@
 - ``caustics.bake``: from the UI (invoke) a modal operator that runs the bake in short chunks
   from a window-manager timer (``addon.bake.pipeline.bake_steps``; no Python threads), with a
   progress bar and status text; Esc / right-click cancels and leaves the scene exactly as it
-  was (nothing is applied before the bake is complete).  From scripts and in background mode
-  (``blender -b``) execute() bakes synchronously; in background mode it then saves the .blend
-  (``save_blend``, default: yes there if the file has a path).  Undo restores the state before
-  the bake (everything the bake changes is Blender data: images, node group, materials).
-- ``caustics.clear``: removes what the bake added (images, node group, material copies, nodes).
+  was (nothing is applied before the bake is complete).  With the frame range (the panel's
+  *Animation*) it bakes frame after frame (progress "frame k/N"), writes each finished frame's
+  EXRs, and shows them as image sequences; Esc then keeps the finished frames and shows those.
+  From scripts and in background mode (``blender -b``) execute() bakes synchronously; in
+  background mode it then saves the .blend (``save_blend``, default: yes there if the file has a
+  path).  Undo restores the Blender data as it was before the bake (images, node group,
+  materials); files written or deleted on disk stay so.
+- ``caustics.clear``: removes what the bake added (images, node group, material copies, nodes)
+  and the files of baked image sequences (only files Caustic Bake wrote).
 
 Errors are reported in the UI as one line (self.report), never as a traceback; unexpected
 exceptions are reported briefly and their traceback goes to the console.
@@ -111,8 +115,15 @@ def output_directory(props):
 class BakeJob:
     """One bake of the active scene, in steps: :meth:`start` (extract, check), :meth:`step`
     (bounded chunks of the pipeline's generator), :meth:`finish` (apply to the scene) or
-    :meth:`cancel`.  Nothing in Blender changes before :meth:`finish`.  The modal operator
-    drives it from a timer; execute() and tests drive it directly."""
+    :meth:`cancel`.  The modal operator drives it from a timer; execute() and tests drive it
+    directly.
+
+    The current frame (``frames`` None): nothing in Blender changes before :meth:`finish`.
+    A frame range (the panel's *Scene Frame Range*): the frames are baked one after the other
+    (the scene is set to each), each frame's textures are written to the output folder as it
+    finishes (:func:`addon.bake.apply.write_sequence_frame`), and :meth:`finish` shows the
+    finished frames as image sequences, also after :meth:`cancel` (``done_frames``); the
+    scene's frame is set back to where it was."""
 
     #: Smaller chunks than the pipeline's defaults, so that one timer tick stays short.
     MODAL_BATCH_TUPLES = 1 << 16
@@ -125,6 +136,13 @@ class BakeJob:
         self.result = None
         self.model = None
         self.warnings = []
+        self.frames = None  # the frame range being baked, or None: the current frame
+        self.frame_index = 0
+        self.done_frames = []
+        self.written = {}  # frame -> {receiver: path of its EXR}
+        self.receivers = []
+        self.uv_maps = {}
+        self.original_frame = None
         self.t0 = time.perf_counter()
 
     def start(self, context):
@@ -132,20 +150,81 @@ class BakeJob:
         from ..bake.apply import foreign_files
         from ..bake.pipeline import bake_steps
         from ..bake.extract import extract_scene
-        from .properties import bake_settings
+        from .properties import bake_frames, bake_settings
 
         props = context.scene.caustic_bake
         settings = bake_settings(props)
         if self.modal:
             settings.batch_tuples = self.MODAL_BATCH_TUPLES
             settings.band_samples = self.MODAL_BAND_SAMPLES
+        self.settings = settings
+        self.resolution = int(props.resolution)
         self.directory = output_directory(props)
         self.pack = bool(props.pack)
-        self.model = extract_scene(resolution=int(props.resolution))
-        clash = foreign_files([r.name for r in self.model.receivers], self.directory)
+        self.frames = bake_frames(props, context.scene)
+        if self.frames is None:
+            self.model = extract_scene(resolution=self.resolution)
+            clash = foreign_files([r.name for r in self.model.receivers], self.directory)
+            if clash:
+                raise UserError("{} exists and was not written by Caustic Bake; choose another output folder".format(clash[0]))
+            self.steps = bake_steps(self.model, settings)
+            return
+        if self.directory is None:
+            raise UserError("a frame range is written as an EXR sequence, which cannot be packed: save the .blend "
+                            "or set an absolute Output Folder")
+        if self.pack:
+            self.warnings.append("image sequences are not packed: the frames stay in {}".format(self.directory))
+        self.original_frame = context.scene.frame_current
+        self._start_frame(0)
+        clash = foreign_files(self.receivers, self.directory, self.frames)
         if clash:
+            self.cancel()
             raise UserError("{} exists and was not written by Caustic Bake; choose another output folder".format(clash[0]))
-        self.steps = bake_steps(self.model, settings)
+
+    def _start_frame(self, index):
+        """Extract the scene at the range's frame ``index`` and start its bake."""
+        from ..bake.apply import receivers_uv_maps
+        from ..bake.extract import extract_scene
+        from ..bake.pipeline import bake_steps
+
+        frame = self.frames[index]
+        self.frame_index = index
+        self.model = extract_scene(resolution=self.resolution, frame=frame)
+        names = [r.name for r in self.model.receivers]
+        if index == 0:
+            self.receivers = names
+            self.uv_maps = receivers_uv_maps(self.model)
+        elif names != self.receivers:
+            raise UserError("the receivers change at frame {} ({} instead of {}): a sequence needs the same receivers "
+                            "at every frame".format(frame, ", ".join(names) or "none", ", ".join(self.receivers)))
+        self.steps = bake_steps(self.model, self.settings)
+
+    def _bake_done(self, result):
+        """A frame's bake finished: True when the whole job is done."""
+        self.result = result
+        if self.frames is None:
+            return True
+        from ..bake.apply import write_sequence_frame
+
+        frame = self.frames[self.frame_index]
+        self.written[frame] = write_sequence_frame(result.images, self.directory, frame)
+        self.done_frames.append(frame)
+        for w in result.report.get("warnings", []):
+            w = "frame {}: {}".format(frame, w)
+            if w not in self.warnings:
+                self.warnings.append(w)
+        if self.frame_index + 1 == len(self.frames):
+            return True
+        self._start_frame(self.frame_index + 1)
+        return False
+
+    def _progress(self, fraction, message):
+        if self.frames is None:
+            STATE.update(fraction, message)
+            return
+        n = len(self.frames)
+        done = self.frame_index + (fraction if fraction is not None else 0.0)
+        STATE.update(done / n, "frame {}/{}: {}".format(self.frame_index + 1, n, message))
 
     def step(self, budget=0.1):
         """Run chunks for about ``budget`` seconds (at least one); True when the bake is done."""
@@ -154,14 +233,16 @@ class BakeJob:
             warnings.simplefilter("always", RuntimeWarning)
             try:
                 while True:
-                    fraction, message = next(self.steps)
-                    STATE.update(fraction, message)
+                    try:
+                        fraction, message = next(self.steps)
+                    except StopIteration as done:
+                        if self._bake_done(done.value):
+                            STATE.update(1.0, "applying")
+                            return True
+                        continue
+                    self._progress(fraction, message)
                     if time.perf_counter() >= t_end:
                         return False
-            except StopIteration as done:
-                self.result = done.value
-                STATE.update(1.0, "applying")
-                return True
             finally:
                 for w in caught:
                     text = str(w.message)
@@ -173,23 +254,40 @@ class BakeJob:
             pass
 
     def cancel(self):
+        """Abandon the bake in progress (the frames already finished stay: ``done_frames``)
+        and set the scene's frame back."""
         if self.steps is not None:
             self.steps.close()
             self.steps = None
+        self._restore_frame()
+
+    def _restore_frame(self):
+        scene = bpy.data.scenes.get(self.scene_name)
+        if self.original_frame is not None and scene is not None:
+            scene.frame_set(self.original_frame)
 
     def finish(self, context):
-        """Apply the result to the scene; returns the one-line summary."""
-        from ..bake.apply import apply_bake, clear_bake, receivers_uv_maps
+        """Apply the result (a frame range: its finished frames) to the scene; returns the
+        one-line summary."""
+        from ..bake.apply import apply_bake, apply_sequence, clear_bake, receivers_uv_maps
 
         result = self.result
-        clear_bake()  # a new bake replaces every earlier one
-        done = apply_bake(result.images, receivers_uv_maps(self.model), directory=self.directory, pack=self.pack)
-        self.warnings = list(result.report.get("warnings", [])) + self.warnings
-        plan = result.report.get("plan", {}).get("summary", [])
         props = context.scene.caustic_bake
+        if self.frames is None:
+            clear_bake(delete_files=True)  # a new bake replaces every earlier one
+            done = apply_bake(result.images, receivers_uv_maps(self.model), directory=self.directory, pack=self.pack)
+            self.warnings = list(result.report.get("warnings", [])) + self.warnings
+            what = ""
+        else:
+            self._restore_frame()
+            keep = [p for paths in self.written.values() for p in paths.values()]
+            clear_bake(delete_files=True, keep_files=keep)  # an earlier sequence's other frames go
+            done = apply_sequence(self.receivers, self.uv_maps, self.directory, self.done_frames)
+            what = ", frames {}-{} of {}-{}".format(self.done_frames[0], self.done_frames[-1], self.frames[0], self.frames[-1])
+        plan = result.report.get("plan", {}).get("summary", [])
         props.last_plan = "\n".join(plan)
-        return "Caustic Bake: {} receiver(s) in {:.1f} s ({}): {}".format(
-            len(done), time.perf_counter() - self.t0, ", ".join(result.report.get("estimators", {})) or "nothing",
+        return "Caustic Bake: {} receiver(s){} in {:.1f} s ({}): {}".format(
+            len(done), what, time.perf_counter() - self.t0, ", ".join(result.report.get("estimators", {})) or "nothing",
             "; ".join(plan))
 
 
@@ -239,7 +337,9 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
         except Exception as ex:
             job.cancel()
             _report_failure(self, ex, "the bake")
-            return {"CANCELLED"}
+            if not self._keep_finished_frames(context, job, "failed"):
+                return {"CANCELLED"}
+            return {"FINISHED"}
         self._report_warnings(job)
         self.report({"INFO"}, message)
         save = self.save_blend if self.properties.is_property_set("save_blend") else bpy.app.background
@@ -270,7 +370,10 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
     def modal(self, context, event):
         if event.type in {"ESC", "RIGHTMOUSE"} and event.value == "PRESS":
             self._job.cancel()
+            kept = self._keep_finished_frames(context, self._job, "cancelled")
             self._end(context)
+            if kept:
+                return {"FINISHED"}  # the finished frames were applied: one undo step
             self.report({"WARNING"}, "Caustic Bake cancelled; nothing was changed")
             return {"CANCELLED"}
         if event.type != "TIMER":
@@ -281,9 +384,10 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
                 message = self._job.finish(context)
         except Exception as ex:
             self._job.cancel()
-            self._end(context)
             _report_failure(self, ex, "the bake")
-            return {"CANCELLED"}
+            kept = self._keep_finished_frames(context, self._job, "failed")
+            self._end(context)
+            return {"FINISHED"} if kept else {"CANCELLED"}
         if not done:
             context.window_manager.progress_update(int(1000 * STATE.fraction))
             self._status(context, "Caustic Bake {:.0f}%: {} (Esc to cancel)".format(100 * STATE.fraction, STATE.message))
@@ -293,6 +397,21 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
         self._report_warnings(self._job)
         self.report({"INFO"}, message)
         return {"FINISHED"}
+
+    def _keep_finished_frames(self, context, job, why):
+        """A frame range stopped (cancelled or failed) after some frames: show those (their
+        files are written).  True if something was applied."""
+        if job.frames is None or not job.done_frames:
+            return False
+        try:
+            message = job.finish(context)
+        except Exception as ex:
+            _report_failure(self, ex, "applying the finished frames")
+            return False
+        self.report({"WARNING"}, "Caustic Bake {} at frame {}/{}; kept the {} finished frame(s) {}-{}".format(
+            why, len(job.done_frames) + 1, len(job.frames), len(job.done_frames), job.done_frames[0], job.done_frames[-1]))
+        self.report({"INFO"}, message)
+        return True
 
     def cancel(self, context):  # Blender ends the operator (file load, window closed)
         if getattr(self, "_job", None) is not None:
@@ -367,7 +486,7 @@ class CAUSTICS_OT_clear(bpy.types.Operator):
 
         n = len(baked_images())
         try:
-            clear_bake()
+            clear_bake(delete_files=True)
         except Exception as ex:
             _report_failure(self, ex, "clearing")
             return {"CANCELLED"}

@@ -90,6 +90,35 @@ class RENDER_PT_caustic_bake(bpy.types.Panel):
             col.label(text="Unsaved file: the textures will be packed", icon="PACKAGE")
 
 
+class RENDER_PT_caustic_bake_animation(bpy.types.Panel):
+    bl_label = "Animation"
+    bl_idname = "RENDER_PT_caustic_bake_animation"
+    bl_parent_id = "RENDER_PT_caustic_bake"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "render"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None and hasattr(context.scene, "caustic_bake")
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        props = context.scene.caustic_bake
+        col = layout.column()
+        col.enabled = not STATE.running
+        col.prop(props, "frame_range")
+        if props.frame_range == "SCENE":
+            sc = context.scene
+            n = max(0, sc.frame_end - sc.frame_start + 1)
+            col.label(text="Frames {}-{}: {} EXR(s) per receiver".format(sc.frame_start, sc.frame_end, n), icon="SEQUENCE")
+            if not bpy.data.filepath and (props.output_dir or "//").startswith("//"):
+                col.label(text="Save the .blend first: a sequence is written, not packed", icon="ERROR")
+
+
 class OBJECT_PT_caustic_bake(bpy.types.Panel):
     bl_label = "Caustic Bake"
     bl_idname = "OBJECT_PT_caustic_bake"
@@ -120,4 +149,4 @@ class OBJECT_PT_caustic_bake(bpy.types.Panel):
             col.label(text="No UV map: cannot receive caustics", icon="ERROR" if props.receiver == "yes" else "INFO")
 
 
-classes = (RENDER_PT_caustic_bake, OBJECT_PT_caustic_bake)
+classes = (RENDER_PT_caustic_bake, RENDER_PT_caustic_bake_animation, OBJECT_PT_caustic_bake)

@@ -42,6 +42,11 @@ QUALITY_ITEMS = (
     ("PREVIEW", "Preview", "Fast look: 1 sample per texel, 1 light sample (the fields below are ignored)"),
     ("FINAL", "Final", "The samples and light samples set below"),
 )
+FRAME_RANGE_ITEMS = (
+    ("CURRENT", "Current Frame", "Bake the current frame: one texture per receiver"),
+    ("SCENE", "Scene Frame Range", "Bake every frame of the scene's frame range: an EXR sequence per receiver in the "
+     "output folder, shown as an image sequence (each frame's caustic at its frame)"),
+)
 ROLE_ITEMS = (
     ("auto", "Auto", "From the material: glass = reflect + refract, metal / glossy = reflect, "
      "transmissive = refract, anything else casts no caustics"),
@@ -81,7 +86,10 @@ class CausticBakeSceneSettings(bpy.types.PropertyGroup):
     output_dir: StringProperty(name="Output Folder", description="Where the EXR textures are written "
                                "(// = next to the .blend); an unsaved file packs them", default="//caustics/",
                                subtype="DIR_PATH")
-    pack: BoolProperty(name="Pack Textures", description="Pack the baked textures into the .blend", default=False)
+    pack: BoolProperty(name="Pack Textures", description="Pack the baked textures into the .blend (one frame; "
+                       "an image sequence stays in the output folder)", default=False)
+    frame_range: EnumProperty(name="Frames", items=FRAME_RANGE_ITEMS, default="CURRENT",
+                              description="Which frames the bake bakes")
     last_plan: StringProperty(name="Last Plan", description="What the last bake modelled: per receiver, the chains "
                               "baked with their share of its caustic energy, and the chains skipped", default="")
 
@@ -106,6 +114,14 @@ def register_properties():
 def unregister_properties():
     del bpy.types.Object.caustic_bake
     del bpy.types.Scene.caustic_bake
+
+
+def bake_frames(props, scene):
+    """The frames a bake of ``scene`` with settings ``props`` bakes as a sequence: None for the
+    current frame (one texture per receiver), else the scene's frame range, start to end."""
+    if props.frame_range != "SCENE":
+        return None
+    return list(range(int(scene.frame_start), int(scene.frame_end) + 1))
 
 
 def bake_settings(props):

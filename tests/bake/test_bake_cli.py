@@ -65,6 +65,8 @@ def test_bad_input_gives_one_line_and_nonzero_exit(tmp_path, capsys):
     assert "not a .blend file" in _err_line(capsys)
     assert main(["bake", os.path.join(SAMPLES, "mirror_plane.blend"), "--out", out, "--frames", "5-7"]) == 2
     assert "--frames must look like A:B" in _err_line(capsys)
+    assert main(["bake", os.path.join(SAMPLES, "mirror_plane.blend"), "--out", out, "--frames", "5:2"]) == 2
+    assert "the last frame is before the first" in _err_line(capsys)
     assert main(["bake", os.path.join(SAMPLES, "mirror_plane.blend"), "--out", out, "--samples", "0"]) == 2
     _err_line(capsys)
     cases = {
@@ -119,13 +121,14 @@ def test_device_option(tmp_path, capsys):
     np.testing.assert_allclose(cl, cpu, rtol=1e-5, atol=1e-6 * cpu.max())
 
 
-def test_frames_write_one_directory_each(tmp_path, capsys):
+def test_frames_write_a_sequence_per_receiver(tmp_path, capsys):
     out = tmp_path / "anim"
     blend = os.path.join(SAMPLES, "water_pool.blend")
     assert main(["bake", blend, "--out", str(out), "--resolution", "16", "--samples", "1", "--frames", "1:2"]) == 0
-    a = read_exr(out / "1" / "PoolFloor.exr")
-    b = read_exr(out / "2" / "PoolFloor.exr")
-    assert json.loads((out / "2" / "report.json").read_text())["input"]["frame"] == 2
+    a = read_exr(out / "PoolFloor.0001.exr")
+    b = read_exr(out / "PoolFloor.0002.exr")
+    assert json.loads((out / "report.0002.json").read_text())["input"]["frame"] == 2
+    assert json.loads((out / "report.json").read_text())["frames"] == [1, 2]
     assert a.max() > 0 and b.max() > 0 and not np.array_equal(a, b), "the waves move between frames"
 
 

@@ -179,6 +179,7 @@ class _ModalStub:
     _status = staticmethod(operators.CAUSTICS_OT_bake._status)
     _redraw = staticmethod(operators.CAUSTICS_OT_bake._redraw)
     _report_warnings = operators.CAUSTICS_OT_bake._report_warnings
+    _keep_finished_frames = operators.CAUSTICS_OT_bake._keep_finished_frames
 
     def __init__(self, context):
         self.reports = []

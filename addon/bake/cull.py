@@ -2,24 +2,18 @@
 (path-points' cone cull), and which first casters can light anything (forward-flux's skip,
 :func:`first_casters_reaching`).  The Bernstein-bounds selection is in ``bounds_select.py``.
 
-For a light sample x0 and a caster triangle, every admissible path x0 -> x1 -> x2 (x1 on the
-triangle, CONTRACT.md) satisfies two necessary conditions, which the cull tests; a tuple
-failing either has no path, so the cull never drops a real one:
+Every admissible path x0 -> x1 -> x2 (x1 on a caster triangle, CONTRACT.md) satisfies two
+necessary conditions; a tuple failing either has no path, so the cull never drops a real one:
 
 1. **Sides** (exact): R needs x0 and x2 strictly on the same side of the triangle's plane,
-   T on opposite sides; x0 in the plane has no path.  The receiver side is exact too: the
-   bake counts only light arriving on the front of the receiver (its geometric normal turned
-   to the shading normal), so a triangle whose bounding sphere lies wholly behind a sample's
-   receiver plane is dropped.
+   T on opposite sides; the bake counts only light arriving on the front of the receiver, so
+   a triangle whose bounding sphere lies wholly behind a sample's receiver plane is dropped.
 
 2. **Cone of scattered directions** (a bound): the scattered direction wo(x1) over the
    triangle lies in a spherical cap C = (d, theta), and x2 - x1 must point into C.
-   - incoming directions wi = (x1 - x0)/|x1 - x0| over the triangle lie in the cap (a, alpha)
-     of the three vertex directions (a = their normalised sum; a cap of radius < 90 degrees
-     is convex, and x0 off the plane keeps them in an open half-space);
-   - shading normals n = normalize(n0 + u m1 + v m2) are normalised convex combinations of
-     the corner normals, so they lie in the cap (c, gamma) of the unit corner normals
-     (needs gamma < 90 degrees);
+   - incoming directions wi over the triangle lie in the cap (a, alpha) of the three vertex
+     directions; shading normals (normalised convex combinations of the corner normals) in
+     the cap (c, gamma) of the unit corner normals (gamma < 90 degrees);
    - R: reflection is an isometry in wi for a fixed n, and changing n by an angle g rotates
      the reflected direction by 2 g, so wo lies in (reflect(a, c), alpha + 2 gamma);
    - T: with Q the rotation taking c to n (angle <= gamma), wt(wi, n) = Q wt(Q^T wi, c), so
@@ -28,16 +22,14 @@ failing either has no path, so the cull never drops a real one:
      L = max(r, r cos theta_max / cos theta_t(theta_max)) (the radial and the azimuthal
      stretch of Snell's map, r = eta_i / eta_t), valid when theta_max < 90 degrees and below
      the critical angle; otherwise no cone is used (theta = pi: only the side tests cull).
-   - the directions from any x1 on the triangle (bounding sphere (c_t, r_t)) to any x2 in a
-     sphere (c_s, rho) lie in the cap (normalize(c_s - c_t), asin((r_t + rho)/|c_s - c_t|));
-     two caps can only share a direction when the angle between their axes is at most the
-     sum of their radii.
+   - directions from the triangle's sphere (c_t, r_t) to a sphere (c_s, rho) lie in the cap
+     (normalize(c_s - c_t), asin((r_t + rho)/|c_s - c_t|)); two caps share a direction only
+     when the angle between their axes is at most the sum of their radii.
    Each angle gets a margin of 1e-6 rad (the solver accepts paths whose direction is within
    1e-7 of exact, and barycentrics 1e-9 outside the triangle).
 
-The test runs first on tiles of 8 x 8 texels (bounding spheres of their samples), then on the
-samples of the surviving (triangle, tile) pairs.  ``tests/bake/test_bake_cull.py`` checks against
-the enumeration of every (triangle, sample) pair that the cull loses no path.
+The test runs on tiles of 8 x 8 texels (bounding spheres of their samples), then on the samples
+of surviving (triangle, tile) pairs; tests/bake/test_bake_cull.py checks against enumeration.
 
 Two bounces (x0 -> t1 -> t2 -> x3): a pair survives when t2's bounding sphere reaches t1's
 required side and the directions from t1 to t2 (the cap of the segment between their

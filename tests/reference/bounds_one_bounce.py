@@ -135,7 +135,7 @@ def _caster(x0, P, N, lo, hi):
 @kernel
 def _orientations(x0, P, N, lo, hi):
     """Which signs o of the shading normal turned to the incoming side (n_o = o n) occur on
-    the box: bit 1 for +1, bit 2 for -1 (docs/design.md: s = sign((x0-x1)·ng), ng turned to n).
+    the box: bit 1 for +1, bit 2 for -1 (CONTRACT.md: s = sign((x0-x1)·ng), ng turned to n).
     Returns 0 when x0 lies in the caster's plane (no path)."""
     ng = _c3(P[1] - P[0], P[2] - P[0])
     side = _d3(x0 - P[0], ng)

@@ -42,7 +42,7 @@ so the bound stays conservative:
 Degrees stay at most 6 per variable (TT), far below the ~40 where the paper reduces degree.
 The bound converges as U1 shrinks: the remainders of step 2 are O(|U1|²) away from focal points.
 
-Orientation at each vertex follows docs/design.md (the light's side of the geometric normal turned
+Orientation at each vertex follows CONTRACT.md (the light's side of the geometric normal turned
 to the shading normal); at vertex 2 the "light" is x1, whose side of triangle 2's plane is
 taken over the corners of U1.  η' = 1/η entering the medium (shading normal towards the
 incoming light), η leaving it.  The irradiance bound (Ē, E̲ of every final piece) is a

@@ -11,17 +11,13 @@ barycentrics (eq 9-12):
 and over a smooth mesh the conic pieces join into curves (§3.3.3).  The method walks such a
 curve and looks for sign changes of a scalar refraction function f on it (eq 16-21):
 
-* conic coefficients per triangle (eq 10-12, :func:`conic_coefficients`), its crossings with
-  the triangle's edges (eq 22-24, :func:`_edge_roots`, written for any edge segment), and the
-  tangent from the conic's gradient (eq 13-15) to march along an arc (predictor step along
-  the tangent, corrector back onto the conic along the gradient, steps shortened where the
-  curve turns);
-* f is the paper's signed sine (eq 19-21) in half-vector form (Walter et al. 2009, which
-  §3.1 says the method works with as well): f = h · τ with h = eta_i wi - eta_t wo and τ the
-  surface tangent in the plane of incidence, = eta_i sin θi - eta_t sin θt on the curve; it
-  is defined under total internal reflection (no refract()), and τ is oriented by
-  continuity along the walk instead of by the curve tangent (eq 20), whose sign flips
-  wherever the tangent lies in the plane of incidence and would fake sign changes;
+* conic coefficients per triangle (eq 10-12, :func:`conic_coefficients`), its edge crossings
+  (eq 22-24), the tangent from its gradient (eq 13-15) to march along an arc (predictor along
+  the tangent, corrector back onto the conic, shorter steps where the curve turns);
+* f is the paper's signed sine (eq 19-21) in half-vector form (Walter et al. 2009, §3.1):
+  f = h · τ, h = eta_i wi - eta_t wo, τ the surface tangent in the plane of incidence
+  (defined under total internal reflection; τ oriented by continuity along the walk, not by
+  the curve tangent of eq 20, whose sign flips would fake sign changes);
 * bisection along the curve where f changes sign (§3.4.3: the paper bisects sub-triangles,
   here the bracket is the curve piece between two marching samples, halved and projected
   back onto the conic), then the project's Newton polish and validation
@@ -29,26 +25,18 @@ curve and looks for sign changes of a scalar refraction function f on it (eq 16-
   (``one_bounce.store_path``), the same as the other baselines;
 * the ellipse wholly inside one triangle (§3.4.4): no edge crossing, the closed curve is
   marched all the way round from a point on it;
-* the walk across a caster mesh (§3.3.3, §3.4.2-3.4.3, §4): start at M0, where the straight
-  line x0 -> x2 crosses the mesh (it satisfies coplanarity trivially), march both ways,
-  leave a triangle through an edge crossing and continue in the neighbour given by a
-  precomputed adjacency (:func:`build_adjacency`), until the curve leaves the mesh, closes
-  on itself (back at M0) or a visit cap is reached;
-* the ray-differential contribution of a path (eq 26-33, :func:`ray_differential_irradiance`).
+* the walk across a caster mesh (§3.3.3, §3.4.2-3.4.3, §4): from M0, where the line x0 -> x2
+  crosses the mesh, both ways, through edge crossings into the neighbours of
+  :func:`build_adjacency`, until the curve leaves the mesh, closes (back at M0) or a visit
+  cap is reached; the ray-differential irradiance of a path (eq 26-33).
 
-Two entry points:
+Entry points: :class:`CurveWalkSolver` ("curve", the tuple interface: every conic arc inside
+the tuple's triangle plus the closed ellipse) and :func:`walk_mesh` (the paper's use: one
+light, receiver points, a whole caster mesh -> (point, triangle, u, v) per path).
 
-* :class:`CurveWalkSolver` ("curve"): the tuple interface shared with the other solvers;
-  per tuple the walk is restricted to the tuple's triangle: every conic arc inside it
-  (entered at an edge crossing) plus the closed-ellipse case.
-* :func:`walk_mesh`: the paper's real use, one light, a batch of receiver points, a whole
-  caster mesh; returns (point index, triangle index, u, v) per path.
-
-The method finds the paths on the curve pieces it walks and only those: two roots of f
-between two marching samples (a fold of the caustic), a curve component that does not pass
-through M0 (mesh walk) or that does not reach the triangle's edges except as the closed
-ellipse (tuple walk) are missed; reflection ("R") has no starting point on the curve (§6)
-and is refused.
+It finds the paths on the curve pieces it walks and only those: two roots of f between two
+marching samples (a caustic fold) or a component not through M0 / the triangle's edges are
+missed; reflection ("R") has no starting point on the curve (§6) and is refused.
 """
 
 import math

@@ -3,7 +3,7 @@
 A *piece* is one row of ``PIECE_FIELDS`` float64: the caster box (u1, v1), the receiver
 barycentric and UV bounds, the irradiance bounds Ē, E̲ and the quadtree depth (``P_*``
 columns); two-bounce pair-level rows add the receiver index (``P_RECEIVER``).  Also here: the
-orientation rule of a vertex (docs/design.md side rules), the IOR ratio of a side, the §6.1
+orientation rule of a vertex (the side rules of addon/solver/CONTRACT.md), the IOR ratio of a side, the §6.1
 midpoint split, and the chain codes of the two-bounce engines (bit 0: vertex 1 refracts,
 bit 1: vertex 2 refracts).  Every engine module imports these; this module imports none of them.
 """
@@ -30,7 +30,7 @@ CHAIN_CODES = {"RR": 0, "TR": 1, "RT": 2, "TT": 3}
 
 @kernel
 def orientation_mask(side_lo, side_hi, ndot_lo, ndot_hi):
-    """Orientations o = sign(side)·sign(n·ng) (docs/design.md: the light's side of the geometric
+    """Orientations o = sign(side)·sign(n·ng) (CONTRACT.md: the light's side of the geometric
     normal turned to the shading normal) possible when the side (x_source - x)·ng ranges over
     [side_lo, side_hi] and n·ng over [ndot_lo, ndot_hi]: bit 1 for o = +1, bit 2 for -1."""
     mask = 0

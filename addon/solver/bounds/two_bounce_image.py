@@ -31,7 +31,7 @@ def image_box(refract1, refract2, x0, P1, N1, P2, N2, Q, eta, box, out):
     -> receiver Q with x1 in the box (u_lo, u_hi, v_lo, v_hi) of triangle 1 and x2 on triangle
     2's plane: the exact map of eq 6–11 and eq 9 (exact √β) in the affine arithmetic of
     ``two_bounce_irradiance`` (the forward map ``sub_box_irradiance`` bounds eq 15 with), value forms
-    only, the union over the orientations docs/design.md allows.  Writes out[0:4] = (uk_lo,
+    only, the union over the orientations CONTRACT.md allows.  Writes out[0:4] = (uk_lo,
     uk_hi, vk_lo, vk_hi) and returns IMAGE_BOX; IMAGE_NONE when no admissible path of the box
     reaches the receiver triangle (total internal reflection, backward rays, u2 or uk
     enclosures outside their triangles); IMAGE_UNKNOWN where a ray can be parallel to a plane

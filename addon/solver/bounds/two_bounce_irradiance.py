@@ -9,48 +9,34 @@ x0 -> x1 -> x2 -> xk with x1 in U1:
 
 with the Jacobian taken explicitly, as the reciprocal of det ∂(uk,vk)/∂(u1,v1) (eq 16).
 
-Why not the Bernstein form of eq 16 as for one bounce: through two vertices uk is rational in
-(u1, v1) only after both square roots of the refractions are approximated; the remainder
-variables that keep the *position* bound conservative (eq 12–13 and the degree reduction of
-§6.1) say nothing about derivatives, and the paper's implicit form (eq 17–19) for the last
-vertex needs x2 as independent variables too — a 6-variable determinant of degree ~20 per
-variable, millions of Bernstein coefficients per piece.  Instead the exact forward map
-u1 -> x1 -> d̃1 (eq 10, exact √β1) -> u2 (eq 9 on triangle 2) -> x2, n2 -> d̃2 (exact √β2) -> uk
-(eq 9 on the receiver) is evaluated in *affine arithmetic* with forward differentiation: every
-quantity carries its value and its two partial derivatives ∂/∂u1, ∂/∂v1, each as an affine form
-c + a δu + b δv + [-r, r] over the box (δu, δv in [-1, 1]; Stolfi & de Figueiredo's affine
-arithmetic, one shared pair of noise symbols).  Products keep the linear parts exactly and move
-only second-order terms into r, so the derivatives — and eq 16's determinant built from them —
-are enclosed up to O(box²): unlike plain interval arithmetic, the correlated terms of eq 9's
-numerators and of the determinant's two products cancel as they do in the exact function.  No
-approximation of √β is left unbounded (``aff_sqrt``: its Chebyshev affine form carries the error
-in its remainder), so the bound is conservative:
+The explicit Jacobian is used rather than the Bernstein form of eq 16 (as for one bounce):
+through two vertices uk is rational in (u1, v1) only after both √β are approximated, and the
+remainder variables that keep the position bound conservative say nothing about derivatives.
+Instead the exact forward map u1 -> x1 -> d̃1 (eq 10, exact √β1) -> u2 (eq 9 on triangle 2) ->
+x2, n2 -> d̃2 (exact √β2) -> uk is evaluated in the affine arithmetic of ``affine`` with forward
+differentiation (duals: value, ∂/∂u1, ∂/∂v1, each an affine form over the box), so eq 16's
+determinant is enclosed up to O(box²) with its correlated terms cancelling; √ carries its
+Chebyshev error in the remainder, so the bound is conservative:
 
 * Ē = max |d0·(e1×e2)| / min |d0|³ / (min |det| · |e_k1 × e_k2|), E̲ with min/max swapped;
 * Ē = inf (status UNBOUNDED_*, counted per reason) where the determinant's enclosure contains
-  0 (focal points, caustic curves), where β of a refraction reaches 0 inside the box (grazing
-  refraction or the onset of total internal reflection: √β has an unbounded derivative there)
-  or where a ray can be parallel to the next plane.  At the last vertex such boxes get a second
-  try with the paper's implicit form (eq 17–19, ``implicit_last_vertex``: u1 and uk independent
-  over the box × the piece's receiver bound, no √); it is valid but rarely finite there, because
-  near grazing exit the receiver bound is wide (measured on the benchmark scenes: ball1280 TT
-  unbounded pieces 253 -> 251, slab10k TT unchanged).  Most grazing boxes of the benchmarks are
-  at vertex 1 with the light reaching the caster from inside the medium (a back face: V is
-  ignored by the bounds, as in the paper);
+  0 (focal points, caustic curves), where β of a refraction reaches 0 in the box (grazing
+  refraction, the onset of total internal reflection) or where a ray can be parallel to the
+  next plane.  At the last vertex such boxes get a second try with the implicit form (eq
+  17–19, ``implicit_last_vertex``: u1 and uk independent over the box × the piece's receiver
+  bound, no √);
 * sub-boxes whose x1 lies outside triangle 1, whose ray meets a plane only backwards, whose u2
-  enclosure misses triangle 2, whose uk enclosure misses the receiver triangle, or whose β < 0
-  everywhere (total internal reflection) hold no admissible path and are skipped (a piece with
-  none gets Ē = E̲ = 0).
+  or uk enclosure misses its triangle, or whose β < 0 everywhere (total internal reflection)
+  hold no admissible path and are skipped (a piece with none gets Ē = E̲ = 0).
 
-At vertex 2 the incoming direction is d̃1 itself rather than x2 - x1 (the same direction for
-every path, t > 0): for triangle 2 adjacent to triangle 1 on one surface, x2 - x1 can vanish
-and would take β2 to 0 with it.  The enclosures shrink with the box, so the piece is split
-(quadtree of at most ``irr_depth`` levels, inside the piece only) while the bound is unbounded
-or Ē/E̲ > ``irr_ratio``.  Orientation at each vertex follows docs/design.md as in ``two_bounce_position``
-(o = sign((source - x)·ng) · sign(ng·n), η' = 1/η for o > 0, η otherwise); where the sign is
-not fixed over a box both orientations are bounded and the larger Ē kept.  Floating-point
-rounding: every affine operation widens r by a relative ROUND, and the final bound is padded by
-IRR_PAD.
+At vertex 2 the incoming direction is d̃1 itself rather than x2 - x1 (adjacent triangles of one
+surface would take β2 to 0 with x2 - x1).  The piece is split (quadtree of at most ``irr_depth``
+levels inside it) while the bound is unbounded or Ē/E̲ > ``irr_ratio``.  Orientation at each
+vertex follows the side rules of addon/solver/CONTRACT.md (o = sign((source - x)·ng) · sign(ng·n),
+η' = 1/η for o > 0, η otherwise); where the sign is not fixed over a box both orientations
+are bounded and the larger Ē kept; the final bound is padded by IRR_PAD.
+Tested in tests/solver/test_bounds_two_bounce.py (bounds bracket the geometry term of traced
+paths; the implicit form brackets |det ∂u1/∂uk|).
 """
 
 import math

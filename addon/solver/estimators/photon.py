@@ -11,22 +11,14 @@ per-point irradiance over the texel.  This module never imports bpy; the bake si
 
 Emission (``Emitters``, built by :func:`point_emitter` / :func:`sun_emitter`):
 
-- point sample at x with intensity I (RGB, W/sr) and profile f(w) (Lambertian lobe
-  max(0, lobe . w) and / or Cycles' spot smoothstep): photons go uniformly into a cone that
-  contains every caster vertex (hence every caster triangle: a cone narrower than a
-  hemisphere is convex), solid angle Omega = 2 pi (1 - cos_max); each carries
-  I f(w) Omega / n (W).  A cone as wide as a hemisphere or wider becomes the full sphere.
-- sun sample with irradiance S (RGB, W/m²) and travel direction d: parallel photons start on
-  a disc perpendicular to d (radius R covering the casters' projection, placed upstream of
-  the whole scene); each carries S pi R² / n.
-- Stratified: emitter m's n_m = s_x s_y photons cover an s_x x s_y grid of its 2D domain
-  ((1 - cos theta, phi) for the cone, (r², phi) for the disc), one jittered point per cell.
+- point sample (intensity I, W/sr, profile f(w)): photons uniform in a cone containing every
+  caster vertex (solid angle Ω = 2π(1 - cos_max); the full sphere from a hemisphere up), each
+  I f(w) Ω / n; sun (irradiance S, direction d): parallel photons from a disc of radius R
+  upstream of the scene, each S π R² / n.  Stratified: an s_x x s_y jittered grid of the
+  emitter's 2D domain ((1 - cos θ, φ) for the cone, (r², φ) for the disc).
 
-Transport at a caster triangle (roles as addon.bake.scene: 1 reflect, 2 refract, 3 both):
-n = normalize(interpolated corner normal), n_g the geometric normal turned to n's side; the
-incoming side is the side the photon arrives from (CONTRACT.md's rules: cos_i > 0 against
-the shading normal turned to that side, a reflection stays on it, a refraction crosses it;
-outside -> inside is 1 -> IOR).  Weights: 'reflect' mirror x tint; 'refract' (1 - F) x tint;
+Transport at a caster triangle (roles of ``geometry.optics``; the side rules of CONTRACT.md,
+``optics.scatter_direction``; outside -> inside is 1 -> IOR).  Weights: 'reflect' mirror x tint; 'refract' (1 - F) x tint;
 'both' F x tint for R and (1 - F) x tint for T, F the unpolarised dielectric Fresnel
 reflectance (1 under total internal reflection, where T is impossible).  When both R and
 T lead to a chain being baked, one is chosen with probability F / 1 - F (the Fresnel factor

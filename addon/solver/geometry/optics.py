@@ -6,7 +6,7 @@
 * Fresnel: unpolarised dielectric reflectance F = (r_s² + r_p²) / 2 with 1 under total internal
   reflection; unpolarised conductor reflectance for a complex IOR η + iκ seen from air.
 * :func:`scatter_direction`: mirror reflection / Snell refraction about the interpolated
-  shading normal, with the side rules of docs/design.md (the light arrives against the
+  shading normal, with the side rules of addon/solver/CONTRACT.md (the light arrives against the
   normal turned to its side; a reflection stays on that side, a refraction crosses the
   geometric plane).
 
@@ -82,7 +82,7 @@ def vertex_fresnel(refract, model, cos_i, side, eta, kappa):
 def scatter_direction(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract, eta):
     """Scatter the unit direction d at a vertex with unit shading normal n and geometric normal
     g (on n's side): mirror reflection, or refraction 1 -> eta entering (against g) and
-    eta -> 1 leaving; the side rules of docs/design.md (cos_i > 0 against the normal turned to
+    eta -> 1 leaving; the side rules of addon/solver/CONTRACT.md (cos_i > 0 against the normal turned to
     the incoming side; a reflection stays on that side, a refraction crosses).  Returns
     (ok, unit direction)."""
     outside = dx * gx + dy * gy + dz * gz < 0.0

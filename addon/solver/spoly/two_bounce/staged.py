@@ -34,27 +34,23 @@ before its refined roots), which can change which of two copies of one path is k
 (both polished to ~1e-15) but not the set of paths.  A stage-B/D "device" written in Numba
 (:class:`NumbaDeterminants`) runs the same staging without OpenCL, for the tests.
 
-Stage A repeats ``_solve_oriented``'s set-up (side tests, frame, √ pieces, orientations) so
-that the one-kernel path stays exactly as it is; the two must change together
-(tests/solver/test_opencl_two_bounce.py compares the staging on Numba with the one-kernel solver).
-Limits: ``REFINE_LEVELS`` ≤ 1, the settings
-of ``params.py``; a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel
-path in stage E.
+Stage A shares ``_solve_oriented``'s set-up (``frame``); tests/solver/test_opencl_two_bounce.py
+compares the staging on Numba with the one-kernel solver.  Limits: ``REFINE_LEVELS`` ≤ 1;
+a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel path in stage E.
 """
 
-import math
 
 import numpy as np
 
 from ...runtime.jit import kernel, prange
 from ...paths.two_vertex import pack_geometry
-from .params import (BOTH_DIRECTIONS, CHUNK, HERON_CUT, HERON_SQRT, KINK, LIVE_PREPASS, LIVE_STACK,
-                     MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD, N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS, SQRT_BANDS,
-                     SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES,
-                     V_MARGIN_APPROX, V_MARGIN_EXACT)
+from .params import (BOTH_DIRECTIONS, CHUNK, KINK, LIVE_PREPASS, LIVE_STACK, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD,
+                     N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS,
+                     STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES, V_MARGIN_APPROX, V_MARGIN_EXACT)
 from ...polynomials.bivariate import bernstein_has_zero, bmax, u_degree
 from .prepass import live_pieces_band
-from .sqrt import beta_mask, beta_poly, centroid_piece, heron_sqrt_cut, sqrt_band, sqrt_piece
+from .sqrt import sqrt_band
+from .frame import sqrt_pieces_to_solve, tuple_frame
 from .system import build_system
 from .resultant import deflate, det_checked, illinois, refine_flags_one, resolve_dip, v_major
 from .solve import candidates_at, make_scratch2, seeded, solve_two_bounce_tuple, straight_candidate
@@ -139,115 +135,13 @@ def _prepare_system(biv, da, db, refract1, stats):
 @kernel
 def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv, geo, geo_l, b_offset, coef, sysint,
                       nsys, stats, pieces, live_mask, live_work):
-    """``_solve_oriented`` up to the systems: the same side tests and system loop, each
+    """``_solve_oriented`` up to the systems: the same set-up (``frame``) and system loop, each
     system stored instead of solved (sysint has room for sysint.shape[0]).  Returns the new
     system count (more than there is room for: the tuple goes to the one-kernel path)."""
-    if not pack_geometry(x0, x3, PA, NA, PB, NB, geo):
+    ok, side0, side3, inv, S, any_front1, any_back1, any_front2, any_back2, flat2, cx, c2 = tuple_frame(
+        refract1, refract2, x0, x3, PA, NA, PB, NB, geo, geo_l, stats)
+    if not ok:
         return nsys
-    ng1 = (geo[13, 0], geo[13, 1], geo[13, 2])
-    ng2 = (geo[14, 0], geo[14, 1], geo[14, 2])
-    e11 = (geo[2, 0], geo[2, 1], geo[2, 2])
-    e12 = (geo[3, 0], geo[3, 1], geo[3, 2])
-    p20 = (geo[7, 0], geo[7, 1], geo[7, 2])
-    e21 = (geo[8, 0], geo[8, 1], geo[8, 2])
-    e22 = (geo[9, 0], geo[9, 1], geo[9, 2])
-    L1 = max(math.sqrt(e11[0] ** 2 + e11[1] ** 2 + e11[2] ** 2), math.sqrt(e12[0] ** 2 + e12[1] ** 2 + e12[2] ** 2))
-    L2 = max(math.sqrt(e21[0] ** 2 + e21[1] ** 2 + e21[2] ** 2), math.sqrt(e22[0] ** 2 + e22[1] ** 2 + e22[2] ** 2))
-    side0 = geo[0, 0] * ng1[0] + geo[0, 1] * ng1[1] + geo[0, 2] * ng1[2]
-    if abs(side0) <= 1e-12 * L1:
-        stats[STAT_SKIPPED] += 1
-        return nsys
-    lo2 = math.inf
-    hi2 = -math.inf
-    for c in range(3):
-        q = p20
-        if c == 1:
-            q = (p20[0] + e21[0], p20[1] + e21[1], p20[2] + e21[2])
-        elif c == 2:
-            q = (p20[0] + e22[0], p20[1] + e22[1], p20[2] + e22[2])
-        sd = q[0] * ng1[0] + q[1] * ng1[1] + q[2] * ng1[2]
-        lo2 = min(lo2, sd * side0)
-        hi2 = max(hi2, sd * side0)
-    tol1 = 1e-9 * (L1 + L2) * abs(side0)
-    if (not refract1 and hi2 <= tol1) or (refract1 and lo2 >= -tol1):
-        stats[STAT_SKIPPED] += 1
-        return nsys
-    side3 = (geo[1, 0] - p20[0]) * ng2[0] + (geo[1, 1] - p20[1]) * ng2[1] + (geo[1, 2] - p20[2]) * ng2[2]
-    if abs(side3) <= 1e-12 * L2:
-        stats[STAT_SKIPPED] += 1
-        return nsys
-    lo1 = math.inf
-    hi1 = -math.inf
-    for c in range(3):
-        q = (0.0, 0.0, 0.0)
-        if c == 1:
-            q = e11
-        elif c == 2:
-            q = e12
-        sd = (q[0] - p20[0]) * ng2[0] + (q[1] - p20[1]) * ng2[1] + (q[2] - p20[2]) * ng2[2]
-        lo1 = min(lo1, sd * side3)
-        hi1 = max(hi1, sd * side3)
-    tol2 = 1e-9 * (L1 + L2) * abs(side3)
-    if (not refract2 and hi1 <= tol2) or (refract2 and lo1 >= -tol2):
-        stats[STAT_SKIPPED] += 1
-        return nsys
-
-    inv = 1.0 / L1
-    for r in range(13):
-        f = inv if (r <= 3 or (r >= 7 and r <= 9)) else 1.0
-        for c in range(3):
-            geo_l[r, c] = geo[r, c] * f
-    any_front1 = False
-    any_back1 = False
-    any_front2 = False
-    any_back2 = False
-    nmax1 = 0.0
-    flat2 = True
-    nscale2 = 0.0
-    for c in range(3):
-        n1c = (geo[4, 0], geo[4, 1], geo[4, 2])
-        n2c = (geo[10, 0], geo[10, 1], geo[10, 2])
-        if c > 0:
-            n1c = (n1c[0] + geo[4 + c, 0], n1c[1] + geo[4 + c, 1], n1c[2] + geo[4 + c, 2])
-            n2c = (n2c[0] + geo[10 + c, 0], n2c[1] + geo[10 + c, 1], n2c[2] + geo[10 + c, 2])
-        s_1 = n1c[0] * ng1[0] + n1c[1] * ng1[1] + n1c[2] * ng1[2]
-        s_2 = n2c[0] * ng2[0] + n2c[1] * ng2[1] + n2c[2] * ng2[2]
-        any_front1 = any_front1 or s_1 > 0.0
-        any_back1 = any_back1 or s_1 < 0.0
-        any_front2 = any_front2 or s_2 > 0.0
-        any_back2 = any_back2 or s_2 < 0.0
-        nmax1 = max(nmax1, n1c[0] ** 2 + n1c[1] ** 2 + n1c[2] ** 2)
-        nscale2 = max(nscale2, math.sqrt(n2c[0] ** 2 + n2c[1] ** 2 + n2c[2] ** 2))
-    for r in (11, 12):
-        if abs(geo[r, 0]) + abs(geo[r, 1]) + abs(geo[r, 2]) > 1e-12 * nscale2:
-            flat2 = False
-    if not (nmax1 > 0.0 and nscale2 > 0.0):
-        stats[STAT_SKIPPED] += 1
-        return nsys
-    cx = ((e11[0] + e12[0]) / 3.0, (e11[1] + e12[1]) / 3.0, (e11[2] + e12[2]) / 3.0)
-    w = (geo[1, 0] - cx[0], geo[1, 1] - cx[1], geo[1, 2] - cx[2])
-    nb = (3.0 * geo[10, 0] + geo[11, 0] + geo[12, 0], 3.0 * geo[10, 1] + geo[11, 1] + geo[12, 1], 3.0 * geo[10, 2] + geo[11, 2] + geo[12, 2])
-    c2 = (w[1] * nb[2] - w[2] * nb[1], w[2] * nb[0] - w[0] * nb[2], w[0] * nb[1] - w[1] * nb[0])
-    lc = math.sqrt(c2[0] ** 2 + c2[1] ** 2 + c2[2] ** 2)
-    lw = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
-    lnb = math.sqrt(nb[0] ** 2 + nb[1] ** 2 + nb[2] ** 2)
-    if not lc > 1e-6 * lw * lnb:
-        c2 = (e21[1] * nb[2] - e21[2] * nb[1], e21[2] * nb[0] - e21[0] * nb[2], e21[0] * nb[1] - e21[1] * nb[0])
-        lc = math.sqrt(c2[0] ** 2 + c2[1] ** 2 + c2[2] ** 2)
-        if not lc > 0.0:
-            stats[STAT_SKIPPED] += 1
-            return nsys
-    c2 = (c2[0] / lc, c2[1] / lc, c2[2] / lc)
-    dmax = 0.0
-    for c in range(3):
-        q = (0.0, 0.0, 0.0)
-        if c == 1:
-            q = e11
-        elif c == 2:
-            q = e12
-        dv = (q[0] - geo[0, 0], q[1] - geo[0, 1], q[2] - geo[0, 2])
-        dmax = max(dmax, (dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2) * inv * inv)
-    S = math.sqrt(nmax1 * dmax)
 
     n_orient1 = 2 if refract1 else 1
     n_side2 = 2 if refract2 else 1
@@ -258,44 +152,10 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
             continue
         s_in1 = sigma1 * (1.0 if side0 > 0.0 else -1.0)
         r1 = (1.0 / eta) if s_in1 > 0.0 else eta
-        xlo = math.inf
-        xhi = -math.inf
-        mask = 0
-        fallback_piece = -2  # the √ piece solved only as the TIR fallback (piece -1 is Heron)
-        if refract1:
-            for iu in range(4):
-                for iv in range(4 - iu):
-                    uu = iu / 3.0
-                    vv = iv / 3.0
-                    nn = (geo[4, 0] + uu * geo[5, 0] + vv * geo[6, 0], geo[4, 1] + uu * geo[5, 1] + vv * geo[6, 1], geo[4, 2] + uu * geo[5, 2] + vv * geo[6, 2])
-                    dv = ((uu * e11[0] + vv * e12[0] - geo[0, 0]) * inv, (uu * e11[1] + vv * e12[1] - geo[0, 1]) * inv, (uu * e11[2] + vv * e12[2] - geo[0, 2]) * inv)
-                    n2_ = nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2
-                    d2_ = dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2
-                    dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2]
-                    beta = n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn
-                    x = beta / (S * S)
-                    xlo = min(xlo, x)
-                    xhi = max(xhi, x)
-                    if x >= 0.0:
-                        mask |= 1 << sqrt_piece(x)
-            nn = (geo[4, 0] + (geo[5, 0] + geo[6, 0]) / 3.0, geo[4, 1] + (geo[5, 1] + geo[6, 1]) / 3.0, geo[4, 2] + (geo[5, 2] + geo[6, 2]) / 3.0)
-            dv = ((cx[0] - geo[0, 0]) * inv, (cx[1] - geo[0, 1]) * inv, (cx[2] - geo[0, 2]) * inv)
-            n2_ = nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2
-            d2_ = dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2
-            dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2]
-            xc = min(1.0, max(0.0, (n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn) / (S * S)))
-            if xhi <= 0.0:
-                continue
-            mask, fallback_piece = centroid_piece(xc, mask)
-        if refract1 and SQRT_BANDS:
-            beta_poly(geo_l, r1, biv)
-            if xlo > 0.0:
-                mask |= beta_mask(biv, V_MARGIN_APPROX, S * S)
-        heron_ok = False
-        heron_cut = HERON_CUT
-        heron = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        if refract1 and HERON_SQRT:
-            heron_ok, heron_cut, heron = heron_sqrt_cut(geo_l, r1, V_MARGIN_APPROX, S * S, biv[45, 0:6, 0:7])
+        ok, mask, fallback_piece, heron_ok, heron_cut, heron = sqrt_pieces_to_solve(refract1, geo, geo_l, inv, S, cx, r1,
+                                                                                   V_MARGIN_APPROX, biv)
+        if not ok:
+            continue
         for piece in range(-1, n_pieces_sqrt):
             # piece -1: the Heron √ (β/S² above its cut), then the eq (23) pieces (only
             # those reaching below the cut when the Heron √ is used)

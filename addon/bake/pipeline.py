@@ -20,7 +20,6 @@ import dataclasses
 import json
 import os
 import re
-import tempfile
 import time
 from dataclasses import dataclass, field
 
@@ -29,8 +28,9 @@ import numpy as np
 from ..solver.geometry.bvh import build_bvh, segments_occluded
 from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolution, world_per_uv_area
 from .estimators import make_estimator
-from .exr import write_exr
+from . import exr
 from .lights import emission_factor, sample_light
+from .output import write_files, write_text
 from .names import frame_report_filename, safe_filename, texture_filename
 from .plan import CHAINS, make_plan
 from .raster import bands, grid_side, pad, rasterise
@@ -49,26 +49,33 @@ class BakeResult:
     raw: dict  # receiver name -> (H, W, 3) float64 before padding
     report: dict = field(default_factory=dict)
 
-    def write(self, out_dir, frame=None):
-        """Write the textures and the report into ``out_dir``: per receiver the file
-        :func:`texture_filename` names (``<receiver>.exr``, or ``<receiver>.<frame>.exr`` with
-        ``frame``) and ``report.json``, or with ``frame`` that frame's report
-        (:func:`frame_report_filename`; :func:`write_sequence_report` then indexes the
-        frames).  Returns {receiver: file name}."""
-        os.makedirs(out_dir, exist_ok=True)
+    def write(self, out_dir, frame=None, record=True):
+        """Write the textures and the report into ``out_dir``, all or nothing
+        (:func:`addon.bake.output.write_files`: temporary files renamed over the final names once
+        every one is complete; :class:`~addon.bake.output.OutputError` otherwise, with the
+        files already there untouched): per receiver the file :func:`texture_filename` names
+        (``<receiver>.exr``, or ``<receiver>.<frame>.exr`` with ``frame``, unique among the
+        receivers) and ``report.json``, or with ``frame`` that frame's report
+        (:func:`frame_report_filename`; :func:`write_sequence_report` then indexes the frames).
+        ``record``: list the files in the folder's manifest.  Returns {receiver: file name}."""
         t0 = time.perf_counter()
-        files = {}
-        for name, img in self.images.items():
-            fname = texture_filename(name, frame)
-            write_exr(os.path.join(out_dir, fname), img)
-            files[name] = fname
-        self.report.setdefault("timings", {})["write"] = time.perf_counter() - t0
+        files = {name: texture_filename(name, frame, receivers=self.images) for name in self.images}
         self.report["files"] = files
-        if frame is None:
-            _write_json(os.path.join(out_dir, "report.json"), self.report)
-        else:
-            _write_json(os.path.join(out_dir, frame_report_filename(frame)), self.report)
+        writers = {files[name]: (lambda tmp, img=img: exr.write_exr(tmp, img)) for name, img in self.images.items()}
+
+        def write_report(tmp):
+            self.report.setdefault("timings", {})["write"] = time.perf_counter() - t0
+            with open(tmp, "w", encoding="utf-8") as fh:
+                json.dump(self.report, fh, indent=2, default=_json_default)
+
+        writers["report.json" if frame is None else frame_report_filename(frame)] = write_report
+        write_files(out_dir, writers, record=record)
         return files
+
+    def output_names(self, frame=None):
+        """The names :meth:`write` writes (textures, then the report)."""
+        return [texture_filename(n, frame, receivers=self.images) for n in self.images] + [
+            "report.json" if frame is None else frame_report_filename(frame)]
 
 
 SEQUENCE_REPORT = "report.json"
@@ -121,16 +128,7 @@ def write_sequence_report(out_dir):
 def _write_json(path, data):
     """Write ``data`` as JSON to ``path`` through a temporary file renamed over it (a reader
     never sees half a file)."""
-    fd, tmp = tempfile.mkstemp(prefix=".report-", suffix=".tmp", dir=os.path.dirname(path) or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=2, default=_json_default)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_text(path, json.dumps(data, indent=2, default=_json_default))
 
 
 def _json_default(o):

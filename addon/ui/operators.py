@@ -10,7 +10,10 @@
   From scripts and in background mode (``blender -b``) execute() bakes synchronously; in
   background mode it then saves the .blend (``save_blend``, default: yes there if the file has a
   path).  Undo restores the Blender data as it was before the bake (images, node group,
-  materials); files written or deleted on disk stay so.
+  materials); files written or deleted on disk stay so.  The textures go to the .blend's own
+  folder in the output folder (``//caustics/<blend name>/<receiver>.exr``), are written all or
+  nothing before the previous bake is touched, and a failed write (read-only folder, full
+  disk) is one line with the previous bake's files, images and nodes unchanged.
 - ``caustics.clear``: removes what the bake added (images, node group, material copies, nodes)
   and the files of baked image sequences (only files Caustic Bake wrote).
 
@@ -63,7 +66,9 @@ def _report_failure(op, ex, what):
     """One line in the UI; a traceback in the console only for bugs."""
     from ..bake.scene import SceneError
 
-    if isinstance(ex, (UserError, SceneError)):
+    from ..bake.output import OutputError
+
+    if isinstance(ex, (UserError, SceneError, OutputError, FileExistsError)):
         op.report({"ERROR"}, "Caustic Bake: {}".format(ex))
     elif isinstance(ex, OSError):  # cannot write the textures (permissions, disk full, ...)
         op.report({"ERROR"}, "Caustic Bake: cannot write the textures: {}".format(ex))
@@ -104,12 +109,15 @@ class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
 
 
 def output_directory(props):
-    """Where the textures go: the output folder, or None (pack) when it is relative to an
-    unsaved .blend."""
+    """Where the textures go: the .blend's own folder in the output folder
+    (:func:`addon.bake.names.blend_folder`: ``//caustics/<blend name>/`` by default), or None
+    (pack) when the output folder is relative to an unsaved .blend."""
+    from ..bake.names import blend_folder
+
     directory = props.output_dir or "//caustics/"
     if directory.startswith("//") and not bpy.data.filepath:
         return None
-    return directory
+    return blend_folder(directory, bpy.data.filepath)
 
 
 class BakeJob:
@@ -269,13 +277,17 @@ class BakeJob:
     def finish(self, context):
         """Apply the result (a frame range: its finished frames) to the scene; returns the
         one-line summary."""
-        from ..bake.apply import apply_bake, apply_sequence, clear_bake, receivers_uv_maps
+        from ..bake.apply import apply_bake, apply_sequence, clear_bake, receivers_uv_maps, write_textures
 
         result = self.result
         props = context.scene.caustic_bake
         if self.frames is None:
-            clear_bake(delete_files=True)  # a new bake replaces every earlier one
-            done = apply_bake(result.images, receivers_uv_maps(self.model), directory=self.directory, pack=self.pack)
+            # Every texture is written (all or nothing) before the earlier bake is touched: a
+            # failed write leaves the earlier bake's files, images and nodes as they were.
+            files = write_textures(result.images, self.directory) if self.directory is not None else None
+            clear_bake(delete_files=True, keep_files=(files or {}).values())  # a new bake replaces every earlier one
+            done = apply_bake(result.images, receivers_uv_maps(self.model), directory=self.directory, pack=self.pack,
+                              files=files)
             self.warnings = list(result.report.get("warnings", [])) + self.warnings
             what = ""
         else:
@@ -457,11 +469,9 @@ def baked_images():
 
 
 def has_bake():
-    from ..bake.apply import GROUP_NAME, STATE_KEY, TAG_KEY
+    from ..bake.apply import STATE_KEY, node_groups
 
-    group = bpy.data.node_groups.get(GROUP_NAME)
-    return bool(baked_images()) or (group is not None and bool(group.get(TAG_KEY))) or any(
-        m.get(STATE_KEY) is not None for m in bpy.data.materials)
+    return bool(baked_images()) or bool(node_groups()) or any(m.get(STATE_KEY) is not None for m in bpy.data.materials)
 
 
 class CAUSTICS_OT_clear(bpy.types.Operator):

@@ -1,0 +1,146 @@
+"""The bake operator's outputs under faults: each .blend bakes into its own folder and reopens
+showing its own bake; a failed write (OpenEXR error, full disk, read-only folder) is one line
+and leaves the previous bake's files, images and nodes exactly as they were; Clear finds the
+add-on's node group by its tag, not by its name."""
+
+import errno
+import os
+import shutil
+import tempfile
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+pytestmark = pytest.mark.bpy
+
+import addon  # noqa: E402
+from addon.bake import exr  # noqa: E402
+from addon.bake.apply import TAG_KEY  # noqa: E402
+from addon.ui import operators, state  # noqa: E402
+
+from fixtures.checks import snapshot  # noqa: E402
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+SAMPLES = os.path.join(REPO, "sample_blends")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def registered():
+    addon.register()
+    yield
+    addon.unregister()
+
+
+@pytest.fixture(autouse=True)
+def fresh_state():
+    state.STATE.reset()
+    yield
+    state.STATE.reset()
+
+
+def _open_copy(folder, sample, name=None, resolution=16):
+    path = str(folder / ((name or sample) + ".blend"))
+    shutil.copy(os.path.join(SAMPLES, sample + ".blend"), path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    props = bpy.context.scene.caustic_bake
+    props.resolution = resolution
+    props.samples = 1
+    return path
+
+
+def _pixels(img):
+    w, h = img.size
+    px = np.empty(w * h * 4, dtype=np.float32)
+    img.pixels.foreach_get(px)
+    return px.reshape(h, w, 4)[:, :, :3]
+
+
+def _files(folder):
+    return {os.path.relpath(os.path.join(r, n), folder): open(os.path.join(r, n), "rb").read()
+            for r, _, names in os.walk(folder) for n in names}
+
+
+def test_two_blends_in_one_folder_keep_their_own_bakes(tmp_path):
+    a = _open_copy(tmp_path, "mirror_plane", "a")
+    assert bpy.ops.caustics.bake() == {"FINISHED"}  # background mode: saved
+    b = _open_copy(tmp_path, "metal_ring", "b")
+    assert bpy.ops.caustics.bake() == {"FINISHED"}
+    fa, fb = tmp_path / "caustics" / "a" / "Floor.exr", tmp_path / "caustics" / "b" / "Floor.exr"
+    assert not np.array_equal(exr.read_exr(fa), exr.read_exr(fb))
+    for path, exr_path in ((a, fa), (b, fb)):
+        bpy.ops.wm.open_mainfile(filepath=path)
+        img = bpy.data.images["CausticBake Floor"]
+        assert img.filepath == f"//caustics/{os.path.basename(path)[:-6]}/Floor.exr"
+        np.testing.assert_array_equal(_pixels(img), exr.read_exr(exr_path))
+
+
+def _bake_then_fail(tmp_path, monkeypatch, fail):
+    _open_copy(tmp_path, "mirror_plane")
+    assert bpy.ops.caustics.bake(save_blend=False) == {"FINISHED"}
+    folder = tmp_path / "caustics"
+    files, before = _files(folder), snapshot()
+    pixels = _pixels(bpy.data.images["CausticBake Floor"])
+    bpy.context.scene.caustic_bake.seed = 7
+    bpy.context.scene.caustic_bake.resolution = 24
+    fail(folder / "mirror_plane")
+    with pytest.raises(RuntimeError) as err:
+        bpy.ops.caustics.bake(save_blend=False)
+    msg = str(err.value).strip()
+    assert "\n" not in msg and "Traceback" not in msg
+    assert _files(folder) == files  # byte-identical, no temporary or partial file
+    assert snapshot() == before
+    np.testing.assert_array_equal(_pixels(bpy.data.images["CausticBake Floor"]), pixels)
+    return msg
+
+
+def test_an_openexr_error_keeps_the_previous_bake(tmp_path, monkeypatch):
+    def fail(_folder):
+        def write(path, image, compression="ZIP"):
+            open(path, "wb").write(b"half")
+            raise RuntimeError("Cannot write image file\nOpenEXR: No space left on device")
+        monkeypatch.setattr(exr, "write_exr", write)
+
+    msg = _bake_then_fail(tmp_path, monkeypatch, fail)
+    floor = tmp_path / "caustics" / "mirror_plane" / "Floor.exr"
+    assert msg == f"Error: Caustic Bake: cannot write {floor}: OpenEXR: No space left on device"
+
+
+def test_a_full_disk_keeps_the_previous_bake(tmp_path, monkeypatch):
+    def fail(_folder):
+        def write(path, image, compression="ZIP"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        monkeypatch.setattr(exr, "write_exr", write)
+
+    assert _bake_then_fail(tmp_path, monkeypatch, fail).endswith("Floor.exr: No space left on device")
+
+
+def test_a_read_only_folder_keeps_the_previous_bake(tmp_path, monkeypatch):
+    def fail(folder):
+        os.chmod(folder, 0o555)
+        if os.geteuid() == 0:  # root ignores permissions: fail as a user would
+            real = tempfile.mkstemp
+
+            def mkstemp(*a, dir=None, **kw):
+                if dir is not None and os.path.samefile(dir, folder):
+                    raise PermissionError(errno.EACCES, "Permission denied")
+                return real(*a, dir=dir, **kw)
+
+            monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
+
+    try:
+        assert _bake_then_fail(tmp_path, monkeypatch, fail).endswith("Floor.exr: Permission denied")
+    finally:
+        os.chmod(tmp_path / "caustics" / "mirror_plane", 0o755)
+
+
+def test_clear_removes_its_own_group_beside_a_users_group_of_that_name(tmp_path):
+    _open_copy(tmp_path, "mirror_plane")
+    mine = bpy.data.node_groups.new("CausticBake", "ShaderNodeTree")
+    mine.use_fake_user = True
+    assert bpy.ops.caustics.bake(save_blend=False) == {"FINISHED"}
+    ours = [g for g in bpy.data.node_groups if g.get(TAG_KEY)]
+    assert len(ours) == 1 and ours[0].name != "CausticBake"
+    assert bpy.ops.caustics.clear() == {"FINISHED"}
+    assert [g.name for g in bpy.data.node_groups] == ["CausticBake"] and bpy.data.node_groups[0] == mine
+    assert not operators.has_bake()

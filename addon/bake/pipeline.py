@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..solver.geometry.bvh import build_bvh, segments_occluded
+from .checks import scene_warnings
 from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolution, world_per_uv_area
 from .estimators import make_estimator
 from . import exr
@@ -192,7 +193,7 @@ def make_context(scene, settings):
     receivers = [with_resolution(r, settings.resolution) if settings.resolution else r for r in scene.receivers]
     lsamples = [sample_light(light, settings.light_samples, settings.seed) for light in scene.lights]
     ctx = BakeContext(scene, settings, bvh, VISIBILITY_OFFSET * extent, extent, receivers, lsamples,
-                      warnings=list(scene.warnings))
+                      warnings=list(scene.warnings) + scene_warnings(scene, receivers))
     ctx.timer.add("bvh", time.perf_counter() - t0)
     return ctx
 

@@ -144,3 +144,23 @@ def test_clear_removes_its_own_group_beside_a_users_group_of_that_name(tmp_path)
     assert bpy.ops.caustics.clear() == {"FINISHED"}
     assert [g.name for g in bpy.data.node_groups] == ["CausticBake"] and bpy.data.node_groups[0] == mine
     assert not operators.has_bake()
+
+
+def test_the_operator_reports_the_warnings_of_report_json(tmp_path):
+    _open_copy(tmp_path, "mirror_plane")
+    off = bpy.data.objects.new("Off", bpy.data.lights.new("Off", "POINT"))
+    off.data.energy = 0.0
+    bpy.context.scene.collection.objects.link(off)
+    job = operators.BakeJob(bpy.context)
+    job.start(bpy.context)
+    job.run()
+    job.finish(bpy.context)
+    assert "light 'Off' has zero power: it adds no light" in job.result.report["warnings"]
+    reports = []
+    stub = type("Op", (), {"report": lambda self, kind, msg: reports.append((set(kind), msg))})()
+    operators.CAUSTICS_OT_bake._report_warnings(stub, job)
+    assert len(reports) == 1 and reports[0][0] == {"WARNING"}
+    first = job.warnings[0]
+    more = " (+{} more in the console)".format(len(job.warnings) - 1) if len(job.warnings) > 1 else ""
+    assert reports[0][1] == "Caustic Bake: " + first + more
+    assert "light 'Off' has zero power: it adds no light" in job.warnings

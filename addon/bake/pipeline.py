@@ -12,6 +12,9 @@
 
 :func:`bake_steps` is the resumable form (a generator yielding ``(fraction, message)`` between
 bounded chunks; the Blender operator drives it from a timer); :func:`bake` is a loop over it.
+The fraction (:class:`Progress`) follows each stage's own count of work (probes, forward
+images, texel rows, texel areas, padding), and the message ends with the time left once it
+can be estimated.
 Deterministic for a seed: every parallel kernel writes disjoint outputs and the sums run in
 a fixed order.  What a texel holds (units, front side, cosine) is in addon/bake/README.md.
 """
@@ -33,7 +36,7 @@ from . import exr
 from .lights import emission_factor, sample_light
 from .output import write_files, write_text
 from .names import frame_report_filename, safe_filename, texture_filename
-from .plan import CHAINS, make_plan
+from .plan import CHAINS, plan_steps
 from .raster import bands, grid_side, pad, rasterise
 from .scene import SceneError
 from .settings import BakeSettings, check_settings, resolve_aliases
@@ -198,13 +201,91 @@ def make_context(scene, settings):
     return ctx
 
 
+class Progress:
+    """The share of a bake done, from its stages' own counts: planning (the probes), the
+    estimators' preparation (forward images, photons), the texel rows (supersamples, direct
+    light, exact paths), the texel areas (the flux estimators) and the padding, each weighted
+    by its expected share of the work (:meth:`set_weights`); and an estimate of the time left
+    from the time taken so far, once there is enough of both."""
+
+    STAGES = ("plan", "prepare", "rows", "areas", "pad")
+
+    def __init__(self):
+        self.t0 = time.perf_counter()
+        self.weights = {"plan": 0.05, "prepare": 0.0, "rows": 0.9, "areas": 0.0, "pad": 0.05}
+        self.stage = "plan"
+        self.inner = 0.0
+        self.last = 0.0
+
+    def set_weights(self, **weights):
+        """Relative weights of the stages (normalised); stages already done keep their share."""
+        done = self.STAGES[:self.STAGES.index(self.stage)]
+        fixed = sum(self.weights[s] for s in done) + self.weights[self.stage]
+        rest = {s: float(weights.get(s, self.weights[s])) for s in self.STAGES if s not in done and s != self.stage}
+        total = sum(rest.values())
+        for s, w in rest.items():
+            self.weights[s] = (1.0 - fixed) * w / total if total > 0 else 0.0
+
+    def fraction(self, stage, inner):
+        """The share done at ``inner`` (0..1) through ``stage`` (never decreasing)."""
+        self.stage, self.inner = stage, min(1.0, max(0.0, float(inner)))
+        i = self.STAGES.index(stage)
+        f = sum(self.weights[s] for s in self.STAGES[:i]) + self.weights[stage] * self.inner
+        self.last = max(self.last, min(1.0, f))
+        return self.last
+
+    def eta(self):
+        """Seconds left (None until 3 s and 2 % of the work have passed)."""
+        elapsed = time.perf_counter() - self.t0
+        if elapsed < 3.0 or self.last < 0.02:
+            return None
+        return elapsed * (1.0 - self.last) / self.last
+
+    def tell(self, stage, inner, message):
+        """(fraction, message with the time left when known) for a step."""
+        f = self.fraction(stage, inner)
+        left = self.eta()
+        return f, (f"{message} (about {format_seconds(left)} left)" if left is not None and f < 1.0 else message)
+
+
+def format_seconds(t):
+    """``42 s``, ``3 min 5 s``, ``2 h 7 min``."""
+    t = int(round(t))
+    if t < 60:
+        return f"{t} s"
+    if t < 3600:
+        return f"{t // 60} min {t % 60} s"
+    return f"{t // 3600} h {(t % 3600) // 60} min"
+
+
+_FLUX_ESTIMATORS = ("forward-flux", "photon")  # their receiver_flux needs the texel areas
+_PREPARED = ("forward-flux", "photon")  # their work is done in prepare()
+
+
+def _prepare_steps(est, ctx):
+    """How many steps ``est.prepare()`` yields (forward-flux: one per light sample and chain), or None."""
+    if est.name == "forward-flux":
+        return sum(int(ctx.lsamples[it.light].size) for it in est.items)
+    return None
+
+
 def _bake_gen(scene, settings):
     t_start = time.perf_counter()
+    progress = Progress()
     ctx = make_context(scene, settings)
     timer = ctx.timer
-    yield 0.0, "planning"
+    yield progress.tell("plan", 0.0, "planning")
     t0 = time.perf_counter()
-    plan = make_plan(ctx)
+    steps = plan_steps(ctx)
+    while True:
+        try:
+            f, message = next(steps)
+        except StopIteration as done:
+            plan = done.value
+            break
+        timer.add("plan", time.perf_counter() - t0)
+        yield progress.tell("plan", f, message)
+        t0 = time.perf_counter()
     timer.add("plan", time.perf_counter() - t0)
     if settings.caustics and not plan.items:
         ctx.warnings.append("no casters: the scene has no reflecting or refracting surfaces (only the direct light is baked if asked)")
@@ -212,11 +293,23 @@ def _bake_gen(scene, settings):
     for it in plan.baked_items():
         by_name.setdefault(it.estimator, []).append(it)
     estimators = [make_estimator(name, ctx, items) for name, items in by_name.items()]
-    for est in estimators:
-        yield from est.prepare()
+    names = set(by_name)
+    rows_weight = (0.85 if names & {"path-points", "path-seeded"} else 0.1) + (0.05 if settings.direct else 0.0)
+    progress.set_weights(prepare=0.7 if names & set(_PREPARED) else 0.0, rows=rows_weight,
+                         areas=0.1 if names & set(_FLUX_ESTIMATORS) else 0.0, pad=0.02)
+    n_est = max(1, len(estimators))
+    for e, est in enumerate(estimators):
+        expected, k = _prepare_steps(est, ctx), 0
+        for f, message in est.prepare():
+            if f is None:
+                f = k / expected if expected else 0.0
+            else:
+                f = f / 0.9 if est.name == "photon" else f
+            k += 1
+            yield progress.tell("prepare", (e + min(1.0, f)) / n_est, message)
     images, coverage, raw, rec_report = {}, {}, {}, {}
     total_rows = sum(r.resolution[1] for r in ctx.receivers)
-    rows_done = 0
+    rows_done = area_rows = 0
     for rec_index, rec in enumerate(ctx.receivers):
         W, H = rec.resolution
         sums = np.zeros((W * H, 3))
@@ -231,9 +324,10 @@ def _bake_gen(scene, settings):
                     for ls in ctx.lsamples:
                         direct_light(ctx, ls, band, sums)
                 for est in estimators:
-                    yield from est.accumulate(rec_index, band, sums)
+                    for _, message in est.accumulate(rec_index, band, sums):
+                        yield progress.tell("rows", (rows_done + 0.5 * (j1 - j0)) / max(1, total_rows), message)
             rows_done += j1 - j0
-            yield rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}"
+            yield progress.tell("rows", rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}")
         covered = cover > 0
         img = np.zeros((W * H, 3))
         img[covered] = sums[covered] / cover[covered, None]
@@ -244,15 +338,21 @@ def _bake_gen(scene, settings):
                 flux = f if flux is None else flux + f
         if flux is not None:
             t0 = time.perf_counter()
-            area = texel_areas(scene, rec, settings.samples, settings.band_samples)
+            area = np.zeros(W * H)
+            for j1 in _texel_area_steps(scene, rec, settings.samples, settings.band_samples, area):
+                timer.add("flux", time.perf_counter() - t0)
+                yield progress.tell("areas", (area_rows + j1) / max(1, total_rows), f"{rec.name}: texel areas, rows {j1}/{H}")
+                t0 = time.perf_counter()
             ok = covered & (area > 0)
             img[ok] += flux[ok] / area[ok, None]
             timer.add("flux", time.perf_counter() - t0)
+        area_rows += H
         t0 = time.perf_counter()
         img = img.reshape(H, W, 3)
         cov2 = covered.reshape(H, W)
         padded, _ = pad(img, cov2, settings.margin)
         timer.add("pad", time.perf_counter() - t0)
+        yield progress.tell("pad", (rec_index + 1) / len(ctx.receivers), f"{rec.name}: padded")
         images[rec.name] = padded.astype(np.float32)
         coverage[rec.name] = cov2
         raw[rec.name] = img
@@ -272,14 +372,22 @@ def texel_areas(scene, rec, samples=16, band_samples=1 << 20):
     of an s x s grid (s >= 4, centred) on receiver triangle t stands for
     area_world(t) / area_uv(t) / (W H s²) m²."""
     W, H = rec.resolution
+    area = np.zeros(W * H)
+    for _ in _texel_area_steps(scene, rec, samples, band_samples, area):
+        pass
+    return area
+
+
+def _texel_area_steps(scene, rec, samples, band_samples, area):
+    """:func:`texel_areas` into ``area`` band by band, yielding the rows done after each band."""
+    W, H = rec.resolution
     S = grid_side(max(int(samples), AREA_SAMPLES)) ** 2
     ratio = world_per_uv_area(scene, rec)
-    area = np.zeros(W * H)
     for j0, j1 in bands(rec, S, band_samples):
         band = rasterise(scene, rec, S, 0, False, rows=(j0, j1))
         if band.size:
             area += np.bincount(band.texel, weights=ratio[band.tri], minlength=W * H) / (W * H * S)
-    return area
+        yield j1
 
 
 AREA_SAMPLES = 16  # at least this many supersamples per texel to measure a texel's world area

@@ -14,7 +14,8 @@ Files are written all or nothing (:mod:`addon.bake.output`: temporary files rena
 place), and listed in ``DIR/.caustic_bake_files.json``; a file in ``DIR`` the bake would
 replace that is not listed there (a user's) is refused before the bake, unless ``--force``.
 Receivers whose names make the same file name get unique ones (:mod:`addon.bake.names`).
-Wrong input and write failures exit with code 2 and a one-line reason on stderr (no traceback).
+A long bake prints a progress line with the time left every 10 s.  Wrong input and write
+failures exit with code 2 and a one-line reason on stderr (no traceback).
 """
 
 import os
@@ -225,7 +226,26 @@ def write_sequence_index(out_dir):
     record_written(out_dir, add=[SEQUENCE_REPORT])
 
 
-def _bake_open_scene(path, frame, settings, resolution, out_dir=None):
+PROGRESS_INTERVAL = 10.0  # seconds between the progress lines of a long bake
+
+
+class ProgressPrinter:
+    """The ``progress(fraction, message)`` callback of a CLI bake: a line
+    ``progress 37 %: <what runs now> (about 2 min 5 s left)`` on stdout at most every
+    :data:`PROGRESS_INTERVAL` seconds, the first after that long (short bakes print none)."""
+
+    def __init__(self, prefix=""):
+        self.prefix = prefix
+        self.last = time.perf_counter()
+
+    def __call__(self, fraction, message):
+        now = time.perf_counter()
+        if now - self.last >= PROGRESS_INTERVAL and fraction is not None:
+            print(f"{self.prefix}progress {100 * fraction:.0f} %: {message}", flush=True)
+            self.last = now
+
+
+def _bake_open_scene(path, frame, settings, resolution, out_dir=None, progress=True):
     """Extract the open scene (at ``frame``, or the current frame) and bake it; returns
     (scene model, BakeResult) with ``report["input"]`` and the extraction time filled in.
     ``out_dir``: before the bake, refuse (:func:`refuse_foreign`) when a file the bake will
@@ -246,7 +266,8 @@ def _bake_open_scene(path, frame, settings, resolution, out_dir=None):
             names = [r.name for r in scene.receivers]
             refuse_foreign(out_dir, [texture_filename(n, frame, receivers=names) for n in names] + [
                 SEQUENCE_REPORT if frame is None else frame_report_filename(frame)])
-        result = bake(scene, settings)
+        prefix = f"frame {frame}: " if frame is not None else ""
+        result = bake(scene, settings, progress=ProgressPrinter(prefix) if progress else None)
     except SceneError as ex:
         where = f" (frame {frame})" if frame is not None else ""
         raise UserError(f"{ex}{where}") from None
@@ -256,16 +277,17 @@ def _bake_open_scene(path, frame, settings, resolution, out_dir=None):
     return scene, result
 
 
-def bake_frame(path, frame, out_dir, settings, resolution, force=False, record=True):
+def bake_frame(path, frame, out_dir, settings, resolution, force=False, record=True, progress=True):
     """Bake frame ``frame`` of the open .blend (``path``, for the report) and write that
     frame's files of the sequence in ``out_dir`` (:meth:`BakeResult.write` with the frame, all
     or nothing), refusing to replace a file Caustic Bake did not write there unless ``force``;
     ``record``: list the files in the folder's manifest (the Dask driver does it for its
-    workers).  Returns {"frame", "line" (the summary line), "warnings", "files" (receiver:
-    texture), "written" (every file name written)}."""
+    workers; ``progress``: print progress lines).  Returns {"frame", "line" (the summary line),
+    "warnings", "files" (receiver: texture), "written" (every file name written)}."""
     from .output import OutputError
 
-    _, result = _bake_open_scene(path, frame, settings, resolution, out_dir=None if force else out_dir)
+    _, result = _bake_open_scene(path, frame, settings, resolution, out_dir=None if force else out_dir,
+                                 progress=progress)
     try:
         files = result.write(out_dir, frame=frame, record=record)
     except OutputError as ex:
@@ -291,7 +313,7 @@ def bake_frame_task(frame, blend, out_dir, settings, resolution):
     except RuntimeError as ex:
         return {"frame": frame, "error": f"could not open {blend}: {str(ex).strip().splitlines()[-1]}"}
     try:
-        return bake_frame(blend, frame, out_dir, settings, resolution, force=True, record=False)
+        return bake_frame(blend, frame, out_dir, settings, resolution, force=True, record=False, progress=False)
     except UserError as ex:
         return {"frame": frame, "error": str(ex)}
 

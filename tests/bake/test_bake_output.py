@@ -166,3 +166,19 @@ def test_cli_write_failure_is_one_line_rc2_and_keeps_the_previous_bake(tmp_path,
     assert main(["bake", MIRROR, "--out", str(out), "--seed", "5"] + ARGS) == 2
     assert _err_line(capsys) == f"error: cannot write {out / 'Floor.exr'}: Cannot write image file"
     assert _state(out) == before
+
+
+@pytest.mark.bpy
+def test_cli_prints_progress_with_the_time_left(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("bpy")
+    from addon.__main__ import main
+    from addon.bake import cli, pipeline
+
+    monkeypatch.setattr(cli, "PROGRESS_INTERVAL", 0.0)
+    monkeypatch.setattr(pipeline.Progress, "eta", lambda self: 65.0)
+    assert main(["bake", MIRROR, "--out", str(tmp_path / "o")] + ARGS) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("progress ")]
+    pcts = [int(line.split()[1]) for line in lines]
+    assert len(lines) >= 5 and pcts == sorted(pcts) and pcts[0] < 10
+    assert lines[-1] == "progress 100 %: Floor: padded"
+    assert all(line.endswith("(about 1 min 5 s left)") for line in lines[:-1])

@@ -36,7 +36,7 @@ from . import exr
 from .lights import emission_factor, sample_light
 from .output import write_files, write_text
 from .names import frame_report_filename, safe_filename, texture_filename
-from .plan import CHAINS, plan_steps
+from .plan import CHAINS, candidate_chains, plan_steps
 from .raster import bands, grid_side, pad, rasterise
 from .scene import SceneError
 from .settings import BakeSettings, check_settings, resolve_aliases
@@ -202,50 +202,87 @@ def make_context(scene, settings):
 
 
 class Progress:
-    """The share of a bake done, from its stages' own counts: planning (the probes), the
-    estimators' preparation (forward images, photons), the texel rows (supersamples, direct
-    light, exact paths), the texel areas (the flux estimators) and the padding, each weighted
-    by its expected share of the work (:meth:`set_weights`); and an estimate of the time left
-    from the time taken so far, once there is enough of both."""
+    """The share of a bake done and the time left, from the time each stage takes: planning
+    (the probes), the estimators' preparation (forward images, photons), the texel rows
+    (supersamples, direct light, exact paths), the texel areas (the flux estimators) and the
+    padding.  A stage under way is extrapolated from its own count of work done (the time it
+    took for its ``inner`` share); a stage not started from a guess of its seconds
+    (:meth:`set_guesses`, from the work it holds), the texel stages' scaled by how the texel
+    work so far compared with its guesses (:meth:`speed`).  The fraction is elapsed / (elapsed + left): it never goes
+    back and reaches 1 only when the last stage ends."""
 
     STAGES = ("plan", "prepare", "rows", "areas", "pad")
+    ONCE = ("plan", "prepare")
 
     def __init__(self):
-        self.t0 = time.perf_counter()
-        self.weights = {"plan": 0.05, "prepare": 0.0, "rows": 0.9, "areas": 0.0, "pad": 0.05}
+        self.t0 = self.t_last = time.perf_counter()
+        self.guess = {"plan": 0.5, "prepare": 0.0, "rows": 1.0, "areas": 0.0, "pad": 0.05}
+        self.spent = dict.fromkeys(self.STAGES, 0.0)
+        self.inner = dict.fromkeys(self.STAGES, 0.0)
         self.stage = "plan"
-        self.inner = 0.0
         self.last = 0.0
+        self.left = None
 
-    def set_weights(self, **weights):
-        """Relative weights of the stages (normalised); stages already done keep their share."""
-        done = self.STAGES[:self.STAGES.index(self.stage)]
-        fixed = sum(self.weights[s] for s in done) + self.weights[self.stage]
-        rest = {s: float(weights.get(s, self.weights[s])) for s in self.STAGES if s not in done and s != self.stage}
-        total = sum(rest.values())
-        for s, w in rest.items():
-            self.weights[s] = (1.0 - fixed) * w / total if total > 0 else 0.0
+    def set_guesses(self, **seconds):
+        """Guessed seconds of stages not started yet."""
+        for s, t in seconds.items():
+            self.guess[s] = max(0.0, float(t))
+
+    def speed(self):
+        """Measured / guessed seconds over the texel work done so far (rows, areas, padding; 1
+        before there is any): how much faster or slower this machine does it than guessed."""
+        texel_stages = self.STAGES[len(self.ONCE):]
+        guessed = sum(self.guess[s] * self.inner[s] for s in texel_stages)
+        spent = sum(self.spent[s] for s in texel_stages if self.inner[s] > 0)
+        return min(10.0, max(0.1, spent / guessed)) if guessed > 0.05 and spent > 0.05 else 1.0
 
     def fraction(self, stage, inner):
-        """The share done at ``inner`` (0..1) through ``stage`` (never decreasing)."""
-        self.stage, self.inner = stage, min(1.0, max(0.0, float(inner)))
-        i = self.STAGES.index(stage)
-        f = sum(self.weights[s] for s in self.STAGES[:i]) + self.weights[stage] * self.inner
-        self.last = max(self.last, min(1.0, f))
+        """The share done at ``inner`` (0..1, that stage's own count of work) through ``stage``
+        (never decreasing; stages may come again, e.g. per receiver)."""
+        now = time.perf_counter()
+        self.spent[self.stage] += now - self.t_last
+        self.t_last, self.stage = now, stage
+        self.inner[stage] = min(1.0, max(self.inner[stage], float(inner)))
+        for s in self.ONCE:  # planning and preparation happen once: done when a later stage runs
+            if self.STAGES.index(stage) > self.STAGES.index(s):
+                self.inner[s] = 1.0
+        speed = self.speed()
+        left = 0.0
+        for s in self.STAGES:
+            done, spent = self.inner[s], self.spent[s]
+            if done > 0.0 and spent > 0.0:
+                left += spent * (1.0 - done) / done
+            else:
+                left += max(0.0, self.guess[s] * speed - spent)
+        self.left = left
+        elapsed = now - self.t0
+        if stage == self.STAGES[-1] and self.inner[stage] >= 1.0:
+            f = 1.0
+        else:
+            f = min(0.999, elapsed / (elapsed + left)) if elapsed + left > 0 else 0.0
+        self.last = max(self.last, f)
         return self.last
 
     def eta(self):
         """Seconds left (None until 3 s and 2 % of the work have passed)."""
-        elapsed = time.perf_counter() - self.t0
-        if elapsed < 3.0 or self.last < 0.02:
+        if time.perf_counter() - self.t0 < 3.0 or self.last < 0.02 or self.left is None:
             return None
-        return elapsed * (1.0 - self.last) / self.last
+        return self.left
 
     def tell(self, stage, inner, message):
         """(fraction, message with the time left when known) for a step."""
         f = self.fraction(stage, inner)
         left = self.eta()
         return f, (f"{message} (about {format_seconds(left)} left)" if left is not None and f < 1.0 else message)
+
+
+#: Guessed costs (seconds) for the stages not started yet, per unit of work.
+GUESS_FORWARD_IMAGE = 2.0  # one forward image (chain x light sample)
+GUESS_PHOTON = 1e-6
+GUESS_SAMPLE = 1e-6  # one texel supersample: raster and estimators' bookkeeping
+GUESS_DIRECT = 0.3e-6  # one supersample x light sample of direct light
+GUESS_EXACT = 10e-6  # one supersample x chain of exact paths
+GUESS_AREA_SAMPLE = 0.5e-6  # one supersample of the texel areas
 
 
 def format_seconds(t):
@@ -259,7 +296,6 @@ def format_seconds(t):
 
 
 _FLUX_ESTIMATORS = ("forward-flux", "photon")  # their receiver_flux needs the texel areas
-_PREPARED = ("forward-flux", "photon")  # their work is done in prepare()
 
 
 def _prepare_steps(est, ctx):
@@ -274,6 +310,14 @@ def _bake_gen(scene, settings):
     progress = Progress()
     ctx = make_context(scene, settings)
     timer = ctx.timer
+    texels = sum(r.resolution[0] * r.resolution[1] for r in ctx.receivers)
+    n_samples = texels * grid_side(settings.samples) ** 2
+    n_light = sum(ls.size for ls in ctx.lsamples)
+    if settings.caustics and settings.estimator == "forward-flux":  # until the plan says which chains
+        progress.set_guesses(prepare=GUESS_FORWARD_IMAGE * len(candidate_chains(settings)) * n_light,
+                             areas=texels * grid_side(max(settings.samples, AREA_SAMPLES)) ** 2 * GUESS_AREA_SAMPLE)
+    progress.set_guesses(rows=n_samples * (GUESS_SAMPLE + (GUESS_DIRECT * n_light if settings.direct else 0.0)),
+                         pad=texels * 0.05e-6)
     yield progress.tell("plan", 0.0, "planning")
     t0 = time.perf_counter()
     steps = plan_steps(ctx)
@@ -293,10 +337,15 @@ def _bake_gen(scene, settings):
     for it in plan.baked_items():
         by_name.setdefault(it.estimator, []).append(it)
     estimators = [make_estimator(name, ctx, items) for name, items in by_name.items()]
-    names = set(by_name)
-    rows_weight = (0.85 if names & {"path-points", "path-seeded"} else 0.1) + (0.05 if settings.direct else 0.0)
-    progress.set_weights(prepare=0.7 if names & set(_PREPARED) else 0.0, rows=rows_weight,
-                         areas=0.1 if names & set(_FLUX_ESTIMATORS) else 0.0, pad=0.02)
+    n_exact = sum(len(items) for name, items in by_name.items() if name in ("path-points", "path-seeded"))
+    progress.set_guesses(
+        prepare=sum(GUESS_FORWARD_IMAGE * (_prepare_steps(e, ctx) or 0) for e in estimators)
+        + (GUESS_PHOTON * settings.photons if "photon" in by_name else 0.0),
+        rows=n_samples * (GUESS_SAMPLE + GUESS_EXACT * n_exact
+                          + (GUESS_DIRECT * n_light if settings.direct else 0.0)),
+        areas=texels * grid_side(max(settings.samples, AREA_SAMPLES)) ** 2 * GUESS_AREA_SAMPLE
+        if set(by_name) & set(_FLUX_ESTIMATORS) else 0.0,
+        pad=texels * 0.05e-6)
     n_est = max(1, len(estimators))
     for e, est in enumerate(estimators):
         expected, k = _prepare_steps(est, ctx), 0

@@ -4,6 +4,7 @@ clear, poll messages, one-line errors and the panels' draw code in every state."
 
 import os
 import shutil
+import time
 import types
 
 import numpy as np
@@ -34,6 +35,9 @@ def fresh_state():
     state.STATE.reset()
     state.forget_numba_check()
     yield
+    deadline = time.monotonic() + 120
+    while operators.abandoned_running() and time.monotonic() < deadline:  # a cancelled bake's last chunk
+        time.sleep(0.01)
     state.STATE.reset()
     state.forget_numba_check()
 

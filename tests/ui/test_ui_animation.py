@@ -5,6 +5,7 @@ frames keeps the finished frames; Clear removes files, images and nodes; Undo re
 
 import json
 import os
+import time
 import types
 
 import numpy as np
@@ -37,6 +38,9 @@ def fresh_state():
     state.STATE.reset()
     state.forget_numba_check()
     yield
+    deadline = time.monotonic() + 120
+    while operators.abandoned_running() and time.monotonic() < deadline:  # a cancelled bake's last chunk
+        time.sleep(0.01)
     state.STATE.reset()
 
 

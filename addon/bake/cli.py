@@ -81,6 +81,9 @@ def add_arguments(parser):
                         "exact = path-points)")
     parser.add_argument("--sms-seeds", type=int, default=16, help="method sms: random Newton seeds per tuple (default 16)")
     parser.add_argument("--photons", type=int, default=1_000_000, help="method photon: photons traced (default 1,000,000)")
+    parser.add_argument("--memory-budget", type=float, default=None, metavar="GB",
+                        help="memory the bake's textures may take, in GB (default: half the memory available); a bake "
+                        "that needs more stops before it starts, with one line")
     parser.add_argument("--force", action="store_true",
                         help="overwrite files in --out that Caustic Bake did not write (default: refuse with the file's name)")
     parser.add_argument("--preview", default=None, metavar="PNG",
@@ -126,6 +129,8 @@ def _run(args):
         raise UserError("--light-samples must be >= 1, --margin and --threads >= 0")
     if not 1 <= args.sms_seeds <= 4096 or args.photons < 1:
         raise UserError("--sms-seeds must be in [1, 4096] and --photons at least 1")
+    if getattr(args, "memory_budget", None) is not None and not args.memory_budget > 0:
+        raise UserError("--memory-budget must be a positive number of GB")
     if not 0.0 <= args.plan_threshold < 1.0:
         raise UserError("--plan-threshold must be in [0, 1)")
     if not re.fullmatch(r"numba|opencl(:\d+)?", args.device or ""):
@@ -401,7 +406,8 @@ def settings_from_args(args):
                             bounces=args.bounces if args.bounces == "auto" else int(args.bounces),
                             plan_threshold=args.plan_threshold, seed=args.seed, light_samples=args.light_samples,
                             margin=args.margin, threads=args.threads, device=args.device, sms_seeds=args.sms_seeds,
-                            photons=args.photons, method=args.method, one_bounce=args.one_bounce, two_bounce=args.two_bounce))
+                            photons=args.photons, method=args.method, one_bounce=args.one_bounce, two_bounce=args.two_bounce,
+                            memory_budget=1e9 * (getattr(args, "memory_budget", None) or 0.0)))
     if args.estimator:  # explicit names win over the aliases
         settings.estimator = args.estimator
     if args.solver:

@@ -34,6 +34,7 @@ from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolut
 from .estimators import make_estimator
 from . import exr
 from .lights import emission_factor, sample_light
+from .memory import check_budget, out_of_memory
 from .output import write_files, write_text
 from .names import frame_report_filename, safe_filename, texture_filename
 from .plan import CHAINS, candidate_chains, plan_steps
@@ -180,7 +181,28 @@ def bake_steps(scene, settings=None):
     except ValueError as ex:
         raise SceneError(str(ex)) from None
     scene.validate()
-    return _bake_gen(scene, settings)
+    resolutions = [(settings.resolution, settings.resolution) if settings.resolution else tuple(r.resolution)
+                   for r in scene.receivers]
+    check_budget(resolutions, settings, flux_textures=1 if settings.estimator in _FLUX_ESTIMATORS else 0)
+    return _memory_guarded(_bake_gen(scene, settings))
+
+
+def _memory_guarded(steps):
+    """``steps`` with a ``MemoryError`` turned into a one-line :class:`~addon.bake.memory.BakeMemoryError`
+    naming the step that ran out."""
+    stage = "setting up the bake"
+    try:
+        while True:
+            try:
+                item = next(steps)
+            except StopIteration as done:
+                return done.value
+            stage = re.sub(r" \(about .* left\)$", "", item[1] or stage)
+            yield item
+    except MemoryError:
+        raise out_of_memory(stage) from None
+    finally:
+        steps.close()
 
 
 def make_context(scene, settings):

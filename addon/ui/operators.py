@@ -1,6 +1,8 @@
 """Operators.  Thin: they call into addon.solver / addon.bake and report; no maths here.
 
-- ``caustics.prepare_solver``: compile (or load) the solver kernels ahead of the first bake.
+- ``caustics.prepare_solver``: compile (or load) the solver kernels the next bake of the open
+  scene uses (its planned chains and light types: ``addon.bake.warm_up.prepare_for``; without a
+  bakeable scene every chain the settings allow) and say how long it took.
 - ``caustics.bake``: from the UI (invoke) a modal operator that runs the bake in chunks
   (``addon.bake.pipeline.bake_steps``) on one worker thread (:class:`ChunkWorker`; the pipeline
   never touches bpy) and polls it from a window-manager timer, waiting at most 0.1 s per tick,
@@ -92,11 +94,23 @@ class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
     def execute(self, context):
         try:
             load_solver()
-            from ..bake.warm_up import warm_up
+            from ..bake.extract import readiness
+            from ..bake.warm_up import prepare_for, warm_up
             from .properties import bake_settings
 
-            settings = bake_settings(context.scene.caustic_bake)
-            seconds = warm_up(settings)
+            props = context.scene.caustic_bake
+            settings = bake_settings(props)
+            chains = None
+            if all(readiness(context.scene)):  # a scene to bake: exactly what its bake will use
+                from ..bake.extract import extract_scene
+                from ..bake.scene import SceneError
+
+                try:
+                    seconds, chains = prepare_for(extract_scene(resolution=int(props.resolution)), settings)
+                except SceneError:
+                    chains = None
+            if chains is None:  # nothing to bake yet: every chain the settings allow
+                seconds = warm_up(settings)
         except UserError as ex:
             self.report({"ERROR"}, str(ex))
             return {"CANCELLED"}
@@ -109,7 +123,8 @@ class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
             self.report({"ERROR"}, "Caustic Bake: preparing the solver failed: {}".format(ex))
             return {"CANCELLED"}
 
-        self.report({"INFO"}, "Caustic solver ready for {} ({:.1f} s)".format(settings.estimator, seconds))
+        what = " ({})".format(", ".join(chains) or "direct light only") if chains is not None else ""
+        self.report({"INFO"}, "Caustic solver ready for {}{} in {:.1f} s".format(settings.estimator, what, seconds))
         return {"FINISHED"}
 
 

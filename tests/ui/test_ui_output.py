@@ -164,3 +164,13 @@ def test_the_operator_reports_the_warnings_of_report_json(tmp_path):
     more = " (+{} more in the console)".format(len(job.warnings) - 1) if len(job.warnings) > 1 else ""
     assert reports[0][1] == "Caustic Bake: " + first + more
     assert "light 'Off' has zero power: it adds no light" in job.warnings
+
+
+def test_prepare_solver_prepares_the_chains_of_the_open_scene(tmp_path):
+    _open_copy(tmp_path, "metal_ring")
+    reports = []
+    stub = type("Op", (), {"report": lambda self, kind, msg: reports.append((set(kind), msg))})()
+    assert operators.CAUSTICS_OT_prepare_solver.execute(stub, bpy.context) == {"FINISHED"}
+    assert len(reports) == 1 and reports[0][0] == {"INFO"}
+    assert reports[0][1].startswith("Caustic solver ready for forward-flux (R, RR) in ") and reports[0][1].endswith(" s")
+    assert bpy.ops.caustics.prepare_solver() == {"FINISHED"}

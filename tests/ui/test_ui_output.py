@@ -174,3 +174,15 @@ def test_prepare_solver_prepares_the_chains_of_the_open_scene(tmp_path):
     assert len(reports) == 1 and reports[0][0] == {"INFO"}
     assert reports[0][1].startswith("Caustic solver ready for forward-flux (R, RR) in ") and reports[0][1].endswith(" s")
     assert bpy.ops.caustics.prepare_solver() == {"FINISHED"}
+
+
+def test_the_memory_budget_setting_stops_a_bake_that_does_not_fit(tmp_path):
+    _open_copy(tmp_path, "mirror_plane", resolution=4096)
+    bpy.context.scene.caustic_bake.memory_budget = 0.5
+    before = snapshot()
+    with pytest.raises(RuntimeError) as err:
+        bpy.ops.caustics.bake(save_blend=False)
+    msg = str(err.value).strip()
+    assert msg.startswith("Error: Caustic Bake: the bake needs about ") and msg.endswith(
+        "more than its memory budget of 0.5 GB; lower the resolution or raise the memory budget")
+    assert snapshot() == before and not (tmp_path / "caustics").exists()

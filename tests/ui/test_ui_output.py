@@ -186,3 +186,23 @@ def test_the_memory_budget_setting_stops_a_bake_that_does_not_fit(tmp_path):
     assert msg.startswith("Error: Caustic Bake: the bake needs about ") and msg.endswith(
         "more than its memory budget of 0.5 GB; lower the resolution or raise the memory budget")
     assert snapshot() == before and not (tmp_path / "caustics").exists()
+
+
+def test_receivers_whose_names_sanitise_alike_get_their_own_files(tmp_path):
+    _open_copy(tmp_path, "mirror_plane")
+    floor = bpy.data.objects["Floor"]
+    for name, dx in (("Floor.001", 5.0), ("Floor_001", 10.0), ("floor", 15.0)):
+        ob = floor.copy()
+        ob.data = floor.data.copy()
+        ob.name = name
+        ob.location.x += dx
+        bpy.context.scene.collection.objects.link(ob)
+    assert bpy.ops.caustics.bake(save_blend=False) == {"FINISHED"}
+    folder = tmp_path / "caustics" / "mirror_plane"
+    files = {"Floor": "Floor.exr", "Floor.001": "Floor.001.exr", "Floor_001": "Floor_001.exr", "floor": "floor_2.exr"}
+    assert sorted(n for n in os.listdir(folder) if n.endswith(".exr")) == sorted(files.values())
+    for name, fname in files.items():
+        img = bpy.data.images["CausticBake " + name]
+        assert img.filepath == "//caustics/mirror_plane/" + fname
+        np.testing.assert_array_equal(_pixels(img), exr.read_exr(folder / fname))
+    assert _pixels(bpy.data.images["CausticBake Floor"]).max() > 0

@@ -1,8 +1,8 @@
 """Baked textures -> Blender images and material nodes, and the exact undo.  Touches bpy.
 
 ``apply_bake`` gives every receiver object an Image ("CausticBake <object>", float, Non-Color,
-loaded from the EXR written next to the .blend in ``//caustics/``, or packed into the .blend)
-and inserts into each of its materials, between the surface shader and the Material Output,
+loaded from the EXR :func:`write_textures` wrote, e.g. ``//caustics/<blend>/<receiver>.exr``
+with the path stored relative to the .blend, or packed into the .blend) and inserts into each of its materials, between the surface shader and the Material Output,
 the node group "CausticBake":
 
     Surface out = Shader + Emission(colour = Base Color x Irradiance / pi, strength 1)
@@ -16,7 +16,7 @@ physical irradiance.)
 
 A frame range (:func:`write_sequence_frame` per finished frame, then :func:`apply_sequence`)
 gives every receiver an Image with source ``SEQUENCE`` over the EXR sequence named by
-:func:`addon.bake.pipeline.texture_filename` (``<receiver>.<frame>.exr``, the CLI's names), and
+:func:`addon.bake.names.texture_filename` (``<receiver>.<frame>.exr``, the CLI's names), and
 its Image Texture node's image user maps the scene frame to the file of that frame
 (``frame_start`` = first frame, ``frame_offset`` = first frame - 1, ``frame_duration`` = the
 frames baked, auto refresh on), so that timeline playback and Cycles and EEVEE renders show each
@@ -28,9 +28,11 @@ What changed is recorded on the data itself (a JSON custom property on each mate
 object touched, and a tag on images), so ``clear_bake`` removes all of it and restores the
 materials exactly: the added nodes go, the original surface links come back, material copies
 made for receivers that share a material with other objects are removed and the slots
-restored, and the images and node group are deleted.  With ``delete_files`` it also deletes
-the sequence files the images list (``caustic_bake_files``) that Caustic Bake wrote (the
-folder's manifest, :data:`FILES_MANIFEST`); a user's file is never deleted or overwritten.
+restored, and the images and node group (found by its tag, not its name) are deleted.  With
+``delete_files`` it also deletes the sequence files the images list (``caustic_bake_files``)
+that Caustic Bake wrote (the folder's manifest, :data:`FILES_MANIFEST`); a user's file is
+never deleted or overwritten.  Files are written all or nothing before anything in Blender
+changes (:mod:`addon.bake.output`), so a failed write leaves the previous bake as it was.
 """
 
 import json
@@ -39,7 +41,9 @@ import os
 
 import bpy
 
+from . import output
 from .names import texture_filename
+from .output import FILES_MANIFEST  # noqa: F401  (the folder's list of the files Caustic Bake wrote)
 
 GROUP_NAME = "CausticBake"
 NODE_PREFIX = "CausticBake"
@@ -50,11 +54,17 @@ FILES_KEY = "caustic_bake_files"  # on a sequence image: JSON [absolute folder, 
 BASE_COLOR_INPUTS = {"BSDF_PRINCIPLED": "Base Color", "BSDF_DIFFUSE": "Color", "BSDF_SHEEN": "Color", "BSDF_TOON": "Color"}
 
 
+def node_groups():
+    """The add-on's own node groups: those tagged with :data:`TAG_KEY` (a user's group that is
+    merely named "CausticBake" is not one of them)."""
+    return [g for g in bpy.data.node_groups if g.get(TAG_KEY)]
+
+
 def ensure_node_group():
-    """The shared "CausticBake" shader node group (created once)."""
-    group = bpy.data.node_groups.get(GROUP_NAME)
-    if group is not None and group.get(TAG_KEY):
-        return group
+    """The shared "CausticBake" shader node group (created once; found by its tag, not its name)."""
+    for group in node_groups():
+        if group.bl_idname == "ShaderNodeTree":
+            return group
     group = bpy.data.node_groups.new(GROUP_NAME, "ShaderNodeTree")
     group[TAG_KEY] = True
     iface = group.interface
@@ -102,80 +112,53 @@ def _material_users(mat):
     return [o for o in bpy.data.objects if any(s.material == mat for s in o.material_slots)]
 
 
-FILES_MANIFEST = ".caustic_bake_files.json"  # in an output folder: the files Caustic Bake wrote there
-
-
-def _written_here(abs_dir):
-    try:
-        with open(os.path.join(abs_dir, FILES_MANIFEST), encoding="utf-8") as fh:
-            return set(json.load(fh))
-    except (OSError, ValueError, TypeError):
-        return set()
-
-
-def _record_written(abs_dir, fname, forget=()):
-    names = (_written_here(abs_dir) | {fname}) - set(forget)
-    names.discard(None)
-    with open(os.path.join(abs_dir, FILES_MANIFEST), "w", encoding="utf-8") as fh:
-        json.dump(sorted(names), fh, indent=1)
-
-
-def image_file(name, directory):
-    """(absolute folder, file name) :func:`make_image` writes the image ``name`` to."""
-    return bpy.path.abspath(directory), bpy.path.clean_name(name) + ".exr"
-
-
 def foreign_files(object_names, directory, frames=None):
     """The files :func:`apply_bake` (or with ``frames``, :func:`write_sequence_frame` for those
     frames) would write over in ``directory`` that Caustic Bake did not write there itself (a
     user's own files, never overwritten); [] when ``directory`` is None."""
     if directory is None:
         return []
-    out = []
-    for obj_name in object_names:
-        if frames is None:
-            abs_dir, fname = image_file(f"{NODE_PREFIX} {obj_name}", directory)
-            names = [fname]
-        else:
-            abs_dir = bpy.path.abspath(directory)
-            names = [texture_filename(obj_name, f) for f in frames]
-        written = _written_here(abs_dir)
-        out += [os.path.join(abs_dir, n) for n in names if n not in written and os.path.exists(os.path.join(abs_dir, n))]
-    return out
+    names = list(object_names)
+    fnames = [texture_filename(n, f, receivers=names) for n in names for f in (frames or [None])]
+    return output.foreign_files(bpy.path.abspath(directory), fnames)
+
+
+def write_textures(images, directory, frame=None):
+    """Write ``images`` ({receiver: (H, W, 3) irradiance}) into ``directory`` (absolute, or
+    relative to the .blend with //) under :func:`~addon.bake.names.texture_filename`'s names
+    (of ``frame`` in a sequence), all or nothing (:func:`addon.bake.output.write_textures`:
+    :class:`~addon.bake.output.OutputError` leaves the folder as it was), recorded as written
+    by Caustic Bake.  A file there that Caustic Bake did not write is never overwritten
+    (FileExistsError, before anything is written).  Returns {receiver name: absolute path}."""
+    abs_dir = bpy.path.abspath(directory)
+    clash = foreign_files(images, directory, None if frame is None else [frame])
+    if clash:
+        raise FileExistsError(f"{clash[0]} exists and was not written by Caustic Bake; choose another output folder")
+    names = {n: texture_filename(n, frame, receivers=images) for n in images}
+    paths = output.write_textures(abs_dir, {names[n]: img for n, img in images.items()})
+    return {n: paths[names[n]] for n in images}
 
 
 def write_sequence_frame(images, directory, frame):
     """Write one frame of a sequence: per receiver ``images[name]`` ((H, W, 3) irradiance) to
-    ``directory``/:func:`~addon.bake.pipeline.texture_filename` (name, frame), recorded as
-    written by Caustic Bake.  A file there that Caustic Bake did not write is never overwritten
-    (FileExistsError).  Returns {receiver name: absolute path}."""
-    from .exr import write_exr
+    ``directory``/:func:`~addon.bake.names.texture_filename` (name, frame), all or nothing
+    (:func:`write_textures`).  Returns {receiver name: absolute path}."""
+    return write_textures(images, directory, frame)
 
-    abs_dir = bpy.path.abspath(directory)
-    os.makedirs(abs_dir, exist_ok=True)
-    written = _written_here(abs_dir)
-    paths = {}
-    for name in images:
-        fname = texture_filename(name, frame)
-        path = os.path.join(abs_dir, fname)
-        if os.path.exists(path) and fname not in written:
-            raise FileExistsError(f"{path} exists and was not written by Caustic Bake; choose another output folder")
-        paths[name] = path
-    for name, pixels in images.items():
-        write_exr(paths[name], pixels)
-        _record_written(abs_dir, os.path.basename(paths[name]))
-    return paths
+
+def _relative_path(directory, path):
+    """``path`` as Blender should store it: relative to the .blend (//...) when ``directory`` is."""
+    if directory is not None and directory.startswith("//"):
+        return directory.rstrip("/\\") + "/" + os.path.basename(path)
+    return path
 
 
 def make_image(name, pixels_rgb, directory=None, pack=False, source=None):
-    """An Image from (H, W, 3) irradiance (row 0 = bottom): written as EXR into ``directory``
-    (absolute, or relative to the .blend with //) and loaded from there; packed if asked or if
-    there is nowhere to write.  A file there that Caustic Bake did not write (see
-    :func:`foreign_files`) is never overwritten: FileExistsError.  ``source``: an EXR of these
-    pixels already written (by the CLI): loaded from there, nothing is written."""
+    """An Image from (H, W, 3) irradiance (row 0 = bottom): loaded from ``source`` (an EXR of
+    these pixels already written, e.g. by :func:`write_textures` or the CLI; its path stored
+    relative to the .blend when ``directory`` starts with //) and packed if asked; without a
+    source, a packed image holding the pixels."""
     import numpy as np
-
-    from .exr import write_exr
 
     H, W = pixels_rgb.shape[:2]
     old = bpy.data.images.get(name)
@@ -184,25 +167,7 @@ def make_image(name, pixels_rgb, directory=None, pack=False, source=None):
     if source is not None and os.path.isfile(source):
         img = bpy.data.images.load(os.path.abspath(source), check_existing=False)
         img.name = name
-        if pack:
-            img.pack()
-        img.colorspace_settings.name = "Non-Color"
-        img[TAG_KEY] = True
-        return img
-    if directory is None:
-        directory = "//caustics" if bpy.data.filepath else None
-    if directory is not None:
-        abs_dir, fname = image_file(name, directory)
-        path = os.path.join(abs_dir, fname)
-        if os.path.exists(path) and fname not in _written_here(abs_dir):
-            raise FileExistsError(f"{path} exists and was not written by Caustic Bake; choose another output folder")
-        os.makedirs(abs_dir, exist_ok=True)
-        write_exr(path, pixels_rgb)
-        _record_written(abs_dir, fname)
-        img = bpy.data.images.load(path, check_existing=False)
-        img.name = name
-        if directory.startswith("//"):
-            img.filepath = directory.rstrip("/") + "/" + fname
+        img.filepath = _relative_path(directory, source)
         if pack:
             img.pack()
     else:
@@ -289,8 +254,13 @@ def apply_bake(images, uv_maps, directory=None, pack=False, files=None):
     ``images``: {object name: (H, W, 3) irradiance array (row 0 = bottom)};
     ``uv_maps``: {object name: UV layer name}; ``files``: {object name: path of an EXR of that
     same array already on disk (the CLI's output)}: loaded as is instead of writing a second
-    copy.  Re-applying replaces an earlier bake.  Returns {object name: image name}.
+    copy.  Without ``files`` the textures are written into ``directory`` first
+    (:func:`write_textures`, all or nothing), or packed when ``directory`` is None: a failed
+    write raises before anything in Blender changed.  Re-applying replaces an earlier bake.
+    Returns {object name: image name}.
     """
+    if files is None and directory is not None:
+        files = write_textures(images, directory)
     clear_bake([name for name in images])
     group = ensure_node_group()
     done = {}
@@ -320,7 +290,7 @@ def apply_sequence(object_names, uv_maps, directory, frames):
         ob = bpy.data.objects.get(obj_name)
         if ob is None or ob.type != "MESH":
             continue
-        names = [texture_filename(obj_name, f) for f in frames]
+        names = [texture_filename(obj_name, f, receivers=object_names) for f in frames]
         name = f"{NODE_PREFIX} {obj_name}"
         old = bpy.data.images.get(name)
         if old is not None and old.get(TAG_KEY):
@@ -328,8 +298,7 @@ def apply_sequence(object_names, uv_maps, directory, frames):
         img = bpy.data.images.load(os.path.join(abs_dir, names[0]), check_existing=False)
         img.name = name
         img.source = "SEQUENCE"
-        if directory.startswith("//"):
-            img.filepath = directory.rstrip("/") + "/" + names[0]
+        img.filepath = _relative_path(directory, os.path.join(abs_dir, names[0]))
         img.colorspace_settings.name = "Non-Color"
         img[TAG_KEY] = True
         img[FILES_KEY] = json.dumps([abs_dir, names])
@@ -436,9 +405,9 @@ def clear_bake(object_names=None, delete_files=False, keep_files=()):
                 if delete_files and img.get(FILES_KEY):
                     _delete_sequence_files(img[FILES_KEY], keep)
                 bpy.data.images.remove(img)
-    group = bpy.data.node_groups.get(GROUP_NAME)
-    if group is not None and group.get(TAG_KEY) and group.users == 0:
-        bpy.data.node_groups.remove(group)
+    for group in node_groups():
+        if group.users == 0:
+            bpy.data.node_groups.remove(group)
 
 
 def _delete_sequence_files(record, keep):
@@ -448,7 +417,7 @@ def _delete_sequence_files(record, keep):
         abs_dir, names = json.loads(record)
     except (TypeError, ValueError):
         return
-    written = _written_here(abs_dir)
+    written = output.written_here(abs_dir)
     gone = []
     for fname in names:
         path = os.path.join(abs_dir, fname)
@@ -459,7 +428,7 @@ def _delete_sequence_files(record, keep):
                 pass
             gone.append(fname)
     if gone and os.path.isdir(abs_dir):
-        _record_written(abs_dir, None, forget=gone)
+        output.record_written(abs_dir, forget=gone)
 
 
 def receivers_uv_maps(scene_model):

@@ -8,8 +8,14 @@ the Blender operator gives a sequence), each frame's report ``DIR/report.<frame>
 frames into one folder, e.g. render-farm chunks, add up to one sequence).  ``--dask ADDRESS``
 or ``--dask-local N`` bakes the frames on the workers of a Dask cluster
 (:func:`bake_frame_task`, one task per frame; dask is imported only then; the workers need the
-bpy module, this package importable and the .blend and ``DIR`` at the same paths).  Wrong input exits with code 2 and a
-one-line reason on stderr (no traceback).
+bpy module, this package importable and the .blend and ``DIR`` at the same paths).
+
+Files are written all or nothing (:mod:`addon.bake.output`: temporary files renamed into
+place), and listed in ``DIR/.caustic_bake_files.json``; a file in ``DIR`` the bake would
+replace that is not listed there (a user's) is refused before the bake, unless ``--force``.
+Receivers whose names make the same file name get unique ones (:mod:`addon.bake.names`).
+A long bake prints a progress line with the time left every 10 s.  Wrong input and write
+failures exit with code 2 and a one-line reason on stderr (no traceback).
 """
 
 import os
@@ -75,6 +81,11 @@ def add_arguments(parser):
                         "exact = path-points)")
     parser.add_argument("--sms-seeds", type=int, default=16, help="method sms: random Newton seeds per tuple (default 16)")
     parser.add_argument("--photons", type=int, default=1_000_000, help="method photon: photons traced (default 1,000,000)")
+    parser.add_argument("--memory-budget", type=float, default=None, metavar="GB",
+                        help="memory the bake's textures may take, in GB (default: half the memory available); a bake "
+                        "that needs more stops before it starts, with one line")
+    parser.add_argument("--force", action="store_true",
+                        help="overwrite files in --out that Caustic Bake did not write (default: refuse with the file's name)")
     parser.add_argument("--preview", default=None, metavar="PNG",
                         help="also render the baked scene with Cycles (scene camera, Cycles' own caustics off) to this PNG")
     parser.add_argument("--preview-samples", type=int, default=32, help="Cycles samples for --preview (default 32)")
@@ -97,9 +108,11 @@ def _frames(spec):
 
 def run(args):
     """Run the bake command; returns the exit code."""
+    from .output import OutputError
+
     try:
         return _run(args)
-    except UserError as ex:
+    except (UserError, OutputError) as ex:
         print(f"error: {ex}", file=sys.stderr)
         return 2
 
@@ -116,6 +129,8 @@ def _run(args):
         raise UserError("--light-samples must be >= 1, --margin and --threads >= 0")
     if not 1 <= args.sms_seeds <= 4096 or args.photons < 1:
         raise UserError("--sms-seeds must be in [1, 4096] and --photons at least 1")
+    if getattr(args, "memory_budget", None) is not None and not args.memory_budget > 0:
+        raise UserError("--memory-budget must be a positive number of GB")
     if not 0.0 <= args.plan_threshold < 1.0:
         raise UserError("--plan-threshold must be in [0, 1)")
     if not re.fullmatch(r"numba|opencl(:\d+)?", args.device or ""):
@@ -143,8 +158,12 @@ def _run(args):
     if args.dask_local is not None and not settings.threads:
         # the local workers share this machine's cores (the texture does not depend on the count)
         settings.threads = max(1, (os.cpu_count() or 1) // args.dask_local)
+    out = os.path.abspath(args.out)
+    force = bool(getattr(args, "force", False))
     if args.dask is not None or args.dask_local is not None:
-        results = _bake_frames_on_dask(path, frames, os.path.abspath(args.out), settings, resolution,
+        if not force:
+            refuse_foreign(out, sequence_names_in(out, frames))
+        results = _bake_frames_on_dask(path, frames, out, settings, resolution,
                                       address=args.dask, local_workers=args.dask_local)
         _print_frames(results)
         return 0
@@ -155,22 +174,19 @@ def _run(args):
     except RuntimeError as ex:
         raise UserError(f"could not open {args.blend}: {str(ex).strip().splitlines()[-1]}") from None
     if frames:
-        from .pipeline import write_sequence_report
-
+        if not force:
+            refuse_foreign(out, [SEQUENCE_REPORT])
         done = 0
         try:
             for frame in frames:
-                _print_frames([bake_frame(path, frame, args.out, settings, resolution)])
+                _print_frames([bake_frame(path, frame, out, settings, resolution, force=force)])
                 done += 1
         finally:
             if done:
-                write_sequence_report(args.out)  # the index of every frame in the folder
+                write_sequence_index(out)  # the index of every frame in the folder
         return 0
-    scene, result = _bake_open_scene(path, None, settings, resolution)
-    try:
-        result.write(args.out)
-    except OSError as ex:
-        raise UserError(f"cannot write to {args.out}: {ex.strerror or ex}") from None
+    scene, result = _bake_open_scene(path, None, settings, resolution, out_dir=None if force else out)
+    result.write(out)  # all or nothing: OutputError (one line) leaves the folder as it was
     print(f"{summary_line(result.report)} -> {args.out}")
     for w in result.report["warnings"]:
         print(f"warning: {w}")
@@ -180,9 +196,65 @@ def _run(args):
     return 0
 
 
-def _bake_open_scene(path, frame, settings, resolution):
+SEQUENCE_REPORT = "report.json"
+
+
+def refuse_foreign(out_dir, names):
+    """Raise :class:`UserError` naming the first of ``names`` in ``out_dir`` that exists and
+    that Caustic Bake did not write there (the folder's manifest); ``--force`` skips this."""
+    from .output import foreign_files
+
+    clash = foreign_files(out_dir, names) if os.path.isdir(out_dir) else []
+    if clash:
+        raise UserError(f"{clash[0]} exists and was not written by Caustic Bake; choose another --out or pass --force "
+                        "to overwrite it")
+
+
+def sequence_names_in(out_dir, frames):
+    """The files in ``out_dir`` a bake of ``frames`` may write, whatever its receivers: the
+    sequence index, the frames' reports and every ``*.<frame>.exr`` of those frames."""
+    from .names import frame_report_filename
+
+    tags = {f".{int(f):04d}.exr" for f in frames}
+    names = [SEQUENCE_REPORT] + [frame_report_filename(f) for f in frames]
+    if os.path.isdir(out_dir):
+        names += [n for n in os.listdir(out_dir) if any(n.endswith(t) for t in tags)]
+    return names
+
+
+def write_sequence_index(out_dir):
+    """Rebuild ``out_dir/report.json`` from the frame reports there and list it in the folder's manifest."""
+    from .output import record_written
+    from .pipeline import write_sequence_report
+
+    write_sequence_report(out_dir)
+    record_written(out_dir, add=[SEQUENCE_REPORT])
+
+
+PROGRESS_INTERVAL = 10.0  # seconds between the progress lines of a long bake
+
+
+class ProgressPrinter:
+    """The ``progress(fraction, message)`` callback of a CLI bake: a line
+    ``progress 37 %: <what runs now> (about 2 min 5 s left)`` on stdout at most every
+    :data:`PROGRESS_INTERVAL` seconds, the first after that long (short bakes print none)."""
+
+    def __init__(self, prefix=""):
+        self.prefix = prefix
+        self.last = time.perf_counter()
+
+    def __call__(self, fraction, message):
+        now = time.perf_counter()
+        if now - self.last >= PROGRESS_INTERVAL and fraction is not None:
+            print(f"{self.prefix}progress {100 * fraction:.0f} %: {message}", flush=True)
+            self.last = now
+
+
+def _bake_open_scene(path, frame, settings, resolution, out_dir=None, progress=True):
     """Extract the open scene (at ``frame``, or the current frame) and bake it; returns
-    (scene model, BakeResult) with ``report["input"]`` and the extraction time filled in."""
+    (scene model, BakeResult) with ``report["input"]`` and the extraction time filled in.
+    ``out_dir``: before the bake, refuse (:func:`refuse_foreign`) when a file the bake will
+    write there exists and Caustic Bake did not write it."""
     import bpy
 
     from .extract import extract_scene
@@ -193,7 +265,14 @@ def _bake_open_scene(path, frame, settings, resolution):
     try:
         scene = extract_scene(resolution=resolution, frame=frame)
         t_extract = time.perf_counter() - t0
-        result = bake(scene, settings)
+        if out_dir is not None:
+            from .names import frame_report_filename, texture_filename
+
+            names = [r.name for r in scene.receivers]
+            refuse_foreign(out_dir, [texture_filename(n, frame, receivers=names) for n in names] + [
+                SEQUENCE_REPORT if frame is None else frame_report_filename(frame)])
+        prefix = f"frame {frame}: " if frame is not None else ""
+        result = bake(scene, settings, progress=ProgressPrinter(prefix) if progress else None)
     except SceneError as ex:
         where = f" (frame {frame})" if frame is not None else ""
         raise UserError(f"{ex}{where}") from None
@@ -203,17 +282,23 @@ def _bake_open_scene(path, frame, settings, resolution):
     return scene, result
 
 
-def bake_frame(path, frame, out_dir, settings, resolution):
+def bake_frame(path, frame, out_dir, settings, resolution, force=False, record=True, progress=True):
     """Bake frame ``frame`` of the open .blend (``path``, for the report) and write that
-    frame's files of the sequence in ``out_dir`` (:meth:`BakeResult.write` with the frame).
-    Returns {"frame", "line" (the summary line), "warnings", "files"}."""
-    _, result = _bake_open_scene(path, frame, settings, resolution)
+    frame's files of the sequence in ``out_dir`` (:meth:`BakeResult.write` with the frame, all
+    or nothing), refusing to replace a file Caustic Bake did not write there unless ``force``;
+    ``record``: list the files in the folder's manifest (the Dask driver does it for its
+    workers; ``progress``: print progress lines).  Returns {"frame", "line" (the summary line),
+    "warnings", "files" (receiver: texture), "written" (every file name written)}."""
+    from .output import OutputError
+
+    _, result = _bake_open_scene(path, frame, settings, resolution, out_dir=None if force else out_dir,
+                                 progress=progress)
     try:
-        files = result.write(out_dir, frame=frame)
-    except OSError as ex:
-        raise UserError(f"cannot write to {out_dir}: {ex.strerror or ex}") from None
+        files = result.write(out_dir, frame=frame, record=record)
+    except OutputError as ex:
+        raise UserError(str(ex)) from None
     return {"frame": frame, "line": f"{summary_line(result.report)} -> {out_dir}",
-            "warnings": list(result.report["warnings"]), "files": files}
+            "warnings": list(result.report["warnings"]), "files": files, "written": result.output_names(frame)}
 
 
 def bake_frame_task(frame, blend, out_dir, settings, resolution):
@@ -233,7 +318,7 @@ def bake_frame_task(frame, blend, out_dir, settings, resolution):
     except RuntimeError as ex:
         return {"frame": frame, "error": f"could not open {blend}: {str(ex).strip().splitlines()[-1]}"}
     try:
-        return bake_frame(blend, frame, out_dir, settings, resolution)
+        return bake_frame(blend, frame, out_dir, settings, resolution, force=True, record=False, progress=False)
     except UserError as ex:
         return {"frame": frame, "error": str(ex)}
 
@@ -261,7 +346,7 @@ def _bake_frames_on_dask(blend, frames, out_dir, settings, resolution, address=N
     rebuilds ``report.json`` from the frame reports at the end.  A frame that fails stops the
     bake with its one-line reason (:class:`UserError`); frames already written stay."""
     distributed = _import_distributed()
-    from .pipeline import write_sequence_report
+    from .output import record_written
 
     cluster = None
     results = {}
@@ -283,6 +368,7 @@ def _bake_frames_on_dask(blend, frames, out_dir, settings, resolution, address=N
                     r = fut.result()
                     if "error" in r:
                         raise UserError(r["error"])
+                    record_written(out_dir, add=r["written"])
                     results[r["frame"]] = r
                     _print_frames([r])
             finally:
@@ -291,7 +377,7 @@ def _bake_frames_on_dask(blend, frames, out_dir, settings, resolution, address=N
         if cluster is not None:
             cluster.close()
         if results:
-            write_sequence_report(out_dir)
+            write_sequence_index(out_dir)
     return [results[f] for f in frames]
 
 
@@ -320,7 +406,8 @@ def settings_from_args(args):
                             bounces=args.bounces if args.bounces == "auto" else int(args.bounces),
                             plan_threshold=args.plan_threshold, seed=args.seed, light_samples=args.light_samples,
                             margin=args.margin, threads=args.threads, device=args.device, sms_seeds=args.sms_seeds,
-                            photons=args.photons, method=args.method, one_bounce=args.one_bounce, two_bounce=args.two_bounce))
+                            photons=args.photons, method=args.method, one_bounce=args.one_bounce, two_bounce=args.two_bounce,
+                            memory_budget=1e9 * (getattr(args, "memory_budget", None) or 0.0)))
     if args.estimator:  # explicit names win over the aliases
         settings.estimator = args.estimator
     if args.solver:

@@ -188,6 +188,33 @@ def _light_model(ob, matrix, warnings):
     return None
 
 
+def _world_normals(corner_normals, A, P, tl, name):
+    """World corner normals (n, 3, 3) of triangles ``P`` (world positions) whose local corner
+    normals are ``corner_normals[tl]``, under the linear part ``A`` of the object's transform:
+    the inverse transpose, or where ``A`` is singular (a flat plane scaled to zero thickness)
+    its cofactor matrix, which maps a face's normal to the world face's normal wherever the
+    world triangle has area.  Corners whose normal collapses take their world face normal.
+    An object none of whose triangles keeps any area is a SceneError."""
+    face = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    face_len = np.linalg.norm(face, axis=1)
+    try:
+        nmat = np.linalg.inv(A).T
+    except np.linalg.LinAlgError:
+        nmat = np.column_stack([np.cross(A[:, 1], A[:, 2]), np.cross(A[:, 2], A[:, 0]), np.cross(A[:, 0], A[:, 1])])
+        size = float(np.abs(P).max()) if P.size else 0.0
+        if not np.any(face_len > 1e-24 * max(size * size, 1e-300)):
+            raise SceneError(f"object {name!r} has a degenerate (zero-scale) transform") from None
+    ncorner = corner_normals @ nmat.T
+    ln = np.linalg.norm(ncorner, axis=1, keepdims=True)
+    ncorner = np.divide(ncorner, ln, out=np.zeros_like(ncorner), where=ln > 0)
+    N = ncorner[tl]
+    collapsed = np.linalg.norm(N, axis=2) < 0.5
+    if collapsed.any():
+        unit = np.divide(face, face_len[:, None], out=np.zeros_like(face), where=face_len[:, None] > 0)
+        N = np.where(collapsed[:, :, None], unit[:, None, :], N)
+    return N
+
+
 def extract_scene(depsgraph=None, resolution=256, frame=None):
     """The :class:`~addon.bake.scene.Scene` of the current (or given) depsgraph.
 
@@ -223,15 +250,8 @@ def extract_scene(depsgraph=None, resolution=256, frame=None):
         M = np.array(inst.matrix_world, dtype=np.float64)
         A = M[:3, :3]
         world = co @ A.T + M[:3, 3]
-        try:
-            nmat = np.linalg.inv(A).T
-        except np.linalg.LinAlgError:
-            raise SceneError(f"object {orig.name!r} has a degenerate (zero-scale) transform") from None
-        ncorner = cn @ nmat.T
-        ln = np.linalg.norm(ncorner, axis=1, keepdims=True)
-        ncorner = np.divide(ncorner, ln, out=np.zeros_like(ncorner), where=ln > 0)
         P = world[tv]
-        N = ncorner[tl]
+        N = _world_normals(cn, A, P, tl, orig.name)
         m = P.shape[0]
         oi = len(names)
         name = orig.name if not inst.is_instance else f"{orig.name} [instance {oi}]"

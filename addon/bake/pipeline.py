@@ -12,6 +12,9 @@
 
 :func:`bake_steps` is the resumable form (a generator yielding ``(fraction, message)`` between
 bounded chunks; the Blender operator drives it from a timer); :func:`bake` is a loop over it.
+The fraction (:class:`Progress`) follows each stage's own count of work (probes, forward
+images, texel rows, texel areas, padding), and the message ends with the time left once it
+can be estimated.
 Deterministic for a seed: every parallel kernel writes disjoint outputs and the sums run in
 a fixed order.  What a texel holds (units, front side, cosine) is in addon/bake/README.md.
 """
@@ -20,19 +23,21 @@ import dataclasses
 import json
 import os
 import re
-import tempfile
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..solver.geometry.bvh import build_bvh, segments_occluded
+from .checks import scene_warnings
 from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolution, world_per_uv_area
 from .estimators import make_estimator
-from .exr import write_exr
+from . import exr
 from .lights import emission_factor, sample_light
+from .memory import check_budget, out_of_memory
+from .output import write_files, write_text
 from .names import frame_report_filename, safe_filename, texture_filename
-from .plan import CHAINS, make_plan
+from .plan import CHAINS, candidate_chains, plan_steps
 from .raster import bands, grid_side, pad, rasterise
 from .scene import SceneError
 from .settings import BakeSettings, check_settings, resolve_aliases
@@ -49,26 +54,33 @@ class BakeResult:
     raw: dict  # receiver name -> (H, W, 3) float64 before padding
     report: dict = field(default_factory=dict)
 
-    def write(self, out_dir, frame=None):
-        """Write the textures and the report into ``out_dir``: per receiver the file
-        :func:`texture_filename` names (``<receiver>.exr``, or ``<receiver>.<frame>.exr`` with
-        ``frame``) and ``report.json``, or with ``frame`` that frame's report
-        (:func:`frame_report_filename`; :func:`write_sequence_report` then indexes the
-        frames).  Returns {receiver: file name}."""
-        os.makedirs(out_dir, exist_ok=True)
+    def write(self, out_dir, frame=None, record=True):
+        """Write the textures and the report into ``out_dir``, all or nothing
+        (:func:`addon.bake.output.write_files`: temporary files renamed over the final names once
+        every one is complete; :class:`~addon.bake.output.OutputError` otherwise, with the
+        files already there untouched): per receiver the file :func:`texture_filename` names
+        (``<receiver>.exr``, or ``<receiver>.<frame>.exr`` with ``frame``, unique among the
+        receivers) and ``report.json``, or with ``frame`` that frame's report
+        (:func:`frame_report_filename`; :func:`write_sequence_report` then indexes the frames).
+        ``record``: list the files in the folder's manifest.  Returns {receiver: file name}."""
         t0 = time.perf_counter()
-        files = {}
-        for name, img in self.images.items():
-            fname = texture_filename(name, frame)
-            write_exr(os.path.join(out_dir, fname), img)
-            files[name] = fname
-        self.report.setdefault("timings", {})["write"] = time.perf_counter() - t0
+        files = {name: texture_filename(name, frame, receivers=self.images) for name in self.images}
         self.report["files"] = files
-        if frame is None:
-            _write_json(os.path.join(out_dir, "report.json"), self.report)
-        else:
-            _write_json(os.path.join(out_dir, frame_report_filename(frame)), self.report)
+        writers = {files[name]: (lambda tmp, img=img: exr.write_exr(tmp, img)) for name, img in self.images.items()}
+
+        def write_report(tmp):
+            self.report.setdefault("timings", {})["write"] = time.perf_counter() - t0
+            with open(tmp, "w", encoding="utf-8") as fh:
+                json.dump(self.report, fh, indent=2, default=_json_default)
+
+        writers["report.json" if frame is None else frame_report_filename(frame)] = write_report
+        write_files(out_dir, writers, record=record)
         return files
+
+    def output_names(self, frame=None):
+        """The names :meth:`write` writes (textures, then the report)."""
+        return [texture_filename(n, frame, receivers=self.images) for n in self.images] + [
+            "report.json" if frame is None else frame_report_filename(frame)]
 
 
 SEQUENCE_REPORT = "report.json"
@@ -121,16 +133,7 @@ def write_sequence_report(out_dir):
 def _write_json(path, data):
     """Write ``data`` as JSON to ``path`` through a temporary file renamed over it (a reader
     never sees half a file)."""
-    fd, tmp = tempfile.mkstemp(prefix=".report-", suffix=".tmp", dir=os.path.dirname(path) or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=2, default=_json_default)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_text(path, json.dumps(data, indent=2, default=_json_default))
 
 
 def _json_default(o):
@@ -178,7 +181,28 @@ def bake_steps(scene, settings=None):
     except ValueError as ex:
         raise SceneError(str(ex)) from None
     scene.validate()
-    return _bake_gen(scene, settings)
+    resolutions = [(settings.resolution, settings.resolution) if settings.resolution else tuple(r.resolution)
+                   for r in scene.receivers]
+    check_budget(resolutions, settings, flux_textures=1 if settings.estimator in _FLUX_ESTIMATORS else 0)
+    return _memory_guarded(_bake_gen(scene, settings))
+
+
+def _memory_guarded(steps):
+    """``steps`` with a ``MemoryError`` turned into a one-line :class:`~addon.bake.memory.BakeMemoryError`
+    naming the step that ran out."""
+    stage = "setting up the bake"
+    try:
+        while True:
+            try:
+                item = next(steps)
+            except StopIteration as done:
+                return done.value
+            stage = re.sub(r" \(about .* left\)$", "", item[1] or stage)
+            yield item
+    except MemoryError:
+        raise out_of_memory(stage) from None
+    finally:
+        steps.close()
 
 
 def make_context(scene, settings):
@@ -194,18 +218,140 @@ def make_context(scene, settings):
     receivers = [with_resolution(r, settings.resolution) if settings.resolution else r for r in scene.receivers]
     lsamples = [sample_light(light, settings.light_samples, settings.seed) for light in scene.lights]
     ctx = BakeContext(scene, settings, bvh, VISIBILITY_OFFSET * extent, extent, receivers, lsamples,
-                      warnings=list(scene.warnings))
+                      warnings=list(scene.warnings) + scene_warnings(scene, receivers))
     ctx.timer.add("bvh", time.perf_counter() - t0)
     return ctx
 
 
+class Progress:
+    """The share of a bake done and the time left, from the time each stage takes: planning
+    (the probes), the estimators' preparation (forward images, photons), the texel rows
+    (supersamples, direct light, exact paths), the texel areas (the flux estimators) and the
+    padding.  A stage under way is extrapolated from its own count of work done (the time it
+    took for its ``inner`` share); a stage not started from a guess of its seconds
+    (:meth:`set_guesses`, from the work it holds), the texel stages' scaled by how the texel
+    work so far compared with its guesses (:meth:`speed`).  The fraction is elapsed / (elapsed + left): it never goes
+    back and reaches 1 only when the last stage ends."""
+
+    STAGES = ("plan", "prepare", "rows", "areas", "pad")
+    ONCE = ("plan", "prepare")
+
+    def __init__(self):
+        self.t0 = self.t_last = time.perf_counter()
+        self.guess = {"plan": 0.5, "prepare": 0.0, "rows": 1.0, "areas": 0.0, "pad": 0.05}
+        self.spent = dict.fromkeys(self.STAGES, 0.0)
+        self.inner = dict.fromkeys(self.STAGES, 0.0)
+        self.stage = "plan"
+        self.last = 0.0
+        self.left = None
+
+    def set_guesses(self, **seconds):
+        """Guessed seconds of stages not started yet."""
+        for s, t in seconds.items():
+            self.guess[s] = max(0.0, float(t))
+
+    def speed(self):
+        """Measured / guessed seconds over the texel work done so far (rows, areas, padding; 1
+        before there is any): how much faster or slower this machine does it than guessed."""
+        texel_stages = self.STAGES[len(self.ONCE):]
+        guessed = sum(self.guess[s] * self.inner[s] for s in texel_stages)
+        spent = sum(self.spent[s] for s in texel_stages if self.inner[s] > 0)
+        return min(10.0, max(0.1, spent / guessed)) if guessed > 0.05 and spent > 0.05 else 1.0
+
+    def fraction(self, stage, inner):
+        """The share done at ``inner`` (0..1, that stage's own count of work) through ``stage``
+        (never decreasing; stages may come again, e.g. per receiver)."""
+        now = time.perf_counter()
+        self.spent[self.stage] += now - self.t_last
+        self.t_last, self.stage = now, stage
+        self.inner[stage] = min(1.0, max(self.inner[stage], float(inner)))
+        for s in self.ONCE:  # planning and preparation happen once: done when a later stage runs
+            if self.STAGES.index(stage) > self.STAGES.index(s):
+                self.inner[s] = 1.0
+        speed = self.speed()
+        left = 0.0
+        for s in self.STAGES:
+            done, spent = self.inner[s], self.spent[s]
+            if done > 0.0 and spent > 0.0:
+                left += spent * (1.0 - done) / done
+            else:
+                left += max(0.0, self.guess[s] * speed - spent)
+        self.left = left
+        elapsed = now - self.t0
+        if stage == self.STAGES[-1] and self.inner[stage] >= 1.0:
+            f = 1.0
+        else:
+            f = min(0.999, elapsed / (elapsed + left)) if elapsed + left > 0 else 0.0
+        self.last = max(self.last, f)
+        return self.last
+
+    def eta(self):
+        """Seconds left (None until 3 s and 2 % of the work have passed)."""
+        if time.perf_counter() - self.t0 < 3.0 or self.last < 0.02 or self.left is None:
+            return None
+        return self.left
+
+    def tell(self, stage, inner, message):
+        """(fraction, message with the time left when known) for a step."""
+        f = self.fraction(stage, inner)
+        left = self.eta()
+        return f, (f"{message} (about {format_seconds(left)} left)" if left is not None and f < 1.0 else message)
+
+
+#: Guessed costs (seconds) for the stages not started yet, per unit of work.
+GUESS_FORWARD_IMAGE = 2.0  # one forward image (chain x light sample)
+GUESS_PHOTON = 1e-6
+GUESS_SAMPLE = 1e-6  # one texel supersample: raster and estimators' bookkeeping
+GUESS_DIRECT = 0.3e-6  # one supersample x light sample of direct light
+GUESS_EXACT = 10e-6  # one supersample x chain of exact paths
+GUESS_AREA_SAMPLE = 0.5e-6  # one supersample of the texel areas
+
+
+def format_seconds(t):
+    """``42 s``, ``3 min 5 s``, ``2 h 7 min``."""
+    t = int(round(t))
+    if t < 60:
+        return f"{t} s"
+    if t < 3600:
+        return f"{t // 60} min {t % 60} s"
+    return f"{t // 3600} h {(t % 3600) // 60} min"
+
+
+_FLUX_ESTIMATORS = ("forward-flux", "photon")  # their receiver_flux needs the texel areas
+
+
+def _prepare_steps(est, ctx):
+    """How many steps ``est.prepare()`` yields (forward-flux: one per light sample and chain), or None."""
+    if est.name == "forward-flux":
+        return sum(int(ctx.lsamples[it.light].size) for it in est.items)
+    return None
+
+
 def _bake_gen(scene, settings):
     t_start = time.perf_counter()
+    progress = Progress()
     ctx = make_context(scene, settings)
     timer = ctx.timer
-    yield 0.0, "planning"
+    texels = sum(r.resolution[0] * r.resolution[1] for r in ctx.receivers)
+    n_samples = texels * grid_side(settings.samples) ** 2
+    n_light = sum(ls.size for ls in ctx.lsamples)
+    if settings.caustics and settings.estimator == "forward-flux":  # until the plan says which chains
+        progress.set_guesses(prepare=GUESS_FORWARD_IMAGE * len(candidate_chains(settings)) * n_light,
+                             areas=texels * grid_side(max(settings.samples, AREA_SAMPLES)) ** 2 * GUESS_AREA_SAMPLE)
+    progress.set_guesses(rows=n_samples * (GUESS_SAMPLE + (GUESS_DIRECT * n_light if settings.direct else 0.0)),
+                         pad=texels * 0.05e-6)
+    yield progress.tell("plan", 0.0, "planning")
     t0 = time.perf_counter()
-    plan = make_plan(ctx)
+    steps = plan_steps(ctx)
+    while True:
+        try:
+            f, message = next(steps)
+        except StopIteration as done:
+            plan = done.value
+            break
+        timer.add("plan", time.perf_counter() - t0)
+        yield progress.tell("plan", f, message)
+        t0 = time.perf_counter()
     timer.add("plan", time.perf_counter() - t0)
     if settings.caustics and not plan.items:
         ctx.warnings.append("no casters: the scene has no reflecting or refracting surfaces (only the direct light is baked if asked)")
@@ -213,11 +359,28 @@ def _bake_gen(scene, settings):
     for it in plan.baked_items():
         by_name.setdefault(it.estimator, []).append(it)
     estimators = [make_estimator(name, ctx, items) for name, items in by_name.items()]
-    for est in estimators:
-        yield from est.prepare()
+    n_exact = sum(len(items) for name, items in by_name.items() if name in ("path-points", "path-seeded"))
+    progress.set_guesses(
+        prepare=sum(GUESS_FORWARD_IMAGE * (_prepare_steps(e, ctx) or 0) for e in estimators)
+        + (GUESS_PHOTON * settings.photons if "photon" in by_name else 0.0),
+        rows=n_samples * (GUESS_SAMPLE + GUESS_EXACT * n_exact
+                          + (GUESS_DIRECT * n_light if settings.direct else 0.0)),
+        areas=texels * grid_side(max(settings.samples, AREA_SAMPLES)) ** 2 * GUESS_AREA_SAMPLE
+        if set(by_name) & set(_FLUX_ESTIMATORS) else 0.0,
+        pad=texels * 0.05e-6)
+    n_est = max(1, len(estimators))
+    for e, est in enumerate(estimators):
+        expected, k = _prepare_steps(est, ctx), 0
+        for f, message in est.prepare():
+            if f is None:
+                f = k / expected if expected else 0.0
+            else:
+                f = f / 0.9 if est.name == "photon" else f
+            k += 1
+            yield progress.tell("prepare", (e + min(1.0, f)) / n_est, message)
     images, coverage, raw, rec_report = {}, {}, {}, {}
     total_rows = sum(r.resolution[1] for r in ctx.receivers)
-    rows_done = 0
+    rows_done = area_rows = 0
     for rec_index, rec in enumerate(ctx.receivers):
         W, H = rec.resolution
         sums = np.zeros((W * H, 3))
@@ -232,9 +395,10 @@ def _bake_gen(scene, settings):
                     for ls in ctx.lsamples:
                         direct_light(ctx, ls, band, sums)
                 for est in estimators:
-                    yield from est.accumulate(rec_index, band, sums)
+                    for _, message in est.accumulate(rec_index, band, sums):
+                        yield progress.tell("rows", (rows_done + 0.5 * (j1 - j0)) / max(1, total_rows), message)
             rows_done += j1 - j0
-            yield rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}"
+            yield progress.tell("rows", rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}")
         covered = cover > 0
         img = np.zeros((W * H, 3))
         img[covered] = sums[covered] / cover[covered, None]
@@ -245,15 +409,21 @@ def _bake_gen(scene, settings):
                 flux = f if flux is None else flux + f
         if flux is not None:
             t0 = time.perf_counter()
-            area = texel_areas(scene, rec, settings.samples, settings.band_samples)
+            area = np.zeros(W * H)
+            for j1 in _texel_area_steps(scene, rec, settings.samples, settings.band_samples, area):
+                timer.add("flux", time.perf_counter() - t0)
+                yield progress.tell("areas", (area_rows + j1) / max(1, total_rows), f"{rec.name}: texel areas, rows {j1}/{H}")
+                t0 = time.perf_counter()
             ok = covered & (area > 0)
             img[ok] += flux[ok] / area[ok, None]
             timer.add("flux", time.perf_counter() - t0)
+        area_rows += H
         t0 = time.perf_counter()
         img = img.reshape(H, W, 3)
         cov2 = covered.reshape(H, W)
         padded, _ = pad(img, cov2, settings.margin)
         timer.add("pad", time.perf_counter() - t0)
+        yield progress.tell("pad", (rec_index + 1) / len(ctx.receivers), f"{rec.name}: padded")
         images[rec.name] = padded.astype(np.float32)
         coverage[rec.name] = cov2
         raw[rec.name] = img
@@ -273,14 +443,22 @@ def texel_areas(scene, rec, samples=16, band_samples=1 << 20):
     of an s x s grid (s >= 4, centred) on receiver triangle t stands for
     area_world(t) / area_uv(t) / (W H s²) m²."""
     W, H = rec.resolution
+    area = np.zeros(W * H)
+    for _ in _texel_area_steps(scene, rec, samples, band_samples, area):
+        pass
+    return area
+
+
+def _texel_area_steps(scene, rec, samples, band_samples, area):
+    """:func:`texel_areas` into ``area`` band by band, yielding the rows done after each band."""
+    W, H = rec.resolution
     S = grid_side(max(int(samples), AREA_SAMPLES)) ** 2
     ratio = world_per_uv_area(scene, rec)
-    area = np.zeros(W * H)
     for j0, j1 in bands(rec, S, band_samples):
         band = rasterise(scene, rec, S, 0, False, rows=(j0, j1))
         if band.size:
             area += np.bincount(band.texel, weights=ratio[band.tri], minlength=W * H) / (W * H * S)
-    return area
+        yield j1
 
 
 AREA_SAMPLES = 16  # at least this many supersamples per texel to measure a texel's world area

@@ -4,7 +4,8 @@
 
 1. **Roles and topology.**  R needs reflecting casters (metal, glass), T refracting ones
    (water, glass); a single refraction into a *closed* solid ends inside it, so T leaves out
-   closed objects (a glass sphere's caustic is TT).  Two-bounce chains (RR, RT, TR, TT) take
+   closed objects (a glass sphere's caustic is TT) — except for a light inside the solid
+   (:func:`addon.bake.checks.lights_inside`), whose T chain starts inside it.  Two-bounce chains (RR, RT, TR, TT) take
    every caster of the roles their vertices need.  ``settings.chains`` restricts; a chain the
    estimator's solver cannot solve is kept with a "skipped: ..." status.
 2. **Reach and energy** (``bounces="auto"``, the default): the flux probe
@@ -30,6 +31,7 @@ import numpy as np
 
 from .context import EnergyLedger
 from .estimators.path_points import chain_status
+from .checks import lights_inside
 from .lights import sample_light
 from .probe import probe_chain
 from .scene import ROLE_BOTH, ROLE_REFLECT, ROLE_REFRACT
@@ -158,6 +160,17 @@ def structural_chains(scene, max_bounces=2):
 
 def make_plan(ctx):
     """The :class:`Plan` of a bake (see the module doc)."""
+    steps = plan_steps(ctx)
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
+
+
+def plan_steps(ctx):
+    """:func:`make_plan` in steps: a generator yielding ``(fraction, message)`` before each
+    probe of a chain and returning the :class:`Plan`."""
     scene, settings = ctx.scene, ctx.settings
     t0 = time.perf_counter()
     notes, items = [], []
@@ -165,25 +178,41 @@ def make_plan(ctx):
         return Plan("none", settings.plan_threshold, items, notes)
     refracting = np.isin(scene.tri_role, CHAIN_ROLES["T"])
     closed = scene.closed_objects(np.unique(scene.tri_object[refracting]))
+    inside = lights_inside(scene, sorted(closed))
+    chains = candidate_chains(settings)
+    for li, objs in sorted(inside.items()):
+        light, names = scene.lights[li].name, ", ".join(repr(scene.objects[o]) for o in objs)
+        notes.append(f"T: light {light!r} is inside the closed {names}: its T chain starts inside")
+        reflects = np.any(np.isin(scene.tri_role[np.isin(scene.tri_object, objs)], CHAIN_ROLES["R"]))
+        if "T" not in chains:
+            ctx.warnings.append(f"light {light!r} is inside the closed refracting object {names}: its light leaves "
+                                "through a refraction (chain T), which these settings leave out")
+        elif reflects and "RT" not in chains:
+            ctx.warnings.append(f"light {light!r} is inside the closed refracting object {names}: light reflected "
+                                "inside before it leaves (chain RT) needs 2 bounces; set Max Bounces (--bounces) to 2 "
+                                "or Auto")
     all_receivers = tuple(range(len(ctx.receivers)))
-    for chain in candidate_chains(settings):
+    for chain in chains:
         verts = chain_casters(scene, chain, closed)
         solids = sorted(scene.objects[o] for o in closed if np.any(refracting & (scene.tri_object == o)))
         if chain == "T" and solids:
             notes.append(f"T: {CLOSED_T} ({', '.join(solids)}); its caustic is TT")
-        if any(v.size == 0 for v in verts):
-            continue
         estimator = settings.estimator_for(chain)
         status = (chain_status(settings, chain) if estimator == "path-points" else None) or "baked"
         for li in range(len(scene.lights)):
-            items.append(PlannedChain(chain, li, verts, all_receivers, estimator, status))
+            # A light inside a closed solid: its T chain starts inside, through that solid.
+            lv = chain_casters(scene, chain, closed - set(inside[li])) if chain == "T" and li in inside else verts
+            if any(v.size == 0 for v in lv):
+                continue
+            items.append(PlannedChain(chain, li, lv, all_receivers, estimator, status))
     if settings.bounces != "auto":
         return Plan(f"forced {settings.bounces}", settings.plan_threshold, items, notes)
     probe = EnergyLedger()
     points = 0
     tri_rec, tri_uv = ctx.receiver_of_triangle()
     centres = [sample_light(light, 1, settings.seed) for light in scene.lights]
-    for it in items:
+    for k, it in enumerate(items):
+        yield k / max(1, len(items)), f"planning: probe {it.chain} ({k + 1}/{len(items)})"
         if it.status == "baked":
             second = it.vertices[1] if len(it.vertices) > 1 else np.zeros(0, dtype=np.int64)
             points += probe_chain(ctx, it.light, centres[it.light], it.chain, it.vertices[0], second, tri_rec, tri_uv, probe)

@@ -75,6 +75,7 @@ class BakeSettings:
     photons: int = 1_000_000  # estimator "photon": photons traced (over all lights and light samples)
     pieces: int = 0  # solver "spoly", two bounces: pieces of the resultant's sign scan (0: the solver's default)
     image_depth: int = 6  # forward-flux / path-seeded: subdivision levels of the caster triangles (4 x 4 first)
+    memory_budget: float = 0.0  # bytes the bake's texel arrays may take (0: MEMORY_FRACTION of the free memory)
     method: object = None  # alias: "spoly"/"newton"/"sms"/"curve" set solver (and path-points), "photon" the estimator
     one_bounce: object = None  # alias: estimator of R and T ("flux" / "points"); None: ``estimator``
     two_bounce: object = None  # alias: estimator of RR, RT, TR, TT ("flux" / "seeded" / "exact"); None: ``estimator``
@@ -141,5 +142,7 @@ def check_settings(settings):
         raise ValueError(f"one_bounce must be 'points' or 'flux', got {settings.one_bounce!r}")
     if not 0 <= int(settings.image_depth) <= 10:
         raise ValueError(f"image_depth must be in [0, 10], got {settings.image_depth}")
+    if not float(settings.memory_budget) >= 0.0:
+        raise ValueError(f"memory_budget must be 0 (a share of the free memory) or a number of bytes, got {settings.memory_budget}")
     if settings.pieces and not 1 <= int(settings.pieces) <= 1024:
         raise ValueError(f"pieces must be 0 (the solver's default) or in [1, 1024], got {settings.pieces}")

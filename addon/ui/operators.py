@@ -1,16 +1,23 @@
 """Operators.  Thin: they call into addon.solver / addon.bake and report; no maths here.
 
-- ``caustics.prepare_solver``: compile (or load) the solver kernels ahead of the first bake.
-- ``caustics.bake``: from the UI (invoke) a modal operator that runs the bake in short chunks
-  from a window-manager timer (``addon.bake.pipeline.bake_steps``; no Python threads), with a
-  progress bar and status text; Esc / right-click cancels and leaves the scene exactly as it
-  was (nothing is applied before the bake is complete).  With the frame range (the panel's
+- ``caustics.prepare_solver``: compile (or load) the solver kernels the next bake of the open
+  scene uses (its planned chains and light types: ``addon.bake.warm_up.prepare_for``; without a
+  bakeable scene every chain the settings allow) and say how long it took.
+- ``caustics.bake``: from the UI (invoke) a modal operator that runs the bake in chunks
+  (``addon.bake.pipeline.bake_steps``) on one worker thread (:class:`ChunkWorker`; the pipeline
+  never touches bpy) and polls it from a window-manager timer, waiting at most 0.1 s per tick,
+  with a progress bar and status text; Esc / right-click answers at the next tick, however long
+  the chunk running, and leaves the scene exactly as it was (nothing is applied before the bake
+  is complete; the chunk still running finishes on its thread and is discarded).  With the frame range (the panel's
   *Animation*) it bakes frame after frame (progress "frame k/N"), writes each finished frame's
   EXRs, and shows them as image sequences; Esc then keeps the finished frames and shows those.
   From scripts and in background mode (``blender -b``) execute() bakes synchronously; in
   background mode it then saves the .blend (``save_blend``, default: yes there if the file has a
   path).  Undo restores the Blender data as it was before the bake (images, node group,
-  materials); files written or deleted on disk stay so.
+  materials); files written or deleted on disk stay so.  The textures go to the .blend's own
+  folder in the output folder (``//caustics/<blend name>/<receiver>.exr``), are written all or
+  nothing before the previous bake is touched, and a failed write (read-only folder, full
+  disk) is one line with the previous bake's files, images and nodes unchanged.
 - ``caustics.clear``: removes what the bake added (images, node group, material copies, nodes)
   and the files of baked image sequences (only files Caustic Bake wrote).
 
@@ -18,9 +25,12 @@ Errors are reported in the UI as one line (self.report), never as a traceback; u
 exceptions are reported briefly and their traceback goes to the console.
 """
 
+import queue
+import threading
 import time
 import traceback
 import warnings
+from concurrent.futures import Future, TimeoutError as FutureTimeout
 
 import bpy
 
@@ -63,7 +73,9 @@ def _report_failure(op, ex, what):
     """One line in the UI; a traceback in the console only for bugs."""
     from ..bake.scene import SceneError
 
-    if isinstance(ex, (UserError, SceneError)):
+    from ..bake.output import OutputError
+
+    if isinstance(ex, (UserError, SceneError, OutputError, FileExistsError)):
         op.report({"ERROR"}, "Caustic Bake: {}".format(ex))
     elif isinstance(ex, OSError):  # cannot write the textures (permissions, disk full, ...)
         op.report({"ERROR"}, "Caustic Bake: cannot write the textures: {}".format(ex))
@@ -82,11 +94,23 @@ class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
     def execute(self, context):
         try:
             load_solver()
-            from ..bake.warm_up import warm_up
+            from ..bake.extract import readiness
+            from ..bake.warm_up import prepare_for, warm_up
             from .properties import bake_settings
 
-            settings = bake_settings(context.scene.caustic_bake)
-            seconds = warm_up(settings)
+            props = context.scene.caustic_bake
+            settings = bake_settings(props)
+            chains = None
+            if all(readiness(context.scene)):  # a scene to bake: exactly what its bake will use
+                from ..bake.extract import extract_scene
+                from ..bake.scene import SceneError
+
+                try:
+                    seconds, chains = prepare_for(extract_scene(resolution=int(props.resolution)), settings)
+                except SceneError:
+                    chains = None
+            if chains is None:  # nothing to bake yet: every chain the settings allow
+                seconds = warm_up(settings)
         except UserError as ex:
             self.report({"ERROR"}, str(ex))
             return {"CANCELLED"}
@@ -99,17 +123,74 @@ class CAUSTICS_OT_prepare_solver(bpy.types.Operator):
             self.report({"ERROR"}, "Caustic Bake: preparing the solver failed: {}".format(ex))
             return {"CANCELLED"}
 
-        self.report({"INFO"}, "Caustic solver ready for {} ({:.1f} s)".format(settings.estimator, seconds))
+        what = " ({})".format(", ".join(chains) or "direct light only") if chains is not None else ""
+        self.report({"INFO"}, "Caustic solver ready for {}{} in {:.1f} s".format(settings.estimator, what, seconds))
         return {"FINISHED"}
 
 
+class ChunkWorker:
+    """One daemon thread that runs the chunks of one modal bake, one at a time (the pipeline
+    never touches bpy; extraction and applying stay on Blender's main thread).  The modal
+    operator waits for a chunk at most its time budget, so Esc is answered within a timer tick
+    even while one chunk (a forward image) takes seconds; a cancelled bake's chunk still running
+    finishes on this thread and its generator is then closed there (:data:`ABANDONED` holds
+    such chunks; a new bake waits for them)."""
+
+    def __init__(self):
+        self.jobs = queue.Queue()
+        threading.Thread(target=self._loop, name="caustic-bake", daemon=True).start()
+
+    def _loop(self):
+        while True:
+            item = self.jobs.get()
+            if item is None:
+                return
+            fn, fut = item
+            if fut.set_running_or_notify_cancel():
+                try:
+                    fut.set_result(fn())
+                except BaseException as ex:  # handed to the main thread by Future.result()
+                    fut.set_exception(ex)
+
+    def submit(self, fn):
+        fut = Future()
+        self.jobs.put((fn, fut))
+        return fut
+
+    def stop(self):
+        self.jobs.put(None)
+
+
+ABANDONED = set()  # futures of cancelled bakes' chunks still running
+
+
+def abandoned_running():
+    """Whether a cancelled bake's last chunk is still running on its worker thread."""
+    return any(not f.done() for f in list(ABANDONED))
+
+
+def _advance(steps):
+    """The next step of a pipeline generator: (("step", (fraction, message)) or ("done",
+    result), [warning texts raised meanwhile])."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        try:
+            value = ("step", next(steps))
+        except StopIteration as done:
+            value = ("done", done.value)
+    return value, [str(w.message) for w in caught]
+
+
 def output_directory(props):
-    """Where the textures go: the output folder, or None (pack) when it is relative to an
-    unsaved .blend."""
+    """Where the textures go: the .blend's own folder in the output folder
+    (:func:`addon.bake.names.blend_folder`: ``//caustics/<blend name>/`` by default), or None
+    (pack) when the output folder is relative to an unsaved .blend."""
+    from ..bake.names import blend_folder
+
     directory = props.output_dir or "//caustics/"
     if directory.startswith("//") and not bpy.data.filepath:
         return None
-    return directory
+    return blend_folder(directory, bpy.data.filepath)
 
 
 class BakeJob:
@@ -144,6 +225,8 @@ class BakeJob:
         self.uv_maps = {}
         self.original_frame = None
         self.t0 = time.perf_counter()
+        self._worker = None  # modal: the ChunkWorker running the chunks
+        self._pending = None  # modal: the Future of the chunk running on it
 
     def start(self, context):
         load_solver()
@@ -227,38 +310,69 @@ class BakeJob:
         STATE.update(done / n, "frame {}/{}: {}".format(self.frame_index + 1, n, message))
 
     def step(self, budget=0.1):
-        """Run chunks for about ``budget`` seconds (at least one); True when the bake is done."""
+        """Run chunks for about ``budget`` seconds; True when the bake is done.  A modal job
+        runs them on its :class:`ChunkWorker` and returns after ``budget`` even when a chunk is
+        still running (it is picked up by the next call); otherwise at least one chunk runs
+        here."""
         t_end = time.perf_counter() + budget
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", RuntimeWarning)
-            try:
-                while True:
-                    try:
-                        fraction, message = next(self.steps)
-                    except StopIteration as done:
-                        if self._bake_done(done.value):
-                            STATE.update(1.0, "applying")
-                            return True
-                        continue
-                    self._progress(fraction, message)
-                    if time.perf_counter() >= t_end:
-                        return False
-            finally:
-                for w in caught:
-                    text = str(w.message)
-                    if text not in self.warnings:
-                        self.warnings.append(text)
+        while True:
+            if self.modal:
+                if self._pending is None:
+                    if self._worker is None:
+                        self._worker = ChunkWorker()
+                    steps = self.steps
+                    self._pending = self._worker.submit(lambda: _advance(steps))
+                try:
+                    (kind, value), caught = self._pending.result(timeout=max(0.0, t_end - time.perf_counter()))
+                except FutureTimeout:
+                    if self.frames is not None and not STATE.message.startswith("frame "):
+                        STATE.update(None, "frame {}/{}: starting".format(self.frame_index + 1, len(self.frames)))
+                    return False
+                finally:
+                    if self._pending is not None and self._pending.done():
+                        self._pending = None
+            else:
+                (kind, value), caught = _advance(self.steps)
+            for text in caught:
+                if text not in self.warnings:
+                    self.warnings.append(text)
+            if kind == "done":
+                if self._bake_done(value):
+                    STATE.update(1.0, "applying")
+                    self._stop_worker()
+                    return True
+                continue
+            self._progress(*value)
+            if time.perf_counter() >= t_end:
+                return False
 
     def run(self):
         while not self.step(budget=1e9):
             pass
 
+    def _stop_worker(self):
+        if self._worker is not None:
+            self._worker.stop()
+            self._worker = None
+
     def cancel(self):
         """Abandon the bake in progress (the frames already finished stay: ``done_frames``)
-        and set the scene's frame back."""
-        if self.steps is not None:
-            self.steps.close()
-            self.steps = None
+        and set the scene's frame back.  A chunk still running on the worker thread finishes
+        there, and its generator is closed then (:data:`ABANDONED` until it has)."""
+        steps, pending = self.steps, self._pending
+        self.steps = self._pending = None
+        if pending is not None and not pending.done():
+            ABANDONED.add(pending)
+
+            def close(fut, steps=steps):
+                if steps is not None:
+                    steps.close()
+                ABANDONED.discard(fut)
+
+            pending.add_done_callback(close)
+        elif steps is not None:
+            steps.close()
+        self._stop_worker()
         self._restore_frame()
 
     def _restore_frame(self):
@@ -269,13 +383,17 @@ class BakeJob:
     def finish(self, context):
         """Apply the result (a frame range: its finished frames) to the scene; returns the
         one-line summary."""
-        from ..bake.apply import apply_bake, apply_sequence, clear_bake, receivers_uv_maps
+        from ..bake.apply import apply_bake, apply_sequence, clear_bake, receivers_uv_maps, write_textures
 
         result = self.result
         props = context.scene.caustic_bake
         if self.frames is None:
-            clear_bake(delete_files=True)  # a new bake replaces every earlier one
-            done = apply_bake(result.images, receivers_uv_maps(self.model), directory=self.directory, pack=self.pack)
+            # Every texture is written (all or nothing) before the earlier bake is touched: a
+            # failed write leaves the earlier bake's files, images and nodes as they were.
+            files = write_textures(result.images, self.directory) if self.directory is not None else None
+            clear_bake(delete_files=True, keep_files=(files or {}).values())  # a new bake replaces every earlier one
+            done = apply_bake(result.images, receivers_uv_maps(self.model), directory=self.directory, pack=self.pack,
+                              files=files)
             self.warnings = list(result.report.get("warnings", [])) + self.warnings
             what = ""
         else:
@@ -310,6 +428,9 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
     def poll(cls, context):
         if STATE.running:
             cls.poll_message_set("A caustic bake is running (Esc cancels it)")
+            return False
+        if abandoned_running():
+            cls.poll_message_set("The cancelled caustic bake is finishing its current step")
             return False
         if numba_missing():
             cls.poll_message_set(SHORT_MISSING_NUMBA)
@@ -457,11 +578,9 @@ def baked_images():
 
 
 def has_bake():
-    from ..bake.apply import GROUP_NAME, STATE_KEY, TAG_KEY
+    from ..bake.apply import STATE_KEY, node_groups
 
-    group = bpy.data.node_groups.get(GROUP_NAME)
-    return bool(baked_images()) or (group is not None and bool(group.get(TAG_KEY))) or any(
-        m.get(STATE_KEY) is not None for m in bpy.data.materials)
+    return bool(baked_images()) or bool(node_groups()) or any(m.get(STATE_KEY) is not None for m in bpy.data.materials)
 
 
 class CAUSTICS_OT_clear(bpy.types.Operator):

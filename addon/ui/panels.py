@@ -83,6 +83,7 @@ class RENDER_PT_caustic_bake(bpy.types.Panel):
             col.prop(props, "photons")
         col.prop(props, "seed")
         col.prop(props, "margin")
+        col.prop(props, "memory_budget")
         col.separator()
         col.prop(props, "output_dir")
         col.prop(props, "pack")

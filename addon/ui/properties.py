@@ -83,6 +83,9 @@ class CausticBakeSceneSettings(bpy.types.PropertyGroup):
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="numba")
     seed: IntProperty(name="Seed", description="Seed of the supersample jitter and light samples", default=0, min=0)
     margin: IntProperty(name="Margin", description="Texels of padding over UV seams", default=16, min=0, max=256)
+    memory_budget: FloatProperty(name="Memory Budget", description="Memory (GB) the bake's textures may take; a "
+                                 "bake that needs more stops before it starts. 0: half the memory available",
+                                 default=0.0, min=0.0, soft_max=256.0, precision=1, unit="NONE")
     output_dir: StringProperty(name="Output Folder", description="Where the EXR textures are written "
                                "(// = next to the .blend); an unsaved file packs them", default="//caustics/",
                                subtype="DIR_PATH")
@@ -145,4 +148,5 @@ def bake_settings(props):
         device=str(props.device),
         sms_seeds=int(props.sms_seeds),
         photons=int(props.photons),
+        memory_budget=1e9 * float(getattr(props, "memory_budget", 0.0)),
     )

@@ -15,6 +15,7 @@ pytestmark = pytest.mark.bpy
 from addon.__main__ import main  # noqa: E402
 from addon.bake import cli  # noqa: E402
 from addon.bake.exr import read_exr  # noqa: E402
+from addon.bake.output import FILES_MANIFEST, MANIFEST_LOCK  # noqa: E402
 from addon.bake.extract import extract_scene, open_blend  # noqa: E402
 from addon.bake.pipeline import BakeSettings, bake, texture_filename  # noqa: E402
 
@@ -50,8 +51,9 @@ def test_frames_write_the_sequence_each_frame_equal_to_its_single_frame_bake(ani
     lines = capsys.readouterr().out
     assert all(f"frame {f}: baked 1 receiver(s)" in lines for f in (1, 2, 3)), lines
     names = sorted(os.listdir(out))
-    assert names == ["Floor.0001.exr", "Floor.0002.exr", "Floor.0003.exr", "report.0001.json", "report.0002.json",
-                     "report.0003.json", "report.json"]
+    assert names == [FILES_MANIFEST, MANIFEST_LOCK, "Floor.0001.exr", "Floor.0002.exr", "Floor.0003.exr",
+                     "report.0001.json", "report.0002.json", "report.0003.json", "report.json"]
+    assert sorted(json.loads((out / FILES_MANIFEST).read_text())) == names[2:]  # every file it wrote, listed
     seq = [read_exr(out / f"Floor.{f:04d}.exr") for f in (1, 2, 3)]
     open_blend(animated_blend)
     for f, img in zip((1, 2, 3), seq):
@@ -137,6 +139,7 @@ def test_dask_local_cluster_equals_the_serial_bake_bit_for_bit(animated_blend, t
     exrs = sorted(f for f in os.listdir(serial) if f.endswith(".exr"))
     assert exrs == ["Floor.0001.exr", "Floor.0002.exr", "Floor.0003.exr"]
     assert sorted(os.listdir(spread)) == sorted(os.listdir(serial))
+    assert json.loads((spread / FILES_MANIFEST).read_text()) == json.loads((serial / FILES_MANIFEST).read_text())
     for name in exrs:
         a, b = read_exr(serial / name), read_exr(spread / name)
         assert a.max() > 0

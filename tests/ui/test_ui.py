@@ -4,6 +4,7 @@ clear, poll messages, one-line errors and the panels' draw code in every state."
 
 import os
 import shutil
+import time
 import types
 
 import numpy as np
@@ -34,6 +35,9 @@ def fresh_state():
     state.STATE.reset()
     state.forget_numba_check()
     yield
+    deadline = time.monotonic() + 120
+    while operators.abandoned_running() and time.monotonic() < deadline:  # a cancelled bake's last chunk
+        time.sleep(0.01)
     state.STATE.reset()
     state.forget_numba_check()
 
@@ -130,7 +134,7 @@ def test_background_bake_applies_writes_and_saves(tmp_path):
     img = _assert_baked()
     w, h = img.size
     assert (w, h) == (32, 32)
-    exr = tmp_path / "caustics" / "CausticBake_Floor.exr"
+    exr = tmp_path / "caustics" / "mirror_plane" / "Floor.exr"
     assert exr.is_file() and os.path.realpath(bpy.path.abspath(img.filepath)) == os.path.realpath(exr)
     # Background mode saved the .blend: the bake is in the file.
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -153,10 +157,10 @@ def test_unsaved_file_packs_and_user_files_are_never_overwritten(tmp_path):
     assert bpy.data.images["CausticBake Floor"].packed_file is not None
     # A file the add-on did not write is not overwritten: a one-line error, nothing applied.
     _open_copy(tmp_path)
-    folder = tmp_path / "caustics"
-    folder.mkdir(exist_ok=True)
+    folder = tmp_path / "caustics" / "mirror_plane"
+    folder.mkdir(parents=True, exist_ok=True)
     (folder / FILES_MANIFEST).unlink(missing_ok=True)
-    user_file = folder / "CausticBake_Floor.exr"
+    user_file = folder / "Floor.exr"
     user_file.write_bytes(b"the user's own file")
     before = snapshot()
     with pytest.raises(RuntimeError) as err:

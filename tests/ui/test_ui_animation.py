@@ -5,6 +5,7 @@ frames keeps the finished frames; Clear removes files, images and nodes; Undo re
 
 import json
 import os
+import time
 import types
 
 import numpy as np
@@ -15,6 +16,7 @@ pytestmark = pytest.mark.bpy
 
 import addon  # noqa: E402
 from addon.bake.apply import FILES_MANIFEST, GROUP_NAME  # noqa: E402
+from addon.bake.output import MANIFEST_LOCK  # noqa: E402
 from addon.bake.exr import read_exr  # noqa: E402
 from addon.ui import operators, panels, state  # noqa: E402
 
@@ -36,11 +38,14 @@ def fresh_state():
     state.STATE.reset()
     state.forget_numba_check()
     yield
+    deadline = time.monotonic() + 120
+    while operators.abandoned_running() and time.monotonic() < deadline:  # a cancelled bake's last chunk
+        time.sleep(0.01)
     state.STATE.reset()
 
 
 def _open_animated(tmp_path, frame=2):
-    """The animated mirror scene saved in ``tmp_path`` (the sequence goes to //caustics/), set
+    """The animated mirror scene saved in ``tmp_path`` (the sequence goes to //caustics/anim/), set
     to bake the scene's frame range (1 to 3) at 32², standing at ``frame``."""
     build_animated_mirror(resolution=32)
     path = str(tmp_path / "anim.blend")
@@ -96,7 +101,7 @@ def test_scene_range_writes_a_sequence_hooked_as_an_image_sequence(tmp_path):
     bpy.ops.ed.undo_push(message="before the bake")
     before = snapshot()
     assert bpy.ops.caustics.bake("EXEC_DEFAULT", True, save_blend=False) == {"FINISHED"}
-    folder = tmp_path / "caustics"
+    folder = tmp_path / "caustics" / "anim"
     assert sorted(f for f in os.listdir(folder) if f.endswith(".exr")) == SEQ
     assert set(SEQ) <= set(json.loads((folder / FILES_MANIFEST).read_text()))
     assert bpy.context.scene.frame_current == 2  # set back after baking frames 1 to 3
@@ -110,7 +115,7 @@ def test_scene_range_writes_a_sequence_hooked_as_an_image_sequence(tmp_path):
     assert len(set(peaks)) == 3, peaks
     # The material shows an image sequence, frame f from the file of frame f.
     img = bpy.data.images["CausticBake Floor"]
-    assert img.source == "SEQUENCE" and img.filepath == "//caustics/Floor.0001.exr"
+    assert img.source == "SEQUENCE" and img.filepath == "//caustics/anim/Floor.0001.exr"
     assert img.colorspace_settings.name == "Non-Color"
     tex = _tex_node()
     assert tex.image == img
@@ -130,11 +135,11 @@ def test_a_later_range_is_mapped_to_its_own_files(tmp_path):
     _open_animated(tmp_path)
     bpy.context.scene.frame_start = 2
     assert bpy.ops.caustics.bake(save_blend=False) == {"FINISHED"}
-    folder = tmp_path / "caustics"
+    folder = tmp_path / "caustics" / "anim"
     assert sorted(f for f in os.listdir(folder) if f.endswith(".exr")) == SEQ[1:]
     iu = _tex_node().image_user
     assert (iu.frame_start, iu.frame_offset, iu.frame_duration) == (2, 1, 2)
-    assert bpy.data.images["CausticBake Floor"].filepath == "//caustics/Floor.0002.exr"
+    assert bpy.data.images["CausticBake Floor"].filepath == "//caustics/anim/Floor.0002.exr"
     # After the range: the last baked frame.
     assert [_frame_shown(f) for f in (2, 3, 7)] == [2, 3, 3]
 
@@ -169,7 +174,7 @@ def test_renders_show_each_frames_caustic(tmp_path, engine):
         sc.render.filepath = str(tmp_path / f"render{frame}.exr")
         bpy.ops.render.render(write_still=True)
         renders[frame] = read_exr(tmp_path / f"render{frame}.exr")
-    E1, E3 = read_exr(tmp_path / "caustics" / SEQ[0]), read_exr(tmp_path / "caustics" / SEQ[2])
+    E1, E3 = read_exr(tmp_path / "caustics" / "anim" / SEQ[0]), read_exr(tmp_path / "caustics" / "anim" / SEQ[2])
     albedo = 0.8
     expected = albedo * (E3 - E1) / np.pi
     got = renders[3] - renders[1]
@@ -226,7 +231,7 @@ def test_esc_between_frames_keeps_the_finished_frames(tmp_path):
     assert not state.STATE.running and op._job.steps is None
     assert any(kind == {"WARNING"} and "cancelled at frame 2/3" in m and "kept the 1 finished frame(s) 1-1" in m
                for kind, m in op.reports), op.reports
-    folder = tmp_path / "caustics"
+    folder = tmp_path / "caustics" / "anim"
     assert sorted(f for f in os.listdir(folder) if f.endswith(".exr")) == SEQ[:1]
     np.testing.assert_array_equal(read_exr(folder / SEQ[0]), _single_frame_bake(1))
     iu = _tex_node().image_user
@@ -248,8 +253,8 @@ def test_esc_in_the_first_frame_changes_nothing(tmp_path):
 def test_clear_removes_the_sequence_files_images_and_nodes(tmp_path):
     _open_animated(tmp_path)
     before = snapshot()
-    folder = tmp_path / "caustics"
-    folder.mkdir()
+    folder = tmp_path / "caustics" / "anim"
+    folder.mkdir(parents=True)
     user_file = folder / "Floor.0007.exr"  # the user's own file in the same folder
     user_file.write_bytes(b"mine")
     assert bpy.ops.caustics.bake(save_blend=False) == {"FINISHED"}
@@ -257,15 +262,15 @@ def test_clear_removes_the_sequence_files_images_and_nodes(tmp_path):
     assert bpy.ops.caustics.clear() == {"FINISHED"}
     assert snapshot() == before
     assert not operators.has_bake()
-    assert sorted(os.listdir(folder)) == sorted([FILES_MANIFEST, user_file.name])
+    assert sorted(os.listdir(folder)) == sorted([FILES_MANIFEST, MANIFEST_LOCK, user_file.name])
     assert json.loads((folder / FILES_MANIFEST).read_text()) == []
     assert user_file.read_bytes() == b"mine"
 
 
 def test_a_users_file_in_the_sequence_is_never_overwritten(tmp_path):
     _open_animated(tmp_path)
-    folder = tmp_path / "caustics"
-    folder.mkdir()
+    folder = tmp_path / "caustics" / "anim"
+    folder.mkdir(parents=True)
     user_file = folder / SEQ[1]
     user_file.write_bytes(b"mine")
     before = snapshot()

@@ -182,7 +182,7 @@ def _bake_gen(scene, settings):
             area = texel_areas(scene, rec, settings.samples, settings.band_samples)
             ok = covered & (area > 0)
             img[ok] += flux[ok] / area[ok, None]
-            timer.add("flux", time.perf_counter() - t0)
+            timer.add("texel_area", time.perf_counter() - t0)
         t0 = time.perf_counter()
         img = img.reshape(H, W, 3)
         cov2 = covered.reshape(H, W)

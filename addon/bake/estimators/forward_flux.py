@@ -76,6 +76,7 @@ def flux_textures(ctx, item, state, ls, m):
     b = tris["bary_full"]
     corners = P[:, None, 0] + b[:, :, :1] * (P[:, None, 1] - P[:, None, 0]) + b[:, :, 1:] * (P[:, None, 2] - P[:, None, 0])
     bc = tris["bary"].mean(axis=1)  # the landed part's centre (a partly landed sub-triangle's bary is shrunk to it)
+    clock = time.perf_counter()
     t2, rec, _uv, fac = state.arrays["trace"](e, np.ascontiguousarray(bc[:, 0]), np.ascontiguousarray(bc[:, 1]))
     x1 = corners.mean(axis=1)
     x0 = state.x0[e]
@@ -90,11 +91,13 @@ def flux_textures(ctx, item, state, ls, m):
         power = solid_angle(x0, corners) * emission_factor(ls, np.full(n, m), w0)
         first = x0
     power = power * np.where(rec >= 0, fac, 0.0) * tris["landed"]
+    clock = ctx.timer.since("flux.trace", clock)
     live = np.flatnonzero(power > 0)
     if live.size:
         ig = np.column_stack([t1[live], np.full(live.size, -1)])
         blocked = segments_occluded(ctx.bvh, first[live], x1[live], ig, ctx.eps)
         power[live[blocked]] = 0.0
+    clock = ctx.timer.since("flux.visibility", clock)
     tint2 = np.where((t2 >= 0)[:, None], scene.tri_tint[np.maximum(t2, 0)], 1.0)  # one-vertex chains: no second tint
     flux = power[:, None] * ls.rgb[m][None, :] * scene.tri_tint[t1] * tint2
     two = len(item.chain) == 2
@@ -108,10 +111,12 @@ def flux_textures(ctx, item, state, ls, m):
         density = corner_densities(tris["uv"], tris["mid_uv"], far, P, b, cf)
     else:
         density = corner_densities(tris["uv"], tris["mid_uv"], x0, P, b, cf)
+    clock = ctx.timer.since("flux.density", clock)
     for r, recv in enumerate(receivers):
         sel = np.flatnonzero(tris["receiver"] == r)
         if sel.size:
             W, H = recv.resolution
             splat_triangles(np.ascontiguousarray(tris["uv"][sel]), np.ascontiguousarray(flux[sel]), int(W), int(H), out[r],
                             np.ascontiguousarray(density[sel]))
+    ctx.timer.since("flux.splat", clock)
     return out

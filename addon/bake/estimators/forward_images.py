@@ -70,9 +70,11 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     tri_ior = np.ascontiguousarray(scene.tri_ior, dtype=np.float64)
     tri_role = np.ascontiguousarray(scene.tri_role, dtype=np.int64)
     bvh_args = _bvh_args(bvh)
+    clock = [0.0]  # seconds inside the tracing kernel (reported as trace_seconds)
 
     def trace(e, u, v):
         """(second triangle, receiver triangle, UV, transport factor) of the points."""
+        t_in = time.perf_counter()
         m = e.shape[0]
         t2 = np.empty(m, dtype=np.int64)
         rec = np.empty(m, dtype=np.int64)
@@ -82,6 +84,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
             trace_chain_points(np.ascontiguousarray(e), np.ascontiguousarray(u), np.ascontiguousarray(v), x0, emit_tri,
                                bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *bvh_args,
                                float(eps), t2, rec, uv, fac)
+        clock[0] += time.perf_counter() - t_in
         return t2, rec, uv, fac
 
     def weight(e, bary):
@@ -101,7 +104,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
                   tri_ior=tri_ior, tri_role=tri_role, bvh=bvh_args, eps=float(eps), trace=trace)
     report = {"emitters": int(emit_tri.size), "points_traced": int(tris["traced"]), "sub_triangles": int(r.size),
               "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "border": int(tris["border"]), "final_per_depth": tris["final_per_depth"],
-              "seconds": time.perf_counter() - t0}
+              "seconds": time.perf_counter() - t0, "trace_seconds": clock[0]}
     return ImageState(chain, emit_tri, x0, tris, arrays, report)
 
 
@@ -149,6 +152,7 @@ class ImageCache:
             state = image_state(self.ctx, item, ls, m, self.mode)
             self.states[key] = state
             if state is not None:
+                self.ctx.timer.add("image.trace", state.report["trace_seconds"])
                 self.reports.append({"light": item.light, "light_sample": m, "chain": item.chain, **state.report})
             self.ctx.timer.add("image", time.perf_counter() - t0)
         return self.states[key]

@@ -17,6 +17,7 @@ a fixed order.  What a texel holds (units, front side, cosine) is in addon/bake/
 """
 
 import dataclasses
+import hashlib
 import json
 import os
 import time
@@ -205,7 +206,27 @@ def _bake_gen(scene, settings):
 def texel_areas(scene, rec, samples=16, band_samples=1 << 20):
     """(H*W,) world area (m²) each texel of receiver ``rec`` covers on it: every supersample
     of an s x s grid (s >= 4, centred) on receiver triangle t stands for
-    area_world(t) / area_uv(t) / (W H s²) m²."""
+    area_world(t) / area_uv(t) / (W H s²) m².  A function of the receiver's triangles, UVs
+    and resolution only: the last ``AREA_CACHE_SIZE`` results are kept (read-only) under a
+    hash of those, so a receiver that does not move between frames is measured once."""
+    key = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in (
+        rec.tri_index, scene.tri_p[rec.tri_index], rec.uv, np.asarray(rec.resolution, dtype=np.int64),
+        np.asarray([samples, band_samples], dtype=np.int64)))).hexdigest()
+    area = _AREA_CACHE.pop(key, None)
+    if area is None:
+        area = _texel_areas(scene, rec, samples, band_samples)
+        area.flags.writeable = False
+    _AREA_CACHE[key] = area  # most recent last
+    while len(_AREA_CACHE) > AREA_CACHE_SIZE:
+        _AREA_CACHE.pop(next(iter(_AREA_CACHE)))
+    return area
+
+
+_AREA_CACHE = {}
+AREA_CACHE_SIZE = 8
+
+
+def _texel_areas(scene, rec, samples, band_samples):
     W, H = rec.resolution
     S = grid_side(max(int(samples), AREA_SAMPLES)) ** 2
     ratio = world_per_uv_area(scene, rec)

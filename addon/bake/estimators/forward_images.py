@@ -19,6 +19,7 @@ from ..lights import light_points, lit_casters
 IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
 IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to within this
 IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
+IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
 
 
 class ImageState:
@@ -52,13 +53,15 @@ def _bvh_args(bvh):
     return (bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_start, bvh.node_count, bvh.order, bvh.v0, bvh.e1, bvh.e2)
 
 
-def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False, only=None):
+def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False, only=None,
+            coarse=0):
     """Refine the sub-triangles of the emitters (first triangles ``emit_tri`` lit from ``x0``)
     for ``chain`` (one or two vertices; "seeded" needs two); ``second`` the global ids of
     the chain's second-vertex casters (ignored for one vertex); ``receivers`` the receivers at
     the bake's resolution; ``mode`` "flux" or "seeded" (how finely to refine); ``parallel``:
     a sun (the same flux per area all over a first triangle); ``only`` the receiver indices
-    the chain is baked onto (None: all).  Returns an ImageState."""
+    the chain is baked onto (None: all); ``coarse`` levels above the first grid where small
+    images may stop (:func:`refine_image_triangles`).  Returns an ImageState."""
     t0 = time.perf_counter()
     tri_rec, tri_uv, second_ok = scene_arrays(scene, receivers, second, only)
     refract1, refract2 = chain[0] == "T", chain[-1] == "T"
@@ -97,7 +100,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     # near-uniform density and a finely resolved border of what lands.
     extra = dict(weight=weight) if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
-                                  tolerance=IMAGE_TOLERANCE, **extra)
+                                  tolerance=IMAGE_TOLERANCE, coarse=coarse, **extra)
     r = tris["receiver"]
     tris["margin"] = IMAGE_MARGIN * texel[r] + 2.0 * tris["deviation"] if r.size else np.zeros(0)
     arrays = dict(tri_rec=tri_rec, second_ok=second_ok, refract1=refract1, refract2=refract2, tri_p=tri_p, tri_n=tri_n,
@@ -108,7 +111,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     return ImageState(chain, emit_tri, x0, tris, arrays, report)
 
 
-def image_state(ctx, item, ls, m, mode):
+def image_state(ctx, item, ls, m, mode, coarse=0):
     """The refined sub-triangles (:func:`prepare`) of planned chain ``item`` for light sample
     ``m``, or None when the light reaches none of its first casters."""
     scene = ctx.scene
@@ -132,16 +135,18 @@ def image_state(ctx, item, ls, m, mode):
     if not keep.any():
         return None
     state = prepare(scene, ctx.bvh, ctx.eps, item.chain, cast1[keep], x0_all[keep], second, ctx.receivers,
-                    max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers)
+                    max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers,
+                    coarse=coarse)
     state.report["reach"] = reach_report
     return state
 
 
 class ImageCache:
-    """:func:`image_state` once per (planned chain, light sample), with its report."""
+    """:func:`image_state` once per (planned chain, light sample), with its report; ``coarse``
+    as in :func:`prepare`."""
 
-    def __init__(self, ctx, mode):
-        self.ctx, self.mode = ctx, mode
+    def __init__(self, ctx, mode, coarse=0):
+        self.ctx, self.mode, self.coarse = ctx, mode, coarse
         self.states = {}
         self.reports = []
 
@@ -149,7 +154,7 @@ class ImageCache:
         key = (item_index, m)
         if key not in self.states:
             t0 = time.perf_counter()
-            state = image_state(self.ctx, item, ls, m, self.mode)
+            state = image_state(self.ctx, item, ls, m, self.mode, self.coarse)
             self.states[key] = state
             if state is not None:
                 self.ctx.timer.add("image.trace", state.report["trace_seconds"])

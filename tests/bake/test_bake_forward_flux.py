@@ -26,15 +26,18 @@ def _bake(sc, res, reference=False):
 
 def test_kernels_compute_the_reference_terms(monkeypatch):
     """Without coarse levels the kernel form refines the same sub-triangles and computes the
-    same power, densities and splat: the textures differ by rounding only."""
+    same power, densities and splat (the kernels themselves: tests/solver/test_solver_flux_kernel.py);
+    only the centroid's transport factor, interpolated instead of traced, differs, by far less
+    than the estimate's own error."""
     sc = wavy_sheet(3, 64, n=16)
     ref, ref_rep = _bake(sc, 64, reference=True)
     monkeypatch.setattr(FF, "IMAGE_COARSE", 0)
     new, new_rep = _bake(sc, 64)
+    print(f"relMSE {rel_mse(new, ref):.2e}, power ratio {new.sum() / ref.sum() - 1:.2e}")
     assert new_rep["sub_triangles"] == ref_rep["sub_triangles"] > 1000
     assert ref.max() > 0
-    assert rel_mse(new, ref) <= 1e-24
-    assert abs(new.sum() / ref.sum() - 1.0) <= 1e-12
+    assert rel_mse(new, ref) <= 1e-10
+    assert abs(new.sum() / ref.sum() - 1.0) <= 1e-6
 
 
 @pytest.mark.parametrize("n, res, fewer", [(16, 64, 1.0), (60, 128, 0.8)])
@@ -85,3 +88,19 @@ def test_texel_areas_are_kept_for_a_receiver_that_does_not_move():
     b.tri_p[rb.tri_index] *= 1.5
     moved = texel_areas(b, rb)
     assert moved is not first and np.isclose(moved.sum(), 2.25 * first.sum())
+
+
+def test_supersample_counts_are_kept_when_no_estimator_reads_the_samples():
+    """forward-flux alone reads only how many supersamples each texel has: the second frame
+    of a receiver that does not move skips the rasterisation and gives the same coverage and
+    texture as a bake with the samples rasterised (direct light on: the samples are read)."""
+    a = wavy_sheet(1, 48, n=12)
+    b = wavy_sheet(2, 48, n=12)
+    bake(a, BakeSettings(resolution=48, margin=0))
+    second = bake(b, BakeSettings(resolution=48, margin=0))
+    assert "raster" not in second.report["timings"]
+    direct = bake(b, BakeSettings(resolution=48, margin=0, direct=True))
+    assert direct.report["timings"].get("raster", 0.0) > 0.0
+    np.testing.assert_array_equal(second.coverage["Floor"], direct.coverage["Floor"])
+    caustic_only = bake(b, BakeSettings(resolution=48, margin=0, seed=7))  # another seed: counted afresh
+    assert caustic_only.report["timings"].get("raster", 0.0) > 0.0

@@ -15,8 +15,10 @@ points.  Energy is conserved by construction; tested against photon references
 
 Two implementations of the same estimate: :func:`flux_textures` (the default) computes the
 sub-triangles' geometry, power and corner densities in Numba kernels
-(:mod:`addon.solver.estimators.flux_kernel`) and refines with ``IMAGE_COARSE`` levels above the
-first grid (small images stop early: :func:`~addon.solver.estimators.forward_image.refine_image_triangles`);
+(:mod:`addon.solver.estimators.flux_kernel`), refines with ``IMAGE_COARSE`` levels above the
+first grid (small images stop early: :func:`~addon.solver.estimators.forward_image.refine_image_triangles`)
+and, for one-vertex chains, takes the centroid's transport factor from the quadratic through
+the 6 traced points instead of tracing the centroid (:func:`_centroid_transport`);
 :func:`flux_textures_reference` is the numpy form, used with ``coarse`` 0 when
 ``ForwardFlux.reference`` is set (tests/bake/test_bake_forward_flux.py compares the two;
 bench/animation.py times both).
@@ -92,8 +94,7 @@ def flux_textures(ctx, item, state, ls, m):
     power = np.empty(n)
     tri_p = state.arrays["tri_p"]
     subtriangle_geometry(tri_p, state.emit_tri, e, b, state.x0, sun, d, x1, power)
-    bc = tris["bary"].mean(axis=1)  # the landed part's centre (a partly landed sub-triangle's bary is shrunk to it)
-    t2, rec, _uv, fac = state.arrays["trace"](e, np.ascontiguousarray(bc[:, 0]), np.ascontiguousarray(bc[:, 1]))
+    t2, rec, fac = _centroid_transport(state, item, tris)
     if sun:
         first = x1 - 2.0 * extent * d
     else:
@@ -121,6 +122,27 @@ def flux_textures(ctx, item, state, ls, m):
     _splat(receivers, tris, flux, density, out)
     ctx.timer.since("flux.splat", clock)
     return out
+
+
+def _centroid_transport(state, item, tris):
+    """(second triangle, receiver triangle (-1: lost), transport factor) at each sub-triangle's
+    centre (its landed part's for a partly landed one).  One-vertex chains: a sub-triangle
+    whose 6 points landed on one receiver (finite factors) takes the factor of the quadratic
+    through its corners and edge midpoints at the centroid, (4 (f01 + f12 + f20) - (f0 + f1 +
+    f2)) / 9 (the transport factor is smooth: error third order in its size); the others,
+    and two-vertex chains (the second triangle's tint), trace the centre."""
+    n = tris["emitter"].size
+    f6 = tris["factor"]
+    quad = np.all(np.isfinite(f6), axis=1) if len(item.chain) == 1 else np.zeros(n, dtype=np.bool_)
+    t2 = np.full(n, -1, dtype=np.int64)
+    rec = np.zeros(n, dtype=np.int64)
+    fac = np.maximum((4.0 * f6[:, 3:].sum(axis=1) - f6[:, :3].sum(axis=1)) / 9.0, 0.0)
+    rest = np.flatnonzero(~quad)
+    if rest.size:
+        bc = tris["bary"][rest].mean(axis=1)  # the landed part's centre (a partly landed sub-triangle's bary is shrunk to it)
+        t2[rest], rec[rest], _uv, fac[rest] = state.arrays["trace"](tris["emitter"][rest], np.ascontiguousarray(bc[:, 0]),
+                                                                    np.ascontiguousarray(bc[:, 1]))
+    return t2, rec, fac
 
 
 def _splat(receivers, tris, flux, density, out):

@@ -8,6 +8,7 @@ adaptive sub-triangles whose forward-traced images on the receivers are straight
 half a texel (:func:`prepare`), once per light sample and chain, for every receiver and band.
 """
 
+import math
 import time
 
 import numpy as np
@@ -20,6 +21,8 @@ IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
 IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to within this
 IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
 IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
+SMALL_CASTER = 4.0  # texels: a first triangle at most this long (world, in the receivers' smallest texels) ...
+SMALL_LOST_DEPTH = 1  # ... has its lost sub-triangles probed and dropped from this many levels below the start
 
 
 class ImageState:
@@ -99,6 +102,8 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     # "seeded" needs images straight to the margin only (Newton does the rest); "flux" also a
     # near-uniform density and a finely resolved border of what lands.
     extra = dict(weight=weight) if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
+    if coarse and receivers:
+        extra["keep_lost_depth"] = np.where(_small_casters(tri_p[emit_tri], tri_p, receivers, only), SMALL_LOST_DEPTH - int(coarse), 1)
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
                                   tolerance=IMAGE_TOLERANCE, coarse=coarse, **extra)
     r = tris["receiver"]
@@ -109,6 +114,27 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
               "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "border": int(tris["border"]), "final_per_depth": tris["final_per_depth"],
               "seconds": time.perf_counter() - t0, "trace_seconds": clock[0]}
     return ImageState(chain, emit_tri, x0, tris, arrays, report)
+
+
+def _small_casters(P, tri_p, receivers, only):
+    """(n,) whether each first triangle P (n, 3, 3) is at most SMALL_CASTER texels long (its
+    longest edge, against the smallest world texel of the receivers in ``only``): its lost
+    parts are sampled at its own scale (SMALL_LOST_DEPTH levels below the coarse start: 13
+    points per quarter of the triangle) instead of at 1/64 of it; the flux such a triangle
+    could hide between them is below a texel's worth of its image."""
+    texel = np.inf
+    for r, rec in enumerate(receivers):
+        if only is not None and r not in only:
+            continue
+        e1 = rec.uv[:, 1] - rec.uv[:, 0]
+        e2 = rec.uv[:, 2] - rec.uv[:, 0]
+        uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+        w = tri_p[rec.tri_index]
+        world_area = 0.5 * np.linalg.norm(np.cross(w[:, 1] - w[:, 0], w[:, 2] - w[:, 0]), axis=1).sum()
+        if uv_area > 0:
+            texel = min(texel, math.sqrt(world_area / uv_area) / max(rec.resolution))
+    edge = np.sqrt(((P - P[:, [1, 2, 0]]) ** 2).sum(axis=2)).max(axis=1)
+    return edge <= SMALL_CASTER * texel
 
 
 def image_state(ctx, item, ls, m, mode, coarse=0):

@@ -209,7 +209,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     ``coarse`` > 0 starts ``coarse`` levels above the grid (the G/2^coarse grid at depth
     -coarse; G must be divisible by 2^coarse): a sub-triangle there is final when it passes
     the tests above and its image is at most ``coarse_texels`` long (texels), else it is split
-    (never cut, probed or dropped above depth 0).  The midpoint split of the coarse grid gives
+    (never cut above depth 0; probed and dropped there only where ``keep_lost_depth``, which
+    may be given per emitter, is negative).  The midpoint split of the coarse grid gives
     exactly the G x G grid (the same triangles, the same corner order, the same traced
     points), so what is not final above depth 0 is refined as with ``coarse`` = 0; the coarse
     levels only let small images (a finely tessellated caster: 115k-triangle water) stop
@@ -241,6 +242,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
                 corners.append(((i + 1, j), (i + 1, j + 1), (i, j + 1)))
     base = np.array(corners, dtype=np.float64) / g  # (g², 3, 2)
     ne = int(n_emitters)
+    keep_lost = np.broadcast_to(np.asarray(keep_lost_depth, dtype=np.int64), (ne,))  # per emitter
     emitter = np.repeat(np.arange(ne, dtype=np.int64), base.shape[0])
     bary = np.tile(base, (ne, 1, 1))
     # corner records: a corner shared by sub-triangles of one emitter is traced once
@@ -272,7 +274,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         robj = np.where(rall >= 0, receiver_of_tri[np.maximum(rall, 0)], -1)
         landed = (robj[:, 0] >= 0) & np.all(robj == robj[:, :1], axis=1)
         lost = np.all(robj < 0, axis=1)
-        probe = np.flatnonzero(lost & (depth >= keep_lost_depth) & (depth < partial_depth))
+        kl = keep_lost[emitter]
+        probe = np.flatnonzero(lost & (depth >= kl) & (depth < partial_depth))
         if probe.size:
             lost[probe[_probe_lands(trace, emitter[probe], bary[probe], receiver_of_tri)]] = False
             traced += 7 * probe.size
@@ -332,7 +335,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         # (a probed 'lost' one has no landed point to approximate from: it is split, or
         # dropped at the last level)
         partial = cand & ~border & ((depth >= partial_depth) | small) & np.any(robj >= 0, axis=1)
-        drop = (~final & ~partial & ~border & last) | (lost & (depth >= keep_lost_depth))
+        drop = (~final & ~partial & ~border & last) | (lost & (depth >= kl))
         dropped += int(np.count_nonzero(~final & ~partial & ~border & last & ~lost))
         fi = np.flatnonzero(final)
         pi = np.flatnonzero(partial)

@@ -19,8 +19,8 @@ sub-triangles' geometry, power and corner densities in Numba kernels
 first grid (small images stop early: :func:`~addon.solver.estimators.forward_image.refine_image_triangles`)
 and, for one-vertex chains, takes the centroid's transport factor from the quadratic through
 the 6 traced points instead of tracing the centroid (:func:`_centroid_transport`);
-:func:`flux_textures_reference` is the numpy form, used with ``coarse`` 0 when
-``ForwardFlux.reference`` is set (tests/bake/test_bake_forward_flux.py compares the two;
+:func:`flux_textures_reference` is the numpy form, used with ``coarse`` 0 and every point
+traced for each sub-triangle when ``ForwardFlux.reference`` is set (tests/bake/test_bake_forward_flux.py compares the two;
 bench/animation.py times both).
 """
 
@@ -38,11 +38,11 @@ from .forward_images import IMAGE_COARSE, ImageCache
 
 class ForwardFlux(Estimator):
     name = "forward-flux"
-    reference = False  # True: the numpy reference form without coarse levels (tests, benchmarks)
+    reference = False  # True: the numpy reference form (no coarse levels, every point traced; tests, benchmarks)
 
     def __init__(self, ctx, items):
         super().__init__(ctx, items)
-        self.images = ImageCache(ctx, "flux", 0 if self.reference else IMAGE_COARSE)
+        self.images = ImageCache(ctx, "flux", 0 if self.reference else IMAGE_COARSE, shared=not self.reference)
         self.flux_fn = flux_textures_reference if self.reference else flux_textures
         self.total = [None] * len(ctx.receivers)  # (H W, 3) W per texel per receiver, summed over passes
 

@@ -57,14 +57,15 @@ def _bvh_args(bvh):
 
 
 def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False, only=None,
-            coarse=0):
+            coarse=0, shared=True):
     """Refine the sub-triangles of the emitters (first triangles ``emit_tri`` lit from ``x0``)
     for ``chain`` (one or two vertices; "seeded" needs two); ``second`` the global ids of
     the chain's second-vertex casters (ignored for one vertex); ``receivers`` the receivers at
     the bake's resolution; ``mode`` "flux" or "seeded" (how finely to refine); ``parallel``:
     a sun (the same flux per area all over a first triangle); ``only`` the receiver indices
     the chain is baked onto (None: all); ``coarse`` levels above the first grid where small
-    images may stop (:func:`refine_image_triangles`).  Returns an ImageState."""
+    images may stop and ``shared`` whether points shared by sub-triangles are traced once
+    (:func:`refine_image_triangles`).  Returns an ImageState."""
     t0 = time.perf_counter()
     tri_rec, tri_uv, second_ok = scene_arrays(scene, receivers, second, only)
     refract1, refract2 = chain[0] == "T", chain[-1] == "T"
@@ -105,7 +106,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     if coarse and receivers:
         extra["keep_lost_depth"] = np.where(_small_casters(tri_p[emit_tri], tri_p, receivers, only), SMALL_LOST_DEPTH - int(coarse), 1)
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
-                                  tolerance=IMAGE_TOLERANCE, coarse=coarse, **extra)
+                                  tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, **extra)
     r = tris["receiver"]
     tris["margin"] = IMAGE_MARGIN * texel[r] + 2.0 * tris["deviation"] if r.size else np.zeros(0)
     arrays = dict(tri_rec=tri_rec, second_ok=second_ok, refract1=refract1, refract2=refract2, tri_p=tri_p, tri_n=tri_n,
@@ -137,7 +138,7 @@ def _small_casters(P, tri_p, receivers, only):
     return edge <= SMALL_CASTER * texel
 
 
-def image_state(ctx, item, ls, m, mode, coarse=0):
+def image_state(ctx, item, ls, m, mode, coarse=0, shared=True):
     """The refined sub-triangles (:func:`prepare`) of planned chain ``item`` for light sample
     ``m``, or None when the light reaches none of its first casters."""
     scene = ctx.scene
@@ -162,17 +163,17 @@ def image_state(ctx, item, ls, m, mode, coarse=0):
         return None
     state = prepare(scene, ctx.bvh, ctx.eps, item.chain, cast1[keep], x0_all[keep], second, ctx.receivers,
                     max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers,
-                    coarse=coarse)
+                    coarse=coarse, shared=shared)
     state.report["reach"] = reach_report
     return state
 
 
 class ImageCache:
     """:func:`image_state` once per (planned chain, light sample), with its report; ``coarse``
-    as in :func:`prepare`."""
+    and ``shared`` as in :func:`prepare`."""
 
-    def __init__(self, ctx, mode, coarse=0):
-        self.ctx, self.mode, self.coarse = ctx, mode, coarse
+    def __init__(self, ctx, mode, coarse=0, shared=True):
+        self.ctx, self.mode, self.coarse, self.shared = ctx, mode, coarse, shared
         self.states = {}
         self.reports = []
 
@@ -180,7 +181,7 @@ class ImageCache:
         key = (item_index, m)
         if key not in self.states:
             t0 = time.perf_counter()
-            state = image_state(self.ctx, item, ls, m, self.mode, self.coarse)
+            state = image_state(self.ctx, item, ls, m, self.mode, self.coarse, self.shared)
             self.states[key] = state
             if state is not None:
                 self.ctx.timer.add("image.trace", state.report["trace_seconds"])

@@ -179,7 +179,7 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, 
 
 def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=4, max_depth=6, tolerance=0.5,
                            keep_lost_depth=1, partial_depth=None, relative=0.01, weight=None, coarse=0,
-                           coarse_texels=COARSE_TEXELS):
+                           coarse_texels=COARSE_TEXELS, shared=True):
     """Step 2: adaptive sub-triangles of every emitter's first triangle.
 
     ``trace(emitter, u1, v1) -> (t2, rec_tri, uv[, factor])`` traces points
@@ -216,6 +216,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     levels only let small images (a finely tessellated caster: 115k-triangle water) stop
     early, with far fewer sub-triangles, each still straight to ``tolerance`` with a linear
     density (tests/solver/test_solver_forward_image.py, tests/bake/test_bake_forward_flux.py).
+    ``shared``: a corner or edge midpoint shared by sub-triangles of one emitter is traced
+    once (:func:`_traced_shared`; the same result as tracing it for each, which False does).
 
     Returns dict: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
     uv (m, 3, 2) their landing UVs, receiver (m,), deviation (m,) UV units, landed (m,) the
@@ -231,7 +233,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     if c0 < 0 or g % (1 << c0):
         raise ValueError("the grid must be divisible by 2^coarse")
     partial_depth = int(max_depth) + 2 if partial_depth is None else max(int(partial_depth), int(max_depth))
-    dyadic = g << (partial_depth + 1)  # every corner and midpoint is a multiple of 1 / dyadic
+    dyadic = g << (partial_depth + 1) if shared else 0  # every corner and midpoint is a multiple of 1 / dyadic
     g >>= c0
     corners = []
     for i in range(g):
@@ -407,11 +409,15 @@ def _traced_shared(trace, emitter, pts, scale):
     each distinct (emitter, point) traced once (neighbouring sub-triangles share corners and
     edge midpoints), and the number of points traced.  The points are multiples of 1 /
     ``scale`` (the dyadic grid of the refinement), so equal points have equal integer keys;
-    the result is the same as tracing every point (a point's trace is deterministic)."""
+    the result is the same as tracing every point (a point's trace is deterministic), which
+    ``scale`` 0 does."""
     k = pts.shape[1]
     e = np.repeat(emitter, k)
     u = pts[:, :, 0].reshape(-1)
     v = pts[:, :, 1].reshape(-1)
+    if not scale:
+        t2, rec, uv, fac = _traced(trace, e, u, v)  # every point
+        return t2, rec, uv, fac, e.size
     if e.size == 0:
         t2, rec, uv, fac = _traced(trace, e, u, v)
         return t2, rec, uv, fac, 0

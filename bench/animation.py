@@ -29,7 +29,6 @@ Prints a table and rewrites the "animation" section of BENCHMARKS.md.
 
 import argparse
 import os
-import platform
 import sys
 import time
 
@@ -110,15 +109,14 @@ def _run(key, name, res, frames, form, scene_at, settings, bake):
 def table(rows):
     import numba
 
-    lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores ({numba.config.NUMBA_NUM_THREADS} Numba threads), "
-             f"Python {platform.python_version()}; date {time.strftime('%Y-%m-%d')}. Seconds per frame of `bake()` "
-             "(estimator `forward-flux`; warm: one frame baked first), mean over the frames; µs/sub = (image + flux) "
-             "seconds per final sub-triangle; rel. diff: relMSE of fast against reference (last frame). Stages in s per "
-             "frame (image.trace ⊂ image; flux.* ⊂ flux; other: BVH, plan, raster, texel areas, padding). reference: the "
-             "estimator as before (numpy flux terms, no coarse levels, every point traced per sub-triangle, texel areas and "
-             "supersample counts measured every frame); fast: the default.", "",
+    labels = dict(zip(TABLE, ("image", "trace", "flux", "centre", "vis.", "density", "splat")))
+    lines = [f"{os.cpu_count()} cores, {numba.config.NUMBA_NUM_THREADS} Numba threads, shared (compare forms within a case); "
+             f"{time.strftime('%Y-%m-%d')}. `bake()` s/frame after a warm-up frame. reference = forward-flux before (numpy "
+             "terms, no coarse levels, each point traced per sub-triangle, texel areas / sample counts every frame); fast = "
+             "the default. µs/sub = (image + flux) / sub-triangles; rel. diff = relMSE fast vs reference. trace ⊂ image; "
+             "centre, vis., density, splat ⊂ flux; other: BVH, plan, raster, texel areas, pad.", "",
              "| case | texels | form | s/frame | sub-triangles | points traced | µs/sub | rel. diff | "
-             + " | ".join(TABLE) + " | other |",
+             + " | ".join(labels[k] for k in TABLE) + " | other |",
              "|---|---|---|---|---|---|---|---|" + "---|" * (len(TABLE) + 1)]
     for r in rows:
         diff = f"{r['rel']:.1e}" if "rel" in r else "-"

@@ -21,7 +21,7 @@ IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
 IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to within this
 IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
 IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
-SMALL_CASTER = 4.0  # texels: a first triangle at most this long (world, in the receivers' smallest texels) ...
+SMALL_CASTER = 8.0  # texels: a first triangle at most this long (world, in the receivers' smallest texels) ...
 SMALL_LOST_DEPTH = 1  # ... has its lost sub-triangles probed and dropped from this many levels below the start
 
 

@@ -208,7 +208,9 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
 
     ``coarse`` > 0 starts ``coarse`` levels above the grid (the G/2^coarse grid at depth
     -coarse; G must be divisible by 2^coarse): a sub-triangle there is final when it passes
-    the tests above and its image is at most ``coarse_texels`` long (texels), else it is split
+    the tests above, its density is linear even if its image is within a texel (a focus
+    inside a texel: the glass sphere's, tests/bake/test_bake_caustics.py) and its image is at
+    most ``coarse_texels`` long (texels), else it is split
     (never cut above depth 0; probed and dropped there only where ``keep_lost_depth``, which
     may be given per emitter, is negative).  The midpoint split of the coarse grid gives
     exactly the G x G grid (the same triangles, the same corner order, the same traced
@@ -296,8 +298,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
                 w6 = w6 * np.concatenate([fac[li], mfac[li]], axis=1)
                 linear[li] = density_nonlinearity(uv[li], muv[li], w6) <= relative
         final = landed & (dev <= tolerance * tex) & (linear | (edge <= tex))
-        if depth < 0:
-            final &= edge <= coarse_texels * tex
+        if depth < 0:  # coarse: small, and a linear density whatever its size (a focus inside a texel is not)
+            final = landed & (dev <= tolerance * tex) & linear & (edge <= coarse_texels * tex)
         if depth >= int(max_depth):
             final = landed  # as straight as the depth allows: its deviation widens its margin
         last = depth == partial_depth

@@ -47,10 +47,13 @@ class EnergyLedger:
         if power.size == 0:
             return
         obj2 = np.full(power.size, -1, dtype=np.int64) if obj2 is None else np.asarray(obj2, dtype=np.int64)
-        keys = np.column_stack([np.asarray(obj1, dtype=np.int64), obj2, np.asarray(receiver, dtype=np.int64)])
-        uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
+        cols = [np.asarray(obj1, dtype=np.int64) + 1, obj2 + 1, np.asarray(receiver, dtype=np.int64) + 1]  # >= 0
+        base = int(max(int(c.max()) for c in cols)) + 1
+        key = (cols[0] * base + cols[1]) * base + cols[2]  # one integer per (obj1, obj2, receiver), in their order
+        uniq, inverse = np.unique(key, return_inverse=True)
         sums = np.bincount(inverse.reshape(-1), weights=power, minlength=uniq.shape[0])
-        for (a, b, r), p in zip(uniq.tolist(), sums.tolist()):
+        for q, p in zip(uniq.tolist(), sums.tolist()):
+            a, b, r = q // (base * base) - 1, (q // base) % base - 1, q % base - 1
             k = (int(light), chain, a, b, r)
             self.power[k] = self.power.get(k, 0.0) + p
 

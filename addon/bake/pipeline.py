@@ -20,6 +20,7 @@ a fixed order.  What a texel holds (units, front side, cosine) is in addon/bake/
 """
 
 import dataclasses
+import hashlib
 import json
 import os
 import re
@@ -33,6 +34,7 @@ from .checks import scene_warnings
 from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolution, world_per_uv_area
 from .estimators import make_estimator
 from . import exr
+from .estimators.base import Estimator
 from .lights import emission_factor, sample_light
 from .memory import check_budget, out_of_memory
 from .output import write_files, write_text
@@ -381,11 +383,22 @@ def _bake_gen(scene, settings):
     images, coverage, raw, rec_report = {}, {}, {}, {}
     total_rows = sum(r.resolution[1] for r in ctx.receivers)
     rows_done = area_rows = 0
+    # only the supersamples' count per texel is needed when no estimator reads the samples:
+    # a function of the receiver's UVs alone, kept like the texel areas
+    counts_only = not settings.direct and all(type(e).accumulate is Estimator.accumulate for e in estimators)
     for rec_index, rec in enumerate(ctx.receivers):
         W, H = rec.resolution
         sums = np.zeros((W * H, 3))
         cover = np.zeros(W * H, dtype=np.int64)
-        for j0, j1 in bands(rec, settings.samples, settings.band_samples):
+        key = kept = None
+        if counts_only:
+            key = _receiver_key(rec, settings.samples, settings.seed, settings.jitter, settings.band_samples)
+            kept = _kept(_COVER_CACHE, key)
+            if kept is not None:
+                cover = kept
+                rows_done += H
+                yield progress.tell("rows", rows_done / max(1, total_rows), f"{rec.name}: rows {H}/{H}")
+        for j0, j1 in (bands(rec, settings.samples, settings.band_samples) if cover is not kept else ()):
             t0 = time.perf_counter()
             band = rasterise(scene, rec, settings.samples, settings.seed, settings.jitter, rows=(j0, j1))
             cover += np.bincount(band.texel, minlength=W * H)
@@ -399,6 +412,8 @@ def _bake_gen(scene, settings):
                         yield progress.tell("rows", (rows_done + 0.5 * (j1 - j0)) / max(1, total_rows), message)
             rows_done += j1 - j0
             yield progress.tell("rows", rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}")
+        if key is not None:
+            _keep(_COVER_CACHE, key, cover)
         covered = cover > 0
         img = np.zeros((W * H, 3))
         img[covered] = sums[covered] / cover[covered, None]
@@ -409,14 +424,18 @@ def _bake_gen(scene, settings):
                 flux = f if flux is None else flux + f
         if flux is not None:
             t0 = time.perf_counter()
-            area = np.zeros(W * H)
-            for j1 in _texel_area_steps(scene, rec, settings.samples, settings.band_samples, area):
-                timer.add("flux", time.perf_counter() - t0)
-                yield progress.tell("areas", (area_rows + j1) / max(1, total_rows), f"{rec.name}: texel areas, rows {j1}/{H}")
-                t0 = time.perf_counter()
+            key = _receiver_key(rec, settings.samples, settings.band_samples, scene.tri_p[rec.tri_index])
+            area = _kept(_AREA_CACHE, key)  # texel areas of a receiver that did not move: kept (exact)
+            if area is None:
+                area = np.zeros(W * H)
+                for j1 in _texel_area_steps(scene, rec, settings.samples, settings.band_samples, area):
+                    timer.add("texel_area", time.perf_counter() - t0)
+                    yield progress.tell("areas", (area_rows + j1) / max(1, total_rows), f"{rec.name}: texel areas, rows {j1}/{H}")
+                    t0 = time.perf_counter()
+                area = _keep(_AREA_CACHE, key, area)
             ok = covered & (area > 0)
             img[ok] += flux[ok] / area[ok, None]
-            timer.add("flux", time.perf_counter() - t0)
+            timer.add("texel_area", time.perf_counter() - t0)
         area_rows += H
         t0 = time.perf_counter()
         img = img.reshape(H, W, 3)
@@ -441,7 +460,44 @@ def _bake_gen(scene, settings):
 def texel_areas(scene, rec, samples=16, band_samples=1 << 20):
     """(H*W,) world area (m²) each texel of receiver ``rec`` covers on it: every supersample
     of an s x s grid (s >= 4, centred) on receiver triangle t stands for
-    area_world(t) / area_uv(t) / (W H s²) m²."""
+    area_world(t) / area_uv(t) / (W H s²) m².  A function of the receiver's triangles, UVs
+    and resolution only: the last ``AREA_CACHE_SIZE`` results are kept (read-only) under a
+    hash of those, so a receiver that does not move between frames is measured once."""
+    key = _receiver_key(rec, samples, band_samples, scene.tri_p[rec.tri_index])
+    area = _kept(_AREA_CACHE, key)
+    if area is None:
+        area = _texel_areas(scene, rec, samples, band_samples)
+    return _keep(_AREA_CACHE, key, area)
+
+
+_AREA_CACHE = {}  # texel areas per receiver key, most recent last
+_COVER_CACHE = {}  # supersamples per texel per receiver key (bake_steps, when only their count is needed)
+AREA_CACHE_SIZE = 8
+
+
+def _receiver_key(rec, *values):
+    """A hash of receiver ``rec``'s triangles, UVs and resolution and of ``values``."""
+    parts = [rec.tri_index, rec.uv, np.asarray(rec.resolution, dtype=np.int64)]
+    parts += [np.asarray(v, dtype=np.float64) for v in values]
+    return hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in parts)).hexdigest()
+
+
+def _kept(cache, key):
+    """The result kept under ``key`` (None: none)."""
+    return cache.get(key)
+
+
+def _keep(cache, key, value):
+    """Keep ``value`` (made read-only) under ``key``, the most recent last, at most
+    AREA_CACHE_SIZE entries; returns it."""
+    cache.pop(key, None)
+    value.flags.writeable = False
+    cache[key] = value
+    while len(cache) > AREA_CACHE_SIZE:
+        cache.pop(next(iter(cache)))
+    return value
+
+def _texel_areas(scene, rec, samples, band_samples):
     W, H = rec.resolution
     area = np.zeros(W * H)
     for _ in _texel_area_steps(scene, rec, samples, band_samples, area):

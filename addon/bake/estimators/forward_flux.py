@@ -12,6 +12,16 @@ straight image in UV space by exact texel overlap with a density linear over the
 divided by each texel's world area it is the texel-averaged irradiance, finite at focal
 points.  Energy is conserved by construction; tested against photon references
 (tests/bake/test_bake_two_bounce.py, tests/bake/test_bake_caustics.py) and bench/glass_target.py.
+
+Two implementations of the same estimate: :func:`flux_textures` (the default) computes the
+sub-triangles' geometry, power and corner densities in Numba kernels
+(:mod:`addon.solver.estimators.flux_kernel`), refines with ``IMAGE_COARSE`` levels above the
+first grid (small images stop early: :func:`~addon.solver.estimators.forward_image.refine_image_triangles`)
+and, for one-vertex chains, takes the centroid's transport factor from the quadratic through
+the 6 traced points instead of tracing the centroid (:func:`_centroid_transport`);
+:func:`flux_textures_reference` is the numpy form, used with ``coarse`` 0 and every point
+traced for each sub-triangle when ``ForwardFlux.reference`` is set (tests/bake/test_bake_forward_flux.py compares the two;
+bench/animation.py times both).
 """
 
 import time
@@ -19,18 +29,21 @@ import time
 import numpy as np
 
 from ...solver.geometry.bvh import segments_occluded
+from ...solver.estimators.flux_kernel import corner_densities_kernel, subtriangle_geometry
 from ...solver.estimators.forward_image import corner_densities, solid_angle, splat_triangles
 from ..lights import emission_factor
 from .base import Estimator
-from .forward_images import ImageCache
+from .forward_images import IMAGE_COARSE, ImageCache
 
 
 class ForwardFlux(Estimator):
     name = "forward-flux"
+    reference = False  # True: the numpy reference form (no coarse levels, every point traced; tests, benchmarks)
 
     def __init__(self, ctx, items):
         super().__init__(ctx, items)
-        self.images = ImageCache(ctx, "flux")
+        self.images = ImageCache(ctx, "flux", 0 if self.reference else IMAGE_COARSE, shared=not self.reference)
+        self.flux_fn = flux_textures_reference if self.reference else flux_textures
         self.total = [None] * len(ctx.receivers)  # (H W, 3) W per texel per receiver, summed over passes
 
     def prepare(self):
@@ -45,7 +58,7 @@ class ForwardFlux(Estimator):
                     if state is None:
                         continue
                     t0 = time.perf_counter()
-                    for r, f in enumerate(flux_textures(ctx, item, state, ls, m)):
+                    for r, f in enumerate(self.flux_fn(ctx, item, state, ls, m)):
                         self.total[r] = f if self.total[r] is None else self.total[r] + f
                     ctx.timer.add("flux", time.perf_counter() - t0)
 
@@ -62,7 +75,88 @@ class ForwardFlux(Estimator):
 def flux_textures(ctx, item, state, ls, m):
     """The flux (W per texel, one (H W, 3) array per receiver) of planned chain ``item``'s
     final sub-triangles for light sample ``m`` (see the module doc); their power also goes
-    into ``ctx.ledger``."""
+    into ``ctx.ledger``.  The same estimate as :func:`flux_textures_reference`, its
+    per-sub-triangle terms in kernels."""
+    scene, extent = ctx.scene, ctx.extent
+    receivers = ctx.receivers
+    tris = state.tris
+    out = [np.zeros((r.resolution[0] * r.resolution[1], 3)) for r in receivers]
+    e = tris["emitter"]
+    n = e.size
+    if n == 0:
+        return out
+    clock = time.perf_counter()
+    t1 = state.emit_tri[e]
+    b = np.ascontiguousarray(tris["bary_full"])
+    sun = ls.kind == "sun"
+    d = np.ascontiguousarray(ls.direction[m], dtype=np.float64) if sun else np.zeros(3)
+    x1 = np.empty((n, 3))
+    power = np.empty(n)
+    tri_p = state.arrays["tri_p"]
+    subtriangle_geometry(tri_p, state.emit_tri, e, b, state.x0, sun, d, x1, power)
+    t2, rec, fac = _centroid_transport(state, item, tris)
+    if sun:
+        first = x1 - 2.0 * extent * d
+    else:
+        first = state.x0[e]
+        w0 = x1 - first
+        w0 /= np.linalg.norm(w0, axis=1, keepdims=True)
+        power *= emission_factor(ls, np.full(n, m), w0)
+    power *= np.where(rec >= 0, fac, 0.0) * tris["landed"]
+    clock = ctx.timer.since("flux.trace", clock)
+    live = np.flatnonzero(power > 0)
+    if live.size:
+        ig = np.column_stack([t1[live], np.full(live.size, -1)])
+        blocked = segments_occluded(ctx.bvh, first[live], x1[live], ig, ctx.eps)
+        power[live[blocked]] = 0.0
+    clock = ctx.timer.since("flux.visibility", clock)
+    tint2 = np.where((t2 >= 0)[:, None], scene.tri_tint[np.maximum(t2, 0)], 1.0)  # one-vertex chains: no second tint
+    flux = power[:, None] * ls.rgb[m][None, :] * scene.tri_tint[t1] * tint2
+    two = len(item.chain) == 2
+    ctx.ledger.add(item.light, item.chain, scene.tri_object[t1], scene.tri_object[np.maximum(t2, 0)] if two else None,
+                   tris["receiver"], flux.mean(axis=1))
+    density = np.empty((n, 3))
+    corner_densities_kernel(np.ascontiguousarray(tris["uv"]), np.ascontiguousarray(tris["mid_uv"]), tri_p, state.emit_tri, e, b,
+                            state.x0, sun, d, 1e6 * extent, np.ascontiguousarray(tris["factor"]), density)
+    clock = ctx.timer.since("flux.density", clock)
+    _splat(receivers, tris, flux, density, out)
+    ctx.timer.since("flux.splat", clock)
+    return out
+
+
+def _centroid_transport(state, item, tris):
+    """(second triangle, receiver triangle (-1: lost), transport factor) at each sub-triangle's
+    centre (its landed part's for a partly landed one).  One-vertex chains: a sub-triangle
+    whose 6 points landed on one receiver (finite factors) takes the factor of the quadratic
+    through its corners and edge midpoints at the centroid, (4 (f01 + f12 + f20) - (f0 + f1 +
+    f2)) / 9 (the transport factor is smooth: error third order in its size); the others,
+    and two-vertex chains (the second triangle's tint), trace the centre."""
+    n = tris["emitter"].size
+    f6 = tris["factor"]
+    quad = np.all(np.isfinite(f6), axis=1) if len(item.chain) == 1 else np.zeros(n, dtype=np.bool_)
+    t2 = np.full(n, -1, dtype=np.int64)
+    rec = np.zeros(n, dtype=np.int64)
+    fac = np.maximum((4.0 * f6[:, 3:].sum(axis=1) - f6[:, :3].sum(axis=1)) / 9.0, 0.0)
+    rest = np.flatnonzero(~quad)
+    if rest.size:
+        bc = tris["bary"][rest].mean(axis=1)  # the landed part's centre (a partly landed sub-triangle's bary is shrunk to it)
+        t2[rest], rec[rest], _uv, fac[rest] = state.arrays["trace"](tris["emitter"][rest], np.ascontiguousarray(bc[:, 0]),
+                                                                    np.ascontiguousarray(bc[:, 1]))
+    return t2, rec, fac
+
+
+def _splat(receivers, tris, flux, density, out):
+    """Splat the sub-triangles' ``flux`` with corner ``density`` onto their receivers' ``out``."""
+    for r, recv in enumerate(receivers):
+        sel = np.flatnonzero(tris["receiver"] == r)
+        if sel.size:
+            W, H = recv.resolution
+            splat_triangles(np.ascontiguousarray(tris["uv"][sel]), np.ascontiguousarray(flux[sel]), int(W), int(H), out[r],
+                            np.ascontiguousarray(density[sel]))
+
+
+def flux_textures_reference(ctx, item, state, ls, m):
+    """:func:`flux_textures` in numpy (the reference form)."""
     scene, extent = ctx.scene, ctx.extent
     receivers = ctx.receivers
     tris = state.tris
@@ -76,6 +170,7 @@ def flux_textures(ctx, item, state, ls, m):
     b = tris["bary_full"]
     corners = P[:, None, 0] + b[:, :, :1] * (P[:, None, 1] - P[:, None, 0]) + b[:, :, 1:] * (P[:, None, 2] - P[:, None, 0])
     bc = tris["bary"].mean(axis=1)  # the landed part's centre (a partly landed sub-triangle's bary is shrunk to it)
+    clock = time.perf_counter()
     t2, rec, _uv, fac = state.arrays["trace"](e, np.ascontiguousarray(bc[:, 0]), np.ascontiguousarray(bc[:, 1]))
     x1 = corners.mean(axis=1)
     x0 = state.x0[e]
@@ -90,11 +185,13 @@ def flux_textures(ctx, item, state, ls, m):
         power = solid_angle(x0, corners) * emission_factor(ls, np.full(n, m), w0)
         first = x0
     power = power * np.where(rec >= 0, fac, 0.0) * tris["landed"]
+    clock = ctx.timer.since("flux.trace", clock)
     live = np.flatnonzero(power > 0)
     if live.size:
         ig = np.column_stack([t1[live], np.full(live.size, -1)])
         blocked = segments_occluded(ctx.bvh, first[live], x1[live], ig, ctx.eps)
         power[live[blocked]] = 0.0
+    clock = ctx.timer.since("flux.visibility", clock)
     tint2 = np.where((t2 >= 0)[:, None], scene.tri_tint[np.maximum(t2, 0)], 1.0)  # one-vertex chains: no second tint
     flux = power[:, None] * ls.rgb[m][None, :] * scene.tri_tint[t1] * tint2
     two = len(item.chain) == 2
@@ -108,10 +205,12 @@ def flux_textures(ctx, item, state, ls, m):
         density = corner_densities(tris["uv"], tris["mid_uv"], far, P, b, cf)
     else:
         density = corner_densities(tris["uv"], tris["mid_uv"], x0, P, b, cf)
+    clock = ctx.timer.since("flux.density", clock)
     for r, recv in enumerate(receivers):
         sel = np.flatnonzero(tris["receiver"] == r)
         if sel.size:
             W, H = recv.resolution
             splat_triangles(np.ascontiguousarray(tris["uv"][sel]), np.ascontiguousarray(flux[sel]), int(W), int(H), out[r],
                             np.ascontiguousarray(density[sel]))
+    ctx.timer.since("flux.splat", clock)
     return out

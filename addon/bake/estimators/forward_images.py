@@ -8,6 +8,7 @@ adaptive sub-triangles whose forward-traced images on the receivers are straight
 half a texel (:func:`prepare`), once per light sample and chain, for every receiver and band.
 """
 
+import math
 import time
 
 import numpy as np
@@ -19,6 +20,9 @@ from ..lights import light_points, lit_casters
 IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
 IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to within this
 IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
+IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
+SMALL_CASTER = 8.0  # texels: a first triangle at most this long (world, in the receivers' smallest texels) ...
+SMALL_LOST_DEPTH = 1  # ... has its lost sub-triangles probed and dropped from this many levels below the start
 
 
 class ImageState:
@@ -52,13 +56,16 @@ def _bvh_args(bvh):
     return (bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_start, bvh.node_count, bvh.order, bvh.v0, bvh.e1, bvh.e2)
 
 
-def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False, only=None):
+def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False, only=None,
+            coarse=0, shared=True):
     """Refine the sub-triangles of the emitters (first triangles ``emit_tri`` lit from ``x0``)
     for ``chain`` (one or two vertices; "seeded" needs two); ``second`` the global ids of
     the chain's second-vertex casters (ignored for one vertex); ``receivers`` the receivers at
     the bake's resolution; ``mode`` "flux" or "seeded" (how finely to refine); ``parallel``:
     a sun (the same flux per area all over a first triangle); ``only`` the receiver indices
-    the chain is baked onto (None: all).  Returns an ImageState."""
+    the chain is baked onto (None: all); ``coarse`` levels above the first grid where small
+    images may stop and ``shared`` whether points shared by sub-triangles are traced once
+    (:func:`refine_image_triangles`).  Returns an ImageState."""
     t0 = time.perf_counter()
     tri_rec, tri_uv, second_ok = scene_arrays(scene, receivers, second, only)
     refract1, refract2 = chain[0] == "T", chain[-1] == "T"
@@ -70,9 +77,11 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     tri_ior = np.ascontiguousarray(scene.tri_ior, dtype=np.float64)
     tri_role = np.ascontiguousarray(scene.tri_role, dtype=np.int64)
     bvh_args = _bvh_args(bvh)
+    clock = [0.0]  # seconds inside the tracing kernel (reported as trace_seconds)
 
     def trace(e, u, v):
         """(second triangle, receiver triangle, UV, transport factor) of the points."""
+        t_in = time.perf_counter()
         m = e.shape[0]
         t2 = np.empty(m, dtype=np.int64)
         rec = np.empty(m, dtype=np.int64)
@@ -82,6 +91,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
             trace_chain_points(np.ascontiguousarray(e), np.ascontiguousarray(u), np.ascontiguousarray(v), x0, emit_tri,
                                bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *bvh_args,
                                float(eps), t2, rec, uv, fac)
+        clock[0] += time.perf_counter() - t_in
         return t2, rec, uv, fac
 
     def weight(e, bary):
@@ -93,19 +103,42 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     # "seeded" needs images straight to the margin only (Newton does the rest); "flux" also a
     # near-uniform density and a finely resolved border of what lands.
     extra = dict(weight=weight) if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
+    if coarse and receivers:
+        extra["keep_lost_depth"] = np.where(_small_casters(tri_p[emit_tri], tri_p, receivers, only), SMALL_LOST_DEPTH - int(coarse), 1)
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
-                                  tolerance=IMAGE_TOLERANCE, **extra)
+                                  tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, **extra)
     r = tris["receiver"]
     tris["margin"] = IMAGE_MARGIN * texel[r] + 2.0 * tris["deviation"] if r.size else np.zeros(0)
     arrays = dict(tri_rec=tri_rec, second_ok=second_ok, refract1=refract1, refract2=refract2, tri_p=tri_p, tri_n=tri_n,
                   tri_ior=tri_ior, tri_role=tri_role, bvh=bvh_args, eps=float(eps), trace=trace)
     report = {"emitters": int(emit_tri.size), "points_traced": int(tris["traced"]), "sub_triangles": int(r.size),
               "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "border": int(tris["border"]), "final_per_depth": tris["final_per_depth"],
-              "seconds": time.perf_counter() - t0}
+              "seconds": time.perf_counter() - t0, "trace_seconds": clock[0]}
     return ImageState(chain, emit_tri, x0, tris, arrays, report)
 
 
-def image_state(ctx, item, ls, m, mode):
+def _small_casters(P, tri_p, receivers, only):
+    """(n,) whether each first triangle P (n, 3, 3) is at most SMALL_CASTER texels long (its
+    longest edge, against the smallest world texel of the receivers in ``only``): its lost
+    parts are sampled at its own scale (SMALL_LOST_DEPTH levels below the coarse start: 13
+    points per quarter of the triangle) instead of at 1/64 of it; the flux such a triangle
+    could hide between them is below a texel's worth of its image."""
+    texel = np.inf
+    for r, rec in enumerate(receivers):
+        if only is not None and r not in only:
+            continue
+        e1 = rec.uv[:, 1] - rec.uv[:, 0]
+        e2 = rec.uv[:, 2] - rec.uv[:, 0]
+        uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+        w = tri_p[rec.tri_index]
+        world_area = 0.5 * np.linalg.norm(np.cross(w[:, 1] - w[:, 0], w[:, 2] - w[:, 0]), axis=1).sum()
+        if uv_area > 0:
+            texel = min(texel, math.sqrt(world_area / uv_area) / max(rec.resolution))
+    edge = np.sqrt(((P - P[:, [1, 2, 0]]) ** 2).sum(axis=2)).max(axis=1)
+    return edge <= SMALL_CASTER * texel
+
+
+def image_state(ctx, item, ls, m, mode, coarse=0, shared=True):
     """The refined sub-triangles (:func:`prepare`) of planned chain ``item`` for light sample
     ``m``, or None when the light reaches none of its first casters."""
     scene = ctx.scene
@@ -129,16 +162,18 @@ def image_state(ctx, item, ls, m, mode):
     if not keep.any():
         return None
     state = prepare(scene, ctx.bvh, ctx.eps, item.chain, cast1[keep], x0_all[keep], second, ctx.receivers,
-                    max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers)
+                    max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers,
+                    coarse=coarse, shared=shared)
     state.report["reach"] = reach_report
     return state
 
 
 class ImageCache:
-    """:func:`image_state` once per (planned chain, light sample), with its report."""
+    """:func:`image_state` once per (planned chain, light sample), with its report; ``coarse``
+    and ``shared`` as in :func:`prepare`."""
 
-    def __init__(self, ctx, mode):
-        self.ctx, self.mode = ctx, mode
+    def __init__(self, ctx, mode, coarse=0, shared=True):
+        self.ctx, self.mode, self.coarse, self.shared = ctx, mode, coarse, shared
         self.states = {}
         self.reports = []
 
@@ -146,9 +181,10 @@ class ImageCache:
         key = (item_index, m)
         if key not in self.states:
             t0 = time.perf_counter()
-            state = image_state(self.ctx, item, ls, m, self.mode)
+            state = image_state(self.ctx, item, ls, m, self.mode, self.coarse, self.shared)
             self.states[key] = state
             if state is not None:
+                self.ctx.timer.add("image.trace", state.report["trace_seconds"])
                 self.reports.append({"light": item.light, "light_sample": m, "chain": item.chain, **state.report})
             self.ctx.timer.add("image", time.perf_counter() - t0)
         return self.states[key]

@@ -57,6 +57,7 @@ BORDER_STEPS = 5  # bisections locating a straight border on an edge: to 1/64 of
 BORDER_TEXELS = 0.25  # a partly landed sub-triangle is cut at its border once its whole image is this small
 SLIVER = 4.0  # images stretched beyond this (longest edge² / twice the area) are splatted uniformly
 ROUGH_TEXELS = 0.25  # ... or approximated by its landed points once its whole image is this small (1/16: 4x the time on the metal ring, same error)
+COARSE_TEXELS = 2.0  # a sub-triangle coarser than the first grid is final only if its image is at most this long (texels)
 
 
 @kernel(inline="always")
@@ -177,7 +178,8 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, 
 
 
 def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=4, max_depth=6, tolerance=0.5,
-                           keep_lost_depth=1, partial_depth=None, relative=0.01, weight=None):
+                           keep_lost_depth=1, partial_depth=None, relative=0.01, weight=None, coarse=0,
+                           coarse_texels=COARSE_TEXELS, shared=True):
     """Step 2: adaptive sub-triangles of every emitter's first triangle.
 
     ``trace(emitter, u1, v1) -> (t2, rec_tri, uv[, factor])`` traces points
@@ -204,6 +206,21 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     (edge quarter points, centroid) lands: the corner of a landed region can poke into it
     between the 6 points (the corner of a slab's image did).
 
+    ``coarse`` > 0 starts ``coarse`` levels above the grid (the G/2^coarse grid at depth
+    -coarse; G must be divisible by 2^coarse): a sub-triangle there is final when it passes
+    the tests above, its density is linear even if its image is within a texel (a focus
+    inside a texel: the glass sphere's, tests/bake/test_bake_caustics.py) and its image is at
+    most ``coarse_texels`` long (texels), else it is split
+    (never cut above depth 0; probed and dropped there only where ``keep_lost_depth``, which
+    may be given per emitter, is negative).  The midpoint split of the coarse grid gives
+    exactly the G x G grid (the same triangles, the same corner order, the same traced
+    points), so what is not final above depth 0 is refined as with ``coarse`` = 0; the coarse
+    levels only let small images (a finely tessellated caster: 115k-triangle water) stop
+    early, with far fewer sub-triangles, each still straight to ``tolerance`` with a linear
+    density (tests/solver/test_solver_forward_image.py, tests/bake/test_bake_forward_flux.py).
+    ``shared``: a corner or edge midpoint shared by sub-triangles of one emitter is traced
+    once (:func:`_traced_shared`; the same result as tracing it for each, which False does).
+
     Returns dict: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
     uv (m, 3, 2) their landing UVs, receiver (m,), deviation (m,) UV units, landed (m,) the
     share of the flux that lands (1 but for the approximated partly landed ones), bary_full
@@ -212,9 +229,14 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     landed ones), factor (m, 6) the transport factor at the corners and midpoints, and counts
     (traced points, dropped sub-triangles at the deepest level, partly landed ones seeded
     over their landed points' hull (``partial``), partly landed ones cut at a straight
-    border (``border``), final per depth)."""
+    border (``border``), final per depth from depth 0 on, ``final_coarse`` per level above it)."""
     g = int(grid)
+    c0 = int(coarse)
+    if c0 < 0 or g % (1 << c0):
+        raise ValueError("the grid must be divisible by 2^coarse")
     partial_depth = int(max_depth) + 2 if partial_depth is None else max(int(partial_depth), int(max_depth))
+    dyadic = g << (partial_depth + 1) if shared else 0  # every corner and midpoint is a multiple of 1 / dyadic
+    g >>= c0
     corners = []
     for i in range(g):
         for j in range(g - i):
@@ -224,28 +246,31 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
                 corners.append(((i + 1, j), (i + 1, j + 1), (i, j + 1)))
     base = np.array(corners, dtype=np.float64) / g  # (g², 3, 2)
     ne = int(n_emitters)
+    keep_lost = np.broadcast_to(np.asarray(keep_lost_depth, dtype=np.int64), (ne,))  # per emitter
     emitter = np.repeat(np.arange(ne, dtype=np.int64), base.shape[0])
     bary = np.tile(base, (ne, 1, 1))
-    # corner records: trace every corner (shared corners traced again: simpler, and cheap)
-    _t2, rec, uv, fac = _traced(trace, np.repeat(emitter, 3), bary[:, :, 0].reshape(-1), bary[:, :, 1].reshape(-1))
+    # corner records: a corner shared by sub-triangles of one emitter is traced once
+    _t2, rec, uv, fac, traced = _traced_shared(trace, emitter, bary, dyadic)
     rec = rec.reshape(-1, 3)
     uv = uv.reshape(-1, 3, 2)
     fac = fac.reshape(-1, 3)
-    traced = emitter.size * 3
     inherited = np.full(emitter.size, np.inf)
     out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full", "mid_uv", "factor")}
     dropped = 0
     partial_count = 0
     border_count = 0
     final_per_depth = []
-    for depth in range(partial_depth + 1):
+    final_coarse = []
+    for depth in range(-c0, partial_depth + 1):
         m = emitter.size
+        if depth == 0:
+            inherited = np.full(m, np.inf)  # as without coarse levels
         if m == 0:
-            final_per_depth.append(0)
+            (final_per_depth if depth >= 0 else final_coarse).append(0)
             continue
         mid = 0.5 * (bary + bary[:, [1, 2, 0]])  # midpoints of edges (0,1), (1,2), (2,0)
-        _mt2, mrec, muv, mfac = _traced(trace, np.repeat(emitter, 3), mid[:, :, 0].reshape(-1), mid[:, :, 1].reshape(-1))
-        traced += 3 * m
+        _mt2, mrec, muv, mfac, count = _traced_shared(trace, emitter, mid, dyadic)  # an edge's midpoint once
+        traced += count
         mrec = mrec.reshape(-1, 3)
         muv = muv.reshape(-1, 3, 2)
         mfac = mfac.reshape(-1, 3)
@@ -253,7 +278,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         robj = np.where(rall >= 0, receiver_of_tri[np.maximum(rall, 0)], -1)
         landed = (robj[:, 0] >= 0) & np.all(robj == robj[:, :1], axis=1)
         lost = np.all(robj < 0, axis=1)
-        probe = np.flatnonzero(lost & (depth >= keep_lost_depth) & (depth < partial_depth))
+        kl = keep_lost[emitter]
+        probe = np.flatnonzero(lost & (depth >= kl) & (depth < partial_depth))
         if probe.size:
             lost[probe[_probe_lands(trace, emitter[probe], bary[probe], receiver_of_tri)]] = False
             traced += 7 * probe.size
@@ -272,6 +298,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
                 w6 = w6 * np.concatenate([fac[li], mfac[li]], axis=1)
                 linear[li] = density_nonlinearity(uv[li], muv[li], w6) <= relative
         final = landed & (dev <= tolerance * tex) & (linear | (edge <= tex))
+        if depth < 0:  # coarse: small, and a linear density whatever its size (a focus inside a texel is not)
+            final = landed & (dev <= tolerance * tex) & linear & (edge <= coarse_texels * tex)
         if depth >= int(max_depth):
             final = landed  # as straight as the depth allows: its deviation widens its margin
         last = depth == partial_depth
@@ -283,7 +311,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         # is exact but for the border's curvature inside the sub-triangle).  Any other is
         # split further and, from ``partial_depth`` on, seeded / splatted over the hull of
         # its landed points with their fraction of the flux (see _partial).
-        cand = ~landed & ~lost
+        cand = ~landed & ~lost & (depth >= 0)
         # image size per item in texels, handed down to the children (halved)
         scale = np.where(landed, edge / tex, inherited)
         border = np.zeros(m, dtype=np.bool_)
@@ -311,12 +339,12 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         # (a probed 'lost' one has no landed point to approximate from: it is split, or
         # dropped at the last level)
         partial = cand & ~border & ((depth >= partial_depth) | small) & np.any(robj >= 0, axis=1)
-        drop = (~final & ~partial & ~border & last) | (lost & (depth >= keep_lost_depth))
+        drop = (~final & ~partial & ~border & last) | (lost & (depth >= kl))
         dropped += int(np.count_nonzero(~final & ~partial & ~border & last & ~lost))
         fi = np.flatnonzero(final)
         pi = np.flatnonzero(partial)
         p_bary, p_uv, p_rec, p_dev = _partial(bary[pi], mid[pi], uv[pi], muv[pi], robj[pi])
-        final_per_depth.append(int(fi.size + pi.size + bi.size))
+        (final_per_depth if depth >= 0 else final_coarse).append(int(fi.size + pi.size + bi.size))
         nb = b_em.size
         out["emitter"].append(np.concatenate([emitter[fi], emitter[pi], b_em]))
         out["bary"].append(np.concatenate([bary[fi], p_bary, b_bary]))
@@ -366,6 +394,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     cat["partial"] = partial_count
     cat["border"] = border_count
     cat["final_per_depth"] = final_per_depth
+    cat["final_coarse"] = final_coarse
     return cat
 
 
@@ -375,6 +404,36 @@ def _traced(trace, e, u, v):
     if len(res) > 3:
         return res[0], res[1], res[2], np.asarray(res[3], dtype=np.float64)
     return res[0], res[1], res[2], np.ones(e.shape[0])
+
+
+def _traced_shared(trace, emitter, pts, scale):
+    """:func:`_traced` of the points ``pts`` (m, k, 2) of ``emitter`` (m,) (flattened, m k),
+    each distinct (emitter, point) traced once (neighbouring sub-triangles share corners and
+    edge midpoints), and the number of points traced.  The points are multiples of 1 /
+    ``scale`` (the dyadic grid of the refinement), so equal points have equal integer keys;
+    the result is the same as tracing every point (a point's trace is deterministic), which
+    ``scale`` 0 does."""
+    k = pts.shape[1]
+    e = np.repeat(emitter, k)
+    u = pts[:, :, 0].reshape(-1)
+    v = pts[:, :, 1].reshape(-1)
+    if not scale:
+        t2, rec, uv, fac = _traced(trace, e, u, v)  # every point
+        return t2, rec, uv, fac, e.size
+    if e.size == 0:
+        t2, rec, uv, fac = _traced(trace, e, u, v)
+        return t2, rec, uv, fac, 0
+    iu = np.rint(u * scale)
+    iv = np.rint(v * scale)
+    s1 = int(scale) + 1
+    if (int(e.max()) + 1) * s1 * s1 >= 1 << 62 or not (np.array_equal(iu, u * scale) and np.array_equal(iv, v * scale)):
+        t2, rec, uv, fac = _traced(trace, e, u, v)  # not on the grid (or too fine to key): every point
+        return t2, rec, uv, fac, e.size
+    key = (e * s1 + iu.astype(np.int64)) * s1 + iv.astype(np.int64)
+    _uniq, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    t2, rec, uv, fac = _traced(trace, e[first], np.ascontiguousarray(u[first]), np.ascontiguousarray(v[first]))
+    inverse = inverse.reshape(-1)
+    return t2[inverse], rec[inverse], uv[inverse], fac[inverse], first.size
 
 
 def _single_border(robj):

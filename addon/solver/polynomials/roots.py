@@ -326,52 +326,63 @@ def roots_in_unit_interval(coeffs, degree, x_tolerance, touch_tolerance, chain, 
 
 
 @kernel
-def bernstein_value_and_derivative(b, deg, x):
-    """Value and derivative at x in [0, 1] of sum_k b[k] C(deg, k) x^k (1 - x)^(deg - k).
+def bernstein_weights(b, deg, w, dw):
+    """w[k] = C(deg, k) b[k] and dw[k] = deg C(deg - 1, k) (b[k+1] - b[k]): the scaled power
+    coefficients that :func:`bernstein_value_and_derivative` runs Horner on."""
+    binom = 1.0
+    for k in range(deg + 1):
+        w[k] = binom * b[k]
+        binom = binom * (deg - k) / (k + 1)
+    binom = float(deg)
+    for k in range(deg):
+        dw[k] = binom * (b[k + 1] - b[k])
+        binom = binom * (deg - 1 - k) / (k + 1)
+
+
+@kernel
+def bernstein_value_and_derivative(w, dw, deg, x):
+    """Value and derivative at x in [0, 1] of sum_k b[k] C(deg, k) x^k (1 - x)^(deg - k), from
+    the weights of :func:`bernstein_weights`.
 
     Horner in t = x / (1 - x) (or (1 - x) / x past the middle), scaled back by the power of
-    the larger of x, 1 - x: O(deg) and as stable as de Casteljau on [0, 1].  The derivative
-    is the degree deg - 1 form with coefficients deg (b[k+1] - b[k]).
+    the larger of x, 1 - x: O(deg), no division in the loop, as stable as de Casteljau on
+    [0, 1].  The derivative is the degree deg - 1 form with coefficients deg (b[k+1] - b[k]).
     """
     s = 1.0 - x
     if x <= 0.5:
         t = x / s
-        f = b[deg]
-        df = b[deg] - b[deg - 1]
-        binom = 1.0
-        binom_d = 1.0
+        f = w[deg]
+        df = dw[deg - 1]
         for k in range(deg - 1, -1, -1):
-            binom = binom * (k + 1) / (deg - k)  # C(deg, k)
-            f = f * t + binom * b[k]
-            if k < deg - 1:
-                binom_d = binom_d * (k + 1) / (deg - 1 - k)  # C(deg - 1, k)
-                df = df * t + binom_d * (b[k + 1] - b[k])
-        p = s ** (deg - 1)
-        return f * p * s, deg * df * p
-    t = s / x
-    f = b[0]
-    df = b[1] - b[0]
-    binom = 1.0
-    binom_d = 1.0
-    for k in range(1, deg + 1):
-        binom = binom * (deg - k + 1) / k  # C(deg, k)
-        f = f * t + binom * b[k]
-        if k < deg:
-            binom_d = binom_d * (deg - k) / k  # C(deg - 1, k)
-            df = df * t + binom_d * (b[k + 1] - b[k])
-    p = x ** (deg - 1)
-    return f * p * x, deg * df * p
+            f = f * t + w[k]
+        for k in range(deg - 2, -1, -1):
+            df = df * t + dw[k]
+        base = s
+    else:
+        t = s / x
+        f = w[0]
+        df = dw[0]
+        for k in range(1, deg + 1):
+            f = f * t + w[k]
+        for k in range(1, deg):
+            df = df * t + dw[k]
+        base = x
+    p = 1.0
+    for _ in range(deg - 1):
+        p *= base
+    return f * p * base, df * p
 
 
 @kernel
-def _solve_monotone_bernstein(b, deg, a, c, fa, fc, x_tolerance):
-    """:func:`_solve_monotone` for a polynomial in Bernstein form on [0, 1]."""
+def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_tolerance):
+    """:func:`_solve_monotone` for a polynomial in Bernstein form on [0, 1] (weights as in
+    :func:`bernstein_weights`)."""
     x = a - fa * (c - a) / (fc - fa)
     if not (x > a and x < c):
         x = 0.5 * (a + c)
     negative_at_a = fa < 0.0
     for _ in range(NEWTON_ITERATIONS):
-        f, df = bernstein_value_and_derivative(b, deg, x)
+        f, df = bernstein_value_and_derivative(w, dw, deg, x)
         if f == 0.0:
             return x
         if (f < 0.0) == negative_at_a:
@@ -414,6 +425,9 @@ def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, ch
     src = stack[STACK_ROWS - 1]  # the whole-interval form, kept for evaluation
     for k in range(deg + 1):
         src[k] = top_row[k]
+    have_weights = False
+    src_w = stack[STACK_ROWS - 2]
+    src_dw = stack[STACK_ROWS - 3]
     have_power = False
     zero_level = touch_tolerance
     work = stack[STACK_ROWS]
@@ -443,7 +457,10 @@ def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, ch
             fa = row[0]
             fb = row[deg]
             if fa != 0.0 and fb != 0.0 and (fa < 0.0) != (fb < 0.0):
-                x = _solve_monotone_bernstein(src, deg, lo, hi, fa, fb, x_tolerance)
+                if not have_weights:
+                    bernstein_weights(src, deg, src_w, src_dw)
+                    have_weights = True
+                x = _solve_monotone_bernstein(src_w, src_dw, deg, lo, hi, fa, fb, x_tolerance)
                 if n_out == 0 or x - out[n_out - 1] > x_tolerance:
                     out[n_out] = x
                     n_out += 1

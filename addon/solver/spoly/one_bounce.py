@@ -9,21 +9,21 @@ vertex x1.  Two bivariate polynomials vanish at every admissible path:
   square form for refraction, eq (10) (degree 6, eq 26).
 
 u is eliminated with the resultant r(v) = Res_u(a, b) (eq 28–30) and the real roots of r in
-[0, 1] are found by derivative isolation (``roots.py``); u follows from a(u, v*) = 0, and
+[0, 1] are found by Bernstein isolation (``roots.py``); u follows from a(u, v*) = 0, and
 each candidate is Newton-polished and validated in path space (``one_vertex.py``).
 
-Resultant in closed form.  a has total degree 2, so its u² coefficient a2 is a constant and
-a = a2 u² + a1(v) u + a0(v).  The Bézout matrix (eq 29) of (a, b) would be n×n with
-polynomial entries; because a is quadratic it collapses to the symmetric-function identity
-Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a), which expanded with power sums
-s_m = σ_m / a2^m (σ_0 = 2, σ_1 = -a1, σ_m = -a1 σ_{m-1} - a0 a2 σ_{m-2}) is
-
-    Res = Σ_i a0^i b_i T_i,   T_i = b_i a2^(n-i) + Σ_{j>i} b_j a2^(n-j) σ_{j-i},
-
-a polynomial in the coefficients with no division: it stays exact when a2 → 0 (flat
-normals, where a is linear in u) instead of blowing up like a remainder-based reduction.
-Its univariate coefficients are formed explicitly, as in §4.2, and it has degree ≤ 8 (R) or
-≤ 12 (T) in v.
+Resultant from values.  a has total degree 2, so a = a2 u² + a1(v) u + a0(v) with a2 a
+constant, and Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a): per v, with
+q = -(a1 + sign(a1) √disc) / 2, Res = B(q, a2) b(a0 / q), B(x, y) = Σ b_i x^i y^(n-i), exact
+as a2 → 0 (flat normals); complex roots give a2^n |b(ρ)|².  r has degree ≤ 8 (R) or ≤ 12 (T);
+it is evaluated at the Chebyshev nodes and interpolated to Bernstein form (the same
+polynomial as the Bézout determinant of eq 29).  Values are accurate to a few ulps, where the
+symbolic expansion Σ a0^i b_i T_i cancels badly when b is small along the conic next to a
+path (an endpoint close to a large triangle, grazing incidence); where the node values span
+more than DYNAMIC_RANGE the range is re-interpolated piecewise (``_resultant_v_roots``).  The
+triangle's corners are relabelled per tuple so that u is eliminated along an edge where the
+conic does not fold (``elimination_labelling``).  Tested against brute force in
+tests/solver/test_solver_random.py and test_solver_grazing.py.
 
 The projection vector b (eq 10) and the tangent t = n × b (eq 13) are chosen per tuple as
 the normal of the plane of incidence at the mean shading normal, b = (x2 - x0) × n̄, so

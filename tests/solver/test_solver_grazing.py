@@ -5,8 +5,8 @@ water / glass, the reverse paths leaving at grazing angles, and light inside jus
 critical angle; flat-ish, tilted and curved normal fields; endpoints close to large triangles
 and a far sun).  Every tuple holds a planted path.  Asserts: every planted path is returned
 (fast test); zero false paths (independent contract check, 1e-6); recall >= 99.99 % of the
-brute-force paths that are not at the contract's edge of validity (slow test, reference
-bruteforce.py over every tuple).
+brute-force paths that are not at the contract's edge of validity, together with the planted
+paths the brute force itself misses (slow test, reference bruteforce.py over every tuple).
 """
 from __future__ import annotations
 
@@ -58,14 +58,19 @@ def test_grazing_recall_against_bruteforce():
     b = d["bf_chk"]
     required = ((b.inside_margin >= RECALL_MARGIN) & (b.cos_i >= GRAZE_MARGIN) & (b.k_min >= TIR_MARGIN)
                 & (d["bf_sigma"] >= SIGMA_MARGIN))
-    m = match_paths(d["bf_t"], d["bf_uv"], ti, uv)
-    miss = np.flatnonzero(required & (m < 0))
+    # the truth: the brute-force paths plus the planted ones it did not find (valid by construction;
+    # dense seeding misses a few next to the near-root clusters of these tuples)
     planted_bf = match_paths(np.arange(n), d["uv"], d["bf_t"], d["bf_uv"]) >= 0
+    extra = np.flatnonzero(~planted_bf)
+    truth_t = np.concatenate([d["bf_t"][required], extra])
+    truth_uv = np.concatenate([d["bf_uv"][required], d["uv"][extra]])
+    m = match_paths(truth_t, truth_uv, ti, uv)
+    miss = np.flatnonzero(m < 0)
     print(f"\n[grazing] tuples={n} brute-force paths={len(d['bf_t'])} required={int(required.sum())} "
-          f"missed={len(miss)} (recall {1 - len(miss) / max(1, required.sum()):.6f}) solver paths={len(ti)} "
-          f"false={int((~chk.valid).sum())}; brute force recovers {int(planted_bf.sum())}/{n} planted")
-    assert planted_bf.mean() > 0.999  # the reference itself sees the planted paths
-    assert required.sum() >= 10_000
+          f"+ planted paths the brute force missed={len(extra)}: missed={len(miss)} of {len(truth_t)} "
+          f"(recall {1 - len(miss) / max(1, len(truth_t)):.6f}) solver paths={len(ti)} false={int((~chk.valid).sum())}")
+    assert planted_bf.mean() > 0.99  # the reference itself sees the planted paths
+    assert len(truth_t) >= 10_000
     assert chk.valid.all()
-    assert len(miss) <= int(np.floor((1 - RECALL_MIN) * required.sum())), (
-        f"{len(miss)} missed: " + "; ".join(f"tuple {d['bf_t'][k]} uv {d['bf_uv'][k].tolist()}" for k in miss[:5]))
+    assert len(miss) <= int(np.floor((1 - RECALL_MIN) * len(truth_t))), (
+        f"{len(miss)} missed: " + "; ".join(f"tuple {truth_t[k]} uv {truth_uv[k].tolist()}" for k in miss[:5]))

@@ -12,15 +12,16 @@ u is eliminated with the resultant r(v) = Res_u(a, b) (eq 28–30) and the real 
 [0, 1] are found by Bernstein isolation (``roots.py``); u follows from a(u, v*) = 0, and
 each candidate is Newton-polished and validated in path space (``one_vertex.py``).
 
-Resultant from values.  a has total degree 2, so a = a2 u² + a1(v) u + a0(v) with a2 a
-constant, and Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a): per v, with
-q = -(a1 + sign(a1) √disc) / 2, Res = B(q, a2) b(a0 / q), B(x, y) = Σ b_i x^i y^(n-i), exact
-as a2 → 0 (flat normals); complex roots give a2^n |b(ρ)|².  r has degree ≤ 8 (R) or ≤ 12 (T);
-it is evaluated at the Chebyshev nodes and interpolated to Bernstein form (the same
-polynomial as the Bézout determinant of eq 29).  Values are accurate to a few ulps, where the
-symbolic expansion Σ a0^i b_i T_i cancels badly when b is small along the conic next to a
-path (an endpoint close to a large triangle, grazing incidence); where the node values span
-more than DYNAMIC_RANGE the range is re-interpolated piecewise (``_resultant_v_roots``).  The
+Resultant.  a has total degree 2, so a = a2 u² + a1(v) u + a0(v) with a2 a constant, and
+Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a); r has degree ≤ 8 (R) or ≤ 12 (T).
+R expands it symbolically, Res = Σ_i a0^i b_i T_i with T_i = b_i a2^(n-i) + Σ_{j>i} b_j
+a2^(n-j) σ_{j-i} (power sums σ_0 = 2, σ_1 = -a1, σ_m = -a1 σ_{m-1} - a0 a2 σ_{m-2}): no
+division, exact as a2 → 0.  T evaluates it instead, per v with q = -(a1 + sign(a1) √disc) / 2:
+Res = B(q, a2) b(a0 / q), B(x, y) = Σ b_i x^i y^(n-i) (complex roots: a2^n |b(ρ)|²), at the
+Chebyshev nodes, interpolated to Bernstein form: values are good to a few ulps, where the
+square form's expansion cancels badly when b is small along the conic next to a path (an
+endpoint close to a large triangle, grazing incidence); where the node values span more than
+DYNAMIC_RANGE the range is re-interpolated piecewise (``_resultant_v_roots``).  The
 triangle's corners are relabelled per tuple so that u is eliminated along an edge where the
 conic does not fold (``elimination_labelling``).  Tested against brute force in
 tests/solver/test_solver_random.py and test_solver_grazing.py.
@@ -132,6 +133,89 @@ def _bmax(p, d):
         for j in range(d + 1 - i):
             m = max(m, abs(p[i, j]))
     return m
+
+
+# --- univariate polynomials in v: the symbolic resultant (R) -------------------------------
+
+
+@kernel(inline="always")
+def _umul(p, dp, q, dq, out):
+    for k in range(dp + dq + 1):
+        out[k] = 0.0
+    for i in range(dp + 1):
+        c = p[i]
+        if c != 0.0:
+            for j in range(dq + 1):
+                out[i + j] += c * q[j]
+
+
+@kernel
+def _resultant_quadratic_in_u(a, b, nb, tb, uni, out):
+    """Res_u(a, b) as a polynomial in v (see the module docstring); returns its degree.
+
+    a: bivariate, total degree 2 (a[2, 0] is the constant a2); b: bivariate of total degree
+    tb and effective u-degree nb (b[i, :] = b_i(v), degree tb - i).
+    """
+    a2 = a[2, 0]
+    # Rows of the scratch: 0..nb sigma_m, nb+1 T_i, nb+2 product, nb+3 a0, nb+4 a1,
+    # nb+5 b_i T_i, nb+6 Horner accumulator (uses nb+7 as temporary).
+    a0 = uni[nb + 3]
+    a1 = uni[nb + 4]
+    a0[0] = a[0, 0]
+    a0[1] = a[0, 1]
+    a0[2] = a[0, 2]
+    a1[0] = a[1, 0]
+    a1[1] = a[1, 1]
+    sigma = uni
+    sigma[0, 0] = 2.0
+    if nb >= 1:
+        sigma[1, 0] = -a1[0]
+        sigma[1, 1] = -a1[1]
+    tmp = uni[nb + 2]
+    for m in range(2, nb + 1):
+        # sigma_m = -a1 sigma_{m-1} - a2 a0 sigma_{m-2}   (degree m)
+        _umul(a1, 1, sigma[m - 1], m - 1, sigma[m])
+        _umul(a0, 2, sigma[m - 2], m - 2, tmp)
+        for k in range(m + 1):
+            sigma[m, k] = -sigma[m, k] - a2 * tmp[k]
+    acc = uni[nb + 6]
+    acc_tmp = uni[nb + 7]
+    acc_deg = -1
+    t_poly = uni[nb + 1]
+    bt = uni[nb + 5]
+    for i in range(nb, -1, -1):
+        deg_t = tb - i
+        for k in range(deg_t + 1):
+            t_poly[k] = 0.0
+        # b_i a2^(nb-i)
+        p = a2 ** (nb - i)
+        if p != 0.0:
+            for k in range(tb - i + 1):
+                t_poly[k] += p * b[i, k]
+        for j in range(i + 1, nb + 1):
+            p = a2 ** (nb - j)
+            if p == 0.0:
+                continue
+            _umul(b[j], tb - j, sigma[j - i], j - i, tmp)
+            for k in range(tb - i + 1):
+                t_poly[k] += p * tmp[k]
+        _umul(b[i], tb - i, t_poly, deg_t, bt)
+        deg_bt = 2 * (tb - i)
+        # acc = acc * a0 + b_i T_i
+        if acc_deg < 0:
+            for k in range(deg_bt + 1):
+                acc[k] = bt[k]
+            acc_deg = deg_bt
+        else:
+            _umul(acc, acc_deg, a0, 2, acc_tmp)
+            acc_deg += 2
+            for k in range(acc_deg + 1):
+                acc[k] = acc_tmp[k]
+            for k in range(deg_bt + 1):
+                acc[k] += bt[k]
+    for k in range(acc_deg + 1):
+        out[k] = acc[k]
+    return acc_deg
 
 
 # --- the resultant in v -------------------------------------------------------------------
@@ -476,11 +560,16 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
     v_roots = root_buf[0]
     # Roots in v ∈ [-V_MARGIN, 1 + V_MARGIN], found as roots in s ∈ [0, 1] of
     # r(-V_MARGIN + (1 + 2 V_MARGIN) s), so the root finder's [0, 1] fast path applies.
-    if nb == 0:
-        # b does not depend on u: its own roots in v are the candidates.
-        deg_r = total_b
-        for k in range(deg_r + 1):
-            res[k] = b_poly[0, k]
+    if nb == 0 or not refract:
+        if nb == 0:
+            # b does not depend on u: its own roots in v are the candidates.
+            deg_r = total_b
+            for k in range(deg_r + 1):
+                res[k] = b_poly[0, k]
+        else:
+            # R: the product form keeps the resultant's dynamic range small, and the symbolic
+            # expansion (power basis) is the cheaper route there.
+            deg_r = _resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, scratch_uni, res)
         if stop_after == 1:
             return count
         _shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN)
@@ -491,7 +580,7 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
                                 scratch_uni[1], res)
             return count
         n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, stack, v_roots)
-    if nb == 0:
+    if nb == 0 or not refract:
         for iv in range(n_v):
             v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     stats[STAT_ROOTS] += n_v

@@ -319,6 +319,21 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
     k0 = row(tri_n, 0)
     k1 = row(tri_n, 1)
     k2 = row(tri_n, 2)
+    # The side tests of _solve_labelled first, in the caller's labelling: most tuples of an
+    # unculled batch end here, before the labelling costs anything.
+    e1 = sub(q1, q0)
+    e2 = sub(q2, q0)
+    ng, area2 = geometric_normal(e1, e2)
+    length = max(norm(e1), norm(e2))
+    if not (area2 > 1e-14 * length * length) or not (eta > 0.0):
+        stats[STAT_SKIPPED] = 1
+        return 0
+    side0 = dot(sub(x0, q0), ng)
+    side2 = dot(sub(x2, q0), ng)
+    tiny = 1e-12 * length
+    if abs(side0) <= tiny or abs(side2) <= tiny or (side0 * side2 < 0.0) != refract:
+        stats[STAT_SKIPPED] = 1
+        return 0
     labelling = elimination_labelling(x0, x2, q0, q1, q2, k0, k1, k2)
     if labelling == 0:
         return _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, scratch_biv, scratch_uni,

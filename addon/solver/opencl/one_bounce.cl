@@ -2,6 +2,10 @@
 // addon/solver/one_bounce.py, roots.py and path_space.py (Fan et al. 2024, eq 6, 10, 13,
 // 28-31), so both back ends return the same paths.  One work-item per tuple; all scratch is
 // private and fixed-size.  Double precision (cl_khr_fp64) is required.
+// Not yet ported: for T the Numba solver evaluates the resultant at Chebyshev nodes and
+// interpolates it (piecewise where it spans > 1e6, spoly/one_bounce.py); this kernel still
+// expands it symbolically, and can miss grazing refractions with an endpoint close to a large
+// triangle that the Numba solver finds (tests/solver/test_solver_grazing.py is Numba only).
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
 

@@ -2,6 +2,10 @@
 // addon/solver/one_bounce.py, roots.py and path_space.py (Fan et al. 2024, eq 6, 10, 13,
 // 28-31), so both back ends return the same paths.  One work-item per tuple; all scratch is
 // private and fixed-size.  Double precision (cl_khr_fp64) is required.
+// Not yet ported: for T the Numba solver evaluates the resultant at Chebyshev nodes and
+// interpolates it (piecewise where it spans > 1e6, spoly/one_bounce.py); this kernel still
+// expands it symbolically, and can miss grazing refractions with an endpoint close to a large
+// triangle that the Numba solver finds (tests/solver/test_solver_grazing.py is Numba only).
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
 
@@ -23,6 +27,7 @@
 #define INSIDE_EPSILON 1e-9
 #define SETTLED_STEP 1e-9
 #define FOLD_RATIO 1e-4
+#define SWITCH_RATIO 0.1
 
 typedef double3 vec;
 
@@ -555,6 +560,27 @@ static vec load3(__global const double *a, long i) { return (vec)(a[3 * i], a[3 
 // whatever order the work-items get there (the host sorts them); the statistics are summed
 // into acc[1 + 5 s .. 5 + 5 s] (roots, candidates, paths, skipped, tuples with more than 8
 // paths) for slot s = t % n_slots, so that no single counter takes every work-item's atomic.
+static double fold_free_size(double g0, double g1, double g2) {
+    if ((g0 > 0.0 && g1 > 0.0 && g2 > 0.0) || (g0 < 0.0 && g1 < 0.0 && g2 < 0.0)) return fmin(fabs(g0), fmin(fabs(g1), fabs(g2)));
+    return 0.0;
+}
+
+// one_bounce.py elimination_labelling: 0 = (p0, p1, p2), 1 = (p0, p2, p1), 2 = (p1, p2, p0)
+static int elimination_labelling(const Tuple *T) {
+    vec w = T->x2 - T->x0;
+    vec c0 = cross(T->p0 - T->x0, w), c1 = cross(T->e1, w), c2 = cross(T->e2, w);
+    double a20 = dot(c1, T->m1), a02 = dot(c2, T->m2), a11 = dot(c1, T->m2) + dot(c2, T->m1);
+    double a10 = dot(c0, T->m1) + dot(c1, T->n0), a01 = dot(c0, T->m2) + dot(c2, T->n0);
+    double du0 = a10, du1 = a10 + 2.0 * a20, du2 = a10 + a11;
+    double dv0 = a01, dv1 = a01 + a11, dv2 = a01 + 2.0 * a02;
+    double score_u = fabs(a20) + fold_free_size(du0, du1, du2);
+    double score_v = fabs(a02) + fold_free_size(dv0, dv1, dv2);
+    double score_s = fabs(a20 - a11 + a02) + fold_free_size(dv0 - du0, dv1 - du1, dv2 - du2);
+    double best = fmax(score_v, score_s);
+    if (!(score_u < SWITCH_RATIO * best)) return 0;
+    return score_v >= score_s ? 1 : 2;
+}
+
 __kernel void solve_one_bounce(const int refract, __global const double *x_start, __global const double *x_end,
                                __global const double *P, __global const double *N, __global const double *eta,
                                const int n, const int first, const int capacity, const int n_slots,
@@ -574,7 +600,7 @@ __kernel void solve_one_bounce(const int refract, __global const double *x_start
     T.eta = eta[t];
     Paths out;
     out.count = 0;
-    int n_roots = 0, n_candidates = 0, skipped = 0;
+    int n_roots = 0, n_candidates = 0, skipped = 0, labelling = 0;
 
     vec g = cross(T.e1, T.e2);
     double area2 = length(g);
@@ -587,6 +613,25 @@ __kernel void solve_one_bounce(const int refract, __global const double *x_start
         ((side0 * side2 < 0.0) != refract) || length(n_mean) == 0.0) {
         skipped = 1;
     } else {
+        // the corner labelling of one_bounce.py's elimination_labelling: u is eliminated along the
+        // triangle edge where the coplanarity conic does not fold
+        labelling = elimination_labelling(&T);
+        if (labelling != 0) {
+            vec q0 = load3(P, 3L * t), q1 = load3(P, 3L * t + 1), q2 = load3(P, 3L * t + 2);
+            vec k0 = load3(N, 3L * t), k1 = load3(N, 3L * t + 1), k2 = load3(N, 3L * t + 2);
+            if (labelling == 1) {  // (p0, p2, p1)
+                T.e1 = q2 - q0; T.e2 = q1 - q0; T.m1 = k2 - k0; T.m2 = k1 - k0;
+            } else {  // (p1, p2, p0)
+                T.p0 = q1; T.e1 = q2 - q1; T.e2 = q0 - q1; T.n0 = k1; T.m1 = k2 - k1; T.m2 = k0 - k1;
+            }
+            g = cross(T.e1, T.e2);
+            area2 = length(g);
+            T.ng = area2 > 0.0 ? g / area2 : g;
+            len = fmax(length(T.e1), length(T.e2));
+            side0 = dot(T.x0 - T.p0, T.ng);
+            side2 = dot(T.x2 - T.p0, T.ng);
+            n_mean = 3.0 * T.n0 + T.m1 + T.m2;
+        }
         double inv_l = 1.0 / len;
         vec E1 = T.e1 * inv_l, E2 = T.e2 * inv_l, A = (T.x0 - T.p0) * inv_l, B = (T.x2 - T.p0) * inv_l;
         vec w = B - A;
@@ -641,6 +686,11 @@ __kernel void solve_one_bounce(const int refract, __global const double *x_start
                 on_axis_candidate(&T, &out, &n_candidates);
             }
         }
+    }
+    for (int q = 0; q < min(out.count, 8); ++q) {
+        double up = out.u[q], vp = out.v[q];
+        if (labelling == 1) { out.u[q] = vp; out.v[q] = up; }
+        else if (labelling == 2) { out.u[q] = 1.0 - up - vp; out.v[q] = up; }
     }
     int stored = min(out.count, 8);
     if (stored > 0) {

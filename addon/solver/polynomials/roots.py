@@ -323,3 +323,185 @@ def roots_in_unit_interval(coeffs, degree, x_tolerance, touch_tolerance, chain, 
         row[meta + 2] = depth + 1.0
         top += 2
     return n_out
+
+
+@kernel
+def bernstein_weights(b, deg, w, dw):
+    """w[k] = C(deg, k) b[k] and dw[k] = deg C(deg - 1, k) (b[k+1] - b[k]): the scaled power
+    coefficients that :func:`bernstein_value_and_derivative` runs Horner on."""
+    binom = 1.0
+    for k in range(deg + 1):
+        w[k] = binom * b[k]
+        binom = binom * (deg - k) / (k + 1)
+    binom = float(deg)
+    for k in range(deg):
+        dw[k] = binom * (b[k + 1] - b[k])
+        binom = binom * (deg - 1 - k) / (k + 1)
+
+
+@kernel
+def bernstein_value_and_derivative(w, dw, deg, x):
+    """Value and derivative at x in [0, 1] of sum_k b[k] C(deg, k) x^k (1 - x)^(deg - k), from
+    the weights of :func:`bernstein_weights`.
+
+    Horner in t = x / (1 - x) (or (1 - x) / x past the middle), scaled back by the power of
+    the larger of x, 1 - x: O(deg), no division in the loop, as stable as de Casteljau on
+    [0, 1].  The derivative is the degree deg - 1 form with coefficients deg (b[k+1] - b[k]).
+    """
+    s = 1.0 - x
+    if x <= 0.5:
+        t = x / s
+        f = w[deg]
+        df = dw[deg - 1]
+        for k in range(deg - 1, -1, -1):
+            f = f * t + w[k]
+        for k in range(deg - 2, -1, -1):
+            df = df * t + dw[k]
+        base = s
+    else:
+        t = s / x
+        f = w[0]
+        df = dw[0]
+        for k in range(1, deg + 1):
+            f = f * t + w[k]
+        for k in range(1, deg):
+            df = df * t + dw[k]
+        base = x
+    p = 1.0
+    for _ in range(deg - 1):
+        p *= base
+    return f * p * base, df * p
+
+
+@kernel
+def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_tolerance):
+    """:func:`_solve_monotone` for a polynomial in Bernstein form on [0, 1] (weights as in
+    :func:`bernstein_weights`)."""
+    x = a - fa * (c - a) / (fc - fa)
+    if not (x > a and x < c):
+        x = 0.5 * (a + c)
+    negative_at_a = fa < 0.0
+    for _ in range(NEWTON_ITERATIONS):
+        f, df = bernstein_value_and_derivative(w, dw, deg, x)
+        if f == 0.0:
+            return x
+        if (f < 0.0) == negative_at_a:
+            a = x
+        else:
+            c = x
+        if df != 0.0:
+            x_next = x - f / df
+        else:
+            x_next = 0.5 * (a + c)
+        if not (x_next > a and x_next < c):
+            x_next = 0.5 * (a + c)
+        if abs(x_next - x) <= x_tolerance or c - a <= x_tolerance:
+            return x_next
+        x = x_next
+    return x
+
+
+@kernel
+def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, chain, lists, stack, power, out):
+    """All real roots in [0, 1] of the polynomial with Bernstein coefficients ``bern[0..deg]``,
+    ascending; returns their count.
+
+    The isolation of :func:`roots_in_unit_interval` (Descartes' rule on Bernstein pieces,
+    de Casteljau halving), started from the Bernstein form itself, which is the better
+    conditioned input when the coefficients come from values (interpolation at nodes):
+    Newton evaluates the Bernstein form.  Pieces still ambiguous after ``SUBDIVISION_DEPTH``
+    halvings go to the derivative isolation of :func:`roots_in_interval` on the power form
+    (written to ``power``, a row of at least deg + 1).
+    """
+    scale = 0.0
+    for k in range(deg + 1):
+        scale = max(scale, abs(bern[k]))
+    if scale == 0.0 or not np.isfinite(scale):
+        return 0
+    inv = 1.0 / scale
+    top_row = stack[0]
+    for k in range(deg + 1):
+        top_row[k] = bern[k] * inv
+    src = stack[STACK_ROWS - 1]  # the whole-interval form, kept for evaluation
+    for k in range(deg + 1):
+        src[k] = top_row[k]
+    have_weights = False
+    src_w = stack[STACK_ROWS - 2]
+    src_dw = stack[STACK_ROWS - 3]
+    have_power = False
+    zero_level = touch_tolerance
+    work = stack[STACK_ROWS]
+    meta = deg + 1
+    top_row[meta] = 0.0
+    top_row[meta + 1] = 1.0
+    top_row[meta + 2] = 0.0
+    top = 1
+    n_out = 0
+    while top > 0:
+        top -= 1
+        row = stack[top]
+        lo = row[meta]
+        hi = row[meta + 1]
+        depth = row[meta + 2]
+        changes = _sign_changes(row, deg, zero_level)
+        if changes == 0:
+            closest = abs(row[0])
+            for k in range(1, deg + 1):
+                closest = min(closest, abs(row[k]))
+            if closest > NEAR_TOUCH:
+                continue
+            changes = 2
+            depth = SUBDIVISION_DEPTH
+        if changes == 1:
+            # the piece's end values are its first and last Bernstein coefficients
+            fa = row[0]
+            fb = row[deg]
+            if fa != 0.0 and fb != 0.0 and (fa < 0.0) != (fb < 0.0):
+                if not have_weights:
+                    bernstein_weights(src, deg, src_w, src_dw)
+                    have_weights = True
+                x = _solve_monotone_bernstein(src_w, src_dw, deg, lo, hi, fa, fb, x_tolerance)
+                if n_out == 0 or x - out[n_out - 1] > x_tolerance:
+                    out[n_out] = x
+                    n_out += 1
+                continue
+        if depth >= SUBDIVISION_DEPTH:
+            if not have_power:
+                # Bernstein -> power: c_i = C(deg, i) sum_{k<=i} (-1)^(i-k) C(i, k) b_k
+                binom_deg = 1.0
+                for i in range(deg + 1):
+                    acc = 0.0
+                    binom = 1.0
+                    for k in range(i + 1):
+                        sign = 1.0 if (i - k) % 2 == 0 else -1.0
+                        acc += sign * binom * src[k]
+                        binom = binom * (i - k) / (k + 1)
+                    power[i] = binom_deg * acc
+                    binom_deg = binom_deg * (deg - i) / (i + 1)
+                have_power = True
+            n_piece = roots_in_interval(power, deg, lo, hi, x_tolerance, touch_tolerance, chain, lists, lists[1])
+            for j in range(n_piece):
+                x = lists[1, j]
+                if n_out == 0 or x - out[n_out - 1] > x_tolerance:
+                    out[n_out] = x
+                    n_out += 1
+            continue
+        for i in range(deg + 1):
+            work[i] = row[i]
+        left = stack[top + 1]
+        left[0] = work[0]
+        row[deg] = work[deg]
+        for r in range(1, deg + 1):
+            for i in range(deg - r + 1):
+                work[i] = 0.5 * (work[i] + work[i + 1])
+            left[r] = work[0]
+            row[deg - r] = work[deg - r]
+        mid = 0.5 * (lo + hi)
+        left[meta] = lo
+        left[meta + 1] = mid
+        left[meta + 2] = depth + 1.0
+        row[meta] = mid
+        row[meta + 1] = hi
+        row[meta + 2] = depth + 1.0
+        top += 2
+    return n_out

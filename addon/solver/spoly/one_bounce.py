@@ -9,21 +9,22 @@ vertex x1.  Two bivariate polynomials vanish at every admissible path:
   square form for refraction, eq (10) (degree 6, eq 26).
 
 u is eliminated with the resultant r(v) = Res_u(a, b) (eq 28–30) and the real roots of r in
-[0, 1] are found by derivative isolation (``roots.py``); u follows from a(u, v*) = 0, and
+[0, 1] are found by Bernstein isolation (``roots.py``); u follows from a(u, v*) = 0, and
 each candidate is Newton-polished and validated in path space (``one_vertex.py``).
 
-Resultant in closed form.  a has total degree 2, so its u² coefficient a2 is a constant and
-a = a2 u² + a1(v) u + a0(v).  The Bézout matrix (eq 29) of (a, b) would be n×n with
-polynomial entries; because a is quadratic it collapses to the symmetric-function identity
-Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a), which expanded with power sums
-s_m = σ_m / a2^m (σ_0 = 2, σ_1 = -a1, σ_m = -a1 σ_{m-1} - a0 a2 σ_{m-2}) is
-
-    Res = Σ_i a0^i b_i T_i,   T_i = b_i a2^(n-i) + Σ_{j>i} b_j a2^(n-j) σ_{j-i},
-
-a polynomial in the coefficients with no division: it stays exact when a2 → 0 (flat
-normals, where a is linear in u) instead of blowing up like a remainder-based reduction.
-Its univariate coefficients are formed explicitly, as in §4.2, and it has degree ≤ 8 (R) or
-≤ 12 (T) in v.
+Resultant.  a has total degree 2, so a = a2 u² + a1(v) u + a0(v) with a2 a constant, and
+Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a); r has degree ≤ 8 (R) or ≤ 12 (T).
+R expands it symbolically, Res = Σ_i a0^i b_i T_i with T_i = b_i a2^(n-i) + Σ_{j>i} b_j
+a2^(n-j) σ_{j-i} (power sums σ_0 = 2, σ_1 = -a1, σ_m = -a1 σ_{m-1} - a0 a2 σ_{m-2}): no
+division, exact as a2 → 0.  T evaluates it instead, per v with q = -(a1 + sign(a1) √disc) / 2:
+Res = B(q, a2) b(a0 / q), B(x, y) = Σ b_i x^i y^(n-i) (complex roots: a2^n |b(ρ)|²), at the
+Chebyshev nodes, interpolated to Bernstein form: values are good to a few ulps, where the
+square form's expansion cancels badly when b is small along the conic next to a path (an
+endpoint close to a large triangle, grazing incidence); where the node values span more than
+DYNAMIC_RANGE the range is re-interpolated piecewise (``_resultant_v_roots``).  The
+triangle's corners are relabelled per tuple so that u is eliminated along an edge where the
+conic does not fold (``elimination_labelling``).  Tested against brute force in
+tests/solver/test_solver_random.py and test_solver_grazing.py.
 
 The projection vector b (eq 10) and the tangent t = n × b (eq 13) are chosen per tuple as
 the normal of the plane of incidence at the mean shading normal, b = (x2 - x0) × n̄, so
@@ -36,9 +37,10 @@ import math
 import numpy as np
 
 from ..runtime.jit import kernel, prange
-from ..paths.one_vertex import (geometric_normal, line_crossing_barycentrics, polish_and_validate, scatter_residual,
-                                triangle_frame)
-from ..polynomials.roots import MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval
+from ..paths.one_vertex import (geometric_normal, line_crossing_barycentrics, polish_and_validate,
+                                scatter_residual)
+from ..polynomials.roots import (MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval,
+                                 roots_in_unit_interval_bernstein)
 from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
 
 MAX_PATHS_ONE_BOUNCE = 8  # per tuple; a one-bounce tuple seldom has more than 2
@@ -51,9 +53,28 @@ SAME_PATH = 1e-7  # barycentric distance under which two polished candidates are
 NEAR_PATH = 1e-5  # largest merge radius, used where the Jacobian barely pins the path
 POLISH_STEPS = 40  # Gauss-Newton steps at most (stops once converged or a step stops helping)
 ACCEPT_RESIDUAL = 1e-12  # residual accepted outright; above it (up to 1e-7) Newton must have settled
-NEGLIGIBLE = 1e-13
+NEGLIGIBLE = 1e-13  # relative size below which a coefficient is treated as exactly zero
 FOLD_RATIO = 1e-4  # lam_min / lam_max of J^T J under which a path counts as near a fold
-FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null direction  # relative size below which a coefficient is treated as exactly zero
+FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null direction
+DYNAMIC_RANGE = 1e-6  # node values spanning more than this: interpolate the resultant piecewise
+SPLIT = 4  # pieces per level of that refinement
+SPLIT_DEPTH = 2  # levels at most (16 pieces)
+SWITCH_RATIO = 0.1  # relabel the corners when the default elimination's |Q| is below this share of the best
+
+def _bernstein_collocation(degree):
+    """(nodes, inverse): Chebyshev nodes of [0, 1] and the inverse of the matrix of the degree
+    ``degree`` Bernstein basis at them (values at the nodes -> Bernstein coefficients)."""
+    from math import comb
+
+    k = np.arange(degree + 1)
+    nodes = 0.5 * (1.0 - np.cos((2.0 * k + 1.0) * np.pi / (2.0 * degree + 2.0)))
+    basis = np.array([[comb(degree, j) * x ** j * (1.0 - x) ** (degree - j) for j in range(degree + 1)] for x in nodes])
+    return nodes, np.linalg.inv(basis)
+
+
+NODES_R, TO_BERNSTEIN_R = _bernstein_collocation(8)  # the R resultant has degree <= 8 in v
+NODES_T, TO_BERNSTEIN_T = _bernstein_collocation(12)  # the T resultant, degree <= 12
+
 
 # Indices into the per-tuple statistics row.
 STAT_ROOTS = 0  # real resultant roots in range
@@ -114,7 +135,7 @@ def _bmax(p, d):
     return m
 
 
-# --- univariate polynomials in v -----------------------------------------------------------
+# --- univariate polynomials in v: the symbolic resultant (R) -------------------------------
 
 
 @kernel(inline="always")
@@ -197,16 +218,208 @@ def _resultant_quadratic_in_u(a, b, nb, tb, uni, out):
     return acc_deg
 
 
+# --- the resultant in v -------------------------------------------------------------------
+
+
+@kernel
+def resultant_at(a, b, nb, tb, v, bv):
+    """Res_u(a, b) at one v, from the u-roots of a (see the module docstring).
+
+    a = a2 u² + a1 u + a0 with real roots q / a2 and a0 / q (q = -(a1 + sign(a1) √disc) / 2):
+    Res = B(q, a2) b(a0 / q), B(x, y) = Σ b_i x^i y^(nb-i) the homogeneous form, exact as
+    a2 -> 0.  Complex roots ρ, ρ̄ (then a2 ≠ 0): Res = a2^nb |b(ρ)|², evaluated with ρ √|a2|
+    (modulus √|a0|).  ``bv`` receives b_i(v), i = 0..nb.
+    """
+    a2 = a[2, 0]
+    a1 = a[1, 0] + a[1, 1] * v
+    a0 = a[0, 0] + (a[0, 1] + a[0, 2] * v) * v
+    for i in range(nb + 1):
+        acc = 0.0
+        for j in range(tb - i, -1, -1):
+            acc = acc * v + b[i, j]
+        bv[i] = acc
+    disc = a1 * a1 - 4.0 * a2 * a0
+    if disc >= 0.0:
+        q = -0.5 * (a1 + math.copysign(math.sqrt(disc), a1))
+        if q == 0.0:
+            # a1 = 0 and a2 a0 = 0: a = a2 u² (double root 0) or the constant a0
+            if a2 != 0.0:
+                return a2 ** nb * bv[0] * bv[0]
+            return a0 ** nb * bv[nb] * bv[nb]
+        far = bv[nb]
+        p = 1.0
+        for i in range(nb - 1, -1, -1):
+            p *= a2
+            far = far * q + bv[i] * p
+        rho = a0 / q
+        near = bv[nb]
+        for i in range(nb - 1, -1, -1):
+            near = near * rho + bv[i]
+        return far * near
+    s = math.sqrt(abs(a2))
+    zr = -a1 / (2.0 * a2) * s
+    zi = math.sqrt(-disc) / (2.0 * a2) * s
+    ar = bv[nb]
+    ai = 0.0
+    p = 1.0
+    for i in range(nb - 1, -1, -1):
+        p *= s
+        ar, ai = ar * zr - ai * zi + bv[i] * p, ar * zi + ai * zr
+    val = ar * ar + ai * ai
+    if a2 < 0.0 and nb % 2 == 1:
+        val = -val
+    return val
+
+
+@kernel
+def resultant_bernstein(a, b, nb, tb, origin, width, bv, values, out):
+    """Bernstein coefficients on s ∈ [0, 1] of r(s) = Res_u(a, b)(origin + width s); returns the
+    degree (2 tb: 8 for R, 12 for T).
+
+    The resultant is evaluated at the Chebyshev nodes (``resultant_at``, each value to a
+    few ulps) and interpolated (eq 28-30 give the same polynomial).  Expanding it symbolically
+    instead cancels: where b is small along the conic next to a path (an endpoint close to a
+    large triangle, a grazing refraction) the power coefficients carried absolute errors far
+    above the resultant's values there.
+    """
+    deg = 2 * tb
+    if tb == 4:
+        for k in range(deg + 1):
+            values[k] = resultant_at(a, b, nb, tb, origin + width * NODES_R[k], bv)
+        for i in range(deg + 1):
+            acc = 0.0
+            for k in range(deg + 1):
+                acc += TO_BERNSTEIN_R[i, k] * values[k]
+            out[i] = acc
+    else:
+        for k in range(deg + 1):
+            values[k] = resultant_at(a, b, nb, tb, origin + width * NODES_T[k], bv)
+        for i in range(deg + 1):
+            acc = 0.0
+            for k in range(deg + 1):
+                acc += TO_BERNSTEIN_T[i, k] * values[k]
+            out[i] = acc
+    return deg
+
+
 @kernel
 def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scratch_biv, scratch_uni, chain, lists, stack, root_buf, out_uv, stats):
     """All admissible one-bounce paths of one tuple; returns how many were written to out_uv.
 
     ``stop_after`` cuts the pipeline for stage timing in the benchmark: 1 = polynomials and
-    resultant only, 2 = also the v roots, 0 = everything.
+    resultant only, 2 = also the v roots, 0 = everything.  The corners are relabelled first
+    (``elimination_labelling``) so that u is eliminated along a direction where the
+    coplanarity conic is not nearly linear; the paths come back in the caller's barycentrics.
     """
     for k in range(N_STATS):
         stats[k] = 0
-    p0, e1, e2, n0, m1, m2 = triangle_frame(tri_p, tri_n)
+    q0 = row(tri_p, 0)
+    q1 = row(tri_p, 1)
+    q2 = row(tri_p, 2)
+    k0 = row(tri_n, 0)
+    k1 = row(tri_n, 1)
+    k2 = row(tri_n, 2)
+    # The side tests of _solve_labelled first, in the caller's labelling: most tuples of an
+    # unculled batch end here, before the labelling costs anything.
+    e1 = sub(q1, q0)
+    e2 = sub(q2, q0)
+    ng, area2 = geometric_normal(e1, e2)
+    length = max(norm(e1), norm(e2))
+    if not (area2 > 1e-14 * length * length) or not (eta > 0.0):
+        stats[STAT_SKIPPED] = 1
+        return 0
+    side0 = dot(sub(x0, q0), ng)
+    side2 = dot(sub(x2, q0), ng)
+    tiny = 1e-12 * length
+    if abs(side0) <= tiny or abs(side2) <= tiny or (side0 * side2 < 0.0) != refract:
+        stats[STAT_SKIPPED] = 1
+        return 0
+    labelling = elimination_labelling(x0, x2, q0, q1, q2, k0, k1, k2)
+    if labelling == 0:
+        return _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, scratch_biv, scratch_uni,
+                               chain, lists, stack, root_buf, out_uv, stats)
+    if labelling == 1:
+        # corners (p0, p2, p1): u' = v, v' = u
+        count = _solve_labelled(refract, x0, x2, q0, q2, q1, k0, k2, k1, eta, stop_after, scratch_biv, scratch_uni,
+                                chain, lists, stack, root_buf, out_uv, stats)
+        for q in range(min(count, out_uv.shape[0])):
+            up = out_uv[q, 0]
+            out_uv[q, 0] = out_uv[q, 1]
+            out_uv[q, 1] = up
+        return count
+    # corners (p1, p2, p0): x = p1 + u' (p2 - p1) + v' (p0 - p1), so u = 1 - u' - v', v = u'
+    count = _solve_labelled(refract, x0, x2, q1, q2, q0, k1, k2, k0, eta, stop_after, scratch_biv, scratch_uni,
+                            chain, lists, stack, root_buf, out_uv, stats)
+    for q in range(min(count, out_uv.shape[0])):
+        up = out_uv[q, 0]
+        vp = out_uv[q, 1]
+        out_uv[q, 0] = 1.0 - up - vp
+        out_uv[q, 1] = up
+    return count
+
+
+@kernel
+def elimination_labelling(x0, x2, q0, q1, q2, k0, k1, k2):
+    """Which corner labelling the resultant eliminates u in: 0 = (p0, p1, p2), 1 = (p0, p2, p1),
+    2 = (p1, p2, p0), i.e. along the edge direction d = (1, 0), (0, 1) or (-1, 1) in (u, v).
+
+    Eliminating u along d goes wrong where the coplanarity conic a = 0 turns parallel to d
+    inside the triangle (∂a/∂d changes sign there): with a small leading coefficient Q(d)
+    one u-root of a(·, v) runs far away (|ρ| ~ |a1(v)| / |Q(d)|) and Res = Q^n b(ρ1) b(ρ2)
+    spans many orders of magnitude over v, and with a nearly linear a (flat normals) the
+    whole triangle maps to a sliver of v; either way the v root of a path is at the
+    resultant's rounding floor, and u = ρ(v) turns its error into a miss.  A grazing
+    refraction into a dense medium is the typical case.  Score of d: |Q(d)| plus, when
+    ∂a/∂d (linear in u, v) keeps its sign over the triangle, its smallest size at the corners.
+    The default labelling is kept unless its score is below SWITCH_RATIO of the best one.
+    """
+    w = sub(x2, x0)
+    e1 = sub(q1, q0)
+    e2 = sub(q2, q0)
+    m1 = sub(k1, k0)
+    m2 = sub(k2, k0)
+    c0 = cross(sub(q0, x0), w)
+    c1 = cross(e1, w)
+    c2 = cross(e2, w)
+    a20 = dot(c1, m1)
+    a02 = dot(c2, m2)
+    a11 = dot(c1, m2) + dot(c2, m1)
+    a10 = dot(c0, m1) + dot(c1, k0)
+    a01 = dot(c0, m2) + dot(c2, k0)
+    # ∂a/∂u and ∂a/∂v at the corners (0, 0), (1, 0), (0, 1)
+    du0 = a10
+    du1 = a10 + 2.0 * a20
+    du2 = a10 + a11
+    dv0 = a01
+    dv1 = a01 + a11
+    dv2 = a01 + 2.0 * a02
+    score_u = abs(a20) + _fold_free_size(du0, du1, du2)
+    score_v = abs(a02) + _fold_free_size(dv0, dv1, dv2)
+    score_s = abs(a20 - a11 + a02) + _fold_free_size(dv0 - du0, dv1 - du1, dv2 - du2)
+    best = max(score_v, score_s)
+    if not (score_u < SWITCH_RATIO * best):
+        return 0
+    return 1 if score_v >= score_s else 2
+
+
+@kernel(inline="always")
+def _fold_free_size(g0, g1, g2):
+    """Smallest |g| over the corners of a linear function with corner values g0, g1, g2, or 0
+    when it changes sign on the triangle."""
+    if (g0 > 0.0 and g1 > 0.0 and g2 > 0.0) or (g0 < 0.0 and g1 < 0.0 and g2 < 0.0):
+        return min(abs(g0), min(abs(g1), abs(g2)))
+    return 0.0
+
+
+@kernel
+def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, scratch_biv, scratch_uni, chain, lists, stack, root_buf, out_uv, stats):
+    """The solve of ``solve_one_bounce_tuple`` for corners q0, q1, q2 with normals k0, k1, k2."""
+    p0 = q0
+    e1 = sub(q1, q0)
+    e2 = sub(q2, q0)
+    n0 = k0
+    m1 = sub(k1, k0)
+    m2 = sub(k2, k0)
     ng, area2 = geometric_normal(e1, e2)
     length = max(norm(e1), norm(e2))
     if not (area2 > 1e-14 * length * length) or not (eta > 0.0):
@@ -315,8 +528,8 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
     # ng·n is linear in (u, v), so its signs at the vertices tell whether the normal field
     # turns over the face; then both IOR assignments are solved.
     s0 = dot(ng, n0)
-    s1 = dot(ng, row(tri_n, 1))
-    s2 = dot(ng, row(tri_n, 2))
+    s1 = dot(ng, k1)
+    s2 = dot(ng, k2)
     any_front = s0 > 0.0 or s1 > 0.0 or s2 > 0.0
     any_back = s0 < 0.0 or s1 < 0.0 or s2 < 0.0
     for outward in (True, False):
@@ -359,22 +572,32 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
         nb -= 1
 
     res = scratch_uni[15]
-    if nb == 0:
-        # b does not depend on u: its own roots in v are the candidates.
-        deg_r = total_b
-        for k in range(deg_r + 1):
-            res[k] = b_poly[0, k]
-    else:
-        deg_r = _resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, scratch_uni, res)
-    if stop_after == 1:
-        return count
     v_roots = root_buf[0]
     # Roots in v ∈ [-V_MARGIN, 1 + V_MARGIN], found as roots in s ∈ [0, 1] of
     # r(-V_MARGIN + (1 + 2 V_MARGIN) s), so the root finder's [0, 1] fast path applies.
-    _shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN)
-    n_v = roots_in_unit_interval(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, stack, v_roots)
-    for iv in range(n_v):
-        v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
+    if nb == 0 or not refract:
+        if nb == 0:
+            # b does not depend on u: its own roots in v are the candidates.
+            deg_r = total_b
+            for k in range(deg_r + 1):
+                res[k] = b_poly[0, k]
+        else:
+            # R: the product form keeps the resultant's dynamic range small, and the symbolic
+            # expansion (power basis) is the cheaper route there.
+            deg_r = _resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, scratch_uni, res)
+        if stop_after == 1:
+            return count
+        _shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN)
+        n_v = roots_in_unit_interval(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, stack, v_roots)
+    else:
+        if stop_after == 1:
+            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, scratch_uni[0],
+                                scratch_uni[1], res)
+            return count
+        n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, stack, v_roots)
+    if nb == 0 or not refract:
+        for iv in range(n_v):
+            v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     stats[STAT_ROOTS] += n_v
     if stop_after == 2:
         return count
@@ -414,6 +637,62 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
                 continue
             count = _probe_fold(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count)
     return count
+
+
+@kernel
+def _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, stack, v_roots):
+    """Roots in v ∈ [-V_MARGIN, 1 + V_MARGIN] of Res_u(a, b), ascending; returns their count.
+
+    One Bernstein interpolant over the whole range first.  Its coefficients carry errors of
+    ~1e-12 of the resultant's largest value there, so where the values at the nodes span more
+    than DYNAMIC_RANGE (an endpoint close to a large triangle puts a cluster of near roots
+    next to the path, where the resultant is 1e-10 of its size elsewhere) the range is cut in
+    SPLIT pieces, each interpolated from its own values, down to SPLIT_DEPTH levels.
+    """
+    bv = scratch_uni[0]
+    values = scratch_uni[1]
+    power = scratch_uni[2]
+    found = scratch_uni[3]
+    piece_lo = scratch_uni[4]
+    piece_hi = scratch_uni[5]
+    piece_depth = scratch_uni[6]
+    res = scratch_uni[15]
+    capacity = v_roots.shape[0]
+    piece_lo[0] = -V_MARGIN
+    piece_hi[0] = 1.0 + V_MARGIN
+    piece_depth[0] = 0.0
+    top = 1
+    n_v = 0
+    while top > 0:
+        top -= 1
+        lo = piece_lo[top]
+        hi = piece_hi[top]
+        depth = piece_depth[top]
+        deg_r = resultant_bernstein(a_poly, b_poly, nb, total_b, lo, hi - lo, bv, values, res)
+        if depth < SPLIT_DEPTH:
+            big = 0.0
+            small = math.inf
+            for k in range(deg_r + 1):
+                big = max(big, abs(values[k]))
+                small = min(small, abs(values[k]))
+            if small < DYNAMIC_RANGE * big:
+                # pieces pushed right to left so that they come off the stack in ascending order
+                for j in range(SPLIT - 1, -1, -1):
+                    piece_lo[top] = lo + (hi - lo) * j / SPLIT
+                    piece_hi[top] = lo + (hi - lo) * (j + 1) / SPLIT
+                    piece_depth[top] = depth + 1.0
+                    top += 1
+                continue
+        n_piece = roots_in_unit_interval_bernstein(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, stack,
+                                                   power, found)
+        for j in range(n_piece):
+            v = lo + (hi - lo) * found[j]
+            if n_v > 0 and v - v_roots[n_v - 1] <= ROOT_X_TOLERANCE:
+                continue  # the same root at a piece boundary
+            if n_v < capacity:
+                v_roots[n_v] = v
+                n_v += 1
+    return n_v
 
 
 @kernel

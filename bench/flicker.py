@@ -8,8 +8,8 @@ degrees about the world z axis (slow motion: the caustic shifts by a fraction of
 per frame).  Each method bakes every frame with the same settings and seed (as
 ``--frames`` does in the CLI).
 
-Definition.  With B_f the method's texture of frame f and R_f the reference's (spoly at
-``--ref-samples`` supersamples, the same fixed supersample positions every frame, so its
+Definition.  With B_f the method's texture of frame f and R_f the reference's (path-points with the spoly
+solver at ``--ref-samples`` supersamples, the same fixed supersample positions every frame, so its
 change is the true change up to a near-constant aliasing error), and L the texels lit in
 any reference frame (all receivers, RGB):
 
@@ -22,6 +22,9 @@ where their error changes between frames (paths lost / found by seeded Newton, s
 aliasing at moving edges); photon tracing with a fixed seed reuses its random numbers, so
 its noise is partly coherent over frames ("photon"), while a new seed per frame
 ("photon-reseed") shows independent noise.
+
+Methods by their estimator names (``--estimator``; path-points with its ``--solver``); the
+default, forward-flux, must not flicker more than the reference moves (``motion``).
 
 Writes the "flicker" section of BENCHMARKS.md.
 """
@@ -81,12 +84,15 @@ def main(argv=None):
     ap.add_argument("--photons", type=int, default=1_000_000)
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
-    methods = [("spoly", dict(method="spoly", samples=4)), ("newton", dict(method="newton", samples=4)),
-               ("sms", dict(method="sms", samples=4, sms_seeds=16)), ("curve", dict(method="curve", samples=4)),
-               ("photon", dict(method="photon", photons=args.photons)),
-               ("photon-reseed", dict(method="photon", photons=args.photons))]
+    methods = [("forward-flux", dict(estimator="forward-flux")),
+               ("path-points/spoly", dict(estimator="path-points", solver="spoly", samples=4)),
+               ("path-points/newton", dict(estimator="path-points", solver="newton", samples=4)),
+               ("path-points/sms", dict(estimator="path-points", solver="sms", samples=4, sms_seeds=16)),
+               ("path-points/curve", dict(estimator="path-points", solver="curve", samples=4)),
+               ("photon", dict(estimator="photon", photons=args.photons)),
+               ("photon-reseed", dict(estimator="photon", photons=args.photons))]
     lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; {args.res}² textures, "
-             f"{args.frames} frames, lights moving (2, 1, 0) mm / sun turning 0.05° per frame; reference spoly at "
+             f"{args.frames} frames, lights moving (2, 1, 0) mm / sun turning 0.05° per frame; reference path-points/spoly at "
              f"{args.ref_samples} supersamples; date {time.strftime('%Y-%m-%d')}.", "",
              "flicker = RMS over lit texels and frame pairs of ((B_{f+1} - B_f) - (R_{f+1} - R_f)) / mean lit R "
              "(the frame-to-frame change the reference does not have; definition in `bench/flicker.py`); "
@@ -96,7 +102,8 @@ def main(argv=None):
         scene, _ = load_scene(name, args.res)
         frames = [moved(scene, f) for f in range(args.frames)]
         base = dict(resolution=args.res, margin=0, seed=1)
-        ref = [stack(bake(sc, BakeSettings(samples=args.ref_samples, **base))) for sc in frames]
+        ref = [stack(bake(sc, BakeSettings(estimator="path-points", solver="spoly", samples=args.ref_samples, **base)))
+               for sc in frames]
         for label, kw in methods:
             imgs, secs, note = [], 0.0, ""
             for f, sc in enumerate(frames):
@@ -111,8 +118,9 @@ def main(argv=None):
                 lines.append(f"| {name} | | {label} | | | | nothing baked ({note}) |")
                 continue
             fl, motion = flicker(imgs, ref)
-            knob = f"{kw['photons']:,} photons" if kw["method"] == "photon" else (
-                f"{kw['samples']} spp, {kw['sms_seeds']} seeds" if kw["method"] == "sms" else f"{kw['samples']} spp")
+            knob = (f"{kw['photons']:,} photons" if kw["estimator"] == "photon" else
+                    "depth 6 (default)" if kw["estimator"] == "forward-flux" else
+                    f"{kw['samples']} spp, {kw['sms_seeds']} seeds" if kw.get("solver") == "sms" else f"{kw['samples']} spp")
             lines.append(f"| {name} | {motion:.2e} | {label} | {knob} | {fl:.2e} | {secs / len(frames):.2f} | {note} |")
             print(lines[-1], flush=True)
     body = "\n".join(lines)

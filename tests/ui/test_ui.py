@@ -18,6 +18,7 @@ from addon.bake.apply import FILES_MANIFEST, GROUP_NAME  # noqa: E402
 from addon.ui import operators, panels, state  # noqa: E402
 
 from fixtures.checks import snapshot  # noqa: E402
+from fixtures.modal import Event, ModalStub
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SAMPLES = os.path.join(REPO, "sample_blends")
@@ -171,34 +172,6 @@ def test_unsaved_file_packs_and_user_files_are_never_overwritten(tmp_path):
     assert snapshot() == before
 
 
-class _Event:
-    def __init__(self, type, value="NOTHING"):
-        self.type, self.value = type, value
-
-
-class _ModalStub:
-    """Stands in for the operator instance: the modal() code under test is the real one."""
-
-    _end = operators.CAUSTICS_OT_bake._end
-    _status = staticmethod(operators.CAUSTICS_OT_bake._status)
-    _redraw = staticmethod(operators.CAUSTICS_OT_bake._redraw)
-    _report_warnings = operators.CAUSTICS_OT_bake._report_warnings
-    _keep_finished_frames = operators.CAUSTICS_OT_bake._keep_finished_frames
-
-    def __init__(self, context):
-        self.reports = []
-        self._timer = None
-        self._job = operators.BakeJob(context, modal=True)
-        self._job.start(context)
-        state.STATE.start()
-
-    def report(self, kind, message):
-        self.reports.append((set(kind), message))
-
-    def modal(self, context, event):
-        return operators.CAUSTICS_OT_bake.modal(self, context, event)
-
-
 def _slow_scene(tmp_path):
     """Enough work for many chunks: metal ring, 64 x 64 texels, 4 samples each, the exact-path
     estimator (its bands are the modal steps; the flux estimator is one step per light sample
@@ -211,13 +184,13 @@ def _slow_scene(tmp_path):
 def test_modal_steps_then_cancel_leave_the_scene_unchanged(tmp_path):
     _slow_scene(tmp_path)
     before = snapshot()
-    op = _ModalStub(bpy.context)
-    assert op.modal(bpy.context, _Event("MOUSEMOVE")) == {"PASS_THROUGH"}
-    assert op.modal(bpy.context, _Event("TIMER")) == {"RUNNING_MODAL"}
+    op = ModalStub(bpy.context)
+    assert op.modal(bpy.context, Event("MOUSEMOVE")) == {"PASS_THROUGH"}
+    assert op.modal(bpy.context, Event("TIMER")) == {"RUNNING_MODAL"}
     assert state.STATE.running and state.STATE.message
     assert not bpy.ops.caustics.bake.poll()  # one bake at a time
     _draw_render_panel()  # the "baking" state draws
-    assert op.modal(bpy.context, _Event("ESC", "PRESS")) == {"CANCELLED"}
+    assert op.modal(bpy.context, Event("ESC", "PRESS")) == {"CANCELLED"}
     assert not state.STATE.running
     assert op._job.steps is None
     assert any("cancelled" in m for _, m in op.reports)
@@ -227,10 +200,10 @@ def test_modal_steps_then_cancel_leave_the_scene_unchanged(tmp_path):
 
 def test_modal_steps_to_the_end_apply_the_bake(tmp_path):
     _open_copy(tmp_path)
-    op = _ModalStub(bpy.context)
+    op = ModalStub(bpy.context)
     results = []
     for _ in range(10000):
-        results.append(op.modal(bpy.context, _Event("TIMER")))
+        results.append(op.modal(bpy.context, Event("TIMER")))
         if results[-1] != {"RUNNING_MODAL"}:
             break
     assert results[-1] == {"FINISHED"}, op.reports

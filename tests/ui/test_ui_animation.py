@@ -22,6 +22,7 @@ from addon.ui import operators, panels, state  # noqa: E402
 
 from fixtures.animated_scene import MIRROR_PLANE, build_animated_mirror  # noqa: E402
 from fixtures.checks import snapshot  # noqa: E402
+from fixtures.modal import Event, ModalStub
 
 SEQ = ["Floor.0001.exr", "Floor.0002.exr", "Floor.0003.exr"]
 
@@ -188,46 +189,18 @@ def test_renders_show_each_frames_caustic(tmp_path, engine):
         assert abs(got.sum() - expected.sum()) < 0.05 * np.abs(expected).sum(), (got.sum(), expected.sum())
 
 
-class _Event:
-    def __init__(self, type, value="NOTHING"):
-        self.type, self.value = type, value
-
-
-class _ModalStub:
-    """Stands in for the operator instance: the modal() code under test is the real one."""
-
-    _end = operators.CAUSTICS_OT_bake._end
-    _status = staticmethod(operators.CAUSTICS_OT_bake._status)
-    _redraw = staticmethod(operators.CAUSTICS_OT_bake._redraw)
-    _report_warnings = operators.CAUSTICS_OT_bake._report_warnings
-    _keep_finished_frames = operators.CAUSTICS_OT_bake._keep_finished_frames
-
-    def __init__(self, context):
-        self.reports = []
-        self._timer = None
-        self._job = operators.BakeJob(context, modal=True)
-        self._job.start(context)
-        state.STATE.start()
-
-    def report(self, kind, message):
-        self.reports.append((set(kind), message))
-
-    def modal(self, context, event):
-        return operators.CAUSTICS_OT_bake.modal(self, context, event)
-
-
 def test_esc_between_frames_keeps_the_finished_frames(tmp_path):
     _open_animated(tmp_path, frame=3)
-    op = _ModalStub(bpy.context)
+    op = ModalStub(bpy.context)
     messages = []
     for _ in range(10000):
-        assert op.modal(bpy.context, _Event("TIMER")) == {"RUNNING_MODAL"}
+        assert op.modal(bpy.context, Event("TIMER")) == {"RUNNING_MODAL"}
         messages.append(state.STATE.message)
         if op._job.done_frames:
             break
     assert op._job.done_frames == [1] and op._job.frame_index == 1
     assert messages[0].startswith("frame 1/3: ") and messages[-1].startswith(("frame 1/3: ", "frame 2/3: "))
-    assert op.modal(bpy.context, _Event("ESC", "PRESS")) == {"FINISHED"}
+    assert op.modal(bpy.context, Event("ESC", "PRESS")) == {"FINISHED"}
     assert not state.STATE.running and op._job.steps is None
     assert any(kind == {"WARNING"} and "cancelled at frame 2/3" in m and "kept the 1 finished frame(s) 1-1" in m
                for kind, m in op.reports), op.reports
@@ -242,10 +215,10 @@ def test_esc_between_frames_keeps_the_finished_frames(tmp_path):
 def test_esc_in_the_first_frame_changes_nothing(tmp_path):
     _open_animated(tmp_path, frame=3)
     before = snapshot()
-    op = _ModalStub(bpy.context)
-    assert op.modal(bpy.context, _Event("TIMER")) == {"RUNNING_MODAL"}
+    op = ModalStub(bpy.context)
+    assert op.modal(bpy.context, Event("TIMER")) == {"RUNNING_MODAL"}
     assert not op._job.done_frames
-    assert op.modal(bpy.context, _Event("ESC", "PRESS")) == {"CANCELLED"}
+    assert op.modal(bpy.context, Event("ESC", "PRESS")) == {"CANCELLED"}
     assert snapshot() == before and bpy.context.scene.frame_current == 3
     assert not (tmp_path / "caustics").exists()
 

@@ -16,6 +16,7 @@ from addon.bake import pipeline  # noqa: E402
 from addon.ui import operators, state  # noqa: E402
 
 from fixtures.checks import snapshot  # noqa: E402
+from fixtures.modal import Event, ModalStub
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SAMPLES = os.path.join(REPO, "sample_blends")
@@ -27,34 +28,6 @@ def registered():
     addon.register()
     yield
     addon.unregister()
-
-
-class _Event:
-    def __init__(self, type, value="NOTHING"):
-        self.type, self.value = type, value
-
-
-class _ModalStub:
-    """Stands in for the operator instance: the modal() code under test is the real one."""
-
-    _end = operators.CAUSTICS_OT_bake._end
-    _status = staticmethod(operators.CAUSTICS_OT_bake._status)
-    _redraw = staticmethod(operators.CAUSTICS_OT_bake._redraw)
-    _report_warnings = operators.CAUSTICS_OT_bake._report_warnings
-    _keep_finished_frames = operators.CAUSTICS_OT_bake._keep_finished_frames
-
-    def __init__(self, context):
-        self.reports = []
-        self._timer = None
-        self._job = operators.BakeJob(context, modal=True)
-        self._job.start(context)
-        state.STATE.start()
-
-    def report(self, kind, message):
-        self.reports.append((set(kind), message))
-
-    def modal(self, context, event):
-        return operators.CAUSTICS_OT_bake.modal(self, context, event)
 
 
 def test_esc_answers_while_a_long_chunk_runs(tmp_path, monkeypatch):
@@ -81,15 +54,15 @@ def test_esc_answers_while_a_long_chunk_runs(tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "bake_steps", bake_steps)
     before = snapshot()
     state.STATE.reset()
-    op = _ModalStub(bpy.context)
+    op = ModalStub(bpy.context)
     ticks = []
     for _ in range(5):
         t0 = time.monotonic()
-        assert op.modal(bpy.context, _Event("TIMER")) == {"RUNNING_MODAL"}
+        assert op.modal(bpy.context, Event("TIMER")) == {"RUNNING_MODAL"}
         ticks.append(time.monotonic() - t0)
     assert max(ticks) < 0.3, ticks  # every tick returns within its budget
     t0 = time.monotonic()
-    assert op.modal(bpy.context, _Event("ESC", "PRESS")) == {"CANCELLED"}
+    assert op.modal(bpy.context, Event("ESC", "PRESS")) == {"CANCELLED"}
     assert time.monotonic() - t0 < 0.5
     t_esc = time.monotonic()
     assert snapshot() == before and not state.STATE.running and op._job.steps is None

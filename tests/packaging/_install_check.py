@@ -75,7 +75,8 @@ def bake_step(bpy, blend, step):
         bake_seconds=seconds,
         bake_images=images,
         bake_node_groups=sorted(g.name for g in bpy.data.node_groups),
-        bake_files=sorted(os.listdir(folder)) if os.path.isdir(folder) else None,
+        bake_files=sorted(os.path.relpath(os.path.join(d, f), folder)
+                          for d, _, fs in os.walk(folder) for f in fs) if os.path.isdir(folder) else None,
         bake_blend_saved=os.stat(blend).st_mtime_ns != mtime,
     )
     bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -204,9 +204,10 @@ def test_install_enable_prepare_disable_with_bundled_numba(zips, tmp_path):
     assert again["bake_error"] is None, again["bake_error"] + "\n" + log
     assert again["bake_result"] == ["FINISHED"], log
     assert again["bake_node_groups"] == ["CausticBake"]
-    exr = os.path.realpath(str(blend.parent / "caustics" / "CausticBake_Floor.exr"))
+    # Textures go to //caustics/<blend name>/<receiver>.exr (addon/bake/names.texture_filename).
+    exr = os.path.realpath(str(blend.parent / "caustics" / "mirror_plane" / "Floor.exr"))
     assert again["bake_images"]["CausticBake Floor"] == [exr, [256, 256]]
-    assert "CausticBake_Floor.exr" in again["bake_files"] and os.path.getsize(exr) > 1000
+    assert os.path.join("mirror_plane", "Floor.exr") in again["bake_files"] and os.path.getsize(exr) > 1000
     assert again["bake_blend_saved"]
     assert again["reopened_node_groups"] == ["CausticBake"]
     assert again["reopened_images"] == ["CausticBake Floor"]

@@ -51,7 +51,7 @@ from ..solver.bounds.tuples import two_bounce_pairs
 from ..solver.bounds.two_bounce_image import split_pieces_chunk
 from ..solver.bounds.two_bounce_irradiance import irradiance_chunk, reach_chunk
 from ..solver.bounds.two_bounce_position import pair_pieces_chunk
-from ..solver.runtime.jit import kernel, prange, run_chunks
+from ..solver.runtime.jit import kernel, parallel_range, run_chunks
 from .cull import count_cone_pairs, fill_cone_pairs, sample_in_cones, one_bounce_emitters, tri_spheres, two_bounce_emitters
 
 # ---------------------------------------------------------------------------------------
@@ -92,11 +92,12 @@ def one_bounce_bounds(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv, irradiance=Fa
     return np.ascontiguousarray(tuples, dtype=np.int64), start, pieces, reports
 
 
-@kernel(parallel=True)
+@parallel_range("tup_e")
+@kernel(error_model="numpy")
 def _bounds_pairs(fill, tup_e, tup_r, piece_start, pieces, tex_start, tex_order, band_rec, bary, W, H, row0, row1, margin,
                   part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng, offset, count, out_e,
-                  out_s, out_E):
-    for t in prange(tup_e.shape[0]):
+                  out_s, out_E, first, last):
+    for t in range(first, last):
         e = tup_e[t]
         r = tup_r[t]
         k0 = piece_start[t]
@@ -270,7 +271,7 @@ ROW_BUDGET = 1 << 25  # float64s of piece rows (or reach cells) per chunk of pai
 
 def _points(x0, n):
     x0 = np.asarray(x0, dtype=np.float64)
-    return np.ascontiguousarray(np.broadcast_to(x0.reshape(-1, 3), (n, 3)) if x0.size == 3 else x0.reshape(n, 3))
+    return np.array(np.broadcast_to(x0.reshape(-1, 3), (n, 3)) if x0.size == 3 else x0.reshape(n, 3))
 
 
 def _cone_pairs(emitters, rec_p):
@@ -302,7 +303,7 @@ def one_bounce_bounds_points(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv, irradi
     s = dict(BOUNDS_SETTINGS, **(settings or {}))
     T = tri_p.shape[0]
     x0 = _points(x0, T)
-    eta = np.broadcast_to(np.asarray(eta, dtype=np.float64), (T,))
+    eta = np.array(np.broadcast_to(np.asarray(eta, dtype=np.float64), (T,)))  # writeable: one kernel signature
     P = np.ascontiguousarray(tri_p, dtype=np.float64)
     N = np.ascontiguousarray(tri_n, dtype=np.float64)
     Q = np.ascontiguousarray(rec_p, dtype=np.float64)
@@ -371,7 +372,7 @@ def two_bounce_bounds_points(chain, x0, P, N, eta, pairs, rec_p, rec_uv, mask=No
     pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
     n = pairs.shape[0]
     x0 = _points(x0, n)
-    eta = np.ascontiguousarray(np.broadcast_to(np.asarray(eta, dtype=np.float64), (n,)))
+    eta = np.array(np.broadcast_to(np.asarray(eta, dtype=np.float64), (n,)))
     P = np.ascontiguousarray(P, dtype=np.float64)
     N = np.ascontiguousarray(N, dtype=np.float64)
     Q = np.ascontiguousarray(rec_p, dtype=np.float64)
@@ -627,7 +628,7 @@ def reachable_first(chain, x0, tri_p1, tri_n1, eta1, rec_p, tri_p2=None, tri_n2=
     tri_n1 = np.ascontiguousarray(tri_n1, dtype=np.float64)
     rec_p = np.ascontiguousarray(rec_p, dtype=np.float64)
     x0 = _points(x0, T1)
-    eta1 = np.ascontiguousarray(np.broadcast_to(np.asarray(eta1, dtype=np.float64), (T1,)))
+    eta1 = np.array(np.broadcast_to(np.asarray(eta1, dtype=np.float64), (T1,)))
     rec_uv = np.zeros((rec_p.shape[0], 3, 2))
     rec_uv[:, 1, 0] = 1.0
     rec_uv[:, 2, 1] = 1.0  # UV = barycentrics: only the receiver-barycentric bound matters here
@@ -644,7 +645,7 @@ def reachable_first(chain, x0, tri_p1, tri_n1, eta1, rec_p, tri_p2=None, tri_n2=
     T2 = tri_p2.shape[0]
     tri_p2 = np.ascontiguousarray(tri_p2, dtype=np.float64)
     tri_n2 = np.ascontiguousarray(tri_n2, dtype=np.float64)
-    eta2 = np.ascontiguousarray(np.broadcast_to(np.asarray(eta2 if eta2 is not None else eta1[:1], dtype=np.float64), (T2,)))
+    eta2 = np.array(np.broadcast_to(np.asarray(eta2 if eta2 is not None else eta1[:1], dtype=np.float64), (T2,)))
     if ids1 is None:
         ids1, ids2 = np.arange(T1), T1 + np.arange(T2)
     ids1, ids2 = np.asarray(ids1), np.asarray(ids2)

@@ -44,7 +44,7 @@ import math
 
 import numpy as np
 
-from ..solver.runtime.jit import kernel, prange
+from ..solver.runtime.jit import kernel, parallel_range
 
 ANGLE_MARGIN = 1e-6
 NO_CONE = 4.0  # > pi: "keep every direction"
@@ -496,9 +496,10 @@ def _cap_meets(dx, dy, dz, cx, cy, cz, theta, reach):
 # part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req.
 
 
-@kernel(parallel=True)
-def count_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, count):
-    for t in prange(side_req.shape[0]):
+@parallel_range("side_req")
+@kernel(error_model="numpy")
+def count_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, count, first, last):
+    for t in range(first, last):
         c = 0
         for k in range(tile_c.shape[0]):
             if _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r):
@@ -506,9 +507,10 @@ def count_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0,
         count[t] = c
 
 
-@kernel(parallel=True)
-def fill_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, offset, out_tile):
-    for t in prange(side_req.shape[0]):
+@parallel_range("side_req")
+@kernel(error_model="numpy")
+def fill_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, offset, out_tile, first, last):
+    for t in range(first, last):
         o = offset[t]
         for k in range(tile_c.shape[0]):
             if _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r):
@@ -552,10 +554,11 @@ def sample_in_cones(t, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tr
     return False
 
 
-@kernel(parallel=True)
+@parallel_range("pair_tri")
+@kernel(error_model="numpy")
 def _emit_count(pair_tri, pair_tile, tile_start, order, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req,
-                pos, rec_ng, count):
-    for q in prange(pair_tri.shape[0]):
+                pos, rec_ng, count, first, last):
+    for q in range(first, last):
         t = pair_tri[q]
         k = pair_tile[q]
         c = 0
@@ -565,10 +568,11 @@ def _emit_count(pair_tri, pair_tile, tile_start, order, part_start, part_c, part
         count[q] = c
 
 
-@kernel(parallel=True)
+@parallel_range("pair_tri")
+@kernel(error_model="numpy")
 def _emit_fill(pair_tri, pair_tile, tile_start, order, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req,
-               pos, rec_ng, offset, out_tri, out_sample):
-    for q in prange(pair_tri.shape[0]):
+               pos, rec_ng, offset, out_tri, out_sample, first, last):
+    for q in range(first, last):
         t = pair_tri[q]
         k = pair_tile[q]
         o = offset[q]
@@ -692,13 +696,14 @@ def sphere_tree(tri_p, depth=REACH_DEPTH, pieces=REACH_PIECES):
     return centre, radius
 
 
-@kernel(parallel=True)
-def _reach_tree(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c, node_r, keep):
+@parallel_range("side_req", REACH_BLOCK)
+@kernel(error_model="numpy")
+def _reach_tree(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c, node_r, keep, first, last):
     """keep[t] = some leaf of the sphere tree passes the cone test of emitter t (depth first,
     a node that fails prunes its subtree).  The stack holds at most depth + 1 nodes."""
     n_nodes = node_r.shape[0]
     n = side_req.shape[0]
-    for block in prange((n + REACH_BLOCK - 1) // REACH_BLOCK):
+    for block in range(first, last):
         stack = np.empty(64, dtype=np.int64)  # one per block of emitters, not per emitter
         for t in range(block * REACH_BLOCK, min(n, (block + 1) * REACH_BLOCK)):
             stack[0] = 0
@@ -737,8 +742,8 @@ def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p):
         return keep
     tri_p1 = np.ascontiguousarray(tri_p1, dtype=np.float64)
     x0 = np.asarray(x0, dtype=np.float64)
-    x0 = np.ascontiguousarray(np.broadcast_to(x0.reshape(-1, 3), (T1, 3)))
-    eta1 = np.ascontiguousarray(np.broadcast_to(np.asarray(eta1, dtype=np.float64), (T1,)))
+    x0 = np.array(np.broadcast_to(x0.reshape(-1, 3), (T1, 3)))
+    eta1 = np.array(np.broadcast_to(np.asarray(eta1, dtype=np.float64), (T1,)))
     em = one_bounce_emitters(chain[0], x0, tri_p1, np.ascontiguousarray(tri_n1, dtype=np.float64), eta1)
     centre, radius = sphere_tree(target_p)
     _reach_tree(em.part_start, em.part_c, em.part_r, em.part_d, em.part_t, em.tri_ng, em.tri_p0, em.side_req, centre, radius,

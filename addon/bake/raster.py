@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..solver.runtime.jit import kernel, prange
+from ..solver.runtime.jit import kernel, parallel_range
 
 UV_EPS = 1e-12
 
@@ -73,11 +73,12 @@ def hash_uniform(seed, a, b):
     return float(z >> np.uint64(11)) * (1.0 / 9007199254740992.0)
 
 
-@kernel(parallel=True)
-def _raster_rows(uv, tri_list, W, H, row0, row1, s, seed, jitter, owner, bary, suv):
+@parallel_range(lambda a: a["row1"] - a["row0"])
+@kernel(error_model="numpy")
+def _raster_rows(uv, tri_list, W, H, row0, row1, s, seed, jitter, owner, bary, suv, first, last):
     """owner[r, i, k] = index into tri_list of the triangle holding sample k of texel (i, row0 + r)."""
     S = s * s
-    for r in prange(row1 - row0):
+    for r in range(first, last):
         j = row0 + r
         vlo = j / H
         vhi = (j + 1) / H

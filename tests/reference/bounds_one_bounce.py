@@ -47,7 +47,7 @@ import numpy as np
 
 from addon.solver.bounds.layout import (IRR_PAD, MIN_WIDTH, P_BU0, P_DEPTH, P_EHI, P_ELO, P_U0, P_U1, P_V0, P_V1, POS_PAD, ior_ratio,
                                         push_children)
-from addon.solver.runtime.jit import kernel, prange
+from addon.solver.runtime.jit import kernel, parallel_range
 from addon.solver.polynomials.bernstein import (bound_of_coefficients, abs_lower, abs_upper, affine, affine_map, clip_hull,
                                      coef_range, deriv, elevate, lincomb, mul, rational_bound, sqrt_linearisation, sub)
 
@@ -490,9 +490,10 @@ def tuple_pieces(refract, x0, P, N, Q, UV, eta, max_depth, sigma, alpha, irradia
     return count
 
 
-@kernel(parallel=True)
-def _batch(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, out, counts, stats):
-    for t in prange(pairs.shape[0]):
+@parallel_range("pairs")
+@kernel(error_model="numpy")
+def _batch(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, out, counts, stats, first, last):
+    for t in range(first, last):
         c = pairs[t, 0]
         r = pairs[t, 1]
         counts[t] = tuple_pieces(refract, x0[c], P[c], N[c], Q[r], UV[r], eta, max_depth, sigma, alpha, irradiance,

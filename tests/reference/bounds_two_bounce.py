@@ -55,7 +55,7 @@ each piece by itself.
 
 import numpy as np
 
-from addon.solver.runtime.jit import kernel, prange
+from addon.solver.runtime.jit import kernel, parallel_range
 from addon.solver.polynomials.bernstein import (with_extent, add, affine, affine_map, coef_range, elevate, lincomb, mul,
                                      sqrt_linearisation)
 from addon.solver.bounds.layout import (P_BU0, P_DEPTH, P_EHI, P_ELO, P_RECEIVER, P_U0, P_U1, P_V0, P_V1, POS_PAD,
@@ -331,9 +331,10 @@ def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma
     return count
 
 
-@kernel(parallel=True)
-def _batch_two(chain_code, x0, P, N, Q, UV, eta, pairs, reach, row_start, max_depth, sigma, rows, counts, stats):
-    for t in prange(pairs.shape[0]):
+@parallel_range("pairs")
+@kernel(error_model="numpy")
+def _batch_two(chain_code, x0, P, N, Q, UV, eta, pairs, reach, row_start, max_depth, sigma, rows, counts, stats, first, last):
+    for t in range(first, last):
         a = pairs[t, 0]
         b = pairs[t, 1]
         counts[t] = pair_pieces_two(chain_code, x0[t], P[a], N[a], P[b], N[b], Q, UV, eta[t], max_depth, sigma,

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from addon.solver.runtime.jit import kernel, prange
+from addon.solver.runtime.jit import kernel, parallel_range
 
 KIND_REFLECT = 0  # mirror: R with weight 1 (tint applied by the caller)
 KIND_RECEIVER = 1
@@ -123,15 +123,16 @@ def _fresnel(cos_i, n1, n2):
     return 0.5 * (rs * rs + rp * rp)
 
 
-@kernel(parallel=True)
+@parallel_range(lambda a: a["n_chunks"])
+@kernel(error_model="numpy")
 def _trace(light, axis, cos_max, n_photons, seed, events, tri_p, tri_n, kind, ior, cl_start, cl_end, cl_min, cl_max,
-           floor_min, floor_size, W, H, n_chunks, hist):
+           floor_min, floor_size, W, H, n_chunks, hist, first, last):
     ax = _normalize(axis)
     helper = np.array([1.0, 0.0, 0.0]) if abs(ax[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     tu = _normalize(_cross(helper, ax))
     tv = _cross(ax, tu)
     per = (n_photons + n_chunks - 1) // n_chunks
-    for ch in prange(n_chunks):
+    for ch in range(first, last):
         for i in range(ch * per, min(n_photons, (ch + 1) * per)):
             cz = 1.0 - _rand(seed, i, 0) * (1.0 - cos_max)
             sz = math.sqrt(max(0.0, 1.0 - cz * cz))

@@ -47,7 +47,7 @@ import numpy as np
 
 from ..spoly.api import SolveReport, SolveResult, compact_paths, validate_inputs
 from ..paths.irradiance import PathIrradiance, fresnel_dielectric
-from ..runtime.jit import kernel, prange
+from ..runtime.jit import kernel, parallel_range
 from ..spoly.one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, POLISH_STEPS, store_path
 from ..paths.one_vertex import geometric_normal, line_crossing_barycentrics, polish_and_validate, triangle_frame
 from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
@@ -608,12 +608,12 @@ def walk_tuple(x0, x2, tri_p, tri_n, eta, h_max, roots, crossings, counters, buf
     return count
 
 
-@kernel(parallel=True)
-def walk_tuple_batch(x_start, x_end, P, N, eta, h_max, out_uv, out_count, stats):
+@parallel_range("x_start", CHUNK)
+@kernel(error_model="numpy")
+def walk_tuple_batch(x_start, x_end, P, N, eta, h_max, out_uv, out_count, stats, first, last):
     """The per-tuple walk over a batch (chunks of ``CHUNK`` tuples per worker, scratch once per chunk)."""
     n = x_start.shape[0]
-    n_chunks = (n + CHUNK - 1) // CHUNK
-    for c in prange(n_chunks):
+    for c in range(first, last):
         buf = np.zeros((5, MAX_PATHS_ONE_BOUNCE + 1))
         roots = np.zeros((MAX_ROOTS_PER_ARC, 2))
         crossings = np.zeros((MAX_CROSSINGS, 4))
@@ -864,8 +864,9 @@ def _walk_from(start, su, sv, direction, x0, x2, tri_p, tri_n, adj, eta, h_max, 
     return count, False
 
 
-@kernel(parallel=True)
-def walk_mesh_batch(x_start, x_end, tri_p, tri_n, adj, eta, h_max, out_tri, out_uv, out_count, stats):
+@parallel_range("x_start", MESH_CHUNK)
+@kernel(error_model="numpy")
+def walk_mesh_batch(x_start, x_end, tri_p, tri_n, adj, eta, h_max, out_tri, out_uv, out_count, stats, first, last):
     """The mesh walk for every receiver point (independent: one point per parallel item).
 
     Starting points: every crossing of the segment x0 -> x2 with the mesh (Möller-Trumbore
@@ -873,8 +874,7 @@ def walk_mesh_batch(x_start, x_end, tri_p, tri_n, adj, eta, h_max, out_tri, out_
     """
     n = x_start.shape[0]
     n_tri = tri_p.shape[0]
-    n_chunks = (n + MESH_CHUNK - 1) // MESH_CHUNK
-    for c in prange(n_chunks):
+    for c in range(first, last):
         roots = np.zeros((MAX_ROOTS_PER_ARC, 2))
         pos = np.zeros((MAX_PATHS_MESH, 3))
         starts = np.zeros((MAX_STARTS, 6))
@@ -1030,13 +1030,14 @@ def walk_mesh(x0, x2_points, tri_p, tri_n, adjacency, eta, steps=MESH_STEPS):
 # --- ray-differential contribution (eq 25-33) ----------------------------------------------
 
 
-@kernel(parallel=True)
-def _ray_differential_kernel(from_light, x_start, x_end, P, N, eta, tuple_index, uv, receiver_normal, has_receiver, out):
+@parallel_range("tuple_index")
+@kernel(error_model="numpy")
+def _ray_differential_kernel(from_light, x_start, x_end, P, N, eta, tuple_index, uv, receiver_normal, has_receiver, out, first, last):
     """Per solution: out[:, 0..6] = geometry, fresnel, cos_receiver, direction xyz, D.
 
     The paper's P (where the differential starts) is the light x0 when ``from_light``, else
     the receiver x2; its L is the other end."""
-    for s in prange(tuple_index.shape[0]):
+    for s in range(first, last):
         for k in range(7):
             out[s, k] = 0.0
         t = tuple_index[s]

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from ..spoly.api import ONE_BOUNCE_CHAINS, SolveReport, SolveResult, compact_paths, validate_inputs
-from ..runtime.jit import kernel, prange
+from ..runtime.jit import kernel, parallel_range
 from ..spoly.one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, store_path
 from ..paths.one_vertex import geometric_normal, polish_and_validate, triangle_frame
 from ..geometry.vec3 import dot, madd, row, sub
@@ -44,12 +44,12 @@ def _uniform(seed, t, k, j):
     return float(h >> np.uint64(11)) * (1.0 / 9007199254740992.0)
 
 
-@kernel(parallel=True)
-def _seeded_newton_batch(refract, mode, n_seeds, seed, x_start, x_end, P, N, eta, out_uv, out_count, stats):
+@parallel_range("x_start", CHUNK)
+@kernel(error_model="numpy")
+def _seeded_newton_batch(refract, mode, n_seeds, seed, x_start, x_end, P, N, eta, out_uv, out_count, stats, first, last):
     """mode 0: Path Cuts seeds (centroid, + line crossing for T); mode 1: n_seeds random seeds."""
     n = x_start.shape[0]
-    n_chunks = (n + CHUNK - 1) // CHUNK
-    for c in prange(n_chunks):
+    for c in range(first, last):
         buf = np.zeros((5, MAX_PATHS_ONE_BOUNCE + 1))
         for t in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             x0 = row(x_start, t)

@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from ..runtime.jit import kernel, prange
+from ..runtime.jit import kernel, parallel_range
 
 SLIVER = 4.0  # as forward_image.SLIVER
 FOLD_RATIO = 4.0  # corner densities differing by more than this: the uniform splat
@@ -35,13 +35,13 @@ def _corner(tri_p, t, b0, b1, k):
     return a + b0 * (tri_p[t, 1, k] - a) + b1 * (tri_p[t, 2, k] - a)
 
 
-@kernel(parallel=True)
-def subtriangle_geometry(tri_p, t1_of, emitter, bary, x0, sun, d, out_x1, out_power):
+@parallel_range("emitter")
+@kernel(error_model="numpy")
+def subtriangle_geometry(tri_p, t1_of, emitter, bary, x0, sun, d, out_x1, out_power, first, last):
     """Centroid ``out_x1`` (m, 3) and power factor ``out_power`` (m,) of the sub-triangles
     with corners ``bary`` (m, 3, 2) on first triangles t1_of[emitter]: the solid angle seen
     from x0[emitter] (point light), or with ``sun`` the area across direction ``d`` (3,)."""
-    m = emitter.shape[0]
-    for i in prange(m):
+    for i in range(first, last):
         e = emitter[i]
         t = t1_of[e]
         ax = _corner(tri_p, t, bary[i, 0, 0], bary[i, 0, 1], 0)
@@ -77,14 +77,14 @@ def subtriangle_geometry(tri_p, t1_of, emitter, bary, x0, sun, d, out_x1, out_po
             out_power[i] = 2.0 * math.atan2(num, den)
 
 
-@kernel(parallel=True)
-def corner_densities_kernel(uv, mid_uv, tri_p, t1_of, emitter, bary, x0, sun, d, far, factor, out):
+@parallel_range("emitter")
+@kernel(error_model="numpy")
+def corner_densities_kernel(uv, mid_uv, tri_p, t1_of, emitter, bary, x0, sun, d, far, factor, out, first, last):
     """:func:`.forward_image.corner_densities` of the sub-triangles (images ``uv`` /
     ``mid_uv`` (m, 3, 2), corners ``bary`` (m, 3, 2) on t1_of[emitter]) lit from
     x0[emitter], or with ``sun`` from the centroid minus ``far`` x ``d``; ``factor`` (m, 6)
     the transport factors (NaN: 1).  Writes ``out`` (m, 3)."""
-    m = emitter.shape[0]
-    for i in prange(m):
+    for i in range(first, last):
         out[i, 0] = 1.0
         out[i, 1] = 1.0
         out[i, 2] = 1.0

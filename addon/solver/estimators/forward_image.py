@@ -41,7 +41,7 @@ import math
 import numpy as np
 
 from ..geometry.bvh import ray_closest
-from ..runtime.jit import kernel, prange
+from ..runtime.jit import kernel, parallel_range
 from ..paths.two_vertex import pack_geometry, polish_and_validate2
 from ..geometry.optics import ROLE_BOTH, ROLE_REFLECT, fresnel_dielectric
 from ..geometry.optics import scatter_direction as _scatter
@@ -148,17 +148,18 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok
     return t2, u2, v2, tr, ur, vr, fac * c
 
 
-@kernel(parallel=True)
+@parallel_range("emitter", CHUNK)
+@kernel(error_model="numpy")
 def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
                        tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_t2,
-                       out_rec, out_uv, out_factor):
+                       out_rec, out_uv, out_factor, first, last):
     """Step 1 (see the module docstring) for points (emitter[i], u1[i], v1[i]) of a chain of
     ``bounces`` (1 or 2) vertices: the second
     triangle ``out_t2`` (-1: none), the receiver triangle ``out_rec`` (-1: lost), the
     texture coordinates ``out_uv`` of the landing point and the transport factor
     ``out_factor`` (:func:`_trace_one`)."""
     n = emitter.shape[0]
-    for ch in prange((n + CHUNK - 1) // CHUNK):
+    for ch in range(first, last):
         stack = np.empty(256, dtype=np.int64)
         for i in range(ch * CHUNK, min(n, ch * CHUNK + CHUNK)):
             e = emitter[i]
@@ -756,11 +757,11 @@ def _closest_on_triangle(px, py, ax, ay, bx, by, cx, cy):
     return wa, wb, wc, (qx - px) * (qx - px) + (qy - py) * (qy - py)
 
 
-@kernel(parallel=True)
+@parallel_range("tri_uv")
+@kernel(error_model="numpy")
 def _emit(fill, tri_uv, tri_bary, tri_emitter, margin, W, H, row0, row1, tex_start, tex_order, sample_uv, offset, count,
-          out_e, out_seed, out_s):
-    n = tri_uv.shape[0]
-    for t in prange(n):
+          out_e, out_seed, out_s, first, last):
+    for t in range(first, last):
         c = 0
         o = offset[t] if fill else 0
         ax, ay = tri_uv[t, 0, 0], tri_uv[t, 0, 1]
@@ -834,15 +835,16 @@ class ImageSeeds:
             q = q1
 
 
-@kernel(parallel=True)
+@parallel_range("emitter", CHUNK)
+@kernel(error_model="numpy")
 def solve_image_seeds(emitter, seed, sample, x0, t1_of, x_end, refract1, refract2, second_ok, tri_rec, tri_p, tri_n,
                       tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_ok,
-                      out_t2, out_uv, stats):
+                      out_t2, out_uv, stats, first, last):
     """Step 4: per seed, the exact path through (t1, t2) to the sample point, t2 found by
     tracing the seed (and re-traced after a Newton step that leaves it).  ``stats`` (chunks,
     3): polish calls, hops, accepted."""
     n = emitter.shape[0]
-    for ch in prange((n + CHUNK - 1) // CHUNK):
+    for ch in range(first, last):
         stack = np.empty(256, dtype=np.int64)
         geo = np.empty((15, 3))
         work = np.zeros((25, 6))

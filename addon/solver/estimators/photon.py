@@ -45,7 +45,7 @@ from collections import namedtuple
 import numpy as np
 
 from ..geometry.bvh import ray_closest, build_bvh
-from ..runtime.jit import kernel, prange
+from ..runtime.jit import kernel, parallel_range
 from ..geometry.optics import ROLE_BOTH, ROLE_REFLECT, ROLE_REFRACT, fresnel_dielectric, scatter_direction
 from ..geometry.surface import plane_barycentrics, triangle_frame
 
@@ -202,14 +202,14 @@ def _hit_frame(tri_p, tri_n, tid, ox, oy, oz, dx, dy, dz):
     return u, v, nx, ny, nz, gx, gy, gz, ok
 
 
-@kernel(parallel=True)
+@parallel_range(lambda a: (a["g1"] - a["g0"] + BLOCK - 1) // BLOCK)
+@kernel(error_model="numpy")
 def _trace_batch(g0, g1, seed, em_kind, em_pos, em_axis, em_cos, em_radius, em_rgb, em_lobe, em_spot_axis, em_spot_cos,
                  em_spot_smooth, em_start, em_sx, em_scale, allowed, prefix, node_min, node_max, node_child, node_start,
                  node_count, order, v0, e1, e2, tri_p, tri_n, tri_role, tri_ior, tri_tint, tri_rec, tri_uv, rec_w, rec_h,
-                 rec_off, eps, out_texel, out_w, out_code):
+                 rec_off, eps, out_texel, out_w, out_code, first, last):
     n = g1 - g0
-    n_blocks = (n + BLOCK - 1) // BLOCK
-    for blk in prange(n_blocks):
+    for blk in range(first, last):
         stack = np.empty(256, dtype=np.int64)
         for s in range(blk * BLOCK, min(n, (blk + 1) * BLOCK)):
             g = g0 + s

@@ -15,7 +15,7 @@ from collections import namedtuple
 
 import numpy as np
 
-from ..runtime.jit import kernel, prange
+from ..runtime.jit import kernel, parallel_range
 
 LEAF_SIZE = 4
 N_BINS = 16
@@ -275,11 +275,11 @@ def _segment_blocked(node_min, node_max, node_child, node_start, node_count, ord
     return False
 
 
-@kernel(parallel=True)
-def _segments_occluded(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, a, b, ignore, eps, out):
+@parallel_range("a", 256)
+@kernel(error_model="numpy")
+def _segments_occluded(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, a, b, ignore, eps, out, first, last):
     n = a.shape[0]
-    n_chunks = (n + 255) // 256
-    for ch in prange(n_chunks):
+    for ch in range(first, last):
         stack = np.empty(256, dtype=np.int64)
         for s in range(ch * 256, min(n, ch * 256 + 256)):
             dx = b[s, 0] - a[s, 0]
@@ -347,11 +347,11 @@ def ray_closest(node_min, node_max, node_child, node_start, node_count, order, v
     return best, best_t
 
 
-@kernel(parallel=True)
-def _rays_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, o, d, tmin, ignore, out_tri, out_t):
+@parallel_range("o", 256)
+@kernel(error_model="numpy")
+def _rays_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, o, d, tmin, ignore, out_tri, out_t, first, last):
     n = o.shape[0]
-    n_chunks = (n + 255) // 256
-    for ch in prange(n_chunks):
+    for ch in range(first, last):
         stack = np.empty(256, dtype=np.int64)
         for s in range(ch * 256, min(n, ch * 256 + 256)):
             tri, t = ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2,

@@ -12,13 +12,12 @@ P⊥ the projector orthogonal to ωo.  F is the Fresnel factor (unpolarised diel
 conductor with complex IOR, or 1 for a tinted mirror whose colour the bake applies).
 """
 
-import math
 from collections import namedtuple
 
 import numpy as np
 
 from ..spoly.api import CHAIN_LENGTH, validate_inputs
-from ..runtime.jit import kernel, prange
+from ..runtime.jit import kernel, parallel_range
 from .one_vertex import geometric_normal, scatter_residual, triangle_frame
 from .two_vertex import pack_geometry, two_bounce_footprint
 from ..geometry.optics import REFLECTANCE_MODELS, fresnel_conductor, fresnel_dielectric, vertex_fresnel
@@ -42,10 +41,11 @@ def _write_solution(out, s, geometry, fresnel, w, receiver_normal, t, has_receiv
     out[s, 5] = w[2]
 
 
-@kernel(parallel=True)
-def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tuple_index, uv, receiver_normal, has_receiver, out):
+@parallel_range("tuple_index")
+@kernel(error_model="numpy")
+def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tuple_index, uv, receiver_normal, has_receiver, out, first, last):
     """Per solution: out[:, 0..5] = geometry, fresnel, cos_receiver, direction xyz."""
-    for s in prange(tuple_index.shape[0]):
+    for s in range(first, last):
         t = tuple_index[s]
         x0 = row(x_start, t)
         x2 = row(x_end, t)
@@ -96,12 +96,13 @@ def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tup
         _write_solution(out, s, geometry, fresnel, wo, receiver_normal, t, has_receiver)
 
 
-@kernel(parallel=True)
+@parallel_range("tuple_index")
+@kernel(error_model="numpy")
 def _two_bounce_irradiance(refract1, refract2, model, x_start, x_end, P, N, eta, kappa, tuple_index, uv, receiver_normal,
-                           has_receiver, out):
+                           has_receiver, out, first, last):
     """Per solution: out[:, 0..5] = geometry, fresnel (product over both vertices),
     cos_receiver, direction xyz."""
-    for s in prange(tuple_index.shape[0]):
+    for s in range(first, last):
         t = tuple_index[s]
         geo = np.empty((15, 3))
         th = np.empty(4)

@@ -75,11 +75,30 @@ def configure_cache(directory=None):
 configure_cache()
 
 import numba  # noqa: E402  (after the cache directory is set)
-from numba import njit, prange  # noqa: E402,F401
+from numba import njit  # noqa: E402
+
+
+def _compile_without_literals(dispatcher):
+    """Make calls from other kernels compile ``dispatcher`` for the plain types of their
+    arguments.  Numba types a constant argument in jitted code as a literal (``0`` as
+    ``Literal[int](0)``, ``True`` as ``Literal[bool](True)``) and compiles a separate
+    specialisation for each literal value; every specialisation re-optimises the callee's
+    whole call tree.  The kernels never branch on a literal's type, so one specialisation per
+    plain signature gives the same machine arithmetic for a fraction of the compile time."""
+    from numba.core import types
+
+    resolve = dispatcher.get_call_template
+
+    def get_call_template(args, kws):
+        return resolve(tuple(types.unliteral(a) for a in args), {k: types.unliteral(v) for k, v in kws.items()})
+
+    dispatcher.get_call_template = get_call_template
+    return dispatcher
 
 
 def kernel(*args, **kwargs):
-    """``numba.njit`` with the project defaults: cached, no Python fallback, fastmath off.
+    """``numba.njit`` with the project defaults: cached, no Python fallback, fastmath off,
+    one specialisation per plain signature (:func:`_compile_without_literals`).
 
     fastmath stays off on purpose: the root finder and the path validation rely on IEEE
     semantics (NaN checks, exact zero tests, signed comparisons).
@@ -87,8 +106,9 @@ def kernel(*args, **kwargs):
     kwargs.setdefault("cache", True)
     kwargs.setdefault("nogil", True)
     if args and callable(args[0]):
-        return njit(**kwargs)(args[0])
-    return njit(*args, **kwargs)
+        return _compile_without_literals(njit(**kwargs)(args[0]))
+    decorate = njit(*args, **kwargs)
+    return lambda function: _compile_without_literals(decorate(function))
 
 
 def set_num_threads(n):
@@ -100,13 +120,32 @@ def get_num_threads():
     return numba.get_num_threads()
 
 
-def run_chunks(chunk_kernel, args, n, chunks=256):
-    """Call ``chunk_kernel(*args, a, b)`` over [0, n) cut into about ``chunks`` ranges [a, b),
-    on as many Python threads as numba's thread count.  The kernel must release the GIL
-    (``kernel`` sets nogil): a thread pool costs no compilation, where a ``parallel=True``
-    wrapper takes seconds to compile."""
+_POOL = None
+_POOL_SIZE = 0
+
+
+def _pool(threads):
+    """The process's worker threads for :func:`run_chunks`, grown on demand, reused so a call
+    costs microseconds rather than a thread start-up."""
     from concurrent.futures import ThreadPoolExecutor
 
+    global _POOL, _POOL_SIZE
+    if _POOL is None or _POOL_SIZE < threads:
+        _POOL = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="caustic-kernel")
+        _POOL_SIZE = threads
+    return _POOL
+
+
+def run_chunks(chunk_kernel, args, n, chunks=256):
+    """Call ``chunk_kernel(*args, a, b)`` over [0, n) cut into about ``chunks`` ranges [a, b),
+    on as many threads as numba's thread count (:func:`set_num_threads`).
+
+    This is how the solver runs independent work in parallel instead of ``prange``: the kernel
+    must release the GIL (``kernel`` sets nogil) and write disjoint outputs per index, so the
+    result does not depend on the thread count.  A ``parallel=True`` wrapper compiles its
+    body as a gufunc and re-optimises the whole call tree below it two more times (about 4x
+    the compile time of the serial kernel, ~20 s for the big solvers); a thread pool costs no
+    compilation.  Must not be called from inside a chunk kernel."""
     size = max(1, -(-n // max(1, int(chunks))))
     ranges = [(a, min(n, a + size)) for a in range(0, n, size)]
     threads = get_num_threads()
@@ -114,6 +153,42 @@ def run_chunks(chunk_kernel, args, n, chunks=256):
         for a, b in ranges:
             chunk_kernel(*args, a, b)
         return
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        for f in [pool.submit(chunk_kernel, *args, a, b) for a, b in ranges]:
-            f.result()
+    work = iter(ranges)  # shared: each worker takes the next range (next() holds the GIL)
+    futures = [_pool(threads).submit(_drain, chunk_kernel, args, work) for _ in range(min(threads, len(ranges)))]
+    for f in futures:
+        f.result()
+
+
+def _drain(chunk_kernel, args, work):
+    for a, b in work:
+        chunk_kernel(*args, a, b)
+
+
+def parallel_range(count, per=1):
+    """Decorator for a kernel ``f(*args, first, last)`` that does the independent work items
+    [first, last) of a range: the result is a Python function ``f(*args)`` running it over the
+    whole range with :func:`run_chunks` (the kernel itself stays at ``f.chunk_kernel``).
+
+    ``count`` names the argument whose length (first dimension) gives the range, one index per
+    ``per`` of its rows; or it is a function of the arguments by name returning the number of
+    indices.  The kernels are compiled with ``error_model="numpy"`` (x / 0 gives inf or NaN,
+    not an exception), the arithmetic of the ``prange`` loops they replace."""
+    import functools
+    import inspect
+
+    def wrap(chunk_kernel):
+        names = list(inspect.signature(chunk_kernel.py_func).parameters)[:-2]
+        position = names.index(count) if isinstance(count, str) else None
+
+        @functools.wraps(chunk_kernel.py_func)
+        def run(*args):
+            if position is not None:
+                n = -(-len(args[position]) // per)
+            else:
+                n = int(count(dict(zip(names, args))))
+            run_chunks(chunk_kernel, args, n)
+
+        run.chunk_kernel = chunk_kernel
+        return run
+
+    return wrap

@@ -36,7 +36,7 @@ import math
 
 import numpy as np
 
-from ..runtime.jit import kernel, prange
+from ..runtime.jit import kernel, parallel_range
 from ..paths.one_vertex import (geometric_normal, line_crossing_barycentrics, polish_and_validate,
                                 scatter_residual)
 from ..polynomials.roots import (MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval,
@@ -901,12 +901,12 @@ def _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_bu
     return count
 
 
-@kernel(parallel=True)
-def solve_one_bounce_batch(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_count, stats):
+@parallel_range("x_start", CHUNK)
+@kernel(error_model="numpy")
+def solve_one_bounce_batch(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_count, stats, first, last):
     """Solve every tuple of a batch in parallel (chunks of ``CHUNK`` tuples per worker)."""
     n = x_start.shape[0]
-    n_chunks = (n + CHUNK - 1) // CHUNK
-    for c in prange(n_chunks):
+    for c in range(first, last):
         biv, uni, chain, lists, stack, roots = make_scratch()
         for t in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             out_count[t] = solve_one_bounce_tuple(

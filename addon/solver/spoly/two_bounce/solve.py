@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ...runtime.jit import kernel, prange
+from ...runtime.jit import kernel, run_chunks
 from ...paths.one_vertex import line_crossing_barycentrics
 from ...paths.two_vertex import pack_geometry, polish_and_validate2, trace_to_second
 from ...geometry.vec3 import row
@@ -371,11 +371,19 @@ def _already_stored(u1, v1, out_uv, off, count):
     return False
 
 
-@kernel(parallel=True)
 def solve_two_bounce_batch(refract1, refract2, x_start, x_end, P, N, eta, pieces, stop_after, out_uv, out_count, stats):
+    """:func:`solve_two_bounce_tuple` for every tuple t (x_start[t], x_end[t], P[t], N[t],
+    eta[t]) into out_uv[t], out_count[t], stats[t], chunks of CHUNK tuples on the kernel
+    threads (``jit.run_chunks``)."""
     n = x_start.shape[0]
-    n_chunks = (n + CHUNK - 1) // CHUNK
-    for ch in prange(n_chunks):
+    run_chunks(_solve_chunks, (bool(refract1), bool(refract2), x_start, x_end, P, N, eta, int(pieces), int(stop_after), out_uv,
+                               out_count, stats), (n + CHUNK - 1) // CHUNK)
+
+
+@kernel(error_model="numpy")
+def _solve_chunks(refract1, refract2, x_start, x_end, P, N, eta, pieces, stop_after, out_uv, out_count, stats, first, last):
+    n = x_start.shape[0]
+    for ch in range(first, last):
         biv, cf, mat, scan, geo, work, roots, chain, lists = make_scratch2()
         for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
             x0 = (x_start[t, 0], x_start[t, 1], x_start[t, 2])

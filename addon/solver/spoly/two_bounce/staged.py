@@ -42,7 +42,7 @@ a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel path in s
 
 import numpy as np
 
-from ...runtime.jit import kernel, prange
+from ...runtime.jit import kernel, parallel_range
 from ...paths.two_vertex import pack_geometry
 from .params import (BOTH_DIRECTIONS, CHUNK, KINK, LIVE_PREPASS, LIVE_STACK, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD,
                      N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS,
@@ -208,15 +208,16 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
     return nsys
 
 
-@kernel(parallel=True)
-def stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, pieces, live_mask):
+@parallel_range("x_start", CHUNK)
+@kernel(error_model="numpy")
+def stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, pieces, live_mask, first, last):
     """Stage A over a batch: systems per tuple into coef (n, cap, stride) and sysint
     (n, cap, 7) = (rev + 2 · not refined, status, da, db, na, nb, n) (bit 1: the TIR fallback's
     system, sign changes only, as ``_solve_oriented``), their count nsys (n,), and state (n,):
     0 nothing to solve, 1 staged, 2 more than cap systems (solved by the one-kernel path in
     stage E); live_mask (n, cap, pieces): the scan pieces of each system ``live_pieces`` keeps."""
     n = x_start.shape[0]
-    for ch in prange((n + CHUNK - 1) // CHUNK):
+    for ch in range(first, last):
         biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
         geo = np.zeros((3, 15, 3))
         live_work = np.zeros((2, MAX_PIECES + 1))
@@ -256,13 +257,14 @@ def _oriented(refract1, refract2, rev):
     return refract1, refract2
 
 
-@kernel(parallel=True)
+@parallel_range("x_start", CHUNK)
+@kernel(error_model="numpy")
 def stage_c(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state, roots, nv,
-            productive, out_uv, meta, out_count, stats):
+            productive, out_uv, meta, out_count, stats, first, last):
     """Candidates at the scan roots of every system, in system order, per tuple; productive
     (S, pieces) says which roots polished into a path (``_eliminate``'s flag)."""
     n = x_start.shape[0]
-    for ch in prange((n + CHUNK - 1) // CHUNK):
+    for ch in range(first, last):
         biv, cf, mat, scan, geo, work, sroots, chain, lists = make_scratch2()
         for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
             _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state,
@@ -303,14 +305,15 @@ def _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef
     out_count[t] = count
 
 
-@kernel(parallel=True)
+@parallel_range("x_start", CHUNK)
+@kernel(error_model="numpy")
 def stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
-            ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats):
+            ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats, first, last):
     """Candidates at the refined roots, the seeded polish of degenerate systems (sysint
     status -1), the straight-line candidate after the forward systems, the statistics;
     tuples with more than SYS_CAP systems are solved here by the one-kernel path."""
     n = x_start.shape[0]
-    for ch in prange((n + CHUNK - 1) // CHUNK):
+    for ch in range(first, last):
         biv, cf, mat, scan, geo, work, sroots, chain, lists = make_scratch2()
         for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
             _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state,
@@ -370,13 +373,14 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
 # --- stage D bookkeeping (the determinants themselves run on the device) -----------------------
 
 
-@kernel(parallel=True)
-def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, live, flags):
+@parallel_range("vs")
+@kernel(error_model="numpy")
+def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, live, flags, first, last):
     """``refine_v_roots``'s choice of pieces: lgs (S, pieces + 1) and the ghost samples
     (S, 2: raw log|det| a piece below and above the range) are deflated by the scan roots;
     flags[s, k] = 1 for a piece next to a convex kink or around a productive root
     (``refine_flags_one``)."""
-    for s in prange(vs.shape[0]):
+    for s in range(first, last):
         h = vs[s, 1] - vs[s, 0]
         g_lo = deflate(vs[s, 0] - h, ghost[s, 0], roots[s], nv[s])
         g_hi = deflate(vs[s, pieces] + h, ghost[s, 1], roots[s], nv[s])
@@ -385,13 +389,14 @@ def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, live, 
         refine_flags_one(lgs[s], g_lo, g_hi, roots[s], nv[s], piece_of[s], productive[s], pieces, live[s], flags[s])
 
 
-@kernel(parallel=True)
-def refine_brackets(job_sys, sv, ss, roots, nv, bracket):
+@parallel_range("ss")
+@kernel(error_model="numpy")
+def refine_brackets(job_sys, sv, ss, roots, nv, bracket, first, last):
     """Per flagged piece f (sub-samples sv[f], their signs ss[f]): bracket[f, k] = 1 for a
     new sign change in sub-piece k to pin (``_refine_interval``: none in a noisy piece, none
     in a sub-piece holding a scan root)."""
     M = ss.shape[1] - 1
-    for f in prange(ss.shape[0]):
+    for f in range(first, last):
         s = job_sys[f]
         changes = 0
         for k in range(M):
@@ -410,9 +415,10 @@ def refine_brackets(job_sys, sv, ss, roots, nv, bracket):
                     bracket[f, k] = 1
 
 
-@kernel(parallel=True)
+@parallel_range("nv")
+@kernel(error_model="numpy")
 def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots,
-                    coef, sysint3, b_offset, dip_dets):
+                    coef, sysint3, b_offset, dip_dets, first, last):
     """The refined roots of each system in ``_refine_interval``'s order (pieces ascending;
     per piece its pinned sign changes, then its one-signed dips of the log|det| deflated by
     every root found so far), into ref_roots[ref_first[s]:] (ref_count[s] of them).
@@ -424,7 +430,7 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
     one-kernel path's own function: 3-8 determinants per dip, a few per cent of the work
     (dip_dets[s] counts them)."""
     M = svx.shape[1] - 3
-    for s in prange(nv.shape[0]):
+    for s in range(first, last):
         nf = flag_first[s + 1] - flag_first[s]
         buf = np.empty(nv[s] + (2 * M - 1) * nf)
         cap = min(buf.shape[0], MAX_ROOTS)
@@ -476,12 +482,13 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
 # --- a Numba "device" for stages B and D (reference and tests) ---------------------------------
 
 
-@kernel(parallel=True)
-def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, out_dets):
+@parallel_range("job_sys", 32)
+@kernel(error_model="numpy")
+def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, out_dets, first, last):
     """det jobs with ``det_checked`` (the one-kernel path's own function)."""
     n_jobs = job_sys.shape[0]
     chunk = 32
-    for c in prange((n_jobs + chunk - 1) // chunk):
+    for c in range(first, last):
         a = np.zeros((MAXD + 1, MAXD + 1))
         scratch = np.empty((MAXD + 1, MAXD + 1))
         b = np.zeros((MAXD + 1, MAXD + 1))
@@ -502,12 +509,13 @@ def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, 
             out_dets[t] = st[STAT_DETS] - before
 
 
-@kernel(parallel=True)
-def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_root, out_dets):
+@parallel_range("job_sys", 8)
+@kernel(error_model="numpy")
+def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_root, out_dets, first, last):
     """Illinois jobs (lo, hi, log lo, log hi; sign lo, sign hi) with ``illinois``."""
     n_jobs = job_sys.shape[0]
     chunk = 8
-    for c in prange((n_jobs + chunk - 1) // chunk):
+    for c in range(first, last):
         a = np.zeros((MAXD + 1, MAXD + 1))
         scratch = np.empty((MAXD + 1, MAXD + 1))
         b = np.zeros((MAXD + 1, MAXD + 1))

@@ -80,6 +80,7 @@ def test_opencl_two_bounce_returns_the_numba_paths(chain):
           f"Numba {numba.report.determinants:,}")
 
 
+@pytest.mark.slow  # compiles the staged pipeline, which no other everyday test uses: ~45 s on a fresh cache
 @pytest.mark.parametrize("chain", ["RR", "TT"])
 def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
     """Stages A-E with the determinants on Numba (no OpenCL needed): the staging itself

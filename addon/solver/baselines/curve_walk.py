@@ -983,7 +983,7 @@ def walk_mesh(x0, x2_points, tri_p, tri_n, adjacency, eta, steps=MESH_STEPS):
         raise ValueError(f"x2_points must have shape (n, 3), got {x2_points.shape}")
     n = x2_points.shape[0]
     x0 = np.asarray(x0, dtype=np.float64)
-    x_start = np.ascontiguousarray(np.broadcast_to(x0, (n, 3)) if x0.shape == (3,) else x0)
+    x_start = np.array(np.broadcast_to(x0, (n, 3)) if x0.shape == (3,) else x0)
     tri_p = np.asarray(tri_p, dtype=np.float64)
     tri_n = np.asarray(tri_n, dtype=np.float64)
     if tri_p.ndim != 3 or tri_p.shape[1:] != (3, 3) or tri_n.shape != tri_p.shape:

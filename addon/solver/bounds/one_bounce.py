@@ -250,7 +250,7 @@ def bound_one_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
         pairs = np.stack([ci.ravel(), ri.ravel()], axis=1)
     pairs = np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
     n = pairs.shape[0]
-    points = np.ascontiguousarray(np.broadcast_to(light.reshape(-1, 3), (caster_P.shape[0], 3)))
+    points = np.array(np.broadcast_to(light.reshape(-1, 3), (caster_P.shape[0], 3)))
     # A quadtree of depth max_depth has at most 4**max_depth leaves, and the split test
     # (count + pending + 4 <= capacity) never refuses a split below that many rows (finished
     # leaves, pending boxes and the split box's children lie in disjoint subtrees), so the

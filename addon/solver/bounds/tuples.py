@@ -173,8 +173,8 @@ def two_bounce_pairs(chain, light, caster_P, caster_N, eta=1.5, levels=1, first=
     N = np.ascontiguousarray(caster_N, dtype=np.float64)
     first = np.arange(P.shape[0], dtype=np.int64) if first is None else np.ascontiguousarray(first, dtype=np.int64)
     nf = first.shape[0]
-    light = np.ascontiguousarray(np.broadcast_to(np.asarray(light, dtype=np.float64).reshape(-1, 3), (nf, 3)))
-    eta = np.ascontiguousarray(np.broadcast_to(np.asarray(eta, dtype=np.float64), (nf,)))
+    light = np.array(np.broadcast_to(np.asarray(light, dtype=np.float64).reshape(-1, 3), (nf, 3)))
+    eta = np.array(np.broadcast_to(np.asarray(eta, dtype=np.float64), (nf,)))
     bvh = build_bvh(P)
     t1 = time.perf_counter()
     refract = chain[0] == "T"

@@ -100,7 +100,7 @@ def bound_two_bounce(chain, light, caster_P, caster_N, receiver_P, receiver_UV, 
         reach = receivers_reached(chain, light, caster_P, caster_N, receiver_P, pairs, eta, int(reach_depth))
     t_reach = time.perf_counter()
     if n and nr:
-        points = np.ascontiguousarray(np.broadcast_to(light, (n, 3)))
+        points = np.array(np.broadcast_to(light, (n, 3)))
         (engine or batch)(CHAIN_CODES[chain], points, caster_P, caster_N, receiver_P, receiver_UV, np.full(n, float(eta)), pairs,
                           reach, np.full(n, nr, dtype=np.int64), row_start, int(max_depth), float(sigma), rows, counts, stats)
     t2 = time.perf_counter()

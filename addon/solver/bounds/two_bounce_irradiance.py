@@ -612,7 +612,7 @@ def receivers_reached(chain, light, caster_P, caster_N, receiver_P, pairs, eta=1
     reach = np.zeros((pairs.shape[0], receiver_P.shape[0], cells, cells), dtype=np.bool_)
     if reach.size:
         n = pairs.shape[0]
-        points = np.ascontiguousarray(np.broadcast_to(np.asarray(light, dtype=np.float64).reshape(3), (n, 3)))
+        points = np.array(np.broadcast_to(np.asarray(light, dtype=np.float64).reshape(3), (n, 3)))
         mask = np.ones((n, receiver_P.shape[0]), dtype=np.bool_)
         run_chunks(reach_chunk, (CHAIN_CODES[chain], points, np.ascontiguousarray(caster_P, dtype=np.float64),
                                  np.ascontiguousarray(caster_N, dtype=np.float64), receiver_P, np.full(n, float(eta)), pairs,
@@ -654,7 +654,7 @@ def bound_irradiance_two(bounds, light, caster_P, caster_N, receiver_P, eta=1.5,
     stats = np.zeros((bounds.pieces.shape[0], N_IRR_STATS), dtype=np.int64)
     if bounds.pieces.shape[0]:
         n = bounds.pieces.shape[0]
-        points = np.ascontiguousarray(np.broadcast_to(np.asarray(light, dtype=np.float64).reshape(3), (n, 3)))
+        points = np.array(np.broadcast_to(np.asarray(light, dtype=np.float64).reshape(3), (n, 3)))
         run_chunks(irradiance_chunk, (CHAIN_CODES[bounds.chain], points,
                                        np.ascontiguousarray(caster_P, dtype=np.float64),
                                        np.ascontiguousarray(caster_N, dtype=np.float64),

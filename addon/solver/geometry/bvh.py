@@ -306,7 +306,7 @@ def segments_occluded(bvh, a, b, ignore=None, eps=1e-6):
     n = a.shape[0]
     if ignore is None:
         ignore = np.full((n, 2), -1, dtype=np.int64)
-    ignore = np.ascontiguousarray(np.broadcast_to(np.asarray(ignore, dtype=np.int64).reshape(-1, 2) if np.ndim(ignore) == 2 else np.asarray(ignore, dtype=np.int64).reshape(-1, 1).repeat(2, 1), (n, 2)))
+    ignore = np.array(np.broadcast_to(np.asarray(ignore, dtype=np.int64).reshape(-1, 2) if np.ndim(ignore) == 2 else np.asarray(ignore, dtype=np.int64).reshape(-1, 1).repeat(2, 1), (n, 2)))
     out = np.zeros(n, dtype=np.bool_)
     if n and bvh.order.shape[0]:
         _segments_occluded(bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_start, bvh.node_count, bvh.order,
@@ -365,7 +365,7 @@ def rays_closest(bvh, origin, direction, ignore=None, tmin=0.0):
     o = np.ascontiguousarray(origin, dtype=np.float64).reshape(-1, 3)
     d = np.ascontiguousarray(direction, dtype=np.float64).reshape(-1, 3)
     n = o.shape[0]
-    ig = np.full(n, -1, dtype=np.int64) if ignore is None else np.ascontiguousarray(np.broadcast_to(np.asarray(ignore, dtype=np.int64), (n,)))
+    ig = np.full(n, -1, dtype=np.int64) if ignore is None else np.array(np.broadcast_to(np.asarray(ignore, dtype=np.int64), (n,)))
     out_tri = np.full(n, -1, dtype=np.int64)
     out_t = np.full(n, np.inf)
     if n and bvh.order.shape[0]:

@@ -149,7 +149,7 @@ def path_irradiance(chain, x_start, x_end, P, N, eta, tuple_index, uv, receiver_
             raise ValueError("reflectance='conductor' needs conductor_k (imaginary part of the IOR)")
         kappa = np.broadcast_to(np.asarray(conductor_k, dtype=np.float64), (n,)).copy()
     has_receiver = receiver_normal is not None
-    rn = np.zeros((n, 3)) if not has_receiver else np.ascontiguousarray(np.broadcast_to(np.asarray(receiver_normal, dtype=np.float64), (n, 3)))
+    rn = np.zeros((n, 3)) if not has_receiver else np.array(np.broadcast_to(np.asarray(receiver_normal, dtype=np.float64), (n, 3)))
     out = np.zeros((tuple_index.shape[0], 6))
     if tuple_index.shape[0] and k == 2:
         _two_bounce_irradiance(chain[0] == "T", chain[1] == "T", REFLECTANCE_MODELS[reflectance], x_start, x_end, P, N,

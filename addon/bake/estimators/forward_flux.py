@@ -77,7 +77,7 @@ def flux_textures(ctx, item, state, ls, m):
     final sub-triangles for light sample ``m`` (see the module doc); their power also goes
     into ``ctx.ledger``.  The same estimate as :func:`flux_textures_reference`, its
     per-sub-triangle terms in kernels."""
-    scene, extent = ctx.scene, ctx.extent
+    extent = ctx.extent
     receivers = ctx.receivers
     tris = state.tris
     out = [np.zeros((r.resolution[0] * r.resolution[1], 3)) for r in receivers]
@@ -104,17 +104,9 @@ def flux_textures(ctx, item, state, ls, m):
         power *= emission_factor(ls, np.full(n, m), w0)
     power *= np.where(rec >= 0, fac, 0.0) * tris["landed"]
     clock = ctx.timer.since("flux.trace", clock)
-    live = np.flatnonzero(power > 0)
-    if live.size:
-        ig = np.column_stack([t1[live], np.full(live.size, -1)])
-        blocked = segments_occluded(ctx.bvh, first[live], x1[live], ig, ctx.eps)
-        power[live[blocked]] = 0.0
+    _shadow(ctx, t1, first, x1, power)
     clock = ctx.timer.since("flux.visibility", clock)
-    tint2 = np.where((t2 >= 0)[:, None], scene.tri_tint[np.maximum(t2, 0)], 1.0)  # one-vertex chains: no second tint
-    flux = power[:, None] * ls.rgb[m][None, :] * scene.tri_tint[t1] * tint2
-    two = len(item.chain) == 2
-    ctx.ledger.add(item.light, item.chain, scene.tri_object[t1], scene.tri_object[np.maximum(t2, 0)] if two else None,
-                   tris["receiver"], flux.mean(axis=1))
+    flux = _coloured_flux(ctx, item, tris, t1, t2, power, ls.rgb[m])
     density = np.empty((n, 3))
     corner_densities_kernel(np.ascontiguousarray(tris["uv"]), np.ascontiguousarray(tris["mid_uv"]), tri_p, state.emit_tri, e, b,
                             state.x0, sun, d, 1e6 * extent, np.ascontiguousarray(tris["factor"]), density)
@@ -143,6 +135,28 @@ def _centroid_transport(state, item, tris):
         t2[rest], rec[rest], _uv, fac[rest] = state.arrays["trace"](tris["emitter"][rest], np.ascontiguousarray(bc[:, 0]),
                                                                     np.ascontiguousarray(bc[:, 1]))
     return t2, rec, fac
+
+
+def _shadow(ctx, t1, first, x1, power):
+    """Zero the ``power`` of the sub-triangles whose light segment ``first`` -> ``x1`` (their
+    centre on the first triangle ``t1``) is blocked."""
+    live = np.flatnonzero(power > 0)
+    if live.size:
+        ig = np.column_stack([t1[live], np.full(live.size, -1)])
+        blocked = segments_occluded(ctx.bvh, first[live], x1[live], ig, ctx.eps)
+        power[live[blocked]] = 0.0
+
+
+def _coloured_flux(ctx, item, tris, t1, t2, power, rgb):
+    """The sub-triangles' RGB flux (n, 3): ``power`` x the light's ``rgb`` x the tints of the
+    chain's triangles (one-vertex chains: no second tint); booked in ``ctx.ledger``."""
+    scene = ctx.scene
+    tint2 = np.where((t2 >= 0)[:, None], scene.tri_tint[np.maximum(t2, 0)], 1.0)
+    flux = power[:, None] * rgb[None, :] * scene.tri_tint[t1] * tint2
+    two = len(item.chain) == 2
+    ctx.ledger.add(item.light, item.chain, scene.tri_object[t1], scene.tri_object[np.maximum(t2, 0)] if two else None,
+                   tris["receiver"], flux.mean(axis=1))
+    return flux
 
 
 def _splat(receivers, tris, flux, density, out):
@@ -186,17 +200,9 @@ def flux_textures_reference(ctx, item, state, ls, m):
         first = x0
     power = power * np.where(rec >= 0, fac, 0.0) * tris["landed"]
     clock = ctx.timer.since("flux.trace", clock)
-    live = np.flatnonzero(power > 0)
-    if live.size:
-        ig = np.column_stack([t1[live], np.full(live.size, -1)])
-        blocked = segments_occluded(ctx.bvh, first[live], x1[live], ig, ctx.eps)
-        power[live[blocked]] = 0.0
+    _shadow(ctx, t1, first, x1, power)
     clock = ctx.timer.since("flux.visibility", clock)
-    tint2 = np.where((t2 >= 0)[:, None], scene.tri_tint[np.maximum(t2, 0)], 1.0)  # one-vertex chains: no second tint
-    flux = power[:, None] * ls.rgb[m][None, :] * scene.tri_tint[t1] * tint2
-    two = len(item.chain) == 2
-    ctx.ledger.add(item.light, item.chain, scene.tri_object[t1], scene.tri_object[np.maximum(t2, 0)] if two else None,
-                   tris["receiver"], flux.mean(axis=1))
+    flux = _coloured_flux(ctx, item, tris, t1, t2, power, ls.rgb[m])
     # the transport factor at the corners (Fresnel varies over large images); partly landed
     # sub-triangles have no midpoints and get the uniform splat anyway
     cf = np.nan_to_num(tris["factor"][:, :3], nan=1.0)
@@ -206,11 +212,6 @@ def flux_textures_reference(ctx, item, state, ls, m):
     else:
         density = corner_densities(tris["uv"], tris["mid_uv"], x0, P, b, cf)
     clock = ctx.timer.since("flux.density", clock)
-    for r, recv in enumerate(receivers):
-        sel = np.flatnonzero(tris["receiver"] == r)
-        if sel.size:
-            W, H = recv.resolution
-            splat_triangles(np.ascontiguousarray(tris["uv"][sel]), np.ascontiguousarray(flux[sel]), int(W), int(H), out[r],
-                            np.ascontiguousarray(density[sel]))
+    _splat(receivers, tris, flux, density, out)
     ctx.timer.since("flux.splat", clock)
     return out

@@ -4,16 +4,14 @@ clear, poll messages, one-line errors and the panels' draw code in every state."
 
 import os
 import shutil
-import time
 import types
 
 import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
-pytestmark = pytest.mark.bpy
+pytestmark = [pytest.mark.bpy, pytest.mark.usefixtures("fresh_state")]
 
-import addon  # noqa: E402
 from addon.bake.apply import FILES_MANIFEST, GROUP_NAME  # noqa: E402
 from addon.ui import operators, panels, state  # noqa: E402
 
@@ -24,23 +22,6 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 SAMPLES = os.path.join(REPO, "sample_blends")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    addon.register()
-    yield
-    addon.unregister()
-
-
-@pytest.fixture(autouse=True)
-def fresh_state():
-    state.STATE.reset()
-    state.forget_numba_check()
-    yield
-    deadline = time.monotonic() + 120
-    while operators.abandoned_running() and time.monotonic() < deadline:  # a cancelled bake's last chunk
-        time.sleep(0.01)
-    state.STATE.reset()
-    state.forget_numba_check()
 
 
 def _open_copy(tmp_path, name="mirror_plane", resolution=32, samples=1):

@@ -5,16 +5,14 @@ frames keeps the finished frames; Clear removes files, images and nodes; Undo re
 
 import json
 import os
-import time
 import types
 
 import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
-pytestmark = pytest.mark.bpy
+pytestmark = [pytest.mark.bpy, pytest.mark.usefixtures("fresh_state")]
 
-import addon  # noqa: E402
 from addon.bake.apply import FILES_MANIFEST, GROUP_NAME  # noqa: E402
 from addon.bake.output import MANIFEST_LOCK  # noqa: E402
 from addon.bake.exr import read_exr  # noqa: E402
@@ -27,22 +25,6 @@ from fixtures.modal import Event, ModalStub
 SEQ = ["Floor.0001.exr", "Floor.0002.exr", "Floor.0003.exr"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    addon.register()
-    yield
-    addon.unregister()
-
-
-@pytest.fixture(autouse=True)
-def fresh_state():
-    state.STATE.reset()
-    state.forget_numba_check()
-    yield
-    deadline = time.monotonic() + 120
-    while operators.abandoned_running() and time.monotonic() < deadline:  # a cancelled bake's last chunk
-        time.sleep(0.01)
-    state.STATE.reset()
 
 
 def _open_animated(tmp_path, frame=2):

@@ -11,7 +11,6 @@ import pytest
 bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.bpy
 
-import addon  # noqa: E402
 from addon.bake import pipeline  # noqa: E402
 from addon.ui import operators, state  # noqa: E402
 
@@ -22,12 +21,6 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 SAMPLES = os.path.join(REPO, "sample_blends")
 CHUNK = 3.0  # seconds of the long chunk
 
-
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    addon.register()
-    yield
-    addon.unregister()
 
 
 def test_esc_answers_while_a_long_chunk_runs(tmp_path, monkeypatch):

@@ -11,18 +11,11 @@ import pytest
 bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.bpy
 
-import addon  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SAMPLES = os.path.join(REPO, "sample_blends")
 PIXELS = 64
 
-
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    addon.register()
-    yield
-    addon.unregister()
 
 
 def _render(path):

@@ -12,12 +12,11 @@ import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
-pytestmark = pytest.mark.bpy
+pytestmark = [pytest.mark.bpy, pytest.mark.usefixtures("fresh_state")]
 
-import addon  # noqa: E402
 from addon.bake import exr  # noqa: E402
 from addon.bake.apply import TAG_KEY  # noqa: E402
-from addon.ui import operators, state  # noqa: E402
+from addon.ui import operators  # noqa: E402
 
 from fixtures.checks import snapshot  # noqa: E402
 
@@ -25,18 +24,6 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 SAMPLES = os.path.join(REPO, "sample_blends")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    addon.register()
-    yield
-    addon.unregister()
-
-
-@pytest.fixture(autouse=True)
-def fresh_state():
-    state.STATE.reset()
-    yield
-    state.STATE.reset()
 
 
 def _open_copy(folder, sample, name=None, resolution=16):

@@ -6,13 +6,14 @@ overwriting a file it did not write in --out."""
 import errno
 import json
 import os
-import tempfile
 
 import numpy as np
 import pytest
 
 from addon.bake import exr, output
 from addon.bake.names import blend_folder, texture_filename, texture_stems
+
+from fixtures.faults import make_read_only
 
 
 def test_stems_are_unique_after_sanitising_and_ignore_case():
@@ -80,26 +81,11 @@ def test_a_failed_first_write_forgets_the_names_it_recorded(tmp_path, monkeypatc
     assert _state(folder) == {output.FILES_MANIFEST: b"[]", output.MANIFEST_LOCK: b""}
 
 
-def _make_read_only(folder, monkeypatch):
-    """A read-only folder; as root (where permissions do not apply) creating files in it fails
-    as it would for a user."""
-    os.chmod(folder, 0o555)
-    if os.geteuid() == 0:
-        real = tempfile.mkstemp
-
-        def mkstemp(*a, dir=None, **kw):
-            if dir is not None and os.path.samefile(dir, folder):
-                raise PermissionError(errno.EACCES, "Permission denied")
-            return real(*a, dir=dir, **kw)
-
-        monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
-
-
 def test_a_read_only_folder_is_one_line_and_changes_nothing(tmp_path, monkeypatch):
     folder = tmp_path / "out"
     output.write_textures(str(folder), _images(0))
     before = _state(folder)
-    _make_read_only(folder, monkeypatch)
+    make_read_only(folder, monkeypatch)
     try:
         with pytest.raises(output.OutputError) as err:
             output.write_textures(str(folder), _images(1))

@@ -6,7 +6,6 @@ add-on's node group by its tag, not by its name."""
 import errno
 import os
 import shutil
-import tempfile
 
 import numpy as np
 import pytest
@@ -19,6 +18,7 @@ from addon.bake.apply import TAG_KEY  # noqa: E402
 from addon.ui import operators  # noqa: E402
 
 from fixtures.checks import snapshot  # noqa: E402
+from fixtures.faults import make_read_only  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SAMPLES = os.path.join(REPO, "sample_blends")
@@ -104,16 +104,7 @@ def test_a_full_disk_keeps_the_previous_bake(tmp_path, monkeypatch):
 
 def test_a_read_only_folder_keeps_the_previous_bake(tmp_path, monkeypatch):
     def fail(folder):
-        os.chmod(folder, 0o555)
-        if os.geteuid() == 0:  # root ignores permissions: fail as a user would
-            real = tempfile.mkstemp
-
-            def mkstemp(*a, dir=None, **kw):
-                if dir is not None and os.path.samefile(dir, folder):
-                    raise PermissionError(errno.EACCES, "Permission denied")
-                return real(*a, dir=dir, **kw)
-
-            monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
+        make_read_only(folder, monkeypatch)
 
     try:
         assert _bake_then_fail(tmp_path, monkeypatch, fail).endswith("Floor.exr: Permission denied")

@@ -32,6 +32,21 @@ class Timer:
         self.add(key, now - t0)
         return now
 
+    def timed_steps(self, key, steps, report):
+        """Drive the generator ``steps`` for a caller that is a generator itself: yields
+        ``report(*item)`` for each of its items and returns its return value (``yield from``),
+        adding to ``key`` the time spent inside it, not in the consumer between items."""
+        t0 = time.perf_counter()
+        while True:
+            try:
+                item = next(steps)
+            except StopIteration as done:
+                self.since(key, t0)
+                return done.value
+            self.since(key, t0)
+            yield report(*item)
+            t0 = time.perf_counter()
+
 
 class EnergyLedger:
     """Caustic power (W, mean over RGB) each estimator delivered, per (light, chain, first

@@ -343,18 +343,7 @@ def _bake_gen(scene, settings):
     progress.set_guesses(rows=n_samples * (GUESS_SAMPLE + (GUESS_DIRECT * n_light if settings.direct else 0.0)),
                          pad=texels * 0.05e-6)
     yield progress.tell("plan", 0.0, "planning")
-    t0 = time.perf_counter()
-    steps = plan_steps(ctx)
-    while True:
-        try:
-            f, message = next(steps)
-        except StopIteration as done:
-            plan = done.value
-            break
-        timer.add("plan", time.perf_counter() - t0)
-        yield progress.tell("plan", f, message)
-        t0 = time.perf_counter()
-    timer.add("plan", time.perf_counter() - t0)
+    plan = yield from timer.timed_steps("plan", plan_steps(ctx), lambda f, message: progress.tell("plan", f, message))
     if settings.caustics and not plan.items:
         ctx.warnings.append("no casters: the scene has no reflecting or refracting surfaces (only the direct light is baked if asked)")
     by_name = {}
@@ -597,7 +586,7 @@ def _chain_order(c):
 def direct_light(ctx, ls, band, sums, chunk=1 << 21):
     """Direct light onto the samples (the chain of length 0): I f(w) cos / d², or S cos for the
     sun; all light samples at once, in chunks of (light sample, receiver sample) pairs."""
-    scene, bvh, eps, extent, timer = ctx.scene, ctx.bvh, ctx.eps, ctx.extent, ctx.timer
+    bvh, eps, extent, timer = ctx.bvh, ctx.eps, ctx.extent, ctx.timer
     t0 = time.perf_counter()
     n = band.size
     per = max(1, chunk // max(1, n))

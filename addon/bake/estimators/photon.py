@@ -55,22 +55,14 @@ class Photon(Estimator):
         samples = light_sample_dicts(ctx)
         self.light_samples = len(samples)
         emitters = make_emitters(samples, scene.tri_p[first].reshape(-1, 3), ctx.extent, ctx.settings.photons if self.chains else 0)
-        t0 = ctx.timer.since("emit", t0)
+        ctx.timer.since("emit", t0)
         if not self.chains or int(emitters.start[-1]) == 0:
             return
         steps = photon_steps(scene.tri_p, scene.tri_n, scene.tri_role, scene.tri_ior, scene.tri_tint, tri_rec, tri_uv,
                              [r.resolution for r in ctx.receivers], emitters, self.chains, seed=ctx.settings.seed,
                              bvh=ctx.bvh, eps=ctx.eps)
-        while True:
-            try:
-                done, total = next(steps)
-            except StopIteration as fin:
-                res = fin.value
-                break
-            t0 = ctx.timer.since("trace", t0)
-            yield 0.9 * done / max(1, total), f"photons: {done:,}/{total:,}"
-            t0 = time.perf_counter()
-        ctx.timer.since("trace", t0)
+        res = yield from ctx.timer.timed_steps("trace", steps,
+                                               lambda done, total: (0.9 * done / max(1, total), f"photons: {done:,}/{total:,}"))
         self.flux, self.photons, self.deposited, self.per_chain = res.flux, res.photons, res.deposited, res.per_chain
 
     def receiver_flux(self, rec_index):

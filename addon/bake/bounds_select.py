@@ -51,7 +51,7 @@ from ..solver.bounds.tuples import two_bounce_pairs
 from ..solver.bounds.two_bounce_image import split_pieces_chunk
 from ..solver.bounds.two_bounce_irradiance import irradiance_chunk, reach_chunk
 from ..solver.bounds.two_bounce_position import pair_pieces_chunk
-from ..solver.runtime.jit import kernel, parallel_range, run_chunks
+from ..solver.runtime.jit import parallel_range, run_chunks
 from .cull import count_cone_pairs, fill_cone_pairs, sample_in_cones, one_bounce_emitters, tri_spheres, two_bounce_emitters
 
 # ---------------------------------------------------------------------------------------
@@ -93,7 +93,6 @@ def one_bounce_bounds(chain, x0, tri_p, tri_n, eta, rec_p, rec_uv, irradiance=Fa
 
 
 @parallel_range("tup_e")
-@kernel(error_model="numpy")
 def _bounds_pairs(fill, tup_e, tup_r, piece_start, pieces, tex_start, tex_order, band_rec, bary, W, H, row0, row1, margin,
                   part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, pos, rec_ng, offset, count, out_e,
                   out_s, out_E, first, last):

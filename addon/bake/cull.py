@@ -497,7 +497,6 @@ def _cap_meets(dx, dy, dz, cx, cy, cz, theta, reach):
 
 
 @parallel_range("side_req")
-@kernel(error_model="numpy")
 def count_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, count, first, last):
     for t in range(first, last):
         c = 0
@@ -508,7 +507,6 @@ def count_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0,
 
 
 @parallel_range("side_req")
-@kernel(error_model="numpy")
 def fill_cone_pairs(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, tile_c, tile_r, offset, out_tile, first, last):
     for t in range(first, last):
         o = offset[t]
@@ -555,7 +553,6 @@ def sample_in_cones(t, s, part_start, part_c, part_r, part_d, part_t, tri_ng, tr
 
 
 @parallel_range("pair_tri")
-@kernel(error_model="numpy")
 def _emit_count(pair_tri, pair_tile, tile_start, order, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req,
                 pos, rec_ng, count, first, last):
     for q in range(first, last):
@@ -569,7 +566,6 @@ def _emit_count(pair_tri, pair_tile, tile_start, order, part_start, part_c, part
 
 
 @parallel_range("pair_tri")
-@kernel(error_model="numpy")
 def _emit_fill(pair_tri, pair_tile, tile_start, order, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req,
                pos, rec_ng, offset, out_tri, out_sample, first, last):
     for q in range(first, last):
@@ -697,7 +693,6 @@ def sphere_tree(tri_p, depth=REACH_DEPTH, pieces=REACH_PIECES):
 
 
 @parallel_range("side_req", REACH_BLOCK)
-@kernel(error_model="numpy")
 def _reach_tree(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c, node_r, keep, first, last):
     """keep[t] = some leaf of the sphere tree passes the cone test of emitter t (depth first,
     a node that fails prunes its subtree).  The stack holds at most depth + 1 nodes."""

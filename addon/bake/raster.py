@@ -74,7 +74,6 @@ def hash_uniform(seed, a, b):
 
 
 @parallel_range(lambda a: a["row1"] - a["row0"])
-@kernel(error_model="numpy")
 def _raster_rows(uv, tri_list, W, H, row0, row1, s, seed, jitter, owner, bary, suv, first, last):
     """owner[r, i, k] = index into tri_list of the triangle holding sample k of texel (i, row0 + r)."""
     S = s * s

@@ -23,6 +23,7 @@ def signatures():
     for name, mod in list(sys.modules.items()):
         if name.startswith("addon") and mod is not None:
             for v in list(vars(mod).values()):
+                v = getattr(v, "chunk_kernel", v)  # a runtime.jit.parallel_range function: its kernel
                 if isinstance(v, Dispatcher):
                     out[f"{v.py_func.__module__}.{v.py_func.__qualname__}"] = {str(s) for s in v.signatures}
     return out

@@ -491,7 +491,6 @@ def tuple_pieces(refract, x0, P, N, Q, UV, eta, max_depth, sigma, alpha, irradia
 
 
 @parallel_range("pairs")
-@kernel(error_model="numpy")
 def _batch(refract, x0, P, N, Q, UV, eta, pairs, max_depth, sigma, alpha, irradiance, out, counts, stats, first, last):
     for t in range(first, last):
         c = pairs[t, 0]

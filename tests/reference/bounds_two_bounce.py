@@ -332,7 +332,6 @@ def pair_pieces_two(chain_code, x0, P1, N1, P2, N2, Q, UV, eta, max_depth, sigma
 
 
 @parallel_range("pairs")
-@kernel(error_model="numpy")
 def _batch_two(chain_code, x0, P, N, Q, UV, eta, pairs, reach, row_start, max_depth, sigma, rows, counts, stats, first, last):
     for t in range(first, last):
         a = pairs[t, 0]

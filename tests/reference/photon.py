@@ -124,7 +124,6 @@ def _fresnel(cos_i, n1, n2):
 
 
 @parallel_range(lambda a: a["n_chunks"])
-@kernel(error_model="numpy")
 def _trace(light, axis, cos_max, n_photons, seed, events, tri_p, tri_n, kind, ior, cl_start, cl_end, cl_min, cl_max,
            floor_min, floor_size, W, H, n_chunks, hist, first, last):
     ax = _normalize(axis)

@@ -49,7 +49,7 @@ from ..spoly.api import SolveReport, SolveResult, compact_paths, validate_inputs
 from ..paths.irradiance import PathIrradiance, fresnel_dielectric
 from ..runtime.jit import kernel, parallel_range
 from ..spoly.one_bounce import ACCEPT_RESIDUAL, CHUNK, MAX_PATHS_ONE_BOUNCE, POLISH_STEPS, store_path
-from ..paths.one_vertex import geometric_normal, line_crossing_barycentrics, polish_and_validate, triangle_frame
+from ..paths.one_vertex import endpoint_sides, geometric_normal, line_crossing_barycentrics, polish_and_validate, triangle_frame
 from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
 
 DEFAULT_STEPS = 32  # tuple walk: longest marching step 1/DEFAULT_STEPS in barycentric units
@@ -500,15 +500,8 @@ def walk_tuple(x0, x2, tri_p, tri_n, eta, h_max, roots, crossings, counters, buf
     for k in range(N_STATS):
         stats[k] = 0
     p0, e1, e2, n0, m1, m2 = triangle_frame(tri_p, tri_n)
-    ng, area2 = geometric_normal(e1, e2)
-    length = max(norm(e1), norm(e2))
-    if not (area2 > 1e-14 * length * length) or not (eta > 0.0):
-        stats[STAT_SKIPPED] = 1
-        return 0
-    side0 = dot(sub(x0, p0), ng)
-    side2 = dot(sub(x2, p0), ng)
-    tiny = 1e-12 * length
-    if abs(side0) <= tiny or abs(side2) <= tiny or side0 * side2 > 0.0:
+    ok, ng, length, side0, side2 = endpoint_sides(x0, x2, p0, e1, e2, eta)
+    if not ok or side0 * side2 > 0.0:
         stats[STAT_SKIPPED] = 1
         return 0
     cf, natural = _local_conic(x0, x2, p0, e1, e2, n0, m1, m2)
@@ -609,7 +602,6 @@ def walk_tuple(x0, x2, tri_p, tri_n, eta, h_max, roots, crossings, counters, buf
 
 
 @parallel_range("x_start", CHUNK)
-@kernel(error_model="numpy")
 def walk_tuple_batch(x_start, x_end, P, N, eta, h_max, out_uv, out_count, stats, first, last):
     """The per-tuple walk over a batch (chunks of ``CHUNK`` tuples per worker, scratch once per chunk)."""
     n = x_start.shape[0]
@@ -865,7 +857,6 @@ def _walk_from(start, su, sv, direction, x0, x2, tri_p, tri_n, adj, eta, h_max, 
 
 
 @parallel_range("x_start", MESH_CHUNK)
-@kernel(error_model="numpy")
 def walk_mesh_batch(x_start, x_end, tri_p, tri_n, adj, eta, h_max, out_tri, out_uv, out_count, stats, first, last):
     """The mesh walk for every receiver point (independent: one point per parallel item).
 
@@ -1031,7 +1022,6 @@ def walk_mesh(x0, x2_points, tri_p, tri_n, adjacency, eta, steps=MESH_STEPS):
 
 
 @parallel_range("tuple_index")
-@kernel(error_model="numpy")
 def _ray_differential_kernel(from_light, x_start, x_end, P, N, eta, tuple_index, uv, receiver_normal, has_receiver, out, first, last):
     """Per solution: out[:, 0..6] = geometry, fresnel, cos_receiver, direction xyz, D.
 

@@ -45,7 +45,6 @@ def _uniform(seed, t, k, j):
 
 
 @parallel_range("x_start", CHUNK)
-@kernel(error_model="numpy")
 def _seeded_newton_batch(refract, mode, n_seeds, seed, x_start, x_end, P, N, eta, out_uv, out_count, stats, first, last):
     """mode 0: Path Cuts seeds (centroid, + line crossing for T); mode 1: n_seeds random seeds."""
     n = x_start.shape[0]

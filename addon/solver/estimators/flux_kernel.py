@@ -36,7 +36,6 @@ def _corner(tri_p, t, b0, b1, k):
 
 
 @parallel_range("emitter")
-@kernel(error_model="numpy")
 def subtriangle_geometry(tri_p, t1_of, emitter, bary, x0, sun, d, out_x1, out_power, first, last):
     """Centroid ``out_x1`` (m, 3) and power factor ``out_power`` (m,) of the sub-triangles
     with corners ``bary`` (m, 3, 2) on first triangles t1_of[emitter]: the solid angle seen
@@ -78,7 +77,6 @@ def subtriangle_geometry(tri_p, t1_of, emitter, bary, x0, sun, d, out_x1, out_po
 
 
 @parallel_range("emitter")
-@kernel(error_model="numpy")
 def corner_densities_kernel(uv, mid_uv, tri_p, t1_of, emitter, bary, x0, sun, d, far, factor, out, first, last):
     """:func:`.forward_image.corner_densities` of the sub-triangles (images ``uv`` /
     ``mid_uv`` (m, 3, 2), corners ``bary`` (m, 3, 2) on t1_of[emitter]) lit from

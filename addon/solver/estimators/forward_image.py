@@ -149,7 +149,6 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok
 
 
 @parallel_range("emitter", CHUNK)
-@kernel(error_model="numpy")
 def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
                        tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_t2,
                        out_rec, out_uv, out_factor, first, last):
@@ -758,7 +757,6 @@ def _closest_on_triangle(px, py, ax, ay, bx, by, cx, cy):
 
 
 @parallel_range("tri_uv")
-@kernel(error_model="numpy")
 def _emit(fill, tri_uv, tri_bary, tri_emitter, margin, W, H, row0, row1, tex_start, tex_order, sample_uv, offset, count,
           out_e, out_seed, out_s, first, last):
     for t in range(first, last):
@@ -836,7 +834,6 @@ class ImageSeeds:
 
 
 @parallel_range("emitter", CHUNK)
-@kernel(error_model="numpy")
 def solve_image_seeds(emitter, seed, sample, x0, t1_of, x_end, refract1, refract2, second_ok, tri_rec, tri_p, tri_n,
                       tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_ok,
                       out_t2, out_uv, stats, first, last):

@@ -203,7 +203,6 @@ def _hit_frame(tri_p, tri_n, tid, ox, oy, oz, dx, dy, dz):
 
 
 @parallel_range(lambda a: (a["g1"] - a["g0"] + BLOCK - 1) // BLOCK)
-@kernel(error_model="numpy")
 def _trace_batch(g0, g1, seed, em_kind, em_pos, em_axis, em_cos, em_radius, em_rgb, em_lobe, em_spot_axis, em_spot_cos,
                  em_spot_smooth, em_start, em_sx, em_scale, allowed, prefix, node_min, node_max, node_child, node_start,
                  node_count, order, v0, e1, e2, tri_p, tri_n, tri_role, tri_ior, tri_tint, tri_rec, tri_uv, rec_w, rec_h,

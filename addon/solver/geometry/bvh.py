@@ -276,7 +276,6 @@ def _segment_blocked(node_min, node_max, node_child, node_start, node_count, ord
 
 
 @parallel_range("a", 256)
-@kernel(error_model="numpy")
 def _segments_occluded(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, a, b, ignore, eps, out, first, last):
     n = a.shape[0]
     for ch in range(first, last):
@@ -348,7 +347,6 @@ def ray_closest(node_min, node_max, node_child, node_start, node_count, order, v
 
 
 @parallel_range("o", 256)
-@kernel(error_model="numpy")
 def _rays_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, o, d, tmin, ignore, out_tri, out_t, first, last):
     n = o.shape[0]
     for ch in range(first, last):

@@ -42,7 +42,6 @@ def _write_solution(out, s, geometry, fresnel, w, receiver_normal, t, has_receiv
 
 
 @parallel_range("tuple_index")
-@kernel(error_model="numpy")
 def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tuple_index, uv, receiver_normal, has_receiver, out, first, last):
     """Per solution: out[:, 0..5] = geometry, fresnel, cos_receiver, direction xyz."""
     for s in range(first, last):
@@ -97,7 +96,6 @@ def _one_bounce_irradiance(refract, model, x_start, x_end, P, N, eta, kappa, tup
 
 
 @parallel_range("tuple_index")
-@kernel(error_model="numpy")
 def _two_bounce_irradiance(refract1, refract2, model, x_start, x_end, P, N, eta, kappa, tuple_index, uv, receiver_normal,
                            has_receiver, out, first, last):
     """Per solution: out[:, 0..5] = geometry, fresnel (product over both vertices),

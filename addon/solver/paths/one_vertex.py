@@ -183,3 +183,21 @@ def geometric_normal(e1, e2):
     if area2 > 0.0:
         return scale(g, 1.0 / area2), area2
     return g, 0.0
+
+
+@kernel
+def endpoint_sides(x0, x2, p0, e1, e2, eta):
+    """The plane test a one-vertex solve starts with (a reflection needs both endpoints on one
+    side of the triangle's plane, a refraction one on each): (usable, ng, length, side0,
+    side2), ng the unit geometric normal of the triangle (p0, e1, e2), length its longer edge
+    from p0, side0 / side2 the signed distances of x0 / x2 to its plane.  Not usable: a
+    degenerate triangle (twice its area <= 1e-14 length²), eta <= 0, or an endpoint within
+    1e-12 length of the plane (no path)."""
+    ng, area2 = geometric_normal(e1, e2)
+    length = max(norm(e1), norm(e2))
+    if not (area2 > 1e-14 * length * length) or not (eta > 0.0):
+        return False, ng, length, 0.0, 0.0
+    side0 = dot(sub(x0, p0), ng)
+    side2 = dot(sub(x2, p0), ng)
+    tiny = 1e-12 * length
+    return not (abs(side0) <= tiny or abs(side2) <= tiny), ng, length, side0, side2

@@ -165,22 +165,24 @@ def _drain(chunk_kernel, args, work):
 
 
 def parallel_range(count, per=1):
-    """Decorator for a kernel ``f(*args, first, last)`` that does the independent work items
-    [first, last) of a range: the result is a Python function ``f(*args)`` running it over the
-    whole range with :func:`run_chunks` (the kernel itself stays at ``f.chunk_kernel``).
+    """Decorator for a function ``f(*args, first, last)`` that does the independent work items
+    [first, last) of a range: it is compiled as a kernel, and ``f(*args)`` becomes a Python
+    function running it over the whole range with :func:`run_chunks` (the compiled kernel is
+    ``f.chunk_kernel``).
 
     ``count`` names the argument whose length (first dimension) gives the range, one index per
     ``per`` of its rows; or it is a function of the arguments by name returning the number of
-    indices.  The kernels are compiled with ``error_model="numpy"`` (x / 0 gives inf or NaN,
-    not an exception), the arithmetic of the ``prange`` loops they replace."""
+    indices.  The kernel is compiled with ``error_model="numpy"``: x / 0 gives inf or NaN, not
+    an exception, as in numba's own parallel loops."""
     import functools
     import inspect
 
-    def wrap(chunk_kernel):
-        names = list(inspect.signature(chunk_kernel.py_func).parameters)[:-2]
+    def wrap(function):
+        chunk_kernel = kernel(error_model="numpy")(function)
+        names = list(inspect.signature(function).parameters)[:-2]
         position = names.index(count) if isinstance(count, str) else None
 
-        @functools.wraps(chunk_kernel.py_func)
+        @functools.wraps(function)
         def run(*args):
             if position is not None:
                 n = -(-len(args[position]) // per)

@@ -37,7 +37,7 @@ import math
 import numpy as np
 
 from ..runtime.jit import kernel, parallel_range
-from ..paths.one_vertex import (geometric_normal, line_crossing_barycentrics, polish_and_validate,
+from ..paths.one_vertex import (endpoint_sides, line_crossing_barycentrics, polish_and_validate,
                                 scatter_residual)
 from ..polynomials.roots import (MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval,
                                  roots_in_unit_interval_bernstein)
@@ -321,17 +321,8 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
     k2 = row(tri_n, 2)
     # The side tests of _solve_labelled first, in the caller's labelling: most tuples of an
     # unculled batch end here, before the labelling costs anything.
-    e1 = sub(q1, q0)
-    e2 = sub(q2, q0)
-    ng, area2 = geometric_normal(e1, e2)
-    length = max(norm(e1), norm(e2))
-    if not (area2 > 1e-14 * length * length) or not (eta > 0.0):
-        stats[STAT_SKIPPED] = 1
-        return 0
-    side0 = dot(sub(x0, q0), ng)
-    side2 = dot(sub(x2, q0), ng)
-    tiny = 1e-12 * length
-    if abs(side0) <= tiny or abs(side2) <= tiny or (side0 * side2 < 0.0) != refract:
+    ok, _ng, _length, side0, side2 = endpoint_sides(x0, x2, q0, sub(q1, q0), sub(q2, q0), eta)
+    if not ok or (side0 * side2 < 0.0) != refract:
         stats[STAT_SKIPPED] = 1
         return 0
     labelling = elimination_labelling(x0, x2, q0, q1, q2, k0, k1, k2)
@@ -420,17 +411,9 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, sc
     n0 = k0
     m1 = sub(k1, k0)
     m2 = sub(k2, k0)
-    ng, area2 = geometric_normal(e1, e2)
-    length = max(norm(e1), norm(e2))
-    if not (area2 > 1e-14 * length * length) or not (eta > 0.0):
-        stats[STAT_SKIPPED] = 1
-        return 0
-    # Sides of the endpoints against the triangle's plane: a reflection needs both on one
-    # side, a refraction one on each.  Endpoints in the plane have no path.
-    side0 = dot(sub(x0, p0), ng)
-    side2 = dot(sub(x2, p0), ng)
-    tiny = 1e-12 * length
-    if abs(side0) <= tiny or abs(side2) <= tiny or (side0 * side2 < 0.0) != refract:
+    # the labelling's own edges set the scale (length) of the local frame below
+    ok, ng, length, side0, side2 = endpoint_sides(x0, x2, p0, e1, e2, eta)
+    if not ok or (side0 * side2 < 0.0) != refract:
         stats[STAT_SKIPPED] = 1
         return 0
     n_mean = madd(madd(scale(n0, 3.0), m1, 1.0), m2, 1.0)
@@ -902,7 +885,6 @@ def _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_bu
 
 
 @parallel_range("x_start", CHUNK)
-@kernel(error_model="numpy")
 def solve_one_bounce_batch(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_count, stats, first, last):
     """Solve every tuple of a batch in parallel (chunks of ``CHUNK`` tuples per worker)."""
     n = x_start.shape[0]

@@ -23,6 +23,25 @@ FAIL = (False, 0.0, 0.0, 0.0, 0.0, False, False, False, False, False, (0.0, 0.0,
 
 
 @kernel
+def _corner_sides(p0, e1, e2, o, n, side):
+    """Least and greatest (q - o) . n x side over the corners q of the triangle (p0, e1, e2):
+    where a triangle lies against the plane through o with normal n, relative to the side of
+    the chain's endpoint at that plane (``side``)."""
+    lo = math.inf
+    hi = -math.inf
+    for c in range(3):
+        q = p0
+        if c == 1:
+            q = (p0[0] + e1[0], p0[1] + e1[1], p0[2] + e1[2])
+        elif c == 2:
+            q = (p0[0] + e2[0], p0[1] + e2[1], p0[2] + e2[2])
+        sd = (q[0] - o[0]) * n[0] + (q[1] - o[1]) * n[1] + (q[2] - o[2]) * n[2]
+        lo = min(lo, sd * side)
+        hi = max(hi, sd * side)
+    return lo, hi
+
+
+@kernel
 def tuple_frame(refract1, refract2, x0, x3, PA, NA, PB, NB, geo, geo_l, stats):
     """Side tests, local frame and orientation cases of the tuple (triangle A first; module doc).
     Fills geo (``pack_geometry``) and geo_l (the frame).  Returns (ok, side0, side3, inv, S,
@@ -45,17 +64,7 @@ def tuple_frame(refract1, refract2, x0, x3, PA, NA, PB, NB, geo, geo_l, stats):
         stats[STAT_SKIPPED] += 1
         return FAIL
     # triangle 2's corners against plane 1 (through the origin p1,0)
-    lo2 = math.inf
-    hi2 = -math.inf
-    for c in range(3):
-        q = p20
-        if c == 1:
-            q = (p20[0] + e21[0], p20[1] + e21[1], p20[2] + e21[2])
-        elif c == 2:
-            q = (p20[0] + e22[0], p20[1] + e22[1], p20[2] + e22[2])
-        sd = q[0] * ng1[0] + q[1] * ng1[1] + q[2] * ng1[2]
-        lo2 = min(lo2, sd * side0)
-        hi2 = max(hi2, sd * side0)
+    lo2, hi2 = _corner_sides(p20, e21, e22, (0.0, 0.0, 0.0), ng1, side0)
     tol1 = 1e-9 * (L1 + L2) * abs(side0)
     if (not refract1 and hi2 <= tol1) or (refract1 and lo2 >= -tol1):
         stats[STAT_SKIPPED] += 1
@@ -65,17 +74,7 @@ def tuple_frame(refract1, refract2, x0, x3, PA, NA, PB, NB, geo, geo_l, stats):
     if abs(side3) <= 1e-12 * L2:
         stats[STAT_SKIPPED] += 1
         return FAIL
-    lo1 = math.inf
-    hi1 = -math.inf
-    for c in range(3):
-        q = (0.0, 0.0, 0.0)
-        if c == 1:
-            q = e11
-        elif c == 2:
-            q = e12
-        sd = (q[0] - p20[0]) * ng2[0] + (q[1] - p20[1]) * ng2[1] + (q[2] - p20[2]) * ng2[2]
-        lo1 = min(lo1, sd * side3)
-        hi1 = max(hi1, sd * side3)
+    lo1, hi1 = _corner_sides((0.0, 0.0, 0.0), e11, e12, p20, ng2, side3)
     tol2 = 1e-9 * (L1 + L2) * abs(side3)
     if (not refract2 and hi1 <= tol2) or (refract2 and lo1 >= -tol2):
         stats[STAT_SKIPPED] += 1

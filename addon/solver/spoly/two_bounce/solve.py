@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ...runtime.jit import kernel, run_chunks
+from ...runtime.jit import kernel, parallel_range
 from ...paths.one_vertex import line_crossing_barycentrics
 from ...paths.two_vertex import pack_geometry, polish_and_validate2, trace_to_second
 from ...geometry.vec3 import row
@@ -371,17 +371,11 @@ def _already_stored(u1, v1, out_uv, off, count):
     return False
 
 
-def solve_two_bounce_batch(refract1, refract2, x_start, x_end, P, N, eta, pieces, stop_after, out_uv, out_count, stats):
+@parallel_range("x_start", CHUNK)
+def solve_two_bounce_batch(refract1, refract2, x_start, x_end, P, N, eta, pieces, stop_after, out_uv, out_count, stats,
+                           first, last):
     """:func:`solve_two_bounce_tuple` for every tuple t (x_start[t], x_end[t], P[t], N[t],
-    eta[t]) into out_uv[t], out_count[t], stats[t], chunks of CHUNK tuples on the kernel
-    threads (``jit.run_chunks``)."""
-    n = x_start.shape[0]
-    run_chunks(_solve_chunks, (bool(refract1), bool(refract2), x_start, x_end, P, N, eta, int(pieces), int(stop_after), out_uv,
-                               out_count, stats), (n + CHUNK - 1) // CHUNK)
-
-
-@kernel(error_model="numpy")
-def _solve_chunks(refract1, refract2, x_start, x_end, P, N, eta, pieces, stop_after, out_uv, out_count, stats, first, last):
+    eta[t]) into out_uv[t], out_count[t], stats[t], chunks [first, last) of CHUNK tuples."""
     n = x_start.shape[0]
     for ch in range(first, last):
         biv, cf, mat, scan, geo, work, roots, chain, lists = make_scratch2()

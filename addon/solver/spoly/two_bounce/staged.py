@@ -209,7 +209,6 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
 
 
 @parallel_range("x_start", CHUNK)
-@kernel(error_model="numpy")
 def stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, pieces, live_mask, first, last):
     """Stage A over a batch: systems per tuple into coef (n, cap, stride) and sysint
     (n, cap, 7) = (rev + 2 · not refined, status, da, db, na, nb, n) (bit 1: the TIR fallback's
@@ -258,7 +257,6 @@ def _oriented(refract1, refract2, rev):
 
 
 @parallel_range("x_start", CHUNK)
-@kernel(error_model="numpy")
 def stage_c(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state, roots, nv,
             productive, out_uv, meta, out_count, stats, first, last):
     """Candidates at the scan roots of every system, in system order, per tuple; productive
@@ -306,7 +304,6 @@ def _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef
 
 
 @parallel_range("x_start", CHUNK)
-@kernel(error_model="numpy")
 def stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
             ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats, first, last):
     """Candidates at the refined roots, the seeded polish of degenerate systems (sysint
@@ -374,7 +371,6 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
 
 
 @parallel_range("vs")
-@kernel(error_model="numpy")
 def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, live, flags, first, last):
     """``refine_v_roots``'s choice of pieces: lgs (S, pieces + 1) and the ghost samples
     (S, 2: raw log|det| a piece below and above the range) are deflated by the scan roots;
@@ -390,7 +386,6 @@ def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, live, 
 
 
 @parallel_range("ss")
-@kernel(error_model="numpy")
 def refine_brackets(job_sys, sv, ss, roots, nv, bracket, first, last):
     """Per flagged piece f (sub-samples sv[f], their signs ss[f]): bracket[f, k] = 1 for a
     new sign change in sub-piece k to pin (``_refine_interval``: none in a noisy piece, none
@@ -416,7 +411,6 @@ def refine_brackets(job_sys, sv, ss, roots, nv, bracket, first, last):
 
 
 @parallel_range("nv")
-@kernel(error_model="numpy")
 def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots,
                     coef, sysint3, b_offset, dip_dets, first, last):
     """The refined roots of each system in ``_refine_interval``'s order (pieces ascending;
@@ -483,7 +477,6 @@ def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots
 
 
 @parallel_range("job_sys", 32)
-@kernel(error_model="numpy")
 def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, out_dets, first, last):
     """det jobs with ``det_checked`` (the one-kernel path's own function)."""
     n_jobs = job_sys.shape[0]
@@ -510,7 +503,6 @@ def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, 
 
 
 @parallel_range("job_sys", 8)
-@kernel(error_model="numpy")
 def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_root, out_dets, first, last):
     """Illinois jobs (lo, hi, log lo, log hi; sign lo, sign hi) with ``illinois``."""
     n_jobs = job_sys.shape[0]

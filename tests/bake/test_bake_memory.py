@@ -44,6 +44,7 @@ def test_a_memory_error_during_the_bake_is_one_line_naming_the_step(monkeypatch)
         raise MemoryError()
 
     monkeypatch.setattr(pipeline, "pad", pad)
+    monkeypatch.setattr(pipeline, "_AREA_CACHE", {})  # the areas are computed (a step), not kept from an earlier test
     steps = bake_steps(sc, BakeSettings(resolution=8, samples=1))
     last = None
     with pytest.raises(BakeMemoryError) as err:

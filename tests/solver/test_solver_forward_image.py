@@ -17,7 +17,7 @@ def test_splat_matches_dense_sampling_and_conserves_flux():
     tri[10:12, 2] = tri[10:12, 0] + 1e-3 * (tri[10:12, 1] - tri[10:12, 0])  # slivers
     flux = rng.uniform(0.5, 2.0, (40, 3))
     out = np.zeros((W * H, 3))
-    splat_triangles(tri, flux, W, H, out)
+    splat_triangles(tri, flux, W, H, out, np.ones((40, 3)))  # uniform density
     assert abs(out.sum() - flux.sum()) <= 1e-9 * flux.sum()  # every triangle inside [0, 1]²
     # per triangle: the fractions of its area in each texel against dense point sampling
     n = 1500
@@ -36,7 +36,7 @@ def test_splat_matches_dense_sampling_and_conserves_flux():
         if cnt.sum() < 5000:
             continue
         one = np.zeros((W * H, 3))
-        splat_triangles(tri[t:t + 1], np.ones((1, 3)), W, H, one)
+        splat_triangles(tri[t:t + 1], np.ones((1, 3)), W, H, one, np.ones((1, 3)))
         assert np.abs(one[:, 0] - cnt / cnt.sum()).sum() <= 30.0 / np.sqrt(cnt.sum())
         checked += 1
     assert checked >= 20

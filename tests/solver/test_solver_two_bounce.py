@@ -205,7 +205,7 @@ def test_heron_sqrt_fit():
         if accepted == 1:
             biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
             c2 = np.cross(geo_l[0], ng)
-            c2 /= np.linalg.norm(c2)
+            c2 = tuple(c2 / np.linalg.norm(c2))  # a 3-tuple, as tuple_frame returns it
             heron_deg = build_system(True, True, 1.0, r, -1, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
             piece_deg = build_system(True, True, 1.0, r, 12, np.sqrt(S2), c, 1.5, 1.0, False, c2, geo_l, biv)
             assert heron_deg == (12, 34) and piece_deg == (16, 46)
@@ -338,7 +338,7 @@ def test_prepass_hit_test(refract1):
             piece = -1
         biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
         c2 = np.cross(geo_l[1], geo_l[10])
-        c2 /= np.linalg.norm(c2)
+        c2 = tuple(c2 / np.linalg.norm(c2))  # a 3-tuple, as tuple_frame returns it
         build_system(refract1, False, 1.0, r, piece, np.sqrt(S2), heron, 1.0, 1.0, True, c2, geo_l, biv)
         configs += 1
         e21, e22, p20 = geo_l[8], geo_l[9], geo_l[7]
@@ -388,10 +388,9 @@ def test_path_space_jacobian(chain):
     rng = np.random.default_rng([SEED, 3, ord(chain[0]), ord(chain[1])])
     d = plant_two_bounce(rng, chain, 60)
     geo = np.zeros((15, 3))
-    res = np.zeros(6)
-    jac = np.zeros((6, 4))
-    r2 = np.zeros(6)
-    j2 = np.zeros((6, 4))
+    work = np.zeros((24, 6))  # the residual's scratch rows, laid out as in polish_and_validate2
+    res, r2 = work[0], work[1]
+    jac, j2 = work[2:8, 0:4], work[8:14, 0:4]
     worst = 0.0
     checked = 0
     for i in range(60):

@@ -148,7 +148,7 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok
     return t2, u2, v2, tr, ur, vr, fac * c
 
 
-@parallel_range("emitter", CHUNK)
+@parallel_range("emitter", CHUNK, serial_below=8)  # under 2048 points: on the calling thread
 def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
                        tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_t2,
                        out_rec, out_uv, out_factor, first, last):
@@ -961,10 +961,10 @@ def _clip_half(xs, ys, n, axis, bound, keep_greater, ox, oy):
 
 
 @kernel
-def splat_triangles(tri_uv, flux, W, H, out, density=None):
+def splat_triangles(tri_uv, flux, W, H, out, density):
     """Deposit each triangle's flux (m, 3) over the texels of a W x H texture by the exact
     overlap of the triangle (UV) with each texel (polygon clipping).  ``density`` (m, 3):
-    relative flux density at the corners (linear over the triangle; None: uniform); a texel
+    relative flux density at the corners (linear over the triangle; all ones: uniform); a texel
     gets flux x ∫ density over the overlap / ∫ density over the triangle (the integral of a
     linear function over a polygon is its area times the value at its centroid).  A triangle
     smaller than 1e-6 texel² deposits into the texel of its centroid.  ``out`` (H W, 3)."""
@@ -990,9 +990,7 @@ def splat_triangles(tri_uv, flux, W, H, out, density=None):
                 out[k, 1] += f1
                 out[k, 2] += f2
             continue
-        r0, r1, r2 = 1.0, 1.0, 1.0
-        if density is not None:
-            r0, r1, r2 = density[t, 0], density[t, 1], density[t, 2]
+        r0, r1, r2 = density[t, 0], density[t, 1], density[t, 2]
         total = area * (r0 + r1 + r2) / 3.0
         i0 = max(0, int(math.floor(min(ax, bx_, cx))))
         i1 = min(W - 1, int(math.floor(max(ax, bx_, cx))))

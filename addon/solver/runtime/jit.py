@@ -76,6 +76,7 @@ configure_cache()
 
 import numba  # noqa: E402  (after the cache directory is set)
 from numba import njit  # noqa: E402
+import numpy as np  # noqa: E402
 
 
 def _compile_without_literals(dispatcher):
@@ -136,7 +137,7 @@ def _pool(threads):
     return _POOL
 
 
-def run_chunks(chunk_kernel, args, n, chunks=256):
+def run_chunks(chunk_kernel, args, n, chunks=256, serial_below=2):
     """Call ``chunk_kernel(*args, a, b)`` over [0, n) cut into about ``chunks`` ranges [a, b),
     on as many threads as numba's thread count (:func:`set_num_threads`).
 
@@ -145,18 +146,23 @@ def run_chunks(chunk_kernel, args, n, chunks=256):
     result does not depend on the thread count.  A ``parallel=True`` wrapper compiles its
     body as a gufunc and re-optimises the whole call tree below it two more times (about 4x
     the compile time of the serial kernel, ~20 s for the big solvers); a thread pool costs no
-    compilation.  Must not be called from inside a chunk kernel."""
+    compilation.  Arrays reach the kernel C-contiguous and writeable (:func:`_writeable_c_arrays`).
+    Fewer than ``serial_below`` indices run on the calling thread (handing a small range to
+    the pool costs more than it saves).  Must not be called from inside a chunk kernel."""
+    args, written_back = _writeable_c_arrays(args)
     size = max(1, -(-n // max(1, int(chunks))))
     ranges = [(a, min(n, a + size)) for a in range(0, n, size)]
     threads = get_num_threads()
-    if threads <= 1 or len(ranges) <= 1:
+    if threads <= 1 or len(ranges) <= 1 or n < serial_below:
         for a, b in ranges:
             chunk_kernel(*args, a, b)
-        return
-    work = iter(ranges)  # shared: each worker takes the next range (next() holds the GIL)
-    futures = [_pool(threads).submit(_drain, chunk_kernel, args, work) for _ in range(min(threads, len(ranges)))]
-    for f in futures:
-        f.result()
+    else:
+        work = iter(ranges)  # shared: each worker takes the next range (next() holds the GIL)
+        futures = [_pool(threads).submit(_drain, chunk_kernel, args, work) for _ in range(min(threads, len(ranges)))]
+        for f in futures:
+            f.result()
+    for original, copy in written_back:
+        original[...] = copy
 
 
 def _drain(chunk_kernel, args, work):
@@ -164,7 +170,22 @@ def _drain(chunk_kernel, args, work):
         chunk_kernel(*args, a, b)
 
 
-def parallel_range(count, per=1):
+def _writeable_c_arrays(args):
+    """``args`` with every array C-contiguous and writeable, so that a kernel has one
+    signature per argument dtype and rank (numba compiles a kernel and its whole call tree
+    again for an F-ordered, strided or read-only array); an array copied for that which the
+    caller can write is listed with its copy, to be written back after the kernel."""
+    out = list(args)
+    written_back = []
+    for i, a in enumerate(args):
+        if isinstance(a, np.ndarray) and a.ndim and not (a.flags.c_contiguous and a.flags.writeable):
+            out[i] = np.array(a, order="C")
+            if a.flags.writeable:
+                written_back.append((a, out[i]))
+    return out, written_back
+
+
+def parallel_range(count, per=1, serial_below=2):
     """Decorator for a function ``f(*args, first, last)`` that does the independent work items
     [first, last) of a range: it is compiled as a kernel, and ``f(*args)`` becomes a Python
     function running it over the whole range with :func:`run_chunks` (the compiled kernel is
@@ -172,7 +193,7 @@ def parallel_range(count, per=1):
 
     ``count`` names the argument whose length (first dimension) gives the range, one index per
     ``per`` of its rows; or it is a function of the arguments by name returning the number of
-    indices.  The kernel is compiled with ``error_model="numpy"``: x / 0 gives inf or NaN, not
+    indices; fewer than ``serial_below`` indices run on the calling thread.  The kernel is compiled with ``error_model="numpy"``: x / 0 gives inf or NaN, not
     an exception, as in numba's own parallel loops."""
     import functools
     import inspect
@@ -188,7 +209,7 @@ def parallel_range(count, per=1):
                 n = -(-len(args[position]) // per)
             else:
                 n = int(count(dict(zip(names, args))))
-            run_chunks(chunk_kernel, args, n)
+            run_chunks(chunk_kernel, args, n, serial_below=serial_below)
 
         run.chunk_kernel = chunk_kernel
         return run

@@ -419,7 +419,7 @@ def find_v_roots(at, da, bt, db, n, lo, hi, pieces, live, cf, mat, scan, out_roo
         if live[k] == 0:
             continue
         if sg[k] != sg[k + 1] and sg[k] != 0 and sg[k + 1] != 0 and count < cap:
-            out_roots[count] = illinois(at, da, bt, db, n, vs[k], vs[k + 1], sg[k], lgs[k], sg[k + 1], lgs[k + 1], cf, mat, stats)
+            out_roots[count] = illinois(at, da, bt, db, n, vs[k], vs[k + 1], int(sg[k]), lgs[k], int(sg[k + 1]), lgs[k + 1], cf, mat, stats)
             piece_of[count] = k
             count += 1
         elif sg[k] == 0 and count < cap:
@@ -594,7 +594,7 @@ def _refine_interval(at, da, bt, db, n, lo, hi, cf, mat, stack, sub, out_roots, 
         if outer:
             out_carry = True
             out_v = sv[M]
-            out_s = ss[M]
+            out_s = int(ss[M])  # an int, as the caller starts it (one signature)
             out_l = sl[M]
         # new sign changes (a sub-piece around a scan root is skipped); more than
         # NOISY_CHANGES of them in one piece is a stretch where the determinant's sign is at
@@ -612,7 +612,7 @@ def _refine_interval(at, da, bt, db, n, lo, hi, cf, mat, stack, sub, out_roots, 
                     if out_roots[i] >= sv[k] and out_roots[i] <= sv[k + 1]:
                         known = True
                 if not known:
-                    out_roots[count] = illinois(at, da, bt, db, n, sv[k], sv[k + 1], ss[k], sl[k], ss[k + 1], sl[k + 1], cf, mat, stats)
+                    out_roots[count] = illinois(at, da, bt, db, n, sv[k], sv[k + 1], int(ss[k]), sl[k], int(ss[k + 1]), sl[k + 1], cf, mat, stats)
                     count += 1
         k_lo = 0 if has_left else 1
         k_hi = M + 2 if has_right else M + 1

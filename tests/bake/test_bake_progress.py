@@ -27,7 +27,9 @@ def test_the_fraction_follows_the_stages_and_reaches_one_only_at_the_end():
     assert all(f < 1.0 for f in fractions[:-1])  # 100 % only at the end
     assert len([m for m in messages if m.startswith("planning: probe")]) >= 2  # one step per probe
     images = [f for f, m in yielded if "forward images" in m]
-    assert len(images) >= 2 and images[-1] < 0.9  # one step per forward image, far from done
+    chunks = [m for m in messages if "forward images" in m and ", casters " in m]
+    assert len(images) >= 2 and images[0] < 0.9  # a step before each forward image (far from done) ...
+    assert chunks and chunks[-1].endswith(", casters {0}/{0}".format(chunks[-1].rsplit("/", 1)[1]))  # ... and after each chunk
     rows = [f for f, m in yielded if ": rows " in m]
     areas = [f for f, m in yielded if "texel areas" in m]
     assert len(rows) >= 4 and len(areas) >= 4  # banded: 16 rows x 16 texels / 64 samples per band

@@ -33,7 +33,10 @@ from ...solver.estimators.flux_kernel import corner_densities_kernel, subtriangl
 from ...solver.estimators.forward_image import corner_densities, solid_angle, splat_triangles
 from ..lights import emission_factor
 from .base import Estimator
-from .forward_images import IMAGE_COARSE, ImageCache
+from .forward_images import IMAGE_COARSE, image_chunks
+
+CASTER_CHUNK = 16384  # at most this many first casters refined and splatted together (a chunk: memory, a progress step)
+CHUNK_WORK = 1000000  # ... and about this many sub-triangles by their estimate (forward_images.image_chunks)
 
 
 class ForwardFlux(Estimator):
@@ -42,49 +45,79 @@ class ForwardFlux(Estimator):
 
     def __init__(self, ctx, items):
         super().__init__(ctx, items)
-        self.images = ImageCache(ctx, "flux", 0 if self.reference else IMAGE_COARSE, shared=not self.reference)
+        self.coarse = 0 if self.reference else IMAGE_COARSE
         self.flux_fn = flux_textures_reference if self.reference else flux_textures
-        self.total = [None] * len(ctx.receivers)  # (H W, 3) W per texel per receiver, summed over passes
+        self.total = None  # (H W, 3) W per texel per receiver, summed over passes and caster chunks
+        self.reports = []
 
     def prepare(self):
+        """Per light sample and chain (a pass), the reaching first casters in chunks
+        (``CHUNK_WORK``, ``CASTER_CHUNK``): each chunk's forward images are refined and their
+        flux splatted before the next, so memory and the time between progress steps follow
+        the chunk."""
         ctx = self.ctx
-        for li, ls in enumerate(ctx.lsamples):
-            for m in range(ls.size):
-                for idx, item in enumerate(self.items):
-                    if item.light != li:
-                        continue
-                    yield None, f"{item.chain}: forward images (light {li + 1}, sample {m + 1})"
-                    state = self.images.get(idx, item, ls, m)
-                    if state is None:
-                        continue
-                    t0 = time.perf_counter()
-                    for r, f in enumerate(self.flux_fn(ctx, item, state, ls, m)):
-                        self.total[r] = f if self.total[r] is None else self.total[r] + f
-                    ctx.timer.add("flux", time.perf_counter() - t0)
+        passes = [(li, ls, m, idx, item) for li, ls in enumerate(ctx.lsamples) for m in range(ls.size)
+                  for idx, item in enumerate(self.items) if item.light == li]
+        for p, (li, ls, m, idx, item) in enumerate(passes):
+            where = f"{item.chain}: forward images (light {li + 1}, sample {m + 1})"
+            yield p / len(passes), where
+            report = None
+            t0 = time.perf_counter()
+            for state, done, count in image_chunks(ctx, item, ls, m, "flux", CHUNK_WORK, CASTER_CHUNK, self.coarse,
+                                                   shared=not self.reference):
+                ctx.timer.add("image.trace", state.report["trace_seconds"])
+                ctx.timer.add("image", time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                if self.total is None:
+                    self.total = [np.zeros((r.resolution[0] * r.resolution[1], 3)) for r in ctx.receivers]
+                self.flux_fn(ctx, item, state, ls, m, self.total)
+                ctx.timer.add("flux", time.perf_counter() - t0)
+                report = _add_report(report, state.report)
+                yield (p + done / count) / len(passes), f"{where}, casters {done}/{count}"
+                t0 = time.perf_counter()
+            ctx.timer.add("image", time.perf_counter() - t0)
+            if report is not None:
+                self.reports.append({"light": item.light, "light_sample": m, "chain": item.chain, **report})
 
     def receiver_flux(self, rec_index):
-        return self.total[rec_index]
+        return None if self.total is None else self.total[rec_index]
         yield  # noqa: unreachable (a generator like the other estimators' stages)
 
     def report(self):
-        passes = self.images.reports
+        passes = self.reports
         return {"passes": passes, "sub_triangles": int(sum(p["sub_triangles"] for p in passes)),
                 "dropped_sub_triangles": int(sum(p["dropped"] for p in passes))}
 
 
-def flux_textures(ctx, item, state, ls, m):
-    """The flux (W per texel, one (H W, 3) array per receiver) of planned chain ``item``'s
-    final sub-triangles for light sample ``m`` (see the module doc); their power also goes
-    into ``ctx.ledger``.  The same estimate as :func:`flux_textures_reference`, its
-    per-sub-triangle terms in kernels."""
+def _add_report(total, chunk):
+    """A pass's forward-image report: the chunks' counts and times summed (``final_per_depth``
+    element by element), the cull's report from the first chunk, and the number of chunks."""
+    if total is None:
+        return {**chunk, "chunks": 1}
+    out = dict(total)
+    for k, v in chunk.items():
+        if k == "final_per_depth":
+            a, b = list(total[k]), list(v)
+            n = max(len(a), len(b))
+            out[k] = [(a[i] if i < len(a) else 0) + (b[i] if i < len(b) else 0) for i in range(n)]
+        elif k != "reach":
+            out[k] = total[k] + v
+    out["chunks"] = total["chunks"] + 1
+    return out
+
+
+def flux_textures(ctx, item, state, ls, m, out):
+    """Add the flux (W per texel, into ``out``: one (H W, 3) array per receiver) of planned
+    chain ``item``'s final sub-triangles in ``state`` for light sample ``m`` (see the module
+    doc); their power also goes into ``ctx.ledger``.  The same estimate as
+    :func:`flux_textures_reference`, its per-sub-triangle terms in kernels."""
     extent = ctx.extent
     receivers = ctx.receivers
     tris = state.tris
-    out = [np.zeros((r.resolution[0] * r.resolution[1], 3)) for r in receivers]
     e = tris["emitter"]
     n = e.size
     if n == 0:
-        return out
+        return
     clock = time.perf_counter()
     t1 = state.emit_tri[e]
     b = np.ascontiguousarray(tris["bary_full"])
@@ -113,7 +146,6 @@ def flux_textures(ctx, item, state, ls, m):
     clock = ctx.timer.since("flux.density", clock)
     _splat(receivers, tris, flux, density, out)
     ctx.timer.since("flux.splat", clock)
-    return out
 
 
 def _centroid_transport(state, item, tris):
@@ -169,16 +201,15 @@ def _splat(receivers, tris, flux, density, out):
                             np.ascontiguousarray(density[sel]))
 
 
-def flux_textures_reference(ctx, item, state, ls, m):
+def flux_textures_reference(ctx, item, state, ls, m, out):
     """:func:`flux_textures` in numpy (the reference form)."""
     scene, extent = ctx.scene, ctx.extent
     receivers = ctx.receivers
     tris = state.tris
-    out = [np.zeros((r.resolution[0] * r.resolution[1], 3)) for r in receivers]
     e = tris["emitter"]
     n = e.size
     if n == 0:
-        return out
+        return
     t1 = state.emit_tri[e]
     P = scene.tri_p[t1]
     b = tris["bary_full"]
@@ -214,4 +245,3 @@ def flux_textures_reference(ctx, item, state, ls, m):
     clock = ctx.timer.since("flux.density", clock)
     _splat(receivers, tris, flux, density, out)
     ctx.timer.since("flux.splat", clock)
-    return out

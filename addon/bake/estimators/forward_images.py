@@ -57,7 +57,7 @@ def _bvh_args(bvh):
 
 
 def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False, only=None,
-            coarse=0, shared=True):
+            coarse=0, shared=True, triangle_arrays=None):
     """Refine the sub-triangles of the emitters (first triangles ``emit_tri`` lit from ``x0``)
     for ``chain`` (one or two vertices; "seeded" needs two); ``second`` the global ids of
     the chain's second-vertex casters (ignored for one vertex); ``receivers`` the receivers at
@@ -65,9 +65,10 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     a sun (the same flux per area all over a first triangle); ``only`` the receiver indices
     the chain is baked onto (None: all); ``coarse`` levels above the first grid where small
     images may stop and ``shared`` whether points shared by sub-triangles are traced once
-    (:func:`refine_image_triangles`).  Returns an ImageState."""
+    (:func:`refine_image_triangles`); ``triangle_arrays`` :func:`scene_arrays` of these
+    arguments when the caller has them (a chunk of casters).  Returns an ImageState."""
     t0 = time.perf_counter()
-    tri_rec, tri_uv, second_ok = scene_arrays(scene, receivers, second, only)
+    tri_rec, tri_uv, second_ok = triangle_arrays or scene_arrays(scene, receivers, second, only)
     refract1, refract2 = chain[0] == "T", chain[-1] == "T"
     bounces = len(chain)
     emit_tri = np.ascontiguousarray(emit_tri, dtype=np.int64)
@@ -118,11 +119,17 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
 
 
 def _small_casters(P, tri_p, receivers, only):
-    """(n,) whether each first triangle P (n, 3, 3) is at most SMALL_CASTER texels long (its
-    longest edge, against the smallest world texel of the receivers in ``only``): its lost
-    parts are sampled at its own scale (SMALL_LOST_DEPTH levels below the coarse start: 13
-    points per quarter of the triangle) instead of at 1/64 of it; the flux such a triangle
-    could hide between them is below a texel's worth of its image."""
+    """(n,) whether each first triangle P (n, 3, 3) is at most SMALL_CASTER texels long
+    (:func:`caster_texels`): its lost parts are sampled at its own scale (SMALL_LOST_DEPTH
+    levels below the coarse start: 13 points per quarter of the triangle) instead of at 1/64
+    of it; the flux such a triangle could hide between them is below a texel's worth of its
+    image."""
+    return caster_texels(P, tri_p, receivers, only) <= SMALL_CASTER
+
+
+def caster_texels(P, tri_p, receivers, only):
+    """(n,) the longest edge of each first triangle P (n, 3, 3) in texels: against the
+    smallest world texel of the receivers in ``only`` (None: all); 0 without receivers."""
     texel = np.inf
     for r, rec in enumerate(receivers):
         if only is not None and r not in only:
@@ -135,12 +142,32 @@ def _small_casters(P, tri_p, receivers, only):
         if uv_area > 0:
             texel = min(texel, math.sqrt(world_area / uv_area) / max(rec.resolution))
     edge = np.sqrt(((P - P[:, [1, 2, 0]]) ** 2).sum(axis=2)).max(axis=1)
-    return edge <= SMALL_CASTER * texel
+    return edge / texel
 
 
-def image_state(ctx, item, ls, m, mode, coarse=0, shared=True):
-    """The refined sub-triangles (:func:`prepare`) of planned chain ``item`` for light sample
-    ``m``, or None when the light reaches none of its first casters."""
+def caster_chunks(work, max_work, max_casters):
+    """Cut casters with estimated ``work`` (n,) into consecutive runs [a, b): a caster whose
+    work starts in the k-th ``max_work`` of the running total belongs to run k, and runs of
+    more than ``max_casters`` casters are cut again.  A function of the scene and settings
+    alone, so the cut, and with it the order in which flux is summed, is the same on every
+    machine."""
+    work = np.asarray(work, dtype=np.float64)
+    if work.size == 0:
+        return []
+    start = np.cumsum(work) - work
+    run = np.floor(start / float(max_work)).astype(np.int64)
+    bounds = np.concatenate([[0], np.flatnonzero(np.diff(run)) + 1, [work.size]])
+    out = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        out.extend((int(c), int(min(b, c + max_casters))) for c in range(a, b, int(max_casters)))
+    return out
+
+
+def _reaching_casters(ctx, item, ls, m):
+    """The first-vertex casters of planned chain ``item`` that light sample ``m`` reaches and
+    whose scattered light can reach the chain's next targets: (their global triangle ids,
+    their light points, the chain's second-vertex casters, the cull's report), or None when
+    there are none."""
     scene = ctx.scene
     cast1 = item.vertices[0]
     x0_all = light_points(ls, m, scene.tri_p[cast1], ctx.extent, ctx.settings.sun_distance)
@@ -161,11 +188,49 @@ def image_state(ctx, item, ls, m, mode, coarse=0, shared=True):
     reach_report = {"lit": int(lit.size), "reaching": int(reach.sum()), "seconds": time.perf_counter() - t0}
     if not keep.any():
         return None
-    state = prepare(scene, ctx.bvh, ctx.eps, item.chain, cast1[keep], x0_all[keep], second, ctx.receivers,
-                    max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers,
-                    coarse=coarse, shared=shared)
+    return cast1[keep], x0_all[keep], second, reach_report
+
+
+def _prepare_emitters(ctx, item, ls, emit_tri, x0, second, mode, coarse, shared, triangle_arrays=None):
+    return prepare(ctx.scene, ctx.bvh, ctx.eps, item.chain, emit_tri, x0, second, ctx.receivers,
+                   max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers,
+                   coarse=coarse, shared=shared, triangle_arrays=triangle_arrays)
+
+
+def image_state(ctx, item, ls, m, mode, coarse=0, shared=True):
+    """The refined sub-triangles (:func:`prepare`) of planned chain ``item`` for light sample
+    ``m``, or None when the light reaches none of its first casters."""
+    casters = _reaching_casters(ctx, item, ls, m)
+    if casters is None:
+        return None
+    emit_tri, x0, second, reach_report = casters
+    state = _prepare_emitters(ctx, item, ls, emit_tri, x0, second, mode, coarse, shared)
     state.report["reach"] = reach_report
     return state
+
+
+def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared=True):
+    """:func:`image_state` in pieces: the reaching first casters, in their order, cut into runs
+    (:func:`caster_chunks`) of at most ``max_casters`` casters and about ``max_work``
+    sub-triangles (a caster's estimate: the first grid's IMAGE_GRID² times 1 + its size in
+    texels squared, :func:`caster_texels`, at most 4^image_depth), each refined on its own (a caster's sub-triangles do
+    not depend on the others'), so that memory and the time between two progress steps
+    follow the chunk, not the caster count.  Yields (state, casters done, casters) per
+    chunk; nothing when the light reaches none.  The cull's report is in the first chunk's
+    ``state.report["reach"]``."""
+    casters = _reaching_casters(ctx, item, ls, m)
+    if casters is None:
+        return
+    emit_tri, x0, second, reach_report = casters
+    arrays = scene_arrays(ctx.scene, ctx.receivers, second, item.receivers)
+    n = emit_tri.size
+    size = caster_texels(ctx.scene.tri_p[emit_tri], ctx.scene.tri_p, ctx.receivers, item.receivers)
+    work = IMAGE_GRID ** 2 * (1.0 + np.minimum(size ** 2, 4.0 ** int(ctx.settings.image_depth)))
+    for a, b in caster_chunks(work, max_work, max_casters):
+        state = _prepare_emitters(ctx, item, ls, emit_tri[a:b], x0[a:b], second, mode, coarse, shared, arrays)
+        if a == 0:
+            state.report["reach"] = reach_report
+        yield state, b, n
 
 
 class ImageCache:

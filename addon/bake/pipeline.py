@@ -185,7 +185,8 @@ def bake_steps(scene, settings=None):
     scene.validate()
     resolutions = [(settings.resolution, settings.resolution) if settings.resolution else tuple(r.resolution)
                    for r in scene.receivers]
-    check_budget(resolutions, settings, flux_textures=1 if settings.estimator in _FLUX_ESTIMATORS else 0)
+    check_budget(resolutions, settings, flux_textures=1 if settings.estimator in _FLUX_ESTIMATORS else 0,
+                 triangles=scene.n_triangles)
     return _memory_guarded(_bake_gen(scene, settings))
 
 

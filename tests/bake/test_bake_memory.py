@@ -10,7 +10,7 @@ from addon.bake.memory import BakeMemoryError, texel_bytes
 from addon.bake.pipeline import BakeSettings, bake, bake_steps
 from addon.bake.scene import SceneError
 
-from fixtures.bake_scenes import mirror_scene
+from fixtures.bake_scenes import glass_sphere_scene, mirror_scene
 
 
 def test_a_bake_that_does_not_fit_stops_before_it_starts():
@@ -25,6 +25,18 @@ def test_a_bake_that_does_not_fit_stops_before_it_starts():
                               "16384 texels), more than its memory budget of 1.0 GB; lower the resolution or raise "
                               "the memory budget")
     bake_steps(sc, BakeSettings(resolution=8, memory_budget=1e9)).close()  # small: fine
+
+
+def test_a_scene_too_large_for_the_budget_stops_before_it_starts():
+    sc = glass_sphere_scene(resolution=8, segments=64, rings=32)
+    n = int(sc.n_triangles)
+    textures = texel_bytes([(8, 8)], BakeSettings().band_samples, 1)
+    scene_need = n * memory.BYTES_PER_TRIANGLE
+    with pytest.raises(BakeMemoryError) as err:
+        bake_steps(sc, BakeSettings(resolution=8, memory_budget=textures + 0.5 * scene_need))
+    assert str(err.value).startswith(f"the bake needs about {(textures + scene_need) / 1e9:.1f} GB ({n:,} triangles and "
+                                     "the textures), more than its memory budget of ")
+    bake_steps(sc, BakeSettings(resolution=8, memory_budget=textures + 2.0 * scene_need)).close()  # fits
 
 
 def test_the_default_budget_is_a_share_of_the_free_memory(monkeypatch):

@@ -14,7 +14,8 @@ they would show direct light.  (Receivers under a refractive surface: Cycles' ow
 caustics give about E / n² there because it skips the n² radiance scaling; this bakes the
 physical irradiance.)
 
-A frame range (:func:`write_sequence_frame` per finished frame, then :func:`apply_sequence`)
+A frame range (:func:`write_sequence_frame` per finished frame into a staging folder,
+:func:`publish_sequence_frames` when the range ends, then :func:`apply_sequence`)
 gives every receiver an Image with source ``SEQUENCE`` over the EXR sequence named by
 :func:`addon.bake.names.texture_filename` (``<receiver>.<frame>.exr``, the CLI's names), and
 its Image Texture node's image user maps the scene frame to the file of that frame
@@ -139,11 +140,48 @@ def write_textures(images, directory, frame=None):
     return {n: paths[names[n]] for n in images}
 
 
+SEQUENCE_STAGING = ".caustic-bake-staging"  # a frame range's finished frames, until they replace the earlier ones
+
+
 def write_sequence_frame(images, directory, frame):
     """Write one frame of a sequence: per receiver ``images[name]`` ((H, W, 3) irradiance) to
-    ``directory``/:func:`~addon.bake.names.texture_filename` (name, frame), all or nothing
-    (:func:`write_textures`).  Returns {receiver name: absolute path}."""
-    return write_textures(images, directory, frame)
+    ``directory``/``SEQUENCE_STAGING``/:func:`~addon.bake.names.texture_filename` (name,
+    frame), all or nothing (:func:`write_textures`): the earlier bake's frames in
+    ``directory`` stay as they are until :func:`publish_sequence_frames`.  Returns {receiver
+    name: absolute path of the staged file}."""
+    return write_textures(images, _staging(directory), frame)
+
+
+def _staging(directory):
+    return directory.rstrip("/\\") + "/" + SEQUENCE_STAGING
+
+
+def publish_sequence_frames(receivers, directory, frames):
+    """Move the staged frames ``frames`` of ``receivers`` (:func:`write_sequence_frame`) into
+    ``directory`` (recorded as written by Caustic Bake first, then each file renamed over the
+    earlier one, atomically per file) and remove the staging folder.  Returns {frame:
+    {receiver name: absolute path}}.  Raises :class:`~addon.bake.output.OutputError`."""
+    abs_dir = bpy.path.abspath(directory)
+    staging = bpy.path.abspath(_staging(directory))
+    names = {(f, n): texture_filename(n, f, receivers=receivers) for f in frames for n in receivers}
+    output.record_written(abs_dir, add=set(names.values()))
+    done = {}
+    for (f, n), name in names.items():
+        path = os.path.join(abs_dir, name)
+        try:
+            os.replace(os.path.join(staging, name), path)
+        except OSError as ex:
+            raise output.OutputError(f"cannot write {path}: {ex.strerror or ex}", ex.errno) from None
+        done.setdefault(f, {})[n] = path
+    discard_staged_frames(directory)
+    return done
+
+
+def discard_staged_frames(directory):
+    """Remove the staging folder of a frame range (:func:`write_sequence_frame`), if any."""
+    import shutil
+
+    shutil.rmtree(bpy.path.abspath(_staging(directory)), ignore_errors=True)
 
 
 def _relative_path(directory, path):
@@ -276,7 +314,7 @@ def apply_bake(images, uv_maps, directory=None, pack=False, files=None):
 
 def apply_sequence(object_names, uv_maps, directory, frames):
     """Show a baked frame range on receivers: per object an Image with source ``SEQUENCE``
-    over the files :func:`write_sequence_frame` wrote to ``directory`` for ``frames`` (a
+    over the files of ``frames`` in ``directory`` (:func:`publish_sequence_frames`; a
     contiguous, increasing list), its texture node's image user set to play them at their
     frames.  Re-applying replaces an earlier bake.  Returns {object name: image name}."""
     frames = [int(f) for f in frames]

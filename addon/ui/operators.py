@@ -201,9 +201,11 @@ class BakeJob:
 
     The current frame (``frames`` None): nothing in Blender changes before :meth:`finish`.
     A frame range (the panel's *Scene Frame Range*): the frames are baked one after the other
-    (the scene is set to each), each frame's textures are written to the output folder as it
-    finishes (:func:`addon.bake.apply.write_sequence_frame`), and :meth:`finish` shows the
-    finished frames as image sequences, also after :meth:`cancel` (``done_frames``); the
+    (the scene is set to each), each frame's textures are written to a staging folder inside
+    the output folder as it finishes (:func:`addon.bake.apply.write_sequence_frame`), and
+    :meth:`finish` moves the finished frames over the earlier bake's and shows them as image
+    sequences, also after :meth:`cancel` (``done_frames``); until then the earlier bake's files
+    are untouched, and a range cancelled before its first frame leaves them as they were.  The
     scene's frame is set back to where it was."""
 
     #: Smaller chunks than the pipeline's defaults, so that one timer tick stays short.
@@ -220,7 +222,7 @@ class BakeJob:
         self.frames = None  # the frame range being baked, or None: the current frame
         self.frame_index = 0
         self.done_frames = []
-        self.written = {}  # frame -> {receiver: path of its EXR}
+        self.written = {}  # frame -> {receiver: path of its EXR} (staged until finish)
         self.receivers = []
         self.uv_maps = {}
         self.original_frame = None
@@ -374,6 +376,10 @@ class BakeJob:
             steps.close()
         self._stop_worker()
         self._restore_frame()
+        if self.frames is not None and not self.done_frames and self.directory is not None:
+            from ..bake.apply import discard_staged_frames
+
+            discard_staged_frames(self.directory)  # nothing to keep: the earlier bake stays as it was
 
     def _restore_frame(self):
         scene = bpy.data.scenes.get(self.scene_name)
@@ -383,7 +389,8 @@ class BakeJob:
     def finish(self, context):
         """Apply the result (a frame range: its finished frames) to the scene; returns the
         one-line summary."""
-        from ..bake.apply import apply_bake, apply_sequence, clear_bake, receivers_uv_maps, write_textures
+        from ..bake.apply import (apply_bake, apply_sequence, clear_bake, publish_sequence_frames, receivers_uv_maps,
+                                  write_textures)
 
         result = self.result
         props = context.scene.caustic_bake
@@ -398,6 +405,8 @@ class BakeJob:
             what = ""
         else:
             self._restore_frame()
+            # the finished frames, staged until now, replace the earlier bake's files only here
+            self.written = publish_sequence_frames(self.receivers, self.directory, self.done_frames)
             keep = [p for paths in self.written.values() for p in paths.values()]
             clear_bake(delete_files=True, keep_files=keep)  # an earlier sequence's other frames go
             done = apply_sequence(self.receivers, self.uv_maps, self.directory, self.done_frames)

@@ -194,6 +194,32 @@ def test_esc_between_frames_keeps_the_finished_frames(tmp_path):
     assert [_frame_shown(f) for f in (1, 3)] == [1, 1]  # the finished frame shows throughout
 
 
+def test_an_earlier_sequence_stays_until_the_new_range_is_done(tmp_path):
+    """The frames of a new range are staged: the earlier bake's files are untouched while it
+    runs, and replaced, all of them, when it ends."""
+    _open_animated(tmp_path)
+    assert bpy.ops.caustics.bake(save_blend=False) == {"FINISHED"}
+    folder = tmp_path / "caustics" / "anim"
+    old = {name: read_exr(folder / name) for name in SEQ}
+    assert old[SEQ[0]].max() > 0
+    for light in bpy.data.lights:
+        light.energy *= 2.0  # the new bake: twice the caustic
+    op = ModalStub(bpy.context)
+    mid_range = False
+    for _ in range(10000):
+        if op.modal(bpy.context, Event("TIMER")) != {"RUNNING_MODAL"}:
+            break
+        if 1 <= len(op._job.done_frames) < 3:  # mid-range: new frames done, the old ones still in place
+            mid_range = True
+            assert sorted(f for f in os.listdir(folder) if f.endswith(".exr")) == SEQ
+            for name in SEQ:
+                np.testing.assert_array_equal(read_exr(folder / name), old[name])
+    assert mid_range and op._job.done_frames == [1, 2, 3]
+    for name in SEQ:
+        np.testing.assert_allclose(read_exr(folder / name), 2.0 * old[name], rtol=1e-5, atol=1e-6 * old[name].max())
+    assert sorted(os.listdir(folder)) == sorted(SEQ + [FILES_MANIFEST, MANIFEST_LOCK])  # no staging folder left
+
+
 def test_esc_in_the_first_frame_changes_nothing(tmp_path):
     _open_animated(tmp_path, frame=3)
     before = snapshot()

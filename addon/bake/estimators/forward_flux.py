@@ -62,21 +62,23 @@ class ForwardFlux(Estimator):
             where = f"{item.chain}: forward images (light {li + 1}, sample {m + 1})"
             yield p / len(passes), where
             report = None
+            flux = None  # this pass's flux per receiver: its chunks' splats, added to the total at its end
             t0 = time.perf_counter()
             for state, done, count in image_chunks(ctx, item, ls, m, "flux", CHUNK_WORK, CASTER_CHUNK, self.coarse,
                                                    shared=not self.reference):
                 ctx.timer.add("image.trace", state.report["trace_seconds"])
                 ctx.timer.add("image", time.perf_counter() - t0)
                 t0 = time.perf_counter()
-                if self.total is None:
-                    self.total = [np.zeros((r.resolution[0] * r.resolution[1], 3)) for r in ctx.receivers]
-                self.flux_fn(ctx, item, state, ls, m, self.total)
+                if flux is None:
+                    flux = [np.zeros((r.resolution[0] * r.resolution[1], 3)) for r in ctx.receivers]
+                self.flux_fn(ctx, item, state, ls, m, flux)
                 ctx.timer.add("flux", time.perf_counter() - t0)
                 report = _add_report(report, state.report)
                 yield (p + done / count) / len(passes), f"{where}, casters {done}/{count}"
                 t0 = time.perf_counter()
             ctx.timer.add("image", time.perf_counter() - t0)
             if report is not None:
+                self.total = flux if self.total is None else [a + b for a, b in zip(self.total, flux)]
                 self.reports.append({"light": item.light, "light_sample": m, "chain": item.chain, **report})
 
     def receiver_flux(self, rec_index):

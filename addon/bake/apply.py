@@ -158,22 +158,15 @@ def _staging(directory):
 
 def publish_sequence_frames(receivers, directory, frames):
     """Move the staged frames ``frames`` of ``receivers`` (:func:`write_sequence_frame`) into
-    ``directory`` (recorded as written by Caustic Bake first, then each file renamed over the
-    earlier one, atomically per file) and remove the staging folder.  Returns {frame:
+    ``directory`` (:func:`addon.bake.output.move_files`: recorded as written by Caustic Bake
+    first, then each file renamed over the earlier one) and remove the staging folder.  Returns {frame:
     {receiver name: absolute path}}.  Raises :class:`~addon.bake.output.OutputError`."""
-    abs_dir = bpy.path.abspath(directory)
-    staging = bpy.path.abspath(_staging(directory))
     names = {(f, n): texture_filename(n, f, receivers=receivers) for f in frames for n in receivers}
-    output.record_written(abs_dir, add=set(names.values()))
+    paths = output.move_files(bpy.path.abspath(_staging(directory)), bpy.path.abspath(directory), list(names.values()))
+    discard_staged_frames(directory)
     done = {}
     for (f, n), name in names.items():
-        path = os.path.join(abs_dir, name)
-        try:
-            os.replace(os.path.join(staging, name), path)
-        except OSError as ex:
-            raise output.OutputError(f"cannot write {path}: {ex.strerror or ex}", ex.errno) from None
-        done.setdefault(f, {})[n] = path
-    discard_staged_frames(directory)
+        done.setdefault(f, {})[n] = paths[name]
     return done
 
 

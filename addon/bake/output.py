@@ -148,6 +148,23 @@ def _write_all(folder, writers):
                     pass
 
 
+def move_files(source, folder, names):
+    """Move the files ``names`` from the folder ``source`` into ``folder``, each renamed over
+    the file of its name there (atomic per file), listed in ``folder``'s manifest first.
+    Returns {file name: absolute path}.  Raises :class:`OutputError`."""
+    folder = os.path.abspath(folder)
+    record_written(folder, add=names)
+    done = {}
+    for name in names:
+        path = os.path.join(folder, name)
+        try:
+            os.replace(os.path.join(source, name), path)
+        except OSError as ex:
+            raise OutputError(f"cannot write {path}: {_reason(ex)}", ex.errno) from None
+        done[name] = path
+    return done
+
+
 def write_textures(folder, images, record=True):
     """Write ``images`` ({file name: (H, W, 3) irradiance}) as EXRs into ``folder``, all or
     nothing (:func:`write_files`).  Returns {file name: absolute path}."""

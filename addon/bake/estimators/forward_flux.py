@@ -56,9 +56,9 @@ class ForwardFlux(Estimator):
         flux splatted before the next, so memory and the time between progress steps follow
         the chunk."""
         ctx = self.ctx
-        passes = [(li, ls, m, idx, item) for li, ls in enumerate(ctx.lsamples) for m in range(ls.size)
-                  for idx, item in enumerate(self.items) if item.light == li]
-        for p, (li, ls, m, idx, item) in enumerate(passes):
+        passes = [(li, ls, m, item) for li, ls in enumerate(ctx.lsamples) for m in range(ls.size)
+                  for item in self.items if item.light == li]
+        for p, (li, ls, m, item) in enumerate(passes):
             where = f"{item.chain}: forward images (light {li + 1}, sample {m + 1})"
             yield p / len(passes), where
             report = None

@@ -191,33 +191,24 @@ def _reaching_casters(ctx, item, ls, m):
     return cast1[keep], x0_all[keep], second, reach_report
 
 
-def _prepare_emitters(ctx, item, ls, emit_tri, x0, second, mode, coarse, shared, triangle_arrays=None):
-    return prepare(ctx.scene, ctx.bvh, ctx.eps, item.chain, emit_tri, x0, second, ctx.receivers,
-                   max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun", only=item.receivers,
-                   coarse=coarse, shared=shared, triangle_arrays=triangle_arrays)
-
-
 def image_state(ctx, item, ls, m, mode, coarse=0, shared=True):
     """The refined sub-triangles (:func:`prepare`) of planned chain ``item`` for light sample
-    ``m``, or None when the light reaches none of its first casters."""
-    casters = _reaching_casters(ctx, item, ls, m)
-    if casters is None:
-        return None
-    emit_tri, x0, second, reach_report = casters
-    state = _prepare_emitters(ctx, item, ls, emit_tri, x0, second, mode, coarse, shared)
-    state.report["reach"] = reach_report
-    return state
+    ``m`` (:func:`image_chunks` in one piece), or None when the light reaches none of its
+    first casters."""
+    one_piece = image_chunks(ctx, item, ls, m, mode, math.inf, np.iinfo(np.int64).max, coarse, shared)
+    return next(one_piece, (None,))[0]
 
 
 def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared=True):
-    """:func:`image_state` in pieces: the reaching first casters, in their order, cut into runs
+    """The refined sub-triangles (:func:`prepare`) of planned chain ``item`` for light sample
+    ``m`` in pieces: the reaching first casters, in their order, cut into runs
     (:func:`caster_chunks`) of at most ``max_casters`` casters and about ``max_work``
     sub-triangles (a caster's estimate: the first grid's IMAGE_GRID² times 1 + its size in
-    texels squared, :func:`caster_texels`, at most 4^image_depth), each refined on its own (a caster's sub-triangles do
-    not depend on the others'), so that memory and the time between two progress steps
-    follow the chunk, not the caster count.  Yields (state, casters done, casters) per
-    chunk; nothing when the light reaches none.  The cull's report is in the first chunk's
-    ``state.report["reach"]``."""
+    texels squared, :func:`caster_texels`, at most 4^image_depth), each refined on its own (a
+    caster's sub-triangles do not depend on the others'), so that memory and the time between
+    two progress steps follow the chunk, not the caster count.  Yields (state, casters done,
+    casters) per chunk; nothing when the light reaches none.  The cull's report is in the
+    first chunk's ``state.report["reach"]``."""
     casters = _reaching_casters(ctx, item, ls, m)
     if casters is None:
         return
@@ -227,7 +218,9 @@ def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared
     size = caster_texels(ctx.scene.tri_p[emit_tri], ctx.scene.tri_p, ctx.receivers, item.receivers)
     work = IMAGE_GRID ** 2 * (1.0 + np.minimum(size ** 2, 4.0 ** int(ctx.settings.image_depth)))
     for a, b in caster_chunks(work, max_work, max_casters):
-        state = _prepare_emitters(ctx, item, ls, emit_tri[a:b], x0[a:b], second, mode, coarse, shared, arrays)
+        state = prepare(ctx.scene, ctx.bvh, ctx.eps, item.chain, emit_tri[a:b], x0[a:b], second, ctx.receivers,
+                        max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun",
+                        only=item.receivers, coarse=coarse, shared=shared, triangle_arrays=arrays)
         if a == 0:
             state.report["reach"] = reach_report
         yield state, b, n

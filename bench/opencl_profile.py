@@ -143,7 +143,29 @@ def one_bounce_rows(solver, index, args):
             rows.append(dict(chain=chain, workload=name, tuples=n, paths=b.report.paths, numba=t_numba, opencl=t_ocl,
                              profiled=wall, stages=st, launches=prof.launches, syncs=prof.syncs, same=same_paths(a, b)))
             print(one_bounce_line(rows[-1]), flush=True)
+        if wanted(args, chain, "random pairs"):
+            rows.append(pair_row(solver, index, chain, args))
+            print(one_bounce_line(rows[-1]), flush=True)
     return rows
+
+
+def pair_row(solver, index, chain, args):
+    """--tuples random (emitter, point) pairs over 65,536 random emitters and 65,536 random
+    points kept on the device (``spoly.api.TupleTable``, as a bake sends them); the table's
+    upload is made before the timing; Numba solves the gathered tuples (gathering not timed)."""
+    from addon.solver.spoly.api import TupleTable
+
+    rng = np.random.default_rng(3)
+    x0, x2, P, N = random_tuples(65536, seed=4)
+    e, s = rng.integers(0, 65536, args.tuples), rng.integers(0, 65536, args.tuples)
+    table = TupleTable(chain, x0, P, N, 1.5, x2, device=f"opencl:{index}", solver=solver)
+    table.solve(e[:64], s[:64])
+    g0, g2, gP, gN = x0[e], x2[s], P[e], N[e]
+    t_numba, a = best_wall(lambda: solver.solve(chain, g0, g2, gP, gN, 1.5), args.repeats)
+    t_ocl, b = best_wall(lambda: table.solve(e, s), args.repeats)
+    wall, st, prof = profiled_run(index, lambda: table.solve(e, s), chain)
+    return dict(chain=chain, workload="random pairs", tuples=e.size, paths=b.report.paths, numba=t_numba, opencl=t_ocl,
+                profiled=wall, stages=st, launches=prof.launches, syncs=prof.syncs, same=same_paths(a, b))
 
 
 def two_bounce_rows(solver, index, args):
@@ -171,7 +193,9 @@ def two_bounce_rows(solver, index, args):
 
 
 ONE_COLUMNS = (("validate", "check inputs"), ("pack", "pack"), ("host->device", "host→device"), ("zero", "zero acc"),
-               ("kernel solve_one_bounce", "kernel"), ("device->host", "device→host"), ("unpack", "unpack"),
+               ("kernel solve_one_bounce", "kernel, one stage"),
+               ("kernel one_bounce filter", "filter kernel"), ("kernel one_bounce solve", "solve kernel"),
+               ("kernel compaction", "prefix sums, scatter"), ("kernel gather", "gather kernel"), ("device->host", "device→host"), ("unpack", "unpack"),
                ("sort", "sort paths"))
 TWO_COLUMNS = (("validate", "check inputs"), ("A", "stage A (Numba)"), ("host->device", "host→device"),
                ("kernel det_batch", "det kernel"), ("kernel illinois_batch", "Illinois kernel"),

@@ -107,17 +107,19 @@ def test_bake_writes_exr_and_report(tmp_path, capsys):
 
 
 def test_device_option(tmp_path, capsys):
-    """--device opencl: the one-bounce solve runs on OpenCL (or falls back to Numba with a
+    """--device opencl: the one-bounce solve of the path-points estimator runs on OpenCL, the
+    tables once on the device and the tuples as index pairs (or falls back to Numba with a
     warning); either way the texture matches the CPU bake to solver precision."""
     blend = os.path.join(SAMPLES, "mirror_plane.blend")
     assert main(["bake", blend, "--out", str(tmp_path / "o"), "--device", "gpu"]) == 2
     assert "--device must be numba, opencl or opencl:N" in _err_line(capsys)
-    args = ["--resolution", "24", "--samples", "1", "--seed", "2"]
+    args = ["--resolution", "24", "--samples", "1", "--seed", "2", "--one-bounce", "points"]
     assert main(["bake", blend, "--out", str(tmp_path / "cl"), "--device", "opencl"] + args) == 0
     assert main(["bake", blend, "--out", str(tmp_path / "cpu")] + args) == 0
     cl, cpu = read_exr(tmp_path / "cl" / "Floor.exr"), read_exr(tmp_path / "cpu" / "Floor.exr")
-    assert json.loads((tmp_path / "cl" / "report.json").read_text())["settings"]["device"] == "opencl"
-    assert cpu.max() > 0
+    report = json.loads((tmp_path / "cl" / "report.json").read_text())
+    assert report["settings"]["device"] == "opencl" and report["devices"]["path-points"] == "opencl"
+    assert report["counts"]["paths_visible"] > 0 and cpu.max() > 0
     np.testing.assert_allclose(cl, cpu, rtol=1e-5, atol=1e-6 * cpu.max())
 
 

@@ -16,8 +16,11 @@ from workloads import planted_tuples, random_tuples  # noqa: E402
 
 
 @pytest.mark.opencl
+@pytest.mark.parametrize("stages", ["1", "2"])
 @pytest.mark.parametrize("chain", ["R", "T"])
-def test_opencl_returns_the_numba_paths(chain):
+def test_opencl_returns_the_numba_paths(chain, stages, monkeypatch):
+    """In one stage (CPUs) and as a filter stage then a solve stage over the survivors (GPUs)."""
+    monkeypatch.setenv("CAUSTIC_OPENCL_STAGES", stages)
     index = opencl_device_or_skip()
     x0, x2, P, N, _ = planted_tuples(6000, chain, seed=21)
     r0, r2, rP, rN = random_tuples(6000, seed=22)
@@ -119,12 +122,14 @@ def _mixed_batch(n_random, n_planted, chain, seed):
     return x0, x2, P, N
 
 
+@pytest.mark.parametrize("stages", ["1", "2"])
 @pytest.mark.parametrize("chain", ["R", "T"])
-def test_opencl_compaction_and_buffer_reuse(chain, monkeypatch):
+def test_opencl_compaction_and_buffer_reuse(chain, stages, monkeypatch):
     """Paths compacted on the device equal Numba's over consecutive calls of different sizes
     (the device buffers kept from a larger call serve a smaller one and are replaced for a
     larger one), and when the path records overflow the device buffers (they grow and the
     kernel runs again)."""
+    monkeypatch.setenv("CAUSTIC_OPENCL_STAGES", stages)
     index = opencl_device_or_skip()
     solver = SpecularPolynomialSolver()
     dev = opencl_backend._context(index)
@@ -162,7 +167,12 @@ def test_opencl_compaction_and_buffer_reuse(chain, monkeypatch):
         ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
     finally:
         opencl_backend.set_profiling(index, None)
-    assert numba.uv.shape[0] > 16 and prof.launches == 2
+    launches = [stage for stage, _ in prof.events if stage.startswith("kernel")]
+    assert numba.uv.shape[0] > 16
+    if stages == "1":
+        assert launches == ["kernel solve_one_bounce"] * 2  # run again after the overflow
+    else:
+        assert launches.count("kernel one_bounce solve") == 1 and launches.count("kernel gather") == 2  # gathered again
     assert dev.path_capacity >= numba.uv.shape[0]
     np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
     np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
@@ -184,7 +194,8 @@ def test_opencl_launches_in_batches_and_empty_calls(chain, monkeypatch):
         ocl = solver.solve(chain, x0, x2, P, N, 1.5, device=f"opencl:{index}")
     finally:
         opencl_backend.set_profiling(index, None)
-    assert prof.launches == 3
+    solves = [stage for stage, _ in prof.events if stage in ("kernel solve_one_bounce", "kernel one_bounce solve")]
+    assert len(solves) == 3
     assert numba.uv.shape[0] > 700
     np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
     np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
@@ -192,3 +203,41 @@ def test_opencl_launches_in_batches_and_empty_calls(chain, monkeypatch):
         (numba.report.paths, numba.report.skipped, numba.report.overflow)
     empty = solver.solve(chain, x0[:0], x2[:0], P[:0], N[:0], 1.5, device=f"opencl:{index}")
     assert empty.tuple_index.shape == (0,) and empty.uv.shape == (0, 2) and empty.report.paths == 0
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("stages", ["1", "2"])
+@pytest.mark.parametrize("chain", ["R", "T"])
+def test_pair_table_on_the_device_returns_the_numba_paths(chain, stages, monkeypatch):
+    """Tuples as (emitter, point) index pairs over tables uploaded once: the paths of the
+    gathered tuples on Numba, over several solves of one table; bad pairs are refused."""
+    from addon.solver.spoly.api import TupleTable
+
+    monkeypatch.setenv("CAUSTIC_OPENCL_STAGES", stages)
+    index = opencl_device_or_skip()
+    x0, x2, P, N, _ = planted_tuples(3000, chain, seed=71)
+    n = x0.shape[0]
+    r0, r2, rP, rN = random_tuples(2000, seed=72)
+    x0, P, N = np.vstack([x0, r0]), np.vstack([P, rP]), np.vstack([N, rN])
+    points = np.vstack([x2, r2])
+    eta = np.linspace(1.3, 1.6, x0.shape[0])
+    rng = np.random.default_rng(73)
+    device = TupleTable(chain, x0, P, N, eta, points, device=f"opencl:{index}")
+    numba = TupleTable(chain, x0, P, N, eta, points)
+    seen = 0
+    for e, s in ((np.arange(n), np.arange(n)),  # the planted tuples: a path each
+                 (rng.integers(0, x0.shape[0], 20000), rng.integers(0, points.shape[0], 20000))):
+        got, want = device.solve(e, s), numba.solve(e, s)
+        direct = SpecularPolynomialSolver().solve(chain, x0[e], points[s], P[e], N[e], eta[e])
+        np.testing.assert_array_equal(want.tuple_index, direct.tuple_index)
+        np.testing.assert_array_equal(want.uv, direct.uv)
+        np.testing.assert_array_equal(got.tuple_index, want.tuple_index)
+        np.testing.assert_allclose(got.uv, want.uv, rtol=0, atol=1e-9)
+        assert (got.report.paths, got.report.skipped) == (want.report.paths, want.report.skipped)
+        seen += want.report.paths
+    assert device.device_name.startswith("opencl: ") and numba.device_name == "numba"
+    assert seen > 0.9 * n
+    with pytest.raises(IndexError, match="outside the tables"):
+        device.solve(np.array([0]), np.array([points.shape[0]]))
+    with pytest.raises(ValueError, match="one shape"):
+        device.solve(np.array([0, 1]), np.array([0]))

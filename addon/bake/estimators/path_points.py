@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from ...solver import path_irradiance, solve_tuples
-from ...solver.spoly.api import CHAIN_LENGTH
+from ...solver.spoly.api import CHAIN_LENGTH, TupleTable
 from ...solver.geometry.bvh import segments_occluded
 from ...solver.geometry.optics import fresnel_dielectric_many
 from ..bounds_select import bounds_cull
@@ -188,6 +188,7 @@ def chain_pass(ctx, item, ls, m, band, rec_index, sums, emitters, solve=None, re
     st["tuples_tile_cull"] = cull.upper_bound
     timer.add("cull", time.perf_counter() - t0)
     t0 = time.perf_counter()
+    table = None
     for batch in cull.batches(settings.batch_tuples):
         e, s = batch[0], batch[1]
         inv_p = batch[2] if len(batch) > 2 else None  # bounds cull with gamma < inf: 1/P per tuple (eq 24)
@@ -200,9 +201,15 @@ def chain_pass(ctx, item, ls, m, band, rec_index, sums, emitters, solve=None, re
         P = scene.tri_p[tri]
         N = scene.tri_n[tri]
         eta = scene.tri_ior[tri[:, 0]]
-        # The device only when it is not the default (solve_tuples' signature stays optional).
-        if solve is None:
-            ti, uv = solve_tuples(chain, x_start, x_end, P, N, eta, **({} if settings.device == "numba" else {"device": settings.device}))
+        if solve is None and settings.device != "numba":
+            # the emitter and point tables go to the device once per pass, then pairs per batch
+            if table is None:
+                table = TupleTable(chain, x0_of, scene.tri_p[tri_of], scene.tri_n[tri_of], scene.tri_ior[tri_of[:, 0]],
+                                   band.position, device=settings.device)
+            result = table.solve(e, s)
+            ti, uv = result.tuple_index, result.uv
+        elif solve is None:
+            ti, uv = solve_tuples(chain, x_start, x_end, P, N, eta)
         else:
             ti, uv = solve(chain, x_start, x_end, P, N, eta)
         timer.add("solve", time.perf_counter() - t0)

@@ -29,6 +29,11 @@ import numpy as np
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "one_bounce.cl")
 _KERNEL_FILE_2 = os.path.join(os.path.dirname(os.path.abspath(__file__)), "two_bounce.cl")
+_SCAN_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scan.cl")
+# Work-group size of the prefix-sum kernels (scan.cl), at most the kernels' limit.
+SCAN_WORK_GROUP = 256
+# Path slots per tuple in the split (GPU) pipeline, as SLOTS in one_bounce.cl.
+SLOTS = 8
 # Work-group size on CPU devices: every work-item holds ~13 KB (one bounce) or ~18 KB (two
 # bounces) of private scratch, and CPU drivers (PoCL) place a whole work-group's private
 # memory on one thread's stack, so groups stay small there.
@@ -37,7 +42,8 @@ CPU_WORK_GROUP = 8
 # wavefronts, a few per group.
 GPU_WORK_GROUP = 128
 # Tuples per one-bounce launch: bounds the device buffers (~200 bytes in, ~40 bytes of
-# path records per tuple) while keeping launches large.
+# path records and, in the split pipeline, ~150 bytes of flags, slots and offsets per tuple)
+# while keeping launches large.
 ONE_BOUNCE_BATCH = 1 << 22
 # Path records held on the device per one-bounce launch: this many per tuple (planted
 # workloads have ~1.1), at least PATH_RECORDS_MIN; more are made room for by running again.
@@ -129,8 +135,14 @@ class _Device:
         self.queue = cl.CommandQueue(self.ctx)
         self.profiler = None
         self.is_cpu = bool(dev.type & cl.device_type.CPU)
-        self.kernel_one = cl.Kernel(self._build(_KERNEL_FILE), "solve_one_bounce")
+        program = self._build(_KERNEL_FILE)
+        self.kernel_one = cl.Kernel(program, "solve_one_bounce")
+        self.kernel_scatter = cl.Kernel(program, "scatter_survivors")
+        self.kernel_gather = cl.Kernel(program, "gather_paths")
         self.local_one = self.work_group(self.kernel_one)
+        scan = self._build(_SCAN_FILE)
+        self.kernels_scan = tuple(cl.Kernel(scan, name) for name in ("scan_blocks", "scan_sums", "scan_add"))
+        self.local_scan = min(SCAN_WORK_GROUP, *(self.kernel_info(k)[0] for k in self.kernels_scan))
         self.kernels_two = None
         self.buffers = {}
         self.path_capacity = 0
@@ -258,25 +270,106 @@ def device_info(index):
     return info
 
 
+STAGE_WHOLE, STAGE_FILTER, STAGE_SOLVE = 0, 1, 2  # as in one_bounce.cl
+
+
+def _two_stage(d):
+    """Whether one-bounce launches run as a filter stage then a solve stage over the survivors
+    (GPUs: most tuples of a bake fail the cheap set-up, and a warp that solves one tuple waits
+    for it) or as one stage (CPUs).  CAUSTIC_OPENCL_STAGES=1 or 2 overrides."""
+    forced = os.environ.get("CAUSTIC_OPENCL_STAGES")
+    if forced in ("1", "2"):
+        return forced == "2"
+    return not d.is_cpu
+
+
+class OneBounceTable:
+    """A one-bounce solve's inputs kept on an OpenCL device: emitter rows (x_start (E, 3), the
+    triangle's P, N (E, 1, 3, 3), eta (E,)) and receiver points (x_end (S, 3)).  Tuples are then
+    (emitter, point) index pairs (:func:`solve_one_bounce_pairs`): 8 bytes per tuple cross to the
+    device instead of ~190.  Built by :func:`one_bounce_table`; its buffers live as long as it."""
+
+    def __init__(self, d, x_start, P, N, eta, x_end):
+        cl = d.cl
+        t0 = time.perf_counter()
+        arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in (x_start, x_end, P, N, eta)]
+        self.n_emitters, self.n_points = arrays[0].shape[0], arrays[1].shape[0]
+        d.host("pack", time.perf_counter() - t0)
+        self.buffers = []
+        for a in arrays:
+            buf = cl.Buffer(d.ctx, cl.mem_flags.READ_ONLY, max(a.nbytes, 64))
+            if a.nbytes:
+                evt = cl.enqueue_copy(d.queue, buf, a, is_blocking=False)
+                if d.profiler is not None:
+                    d.profiler.event("host->device", evt)
+            self.buffers.append(buf)
+        d.queue.finish()  # the host arrays may be released once this returns
+        self.device = d
+
+
+def one_bounce_table(index, x_start, P, N, eta, x_end):
+    """Upload a one-bounce solve's emitters (x_start, P, N, eta rows) and receiver points
+    (x_end rows) to OpenCL device index once; returns the :class:`OneBounceTable` that
+    :func:`solve_one_bounce_pairs` solves index pairs over."""
+    return OneBounceTable(_context(index), x_start, P, N, eta, x_end)
+
+
 def solve_one_bounce_opencl(index, refract, x_start, x_end, P, N, eta):
     """Run the one-bounce kernel over the tuples in launches of up to ONE_BOUNCE_BATCH.
-    Returns (tuple_index (m,) int64, uv (m, 2), totals (4,) int64 = roots, candidates, paths,
-    skipped, overflow = tuples with more than 8 paths): the stored paths of every tuple, in
-    no particular order (the caller sorts them), and the summed statistics."""
+    Returns (tuple_index (m,) int64, uv (m, 2), totals (5,) int64 = roots, candidates, paths,
+    skipped, overflow = tuples with more than 8 paths, ordered): the stored paths of every
+    tuple, in canonical order when ``ordered`` (the split pipeline on GPUs), else in no
+    particular order (the caller sorts them), and the summed statistics."""
     d = _context(index)
     t0 = time.perf_counter()
     n = x_start.shape[0]
     # P and N of (n, 1, 3, 3) are read in place when contiguous (the kernel reads 9 doubles a tuple)
     arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in (x_start, x_end, P, N, eta)]
     d.host("pack", time.perf_counter() - t0)
+
+    def launch(b0, b1):
+        bufs = [d.write(role, a[b0:b1]) for role, a in zip(("x_start", "x_end", "P", "N", "eta"), arrays)]
+        return _one_bounce_launch(d, refract, b1 - b0, b0, bufs, None)
+
+    return _in_batches(d, n, launch)
+
+
+def solve_one_bounce_pairs(index, refract, table, e, s):
+    """The one-bounce solve of the tuples (table's emitter e[i], table's point s[i]) on OpenCL
+    device index (the table from :func:`one_bounce_table` on the same device).  Returns as
+    :func:`solve_one_bounce_opencl`, tuple_index counting pairs."""
+    d = _context(index)
+    if table.device is not d:
+        raise ValueError("the table was uploaded to another OpenCL device")
+    t0 = time.perf_counter()
+    e = np.ascontiguousarray(e, dtype=np.int32)
+    s = np.ascontiguousarray(s, dtype=np.int32)
+    n = e.shape[0]
+    if s.shape != (n,):
+        raise ValueError(f"emitter and point index arrays differ in shape: {e.shape} and {s.shape}")
+    if n and (int(e.min()) < 0 or int(e.max()) >= table.n_emitters or int(s.min()) < 0 or int(s.max()) >= table.n_points):
+        raise IndexError(f"pair indices outside the table ({table.n_emitters} emitters, {table.n_points} points)")
+    d.host("validate", time.perf_counter() - t0)
+
+    def launch(b0, b1):
+        pairs = (d.write("tuple_e", e[b0:b1]), d.write("tuple_s", s[b0:b1]))
+        return _one_bounce_launch(d, refract, b1 - b0, b0, table.buffers, pairs)
+
+    return _in_batches(d, n, launch)
+
+
+def _in_batches(d, n, launch):
+    """launch(b0, b1) over [0, n) in batches of ONE_BOUNCE_BATCH; the batches' paths joined,
+    their statistics summed, and whether every batch came in canonical order."""
     parts_index, parts_uv = [], []
     totals = np.zeros(5, dtype=np.int64)
+    ordered = True
     for b0 in range(0, n, ONE_BOUNCE_BATCH):
-        b1 = min(n, b0 + ONE_BOUNCE_BATCH)
-        ti, uv, sums = _one_bounce_launch(d, refract, [a[b0:b1] for a in arrays], b0)
+        ti, uv, sums, in_order = launch(b0, min(n, b0 + ONE_BOUNCE_BATCH))
         parts_index.append(ti)
         parts_uv.append(uv)
         totals += sums
+        ordered = ordered and in_order
     t1 = time.perf_counter()
     if len(parts_index) == 1:
         tuple_index, uv = parts_index[0], parts_uv[0]
@@ -284,45 +377,126 @@ def solve_one_bounce_opencl(index, refract, x_start, x_end, P, N, eta):
         tuple_index = np.concatenate(parts_index) if parts_index else np.zeros(0, dtype=np.int64)
         uv = np.concatenate(parts_uv) if parts_uv else np.zeros((0, 2))
     d.host("unpack", time.perf_counter() - t1)
-    return tuple_index, uv, totals
+    return tuple_index, uv, totals, ordered
 
 
-def _one_bounce_launch(d, refract, arrays, first):
-    """One launch over the tuples of arrays (x_start, x_end, P, N, eta): inputs written into
-    the kept buffers, the accumulators zeroed, the kernel run, then the accumulators and the
-    path records read back.  When the records overflow the path buffers, they grow to fit
-    and the kernel runs again."""
-    cl = d.cl
-    n = arrays[0].shape[0]
-    bufs = [d.write(role, a) for role, a in zip(("x_start", "x_end", "P", "N", "eta"), arrays)]
+def _one_bounce_launch(d, refract, n, first, inputs, pairs):
+    """One launch over n tuples: inputs = the device buffers of (x_start, x_end, P, N, eta),
+    pairs = the buffers of the (emitter, point) indices or None (row i of each input is tuple
+    i).  Returns (tuple_index, uv, statistics, ordered): the paths (in canonical order when
+    ``ordered``) and the summed statistics (roots, candidates, paths, skipped, overflow)."""
+    paired = np.int32(0 if pairs is None else 1)
+    if pairs is None:
+        pairs = (d.buffer("no_pairs", 64), d.buffer("no_pairs", 64))
     acc = np.zeros(1 + 5 * N_SLOTS, dtype=np.int32)
     acc_buf = d.buffer("acc", acc.nbytes)
+    _fill_zero(d, acc_buf, acc.nbytes)
+    args = (paired, *pairs, *inputs, np.int32(n), np.int32(first))
+    if _two_stage(d):
+        tuple_index, uv = _split_launch(d, refract, n, first, args, acc_buf)
+    else:
+        tuple_index, uv = _whole_launch(d, refract, n, args, acc_buf, acc)
+    d.read(acc, acc_buf)
+    return tuple_index, uv, acc[1:].reshape(N_SLOTS, 5).sum(axis=0, dtype=np.int64), _two_stage(d)
+
+
+def _fill_zero(d, buf, nbytes):
+    evt = d.cl.enqueue_fill_buffer(d.queue, buf, np.int32(0), 0, nbytes)
+    if d.profiler is not None:
+        d.profiler.event("zero", evt)
+
+
+def _whole_launch(d, refract, n, args, acc_buf, acc):
+    """The one-stage kernel (CPUs): paths appended by an atomic counter, in no particular
+    order.  When the records overflow the path buffers, they grow to fit and the kernel runs
+    again."""
+    dummy = d.buffer("no_pairs", 64)
     capacity = max(d.path_capacity, PATH_RECORDS_PER_TUPLE * n, PATH_RECORDS_MIN)
     while True:
         d.path_capacity = capacity
         tuple_buf = d.buffer("path_tuple", 4 * capacity)
         uv_buf = d.buffer("path_uv", 16 * capacity)
-        evt = cl.enqueue_fill_buffer(d.queue, acc_buf, np.int32(0), 0, acc.nbytes)
-        if d.profiler is not None:
-            d.profiler.event("zero", evt)
-        d.launch(d.kernel_one, "kernel solve_one_bounce", n, d.local_one, np.int32(1 if refract else 0), *bufs,
-                 np.int32(n), np.int32(first), np.int32(capacity), np.int32(N_SLOTS), acc_buf, tuple_buf, uv_buf)
+        d.launch(d.kernel_one, "kernel solve_one_bounce", n, d.local_one, np.int32(1 if refract else 0),
+                 np.int32(STAGE_WHOLE), *args, np.int32(capacity), np.int32(N_SLOTS), acc_buf, tuple_buf, uv_buf,
+                 dummy, dummy, np.int32(0), dummy, dummy)
         d.read(acc, acc_buf)
         m = int(acc[0])
         if m <= capacity:
             break
         capacity = int(1.25 * m)
-    t0 = time.perf_counter()
+        _fill_zero(d, acc_buf, acc.nbytes)
+    return _read_paths(d, m, tuple_buf, uv_buf)
+
+
+def _split_launch(d, refract, n, first, args, acc_buf):
+    """The split pipeline (GPUs): the filter stage flags the tuples that need the solve, a
+    prefix sum places them in tuple order, the solve stage runs over them alone (full warps) into
+    per-survivor slots, a prefix sum of the slot counts places the records, and the gather writes
+    them: canonical order without a host sort.  When the records overflow the path buffers, they
+    grow to fit and only the gather runs again."""
+    flags = d.buffer("flags", 4 * n)
+    pos = d.buffer("positions", 4 * n)
+    survivors = d.buffer("survivors", 4 * n)
+    slot_uv = d.buffer("slot_uv", 16 * SLOTS * n)
+    slot_count = d.buffer("slot_count", 4 * n)
+    offsets = d.buffer("offsets", 4 * n)
+    dummy = d.buffer("no_pairs", 64)
+    refract = np.int32(1 if refract else 0)
+    capacity = max(d.path_capacity, PATH_RECORDS_PER_TUPLE * n, PATH_RECORDS_MIN)
+    d.path_capacity = capacity
+    tuple_buf = d.buffer("path_tuple", 4 * capacity)
+    uv_buf = d.buffer("path_uv", 16 * capacity)
+    tail = (np.int32(capacity), np.int32(N_SLOTS), acc_buf, tuple_buf, uv_buf)
+    d.launch(d.kernel_one, "kernel one_bounce filter", n, d.local_one, refract, np.int32(STAGE_FILTER), *args, *tail,
+             flags, dummy, np.int32(0), dummy, dummy)
+    kept, kept_at = _scan(d, flags, pos, n, "kept")
+    d.launch(d.kernel_scatter, "kernel compaction", n, d.local_scan, flags, pos, survivors, np.int32(n))
+    d.launch(d.kernel_one, "kernel one_bounce solve", n, d.local_one, refract, np.int32(STAGE_SOLVE), *args, *tail,
+             survivors, kept, np.int32(kept_at), slot_uv, slot_count)
+    records, records_at = _scan(d, slot_count, offsets, n, "records")
+    total = np.zeros(1, dtype=np.int32)
+    while True:
+        d.launch(d.kernel_gather, "kernel gather", n, d.local_scan, np.int32(first), survivors, kept, np.int32(kept_at),
+                 slot_uv, slot_count, offsets, np.int32(capacity), tuple_buf, uv_buf)
+        evt = d.cl.enqueue_copy(d.queue, total, records, src_offset=4 * records_at, is_blocking=True)
+        if d.profiler is not None:
+            d.profiler.event("device->host", evt)
+            d.profiler.syncs += 1
+        m = int(total[0])
+        if m <= capacity:
+            break
+        capacity = int(1.25 * m)
+        d.path_capacity = capacity
+        tuple_buf = d.buffer("path_tuple", 4 * capacity)
+        uv_buf = d.buffer("path_uv", 16 * capacity)
+    return _read_paths(d, m, tuple_buf, uv_buf)
+
+
+def _scan(d, src, dst, n, role):
+    """dst[i] = src[0] + ... + src[i - 1] over n ints on the device (scan.cl).  Returns (the
+    block-sums buffer, index of the grand total in it): later kernels read the total there, so
+    the host does not wait for it."""
+    k_blocks, k_sums, k_add = d.kernels_scan
+    L = d.local_scan
+    n_blocks = max((n + L - 1) // L, 1)
+    sums = d.buffer(f"scan_{role}", 4 * (n_blocks + 1))
+    local = d.cl.LocalMemory(4 * L)
+    d.launch(k_blocks, "kernel compaction", n, L, src, dst, sums, np.int32(n), local)
+    d.launch(k_sums, "kernel compaction", L, L, sums, np.int32(n_blocks), local)
+    d.launch(k_add, "kernel compaction", n, L, dst, sums, np.int32(n))
+    return sums, n_blocks
+
+
+def _read_paths(d, m, tuple_buf, uv_buf):
+    """The first m path records, read back."""
     tuple_index = np.empty(m, dtype=np.int32)
     uv = np.empty((m, 2))
-    d.host("unpack", time.perf_counter() - t0)
     d.read(tuple_index, tuple_buf, wait=False)
     d.read(uv, uv_buf, wait=False)
     d.queue.finish()
     if d.profiler is not None and m:
         d.profiler.syncs += 1
-    sums = acc[1:].reshape(N_SLOTS, 5).sum(axis=0, dtype=np.int64)
-    return tuple_index.astype(np.int64), uv, sums
+    return tuple_index.astype(np.int64), uv
 
 
 # --- two bounces --------------------------------------------------------------------------------

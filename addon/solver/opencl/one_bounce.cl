@@ -554,12 +554,6 @@ static void solve_system(const Tuple *T, biv a_poly, double max_a, biv b_poly, i
 
 static vec load3(__global const double *a, long i) { return (vec)(a[3 * i], a[3 * i + 1], a[3 * i + 2]); }
 
-// Outputs are compacted here so that only paths cross back to the host: a tuple's stored
-// paths (at most 8) take consecutive records from the atomic counter acc[0] (records past
-// `capacity` are counted but not written: the host grows the buffers and runs again), in
-// whatever order the work-items get there (the host sorts them); the statistics are summed
-// into acc[1 + 5 s .. 5 + 5 s] (roots, candidates, paths, skipped, tuples with more than 8
-// paths) for slot s = t % n_slots, so that no single counter takes every work-item's atomic.
 static double fold_free_size(double g0, double g1, double g2) {
     if ((g0 > 0.0 && g1 > 0.0 && g2 > 0.0) || (g0 < 0.0 && g1 < 0.0 && g2 < 0.0)) return fmin(fabs(g0), fmin(fabs(g1), fabs(g2)));
     return 0.0;
@@ -581,27 +575,23 @@ static int elimination_labelling(const Tuple *T) {
     return score_v >= score_s ? 1 : 2;
 }
 
-__kernel void solve_one_bounce(const int refract, __global const double *x_start, __global const double *x_end,
-                               __global const double *P, __global const double *N, __global const double *eta,
-                               const int n, const int first, const int capacity, const int n_slots,
-                               __global int *acc, __global int *path_tuple, __global double *path_uv) {
-    int t = get_global_id(0);
-    if (t >= n) return;
-    Tuple T;
-    T.x0 = load3(x_start, t);
-    T.x2 = load3(x_end, t);
-    T.p0 = load3(P, 3L * t);
-    T.e1 = load3(P, 3L * t + 1) - T.p0;
-    T.e2 = load3(P, 3L * t + 2) - T.p0;
-    T.n0 = load3(N, 3L * t);
-    T.m1 = load3(N, 3L * t + 1) - T.n0;
-    T.m2 = load3(N, 3L * t + 2) - T.n0;
-    T.refract = refract;
-    T.eta = eta[t];
-    Paths out;
-    out.count = 0;
-    int n_roots = 0, n_candidates = 0, skipped = 0, labelling = 0;
+// The original corners of a tuple's triangle (positions q, shading normals k), kept so that a
+// relabelled tuple is built from them exactly as one_bounce.py builds it.
+typedef struct { vec q0, q1, q2, k0, k1, k2; } Corners;
 
+// One tuple, as one_bounce.py _solve_one: the side tests, the corner labelling, the
+// coplanarity conic a(u, v) (eq 6) and its triangle test, then the resultant in u and the
+// roots (eq 10, 13, 28-31).  Returns 0 when the tuple is skipped (no path can exist), 1 when it
+// needs the solve.  With solve == 0 it stops there (the filter stage: only the cheap set-up
+// runs, so the expensive solve can be run over the surviving tuples alone, in full warps);
+// with solve == 1 it solves, the paths in *out in the caller's corner order.
+static int one_bounce_tuple(const Corners *C0, const int refract, const int solve, Tuple *T0, Paths *out,
+                            int *n_roots, int *n_candidates) {
+    Tuple T = *T0;
+    T.p0 = C0->q0; T.e1 = C0->q1 - C0->q0; T.e2 = C0->q2 - C0->q0;
+    T.n0 = C0->k0; T.m1 = C0->k1 - C0->k0; T.m2 = C0->k2 - C0->k0;
+    T.refract = refract;
+    int labelling = 0;
     vec g = cross(T.e1, T.e2);
     double area2 = length(g);
     T.ng = area2 > 0.0 ? g / area2 : g;
@@ -610,90 +600,167 @@ __kernel void solve_one_bounce(const int refract, __global const double *x_start
     vec n_mean = 3.0 * T.n0 + T.m1 + T.m2;
     double tiny = 1e-12 * len;
     if (!(area2 > 1e-14 * len * len) || !(T.eta > 0.0) || fabs(side0) <= tiny || fabs(side2) <= tiny ||
-        ((side0 * side2 < 0.0) != refract) || length(n_mean) == 0.0) {
-        skipped = 1;
-    } else {
-        // the corner labelling of one_bounce.py's elimination_labelling: u is eliminated along the
-        // triangle edge where the coplanarity conic does not fold
-        labelling = elimination_labelling(&T);
-        if (labelling != 0) {
-            vec q0 = load3(P, 3L * t), q1 = load3(P, 3L * t + 1), q2 = load3(P, 3L * t + 2);
-            vec k0 = load3(N, 3L * t), k1 = load3(N, 3L * t + 1), k2 = load3(N, 3L * t + 2);
-            if (labelling == 1) {  // (p0, p2, p1)
-                T.e1 = q2 - q0; T.e2 = q1 - q0; T.m1 = k2 - k0; T.m2 = k1 - k0;
-            } else {  // (p1, p2, p0)
-                T.p0 = q1; T.e1 = q2 - q1; T.e2 = q0 - q1; T.n0 = k1; T.m1 = k2 - k1; T.m2 = k0 - k1;
-            }
-            g = cross(T.e1, T.e2);
-            area2 = length(g);
-            T.ng = area2 > 0.0 ? g / area2 : g;
-            len = fmax(length(T.e1), length(T.e2));
-            side0 = dot(T.x0 - T.p0, T.ng);
-            side2 = dot(T.x2 - T.p0, T.ng);
-            n_mean = 3.0 * T.n0 + T.m1 + T.m2;
+        ((side0 * side2 < 0.0) != refract) || length(n_mean) == 0.0)
+        return 0;
+    // the corner labelling of one_bounce.py's elimination_labelling: u is eliminated along the
+    // triangle edge where the coplanarity conic does not fold
+    labelling = elimination_labelling(&T);
+    if (labelling != 0) {
+        if (labelling == 1) {  // (p0, p2, p1)
+            T.e1 = C0->q2 - C0->q0; T.e2 = C0->q1 - C0->q0; T.m1 = C0->k2 - C0->k0; T.m2 = C0->k1 - C0->k0;
+        } else {  // (p1, p2, p0)
+            T.p0 = C0->q1; T.e1 = C0->q2 - C0->q1; T.e2 = C0->q0 - C0->q1;
+            T.n0 = C0->k1; T.m1 = C0->k2 - C0->k1; T.m2 = C0->k0 - C0->k1;
         }
-        double inv_l = 1.0 / len;
-        vec E1 = T.e1 * inv_l, E2 = T.e2 * inv_l, A = (T.x0 - T.p0) * inv_l, B = (T.x2 - T.p0) * inv_l;
-        vec w = B - A;
-        vec C = cross(w, n_mean);
-        if (!(length(C) > 1e-9 * length(w) * length(n_mean))) C = cross(E1, n_mean);
-        C = C / length(C);
-        vec zero = (vec)(0.0, 0.0, 0.0), minus_a = -A;
+        g = cross(T.e1, T.e2);
+        area2 = length(g);
+        T.ng = area2 > 0.0 ? g / area2 : g;
+        len = fmax(length(T.e1), length(T.e2));
+        side0 = dot(T.x0 - T.p0, T.ng);
+        side2 = dot(T.x2 - T.p0, T.ng);
+        n_mean = 3.0 * T.n0 + T.m1 + T.m2;
+    }
+    double inv_l = 1.0 / len;
+    vec E1 = T.e1 * inv_l, E2 = T.e2 * inv_l, A = (T.x0 - T.p0) * inv_l, B = (T.x2 - T.p0) * inv_l;
+    vec w = B - A;
+    vec C = cross(w, n_mean);
+    if (!(length(C) > 1e-9 * length(w) * length(n_mean))) C = cross(E1, n_mean);
+    C = C / length(C);
+    vec minus_a = -A;
+    biv a_poly;
+    lin_dot(a_poly, cross(minus_a, w), cross(E1, w), cross(E2, w), T.n0, T.m1, T.m2);
+    double max_a = bmax(a_poly, 2);
+    if (!isfinite(max_a)) return 0;
+    int on_axis = max_a <= 1e-13 * (length(A) + 1.0) * length(w) * (length(T.n0) + length(T.m1) + length(T.m2));
+    if (!on_axis) {
+        for (int i = 0; i < 3; ++i) for (int j = 0; j < 3 - i; ++j) if (fabs(a_poly[i][j]) <= NEGLIGIBLE * max_a) a_poly[i][j] = 0.0;
+        if (conic_misses_triangle(a_poly, max_a)) return 0;
+    }
+    if (!solve) return 1;
+    if (on_axis) {
+        on_axis_candidate(&T, out, n_candidates);
+    } else {
+        vec zero = (vec)(0.0, 0.0, 0.0);
         vec t0 = cross(T.n0, C), tu = cross(T.m1, C), tv = cross(T.m2, C);
-        biv a_poly, f1, f3, g2, h, b_poly, t1, t2, t3, t4, t5, t6, t7;
-        lin_dot(a_poly, cross(minus_a, w), cross(E1, w), cross(E2, w), T.n0, T.m1, T.m2);
+        biv f1, f3, g2, h, b_poly, t1, t2, t3;
         lin_dot(f1, minus_a, E1, E2, T.n0, T.m1, T.m2);
         lin_dot(f3, minus_a, E1, E2, t0, tu, tv);
         lin_dot(g2, w, zero, zero, t0, tu, tv);
         lin_dot(h, w, zero, zero, T.n0, T.m1, T.m2);
-        double max_a = bmax(a_poly, 2);
         double uni[16][UNI];
         double chain[MAXD + 1][MAXD + 1];
         double stack[STACK + 1][MAXD + 4];
-        if (!isfinite(max_a)) {
-            skipped = 1;
-        } else if (max_a <= 1e-13 * (length(A) + 1.0) * length(w) * (length(T.n0) + length(T.m1) + length(T.m2))) {
-            on_axis_candidate(&T, &out, &n_candidates);
+        if (!refract) {
+            bmul(f1, 2, g2, 2, t1);
+            bmul(f3, 2, h, 2, t2);
+            bmul(f1, 2, f3, 2, t3);
+            for (int i = 0; i < 5; ++i) for (int j = 0; j < 5 - i; ++j) b_poly[i][j] = t1[i][j] + t2[i][j] - 2.0 * t3[i][j];
+            solve_system(&T, a_poly, max_a, b_poly, 4, uni, chain, stack, out, n_roots, n_candidates);
+            on_axis_candidate(&T, out, n_candidates);
         } else {
-            for (int i = 0; i < 3; ++i) for (int j = 0; j < 3 - i; ++j) if (fabs(a_poly[i][j]) <= NEGLIGIBLE * max_a) a_poly[i][j] = 0.0;
-            if (conic_misses_triangle(a_poly, max_a)) {
-                skipped = 1;
-            } else if (!refract) {
-                bmul(f1, 2, g2, 2, t1);
-                bmul(f3, 2, h, 2, t2);
-                bmul(f1, 2, f3, 2, t3);
-                for (int i = 0; i < 5; ++i) for (int j = 0; j < 5 - i; ++j) b_poly[i][j] = t1[i][j] + t2[i][j] - 2.0 * t3[i][j];
-                solve_system(&T, a_poly, max_a, b_poly, 4, uni, chain, stack, &out, &n_roots, &n_candidates);
-                on_axis_candidate(&T, &out, &n_candidates);
-            } else {
-                lin_dot(t1, minus_a, E1, E2, minus_a, E1, E2);
-                lin_dot(t2, B, -E1, -E2, B, -E1, -E2);
-                bmul(f3, 2, f3, 2, t3);
-                bcombine(t4, 2, 1.0, g2, -1.0, f3);
-                bmul(t4, 2, t4, 2, t5);
-                bmul(t2, 2, t3, 4, t6);
-                bmul(t1, 2, t5, 4, t7);
-                double s0 = dot(T.ng, T.n0), s1 = dot(T.ng, T.n0 + T.m1), s2 = dot(T.ng, T.n0 + T.m2);
-                int any_front = s0 > 0.0 || s1 > 0.0 || s2 > 0.0, any_back = s0 < 0.0 || s1 < 0.0 || s2 < 0.0;
-                for (int pass = 0; pass < 2; ++pass) {
-                    int outward = pass == 0;
-                    if ((outward && !any_front) || (!outward && !any_back)) continue;
-                    int from_outside = (side0 > 0.0) == outward;
-                    double eta_in = from_outside ? 1.0 : T.eta, eta_out = from_outside ? T.eta : 1.0;
-                    bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7);
-                    solve_system(&T, a_poly, max_a, b_poly, 6, uni, chain, stack, &out, &n_roots, &n_candidates);
-                }
-                on_axis_candidate(&T, &out, &n_candidates);
+            biv t4, t5, t6, t7;
+            lin_dot(t1, minus_a, E1, E2, minus_a, E1, E2);
+            lin_dot(t2, B, -E1, -E2, B, -E1, -E2);
+            bmul(f3, 2, f3, 2, t3);
+            bcombine(t4, 2, 1.0, g2, -1.0, f3);
+            bmul(t4, 2, t4, 2, t5);
+            bmul(t2, 2, t3, 4, t6);
+            bmul(t1, 2, t5, 4, t7);
+            double s0 = dot(T.ng, T.n0), s1 = dot(T.ng, T.n0 + T.m1), s2 = dot(T.ng, T.n0 + T.m2);
+            int any_front = s0 > 0.0 || s1 > 0.0 || s2 > 0.0, any_back = s0 < 0.0 || s1 < 0.0 || s2 < 0.0;
+            for (int pass = 0; pass < 2; ++pass) {
+                int outward = pass == 0;
+                if ((outward && !any_front) || (!outward && !any_back)) continue;
+                int from_outside = (side0 > 0.0) == outward;
+                double eta_in = from_outside ? 1.0 : T.eta, eta_out = from_outside ? T.eta : 1.0;
+                bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7);
+                solve_system(&T, a_poly, max_a, b_poly, 6, uni, chain, stack, out, n_roots, n_candidates);
             }
+            on_axis_candidate(&T, out, n_candidates);
         }
     }
-    for (int q = 0; q < min(out.count, 8); ++q) {
-        double up = out.u[q], vp = out.v[q];
-        if (labelling == 1) { out.u[q] = vp; out.v[q] = up; }
-        else if (labelling == 2) { out.u[q] = 1.0 - up - vp; out.v[q] = up; }
+    for (int q = 0; q < min(out->count, 8); ++q) {
+        double up = out->u[q], vp = out->v[q];
+        if (labelling == 1) { out->u[q] = vp; out->v[q] = up; }
+        else if (labelling == 2) { out->u[q] = 1.0 - up - vp; out->v[q] = up; }
     }
-    int stored = min(out.count, 8);
-    if (stored > 0) {
+    return 1;
+}
+
+// The kernel's stages: WHOLE solves every tuple and appends its paths to the output with an
+// atomic counter (CPU devices, where a work-item that leaves early costs its neighbours nothing;
+// the host sorts the paths).  On GPUs the work is split so that warps solve in full and the
+// output comes out in canonical order: FILTER runs the set-up of every tuple and flags those
+// that need the solve; the flags' prefix sums (scan.cl) place the survivors, in tuple order
+// (scatter_survivors); SOLVE solves survivor i into slots i (its paths sorted by (u, v) as
+// paths/order.py sorts them) and writes their count; the counts' prefix sums place the records
+// (gather_paths), so the paths arrive sorted by tuple, then u, then v.
+#define STAGE_WHOLE 0
+#define STAGE_FILTER 1
+#define STAGE_SOLVE 2
+#define SLOTS 8
+
+// Tuple t's inputs: x_start, P, N, eta at row e and x_end at row s, where (e, s) = (t, t), or
+// (tuple_e[t], tuple_s[t]) when `paired` (a device-resident table of emitters and one of receiver
+// points, addressed by index pairs: only 8 bytes per tuple cross to the device).
+//
+// WHOLE: a tuple's stored paths (at most 8) take consecutive records from the atomic counter
+// acc[0] (records past `capacity` are counted but not written: the host grows the buffers and runs
+// again), in whatever order the work-items get there.  All stages sum the statistics into
+// acc[1 + 5 s .. 5 + 5 s] (roots, candidates, paths, skipped, tuples with more than 8 paths) for
+// slot s = t % n_slots, so that no single counter takes every work-item's atomic.
+// FILTER: flags[t] = 1 when tuple t needs the solve, else 0.
+// SOLVE: work-item i < count (= counts[count_at], the survivors) solves tuple list[i] into
+// slot_uv[SLOTS i ..] and writes slot_count[i]; work-items count <= i < n write slot_count[i] = 0.
+__kernel void solve_one_bounce(const int refract, const int stage, const int paired,
+                               __global const int *tuple_e, __global const int *tuple_s,
+                               __global const double *x_start, __global const double *x_end,
+                               __global const double *P, __global const double *N, __global const double *eta,
+                               const int n, const int first, const int capacity, const int n_slots,
+                               __global int *acc, __global int *path_tuple, __global double *path_uv,
+                               __global int *list, __global const int *counts, const int count_at,
+                               __global double *slot_uv, __global int *slot_count) {
+    int gid = get_global_id(0);
+    if (gid >= n) return;
+    int t = gid;
+    if (stage == STAGE_SOLVE) {
+        if (gid >= counts[count_at]) { slot_count[gid] = 0; return; }
+        t = list[gid];
+    }
+    long e = paired ? (long)tuple_e[t] : (long)t, s = paired ? (long)tuple_s[t] : (long)t;
+    Corners C0;
+    C0.q0 = load3(P, 3L * e); C0.q1 = load3(P, 3L * e + 1); C0.q2 = load3(P, 3L * e + 2);
+    C0.k0 = load3(N, 3L * e); C0.k1 = load3(N, 3L * e + 1); C0.k2 = load3(N, 3L * e + 2);
+    Tuple T;
+    T.x0 = load3(x_start, e);
+    T.x2 = load3(x_end, s);
+    T.eta = eta[e];
+    Paths out;
+    out.count = 0;
+    int n_roots = 0, n_candidates = 0;
+    __global int *sum = acc + 1 + 5 * (t % n_slots);
+    int needs = one_bounce_tuple(&C0, refract, stage != STAGE_FILTER, &T, &out, &n_roots, &n_candidates);
+    if (stage == STAGE_FILTER) list[t] = needs;
+    if (!needs) {
+        atomic_add(sum + 3, 1);
+        return;
+    }
+    if (stage == STAGE_FILTER) return;
+    int stored = min(out.count, SLOTS);
+    if (stage == STAGE_SOLVE) {
+        // insertion sort by (u, v), stable: paths/order.py's order within a tuple
+        for (int i = 1; i < stored; ++i)
+            for (int j = i; j > 0 && (out.u[j] < out.u[j - 1] || (out.u[j] == out.u[j - 1] && out.v[j] < out.v[j - 1])); --j) {
+                double tu = out.u[j], tv = out.v[j];
+                out.u[j] = out.u[j - 1]; out.v[j] = out.v[j - 1];
+                out.u[j - 1] = tu; out.v[j - 1] = tv;
+            }
+        for (int q = 0; q < stored; ++q) {
+            slot_uv[2L * (SLOTS * (long)gid + q)] = out.u[q];
+            slot_uv[2L * (SLOTS * (long)gid + q) + 1] = out.v[q];
+        }
+        slot_count[gid] = stored;
+    } else if (stored > 0) {
         int base = atomic_add(acc, stored);
         for (int q = 0; q < stored && base + q < capacity; ++q) {
             path_tuple[base + q] = first + t;
@@ -701,10 +768,32 @@ __kernel void solve_one_bounce(const int refract, __global const double *x_start
             path_uv[2L * (base + q) + 1] = out.v[q];
         }
     }
-    __global int *sum = acc + 1 + 5 * (t % n_slots);
     if (n_roots) atomic_add(sum, n_roots);
     if (n_candidates) atomic_add(sum + 1, n_candidates);
     if (out.count) atomic_add(sum + 2, out.count);
-    if (skipped) atomic_add(sum + 3, 1);
-    if (out.count > 8) atomic_add(sum + 4, 1);
+    if (out.count > SLOTS) atomic_add(sum + 4, 1);
+}
+
+// survivors[pos[t]] = t for every flagged tuple (pos: the flags' exclusive prefix sums).
+__kernel void scatter_survivors(__global const int *flags, __global const int *pos, __global int *survivors,
+                                const int n) {
+    int t = get_global_id(0);
+    if (t < n && flags[t]) survivors[pos[t]] = t;
+}
+
+// Survivor i's slot_count[i] paths go to records offset[i] .. (offset: the counts' exclusive
+// prefix sums; records past `capacity` are not written, the host grows the buffers and gathers
+// again).
+__kernel void gather_paths(const int first, __global const int *survivors, __global const int *counts,
+                           const int count_at, __global const double *slot_uv, __global const int *slot_count,
+                           __global const int *offset, const int capacity, __global int *path_tuple,
+                           __global double *path_uv) {
+    int i = get_global_id(0);
+    if (i >= counts[count_at]) return;
+    int c = slot_count[i], base = offset[i], t = first + survivors[i];
+    for (int q = 0; q < c && base + q < capacity; ++q) {
+        path_tuple[base + q] = t;
+        path_uv[2L * (base + q)] = slot_uv[2L * (SLOTS * (long)i + q)];
+        path_uv[2L * (base + q) + 1] = slot_uv[2L * (SLOTS * (long)i + q) + 1];
+    }
 }

@@ -103,9 +103,10 @@ class SpecularPolynomialSolver:
             # compacted on the device: only the paths come back, in no particular order
             from ..opencl.backend import solve_one_bounce_opencl
 
-            tuple_index, uv, totals = solve_one_bounce_opencl(device_index, chain == "T", x_start, x_end, P, N, eta)
+            tuple_index, uv, totals, ordered = solve_one_bounce_opencl(device_index, chain == "T", x_start, x_end, P, N, eta)
             t2 = time.perf_counter()
-            tuple_index, uv = canonical_order(tuple_index, uv, n)
+            if not ordered:
+                tuple_index, uv = canonical_order(tuple_index, uv, n)
             report.overflow = int(totals[4])
         else:
             out_uv = np.empty((n, MAX_PATHS_ONE_BOUNCE, 2))
@@ -172,6 +173,78 @@ class SpecularPolynomialSolver:
         report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
         report.determinants = int(totals[4])
         return SolveResult(tuple_index, uv, report)
+
+
+class TupleTable:
+    """Tuples given as index pairs into two tables, the form a bake produces them in: emitter
+    rows (x_start (E, 3), the chain's triangles P, N (E, k, 3, 3), eta (E,)) and receiver
+    points (x_end (S, 3)); tuple i is (emitter e[i], point s[i]).  The tables are checked once
+    (as :func:`validate_inputs`); on an OpenCL device a one-bounce table is uploaded once and
+    each :meth:`solve` sends only the pairs (8 bytes a tuple), elsewhere the rows are gathered
+    and solved as :meth:`SpecularPolynomialSolver.solve` does.  Same paths either way."""
+
+    def __init__(self, chain, x_start, P, N, eta, x_end, device="numba", solver=None, pieces=None):
+        if chain not in CHAIN_LENGTH:
+            raise ValueError(f"unknown chain {chain!r}; expected one of {', '.join(CHAIN_LENGTH)}")
+        k = CHAIN_LENGTH[chain]
+        self.chain = chain
+        self.solver = solver or _DEFAULT_SOLVER
+        self.pieces = pieces
+        self.x_start = _as_float_array("x_start", x_start, (3,))
+        n = self.x_start.shape[0]
+        self.P = _as_float_array("P", P, (k, 3, 3))
+        self.N = _as_float_array("N", N, (k, 3, 3))
+        for name, arr in (("P", self.P), ("N", self.N)):
+            if arr.shape[0] != n:
+                raise ValueError(f"{name} has {arr.shape[0]} emitter rows but x_start has {n}")
+        eta_arr = np.asarray(eta, dtype=np.float64)
+        self.eta = np.full(n, float(eta_arr)) if eta_arr.ndim == 0 else eta_arr
+        if self.eta.shape != (n,):
+            raise ValueError(f"eta must be a scalar or have shape ({n},), got {self.eta.shape}")
+        if not np.all(np.isfinite(self.eta)) or np.any(self.eta <= 0.0):
+            raise ValueError("eta must be finite and positive")
+        self.x_end = _as_float_array("x_end", x_end, (3,))
+        self.device = device
+        self.device_name = "numba"
+        self._table = None  # the OpenCL upload (one bounce on a device), made on the first solve
+
+    def _pairs(self, e, s):
+        e = np.asarray(e, dtype=np.int64)
+        s = np.asarray(s, dtype=np.int64)
+        if e.ndim != 1 or s.shape != e.shape:
+            raise ValueError(f"e and s must be index arrays of one shape, got {e.shape} and {s.shape}")
+        if e.size and (e.min() < 0 or e.max() >= self.x_start.shape[0] or s.min() < 0 or s.max() >= self.x_end.shape[0]):
+            raise IndexError(f"pair indices outside the tables ({self.x_start.shape[0]} emitters, {self.x_end.shape[0]} points)")
+        return e, s
+
+    def solve(self, e, s):
+        """Paths of the tuples (e[i], s[i]): a :class:`SolveResult` whose tuple_index counts
+        pairs, in canonical order."""
+        e, s = self._pairs(e, s)
+        if self.chain in ONE_BOUNCE_CHAINS and self.device not in (None, "numba"):
+            t0 = time.perf_counter()
+            report = SolveReport(solver=self.solver.name, chain=self.chain, tuples=e.size)
+            index = self.solver._opencl_device(self.device, self.chain, report)
+            if index is not None:
+                from ..opencl.backend import one_bounce_table, solve_one_bounce_pairs
+
+                if self._table is None:
+                    self._table = one_bounce_table(index, self.x_start, self.P, self.N, self.eta, self.x_end)
+                self.device_name = report.device
+                t1 = time.perf_counter()
+                tuple_index, uv, totals, ordered = solve_one_bounce_pairs(index, self.chain == "T", self._table, e, s)
+                t2 = time.perf_counter()
+                if not ordered:
+                    tuple_index, uv = canonical_order(tuple_index, uv, e.size)
+                report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals[:4])
+                report.overflow = int(totals[4])
+                report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": time.perf_counter() - t2}
+                return SolveResult(tuple_index, uv, report)
+            self.device = "numba"  # warned once by _opencl_device; the rest of the bake stays on Numba
+        result = self.solver.solve(self.chain, self.x_start[e], self.x_end[s], self.P[e], self.N[e], self.eta[e],
+                                   pieces=self.pieces, device=self.device)
+        self.device_name = result.report.device
+        return result
 
 
 def compact_paths(out_uv, out_count):

@@ -1,16 +1,20 @@
 #!/usr/bin/env bash
 # The OpenCL GPU check, for one call of the device tool on a lent NVIDIA machine
-# (see ../shared/GPU.md): pyopencl from the carried wheels (.whl/), NVIDIA's OpenCL ICD,
-# then bench/opencl_profile.py and bench/solver.py --opencl on the GPU.  Every step has a
-# time limit so that the whole script ends within ~6 minutes, the ~1.5 minute cold Numba
-# compile included; outputs (tables, logs, BENCHMARKS.md) go to $OUT.
+# (see ../shared/GPU.md): pyopencl from the carried wheels (.whl/), NVIDIA's OpenCL ICD, then
+#   1. bench/opencl_shapes.py: the one-bounce launch shapes (one stage / split pipeline, work-group
+#      sizes), while the Numba one-bounce kernels compile in the background;
+#   2. with the fastest shape: bench/solver.py --opencl (Numba on every core against OpenCL, R and
+#      T, tuples given directly and as index pairs) and bench/opencl_profile.py --chains R,T.
+# Every step has a time limit so that the whole script ends within ~5 minutes; tables, logs,
+# BENCHMARKS.md and the results pages go to $OUT (7 files: the device tool brings back 8 at most).
 #
 #   bash bench/gpu_check.sh        (from the repository root; carry .whl)
-# N1 (one-bounce tuples, default 1000000) and N2 (two-bounce tuples, default 200) shrink it
-# for a dry run; without NVIDIA's library the ICD setting is left as it is (PoCL here).
+# N1 (one-bounce tuples, default 1000000) shrinks it for a dry run; N2 > 0 (two-bounce tuples)
+# adds the two-bounce rows to solver.py, whose staged pipeline takes ~6 minutes of cold Numba
+# compilation there.  Without NVIDIA's library the ICD setting is left as it is (PoCL here).
 set -u
 N1=${N1:-1000000}
-N2=${N2:-200}
+N2=${N2:-0}
 NVLIB=/usr/local/nvidia/lib64/libnvidia-opencl.so
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
@@ -19,9 +23,11 @@ T0=$(date +%s)
 log() { echo "[$(( $(date +%s) - T0 )) s] $*" | tee -a "$OUT/steps.txt"; }
 
 log "install carried wheels"
-python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl \
-  > "$OUT/pip.txt" 2>&1 || log "pip install failed (see pip.txt)"
-export PYTHONPATH=/tmp/site
+if [ -d .whl ]; then
+  python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl \
+    > /tmp/pip.txt 2>&1 || { log "pip install failed:"; tail -5 /tmp/pip.txt >> "$OUT/steps.txt"; }
+  export PYTHONPATH=/tmp/site
+fi
 if [ -e "$NVLIB" ]; then
   mkdir -p /tmp/icd
   echo "$NVLIB" > /tmp/icd/nvidia.icd
@@ -30,9 +36,15 @@ else
   log "no $NVLIB: OCL_ICD_VENDORS=${OCL_ICD_VENDORS:-unset}"
 fi
 export NUMBA_CACHE_DIR=${NUMBA_CACHE_DIR:-/tmp/nc}
+export PYTHONUNBUFFERED=1
 
-nvidia-smi -L 2>&1 | tee "$OUT/gpu.txt"
-python3 - <<'EOF' | tee -a "$OUT/gpu.txt"
+log "Numba one-bounce compile, in the background"
+python3 -c "import sys; sys.path.insert(0, '.'); from addon.solver import warm_up; print('warm-up s', warm_up(1))" \
+  > /tmp/warm.txt 2>&1 &
+WARM=$!
+
+nvidia-smi -L 2>&1 | tee -a "$OUT/steps.txt"
+python3 - <<'EOF' | tee -a "$OUT/steps.txt"
 import numba, numpy, platform, pyopencl as cl
 print("python", platform.python_version(), "numpy", numpy.__version__,
       "numba", numba.__version__, "pyopencl", cl.VERSION_TEXT)
@@ -60,22 +72,31 @@ EOF
 export OPENCL_DEVICE=$DEV
 log "OpenCL device $DEV"
 
-log "opencl_profile (cold Numba compile first)"
-timeout 210 python3 bench/opencl_profile.py --device "$DEV" \
-  --tuples "$N1" --planted-tuples "$N1" --two-bounce-tuples "$N2" \
-  --repeats 2 > "$OUT/opencl_profile.txt" 2>&1
-log "opencl_profile exit $?"
-cp BENCHMARKS.md "$OUT/BENCHMARKS.md"
+log "opencl_shapes"
+timeout 170 python3 bench/opencl_shapes.py --device "$DEV" --tuples "$N1,$((4 * N1))" \
+  --planted-tuples "$N1" --repeats 2 > "$OUT/shapes.txt" 2>&1
+log "opencl_shapes exit $?"
+cp bench/results/opencl_shapes_*.md "$OUT/" 2>/dev/null
+BEST=$(grep '^best:' "$OUT/shapes.txt" | tail -1)
+if [ -n "$BEST" ]; then
+  export CAUSTIC_OPENCL_STAGES=$(echo "$BEST" | sed 's/.*stages=\([0-9]*\).*/\1/')
+  export CAUSTIC_OPENCL_WORK_GROUP=$(echo "$BEST" | sed 's/.*group=\([0-9]*\).*/\1/')
+fi
+log "shape for what follows: stages ${CAUSTIC_OPENCL_STAGES:-default}, group ${CAUSTIC_OPENCL_WORK_GROUP:-default}"
 
-log "one bounce at work-group 64"
-CAUSTIC_OPENCL_WORK_GROUP=64 timeout 40 python3 bench/opencl_profile.py \
-  --device "$DEV" --chains R,T --tuples "$N1" --planted-tuples "$N1" \
-  --repeats 2 --no-write > "$OUT/opencl_profile_wg64.txt" 2>&1
-log "work-group 64 exit $?"
+wait $WARM
+log "warm-up done: $(tail -1 /tmp/warm.txt)"
 
 log "solver.py --opencl"
-timeout 95 python3 bench/solver.py --opencl --tuples "$N1" \
-  --two-bounce-tuples "$N2" --repeats 2 > "$OUT/solver_opencl.txt" 2>&1
+timeout 120 python3 bench/solver.py --opencl --tuples "$N1" --two-bounce-tuples "$N2" --repeats 2 \
+  > "$OUT/solver_opencl.txt" 2>&1
 log "solver.py exit $?"
 cp BENCHMARKS.md "$OUT/BENCHMARKS.md"
+
+log "opencl_profile R,T"
+timeout 100 python3 bench/opencl_profile.py --device "$DEV" --chains R,T --tuples "$N1" \
+  --planted-tuples "$N1" --repeats 2 > "$OUT/opencl_profile.txt" 2>&1
+log "opencl_profile exit $?"
+cp BENCHMARKS.md "$OUT/BENCHMARKS.md"
+cp bench/results/opencl_profile_gpu.md "$OUT/" 2>/dev/null
 log "done"

@@ -10,7 +10,8 @@
 #pragma OPENCL FP_CONTRACT OFF
 
 #define MAXD 12            // degree of the one-bounce resultant at most
-#define UNI 26             // univariate scratch width (2 * MAXD + 2)
+#define UNI 14             // univariate scratch width: the resultant's degree MAXD + 1, and a spare
+#define UNI_ROWS 14        // rows of the resultant's scratch: power sums 0..6 and seven work rows
 #define DEPTH 5            // Bernstein halvings before derivative isolation
 #define STACK (2 * DEPTH + 4)
 #define NEWTON_ITERATIONS 64
@@ -207,37 +208,44 @@ static int roots_in_unit_interval(const double *coeffs, int degree, double tol, 
 }
 
 // ---------------------------------------------------------------- bivariate polynomials
-typedef double biv[7][7];
+// A bivariate polynomial of total degree d in (u, v), stored densely by rows: the coefficient of
+// u^i v^j (i + j <= d) at p[i * (d + 1) + j], so a degree-2 polynomial takes 9 doubles and a
+// degree-6 one 49 (private memory per work-item is what limits a GPU here).
+#define BI(p, d, i, j) p[(i) * ((d) + 1) + (j)]
+#define BIV2 9
+#define BIV4 25
+#define BIV6 49
 
-static void lin_dot(biv out, vec a0, vec au, vec av, vec b0, vec bu, vec bv) {
-    for (int i = 0; i < 3; ++i) for (int j = 0; j < 3; ++j) out[i][j] = 0.0;
-    out[0][0] = dot(a0, b0);
-    out[1][0] = dot(a0, bu) + dot(au, b0);
-    out[0][1] = dot(a0, bv) + dot(av, b0);
-    out[2][0] = dot(au, bu);
-    out[1][1] = dot(au, bv) + dot(av, bu);
-    out[0][2] = dot(av, bv);
+// (a0 + u au + v av) . (b0 + u bu + v bv), degree 2
+static void lin_dot(double *out, vec a0, vec au, vec av, vec b0, vec bu, vec bv) {
+    for (int i = 0; i < BIV2; ++i) out[i] = 0.0;
+    BI(out, 2, 0, 0) = dot(a0, b0);
+    BI(out, 2, 1, 0) = dot(a0, bu) + dot(au, b0);
+    BI(out, 2, 0, 1) = dot(a0, bv) + dot(av, b0);
+    BI(out, 2, 2, 0) = dot(au, bu);
+    BI(out, 2, 1, 1) = dot(au, bv) + dot(av, bu);
+    BI(out, 2, 0, 2) = dot(av, bv);
 }
 
-static void bmul(biv p, int dp, biv q, int dq, biv out) {
+static void bmul(const double *p, int dp, const double *q, int dq, double *out) {
     int d = dp + dq;
-    for (int i = 0; i <= d; ++i) for (int j = 0; j <= d - i; ++j) out[i][j] = 0.0;
+    for (int i = 0; i <= d; ++i) for (int j = 0; j <= d - i; ++j) BI(out, d, i, j) = 0.0;
     for (int i1 = 0; i1 <= dp; ++i1)
         for (int j1 = 0; j1 <= dp - i1; ++j1) {
-            double c = p[i1][j1];
+            double c = BI(p, dp, i1, j1);
             if (c == 0.0) continue;
             for (int i2 = 0; i2 <= dq; ++i2)
-                for (int j2 = 0; j2 <= dq - i2; ++j2) out[i1 + i2][j1 + j2] += c * q[i2][j2];
+                for (int j2 = 0; j2 <= dq - i2; ++j2) BI(out, d, i1 + i2, j1 + j2) += c * BI(q, dq, i2, j2);
         }
 }
 
-static void bcombine(biv out, int d, double ca, biv a, double cb, biv b) {
-    for (int i = 0; i <= d; ++i) for (int j = 0; j <= d - i; ++j) out[i][j] = ca * a[i][j] + cb * b[i][j];
+static void bcombine(double *out, int d, double ca, const double *a, double cb, const double *b) {
+    for (int i = 0; i <= d; ++i) for (int j = 0; j <= d - i; ++j) BI(out, d, i, j) = ca * BI(a, d, i, j) + cb * BI(b, d, i, j);
 }
 
-static double bmax(biv p, int d) {
+static double bmax(const double *p, int d) {
     double m = 0.0;
-    for (int i = 0; i <= d; ++i) for (int j = 0; j <= d - i; ++j) m = fmax(m, fabs(p[i][j]));
+    for (int i = 0; i <= d; ++i) for (int j = 0; j <= d - i; ++j) m = fmax(m, fabs(BI(p, d, i, j)));
     return m;
 }
 
@@ -247,11 +255,11 @@ static void umul(const double *p, int dp, const double *q, int dq, double *out) 
 }
 
 // Res_u(a, b) by the power-sum identity (one_bounce._resultant_quadratic_in_u).
-static int resultant_quadratic_in_u(biv a, biv b, int nb, int tb, double uni[16][UNI], double *out) {
-    double a2 = a[2][0];
+static int resultant_quadratic_in_u(const double *a, const double *b, int nb, int tb, double uni[UNI_ROWS][UNI], double *out) {
+    double a2 = BI(a, 2, 2, 0);
     double *a0 = uni[nb + 3], *a1 = uni[nb + 4];
-    a0[0] = a[0][0]; a0[1] = a[0][1]; a0[2] = a[0][2];
-    a1[0] = a[1][0]; a1[1] = a[1][1];
+    a0[0] = BI(a, 2, 0, 0); a0[1] = BI(a, 2, 0, 1); a0[2] = BI(a, 2, 0, 2);
+    a1[0] = BI(a, 2, 1, 0); a1[1] = BI(a, 2, 1, 1);
     uni[0][0] = 2.0;
     if (nb >= 1) { uni[1][0] = -a1[0]; uni[1][1] = -a1[1]; }
     double *tmp = uni[nb + 2];
@@ -267,14 +275,14 @@ static int resultant_quadratic_in_u(biv a, biv b, int nb, int tb, double uni[16]
         for (int k = 0; k <= deg_t; ++k) t_poly[k] = 0.0;
         double p = pown(a2, nb - i);
         if (nb - i == 0) p = 1.0;
-        if (p != 0.0) for (int k = 0; k <= tb - i; ++k) t_poly[k] += p * b[i][k];
+        if (p != 0.0) for (int k = 0; k <= tb - i; ++k) t_poly[k] += p * BI(b, tb, i, k);
         for (int j = i + 1; j <= nb; ++j) {
             p = (nb - j == 0) ? 1.0 : pown(a2, nb - j);
             if (p == 0.0) continue;
-            umul(b[j], tb - j, uni[j - i], j - i, tmp);
+            umul(&BI(b, tb, j, 0), tb - j, uni[j - i], j - i, tmp);
             for (int k = 0; k <= tb - i; ++k) t_poly[k] += p * tmp[k];
         }
-        umul(b[i], tb - i, t_poly, deg_t, bt);
+        umul(&BI(b, tb, i, 0), tb - i, t_poly, deg_t, bt);
         int deg_bt = 2 * (tb - i);
         if (acc_deg < 0) {
             for (int k = 0; k <= deg_bt; ++k) acc[k] = bt[k];
@@ -296,22 +304,23 @@ static void shift_to_unit_interval(double *c, int deg, double origin, double wid
     for (int k = 0; k <= deg; ++k) { c[k] *= p; p *= width; }
 }
 
-static int conic_misses_triangle(biv a, double scale) {
-    double b200 = a[0][0], b020 = a[0][0] + a[1][0] + a[2][0], b002 = a[0][0] + a[0][1] + a[0][2];
-    double b110 = a[0][0] + 0.5 * a[1][0], b101 = a[0][0] + 0.5 * a[0][1];
-    double b011 = a[0][0] + 0.5 * (a[1][0] + a[0][1] + a[1][1]);
+static int conic_misses_triangle(const double *a, double scale) {
+    double a00 = BI(a, 2, 0, 0), a10 = BI(a, 2, 1, 0), a01 = BI(a, 2, 0, 1);
+    double b200 = a00, b020 = a00 + a10 + BI(a, 2, 2, 0), b002 = a00 + a01 + BI(a, 2, 0, 2);
+    double b110 = a00 + 0.5 * a10, b101 = a00 + 0.5 * a01;
+    double b011 = a00 + 0.5 * (a10 + a01 + BI(a, 2, 1, 1));
     double lo = fmin(fmin(b200, b020), fmin(fmin(b002, b110), fmin(b101, b011)));
     double hi = fmax(fmax(b200, b020), fmax(fmax(b002, b110), fmax(b101, b011)));
     double margin = 1e-7 * scale;
     return lo > margin || hi < -margin;
 }
 
-static double3 eval_with_gradient(biv p, int d, double u, double v) {
+static double3 eval_with_gradient(const double *p, int d, double u, double v) {
     double f = 0.0, fu = 0.0, fv = 0.0, ui = 1.0, ui_1 = 0.0;
     for (int i = 0; i <= d; ++i) {
         double vj = 1.0, vj_1 = 0.0;
         for (int j = 0; j <= d - i; ++j) {
-            double c = p[i][j];
+            double c = BI(p, d, i, j);
             f += c * ui * vj;
             fv += c * ui * vj_1;
             if (i > 0) fu += c * i * ui_1 * vj;
@@ -324,7 +333,7 @@ static double3 eval_with_gradient(biv p, int d, double u, double v) {
     return (double3)(f, fu, fv);
 }
 
-static double2 refine_on_polynomials(biv a, biv b, int db, double u, double v) {
+static double2 refine_on_polynomials(const double *a, const double *b, int db, double u, double v) {
     double3 A = eval_with_gradient(a, 2, u, v), B = eval_with_gradient(b, db, u, v);
     double size = fabs(A.x) + fabs(B.x);
     for (int it = 0; it < 4; ++it) {
@@ -478,7 +487,7 @@ static void on_axis_candidate(const Tuple *T, Paths *out, int *candidates) {
 }
 
 // _solve_system: roots of {a = 0, b = 0} in the triangle -> validated paths.
-static void solve_system(const Tuple *T, biv a_poly, double max_a, biv b_poly, int total_b, double uni[16][UNI],
+static void solve_system(const Tuple *T, const double *a_poly, double max_a, double *b_poly, int total_b, double uni[UNI_ROWS][UNI],
                          double chain[MAXD + 1][MAXD + 1], double stack[STACK + 1][MAXD + 4], Paths *out,
                          int *n_roots, int *n_candidates) {
     double max_b = bmax(b_poly, total_b);
@@ -486,14 +495,14 @@ static void solve_system(const Tuple *T, biv a_poly, double max_a, biv b_poly, i
     int nb = total_b;
     while (nb > 0) {
         double big = 0.0;
-        for (int j = 0; j <= total_b - nb; ++j) big = fmax(big, fabs(b_poly[nb][j]));
+        for (int j = 0; j <= total_b - nb; ++j) big = fmax(big, fabs(BI(b_poly, total_b, nb, j)));
         if (big > NEGLIGIBLE * max_b) break;
-        for (int j = 0; j <= total_b - nb; ++j) b_poly[nb][j] = 0.0;
+        for (int j = 0; j <= total_b - nb; ++j) BI(b_poly, total_b, nb, j) = 0.0;
         nb--;
     }
     double res[UNI];
     int deg_r;
-    if (nb == 0) { deg_r = total_b; for (int k = 0; k <= deg_r; ++k) res[k] = b_poly[0][k]; }
+    if (nb == 0) { deg_r = total_b; for (int k = 0; k <= deg_r; ++k) res[k] = BI(b_poly, total_b, 0, k); }
     else deg_r = resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, uni, res);
     shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN);
     double v_roots[MAXD + 1], critical[MAXD + 1], found[MAXD + 1];
@@ -503,8 +512,8 @@ static void solve_system(const Tuple *T, biv a_poly, double max_a, biv b_poly, i
     double u_roots[MAXD + 1], b_at_v[MAXD + 1];
     for (int iv = 0; iv < n_v; ++iv) {
         double vr = v_roots[iv];
-        double a2 = a_poly[2][0], a1 = a_poly[1][0] + a_poly[1][1] * vr;
-        double a0 = a_poly[0][0] + (a_poly[0][1] + a_poly[0][2] * vr) * vr;
+        double a2 = BI(a_poly, 2, 2, 0), a1 = BI(a_poly, 2, 1, 0) + BI(a_poly, 2, 1, 1) * vr;
+        double a0 = BI(a_poly, 2, 0, 0) + (BI(a_poly, 2, 0, 1) + BI(a_poly, 2, 0, 2) * vr) * vr;
         double u_hi = 1.0 - vr + V_MARGIN;
         int n_u;
         if (fabs(a2) + fabs(a1) > 1e-10 * max_a) {
@@ -529,7 +538,7 @@ static void solve_system(const Tuple *T, biv a_poly, double max_a, biv b_poly, i
         } else {
             for (int i = 0; i <= nb; ++i) {
                 double acc = 0.0;
-                for (int j = total_b - i; j >= 0; --j) acc = acc * vr + b_poly[i][j];
+                for (int j = total_b - i; j >= 0; --j) acc = acc * vr + BI(b_poly, total_b, i, j);
                 b_at_v[i] = acc;
             }
             n_u = roots_in_interval(b_at_v, nb, -V_MARGIN, u_hi, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, critical, found, u_roots);
@@ -627,13 +636,13 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
     if (!(length(C) > 1e-9 * length(w) * length(n_mean))) C = cross(E1, n_mean);
     C = C / length(C);
     vec minus_a = -A;
-    biv a_poly;
+    double a_poly[BIV2];
     lin_dot(a_poly, cross(minus_a, w), cross(E1, w), cross(E2, w), T.n0, T.m1, T.m2);
     double max_a = bmax(a_poly, 2);
     if (!isfinite(max_a)) return 0;
     int on_axis = max_a <= 1e-13 * (length(A) + 1.0) * length(w) * (length(T.n0) + length(T.m1) + length(T.m2));
     if (!on_axis) {
-        for (int i = 0; i < 3; ++i) for (int j = 0; j < 3 - i; ++j) if (fabs(a_poly[i][j]) <= NEGLIGIBLE * max_a) a_poly[i][j] = 0.0;
+        for (int i = 0; i < 3; ++i) for (int j = 0; j < 3 - i; ++j) if (fabs(BI(a_poly, 2, i, j)) <= NEGLIGIBLE * max_a) BI(a_poly, 2, i, j) = 0.0;
         if (conic_misses_triangle(a_poly, max_a)) return 0;
     }
     if (!solve) return 1;
@@ -642,23 +651,25 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
     } else {
         vec zero = (vec)(0.0, 0.0, 0.0);
         vec t0 = cross(T.n0, C), tu = cross(T.m1, C), tv = cross(T.m2, C);
-        biv f1, f3, g2, h, b_poly, t1, t2, t3;
+        double f1[BIV2], f3[BIV2], g2[BIV2], h[BIV2];
         lin_dot(f1, minus_a, E1, E2, T.n0, T.m1, T.m2);
         lin_dot(f3, minus_a, E1, E2, t0, tu, tv);
         lin_dot(g2, w, zero, zero, t0, tu, tv);
         lin_dot(h, w, zero, zero, T.n0, T.m1, T.m2);
-        double uni[16][UNI];
+        double uni[UNI_ROWS][UNI];
         double chain[MAXD + 1][MAXD + 1];
         double stack[STACK + 1][MAXD + 4];
         if (!refract) {
+            double t1[BIV4], t2[BIV4], t3[BIV4], b_poly[BIV4];
             bmul(f1, 2, g2, 2, t1);
             bmul(f3, 2, h, 2, t2);
             bmul(f1, 2, f3, 2, t3);
-            for (int i = 0; i < 5; ++i) for (int j = 0; j < 5 - i; ++j) b_poly[i][j] = t1[i][j] + t2[i][j] - 2.0 * t3[i][j];
+            for (int i = 0; i < 5; ++i) for (int j = 0; j < 5 - i; ++j)
+                BI(b_poly, 4, i, j) = BI(t1, 4, i, j) + BI(t2, 4, i, j) - 2.0 * BI(t3, 4, i, j);
             solve_system(&T, a_poly, max_a, b_poly, 4, uni, chain, stack, out, n_roots, n_candidates);
             on_axis_candidate(&T, out, n_candidates);
         } else {
-            biv t4, t5, t6, t7;
+            double t1[BIV2], t2[BIV2], t3[BIV4], t4[BIV2], t5[BIV4], t6[BIV6], t7[BIV6], b_poly[BIV6];
             lin_dot(t1, minus_a, E1, E2, minus_a, E1, E2);
             lin_dot(t2, B, -E1, -E2, B, -E1, -E2);
             bmul(f3, 2, f3, 2, t3);

@@ -11,7 +11,7 @@
 #   bash bench/gpu_check.sh        (from the repository root; carry .whl)
 # N1 (one-bounce tuples, default 1000000) shrinks it for a dry run; N2 > 0 (two-bounce tuples)
 # adds the two-bounce rows to solver.py, whose staged pipeline takes ~6 minutes of cold Numba
-# compilation there.  Without NVIDIA's library the ICD setting is left as it is (PoCL here).
+# compilation there; SHAPE_GROUPS (default 128,256) the work-group sizes of the sweep.  Without NVIDIA's library the ICD setting is left as it is (PoCL here).
 set -u
 N1=${N1:-1000000}
 N2=${N2:-0}
@@ -73,7 +73,7 @@ export OPENCL_DEVICE=$DEV
 log "OpenCL device $DEV"
 
 log "opencl_shapes"
-timeout 170 python3 bench/opencl_shapes.py --device "$DEV" --tuples "$N1,$((4 * N1))" \
+timeout 170 python3 bench/opencl_shapes.py --device "$DEV" --tuples "$N1,$((4 * N1))" --groups "${SHAPE_GROUPS:-128,256}" \
   --planted-tuples "$N1" --repeats 2 > "$OUT/shapes.txt" 2>&1
 log "opencl_shapes exit $?"
 cp bench/results/opencl_shapes_*.md "$OUT/" 2>/dev/null

@@ -239,5 +239,5 @@ def test_pair_table_on_the_device_returns_the_numba_paths(chain, stages, monkeyp
     assert seen > 0.9 * n
     with pytest.raises(IndexError, match="outside the tables"):
         device.solve(np.array([0]), np.array([points.shape[0]]))
-    with pytest.raises(ValueError, match="one shape"):
+    with pytest.raises(ValueError, match="of one shape"):
         device.solve(np.array([0, 1]), np.array([0]))

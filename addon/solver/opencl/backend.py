@@ -39,8 +39,8 @@ SLOTS = 8
 # memory on one thread's stack, so groups stay small there.
 CPU_WORK_GROUP = 8
 # Work-group size asked for on GPUs (clamped to what the kernel allows): whole warps /
-# wavefronts, a few per group.
-GPU_WORK_GROUP = 128
+# wavefronts, a few per group (the fastest of 32-256 on an H200: bench/results/opencl_shapes_gpu.md).
+GPU_WORK_GROUP = 256
 # Tuples per one-bounce launch: bounds the device buffers (~200 bytes in, ~40 bytes of
 # path records and, in the split pipeline, ~150 bytes of flags, slots and offsets per tuple)
 # while keeping launches large.
@@ -334,10 +334,11 @@ def solve_one_bounce_opencl(index, refract, x_start, x_end, P, N, eta):
     return _in_batches(d, n, launch)
 
 
-def solve_one_bounce_pairs(index, refract, table, e, s):
+def solve_one_bounce_pairs(index, refract, table, e, s, checked=False):
     """The one-bounce solve of the tuples (table's emitter e[i], table's point s[i]) on OpenCL
     device index (the table from :func:`one_bounce_table` on the same device).  Returns as
-    :func:`solve_one_bounce_opencl`, tuple_index counting pairs."""
+    :func:`solve_one_bounce_opencl`, tuple_index counting pairs.  ``checked``: the caller has
+    already checked that the indices lie in the table."""
     d = _context(index)
     if table.device is not d:
         raise ValueError("the table was uploaded to another OpenCL device")
@@ -347,7 +348,7 @@ def solve_one_bounce_pairs(index, refract, table, e, s):
     n = e.shape[0]
     if s.shape != (n,):
         raise ValueError(f"emitter and point index arrays differ in shape: {e.shape} and {s.shape}")
-    if n and (int(e.min()) < 0 or int(e.max()) >= table.n_emitters or int(s.min()) < 0 or int(s.max()) >= table.n_points):
+    if n and not checked and (int(e.min()) < 0 or int(e.max()) >= table.n_emitters or int(s.min()) < 0 or int(s.max()) >= table.n_points):
         raise IndexError(f"pair indices outside the table ({table.n_emitters} emitters, {table.n_points} points)")
     d.host("validate", time.perf_counter() - t0)
 
@@ -393,10 +394,9 @@ def _one_bounce_launch(d, refract, n, first, inputs, pairs):
     _fill_zero(d, acc_buf, acc.nbytes)
     args = (paired, *pairs, *inputs, np.int32(n), np.int32(first))
     if _two_stage(d):
-        tuple_index, uv = _split_launch(d, refract, n, first, args, acc_buf)
+        tuple_index, uv = _split_launch(d, refract, n, first, args, acc_buf, acc)
     else:
         tuple_index, uv = _whole_launch(d, refract, n, args, acc_buf, acc)
-    d.read(acc, acc_buf)
     return tuple_index, uv, acc[1:].reshape(N_SLOTS, 5).sum(axis=0, dtype=np.int64), _two_stage(d)
 
 
@@ -428,7 +428,7 @@ def _whole_launch(d, refract, n, args, acc_buf, acc):
     return _read_paths(d, m, tuple_buf, uv_buf)
 
 
-def _split_launch(d, refract, n, first, args, acc_buf):
+def _split_launch(d, refract, n, first, args, acc_buf, acc):
     """The split pipeline (GPUs): the filter stage flags the tuples that need the solve, a
     prefix sum places them in tuple order, the solve stage runs over them alone (full warps) into
     per-survivor slots, a prefix sum of the slot counts places the records, and the gather writes
@@ -454,6 +454,7 @@ def _split_launch(d, refract, n, first, args, acc_buf):
     d.launch(d.kernel_one, "kernel one_bounce solve", n, d.local_one, refract, np.int32(STAGE_SOLVE), *args, *tail,
              survivors, kept, np.int32(kept_at), slot_uv, slot_count)
     records, records_at = _scan(d, slot_count, offsets, n, "records")
+    d.read(acc, acc_buf, wait=False)  # the statistics are final once the solve stage has run
     total = np.zeros(1, dtype=np.int32)
     while True:
         d.launch(d.kernel_gather, "kernel gather", n, d.local_scan, np.int32(first), survivors, kept, np.int32(kept_at),

@@ -32,6 +32,19 @@
 
 typedef double3 vec;
 
+// The vector products and integer powers written out in the order Numba evaluates them
+// (geometry/vec3.py; Numba's float ** int is binary exponentiation): OpenCL's built-in dot,
+// cross, length and pown may fuse or rescale (NVIDIA's do), and a last-bit difference can move a
+// root across a threshold on a GPU.
+static double vdot(vec a, vec b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+static vec vcross(vec a, vec b) { return (vec)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x); }
+static double vlength(vec a) { return sqrt(a.x * a.x + a.y * a.y + a.z * a.z); }
+static double ipow(double a, int n) {
+    double r = 1.0;
+    for (; n != 0; n >>= 1) { if (n & 1) r *= a; a *= a; }
+    return r;
+}
+
 // ---------------------------------------------------------------- univariate helpers
 static double horner(const double *c, int deg, double x) {
     double f = c[deg];
@@ -94,7 +107,7 @@ static int roots_in_interval(const double *coeffs, int degree, double lo, double
     for (int i = 0; i <= degree; ++i) { norm = fmax(norm, fabs(coeffs[i]) * p); p *= scale; }
     if (norm == 0.0 || !isfinite(norm)) return 0;
     int deg = degree;
-    p = pown(scale, deg);
+    p = ipow(scale, deg);
     while (deg > 0 && fabs(coeffs[deg]) * p <= 1e-15 * norm) { deg--; p /= scale; }
     if (deg == 0) return 0;
     double inv = 1.0 / norm;
@@ -219,12 +232,12 @@ static int roots_in_unit_interval(const double *coeffs, int degree, double tol, 
 // (a0 + u au + v av) . (b0 + u bu + v bv), degree 2
 static void lin_dot(double *out, vec a0, vec au, vec av, vec b0, vec bu, vec bv) {
     for (int i = 0; i < BIV2; ++i) out[i] = 0.0;
-    BI(out, 2, 0, 0) = dot(a0, b0);
-    BI(out, 2, 1, 0) = dot(a0, bu) + dot(au, b0);
-    BI(out, 2, 0, 1) = dot(a0, bv) + dot(av, b0);
-    BI(out, 2, 2, 0) = dot(au, bu);
-    BI(out, 2, 1, 1) = dot(au, bv) + dot(av, bu);
-    BI(out, 2, 0, 2) = dot(av, bv);
+    BI(out, 2, 0, 0) = vdot(a0, b0);
+    BI(out, 2, 1, 0) = vdot(a0, bu) + vdot(au, b0);
+    BI(out, 2, 0, 1) = vdot(a0, bv) + vdot(av, b0);
+    BI(out, 2, 2, 0) = vdot(au, bu);
+    BI(out, 2, 1, 1) = vdot(au, bv) + vdot(av, bu);
+    BI(out, 2, 0, 2) = vdot(av, bv);
 }
 
 static void bmul(const double *p, int dp, const double *q, int dq, double *out) {
@@ -255,7 +268,8 @@ static void umul(const double *p, int dp, const double *q, int dq, double *out) 
 }
 
 // Res_u(a, b) by the power-sum identity (one_bounce._resultant_quadratic_in_u).
-static int resultant_quadratic_in_u(const double *a, const double *b, int nb, int tb, double uni[UNI_ROWS][UNI], double *out) {
+static int resultant_quadratic_in_u(const double *a, const double *b, int nb, int tb, double *out) {
+    double uni[UNI_ROWS][UNI];  // local to this function: its private memory is reused by the root finder
     double a2 = BI(a, 2, 2, 0);
     double *a0 = uni[nb + 3], *a1 = uni[nb + 4];
     a0[0] = BI(a, 2, 0, 0); a0[1] = BI(a, 2, 0, 1); a0[2] = BI(a, 2, 0, 2);
@@ -273,11 +287,11 @@ static int resultant_quadratic_in_u(const double *a, const double *b, int nb, in
     for (int i = nb; i >= 0; --i) {
         int deg_t = tb - i;
         for (int k = 0; k <= deg_t; ++k) t_poly[k] = 0.0;
-        double p = pown(a2, nb - i);
+        double p = ipow(a2, nb - i);
         if (nb - i == 0) p = 1.0;
         if (p != 0.0) for (int k = 0; k <= tb - i; ++k) t_poly[k] += p * BI(b, tb, i, k);
         for (int j = i + 1; j <= nb; ++j) {
-            p = (nb - j == 0) ? 1.0 : pown(a2, nb - j);
+            p = (nb - j == 0) ? 1.0 : ipow(a2, nb - j);
             if (p == 0.0) continue;
             umul(&BI(b, tb, j, 0), tb - j, uni[j - i], j - i, tmp);
             for (int k = 0; k <= tb - i; ++k) t_poly[k] += p * tmp[k];
@@ -349,7 +363,7 @@ static double2 refine_on_polynomials(const double *a, const double *b, int db, d
 }
 
 // ---------------------------------------------------------------- path space
-static vec tangent_derivative(vec unit, vec d, double len) { return (d - dot(unit, d) * unit) / len; }
+static vec tangent_derivative(vec unit, vec d, double len) { return (d - vdot(unit, d) * unit) / len; }
 
 typedef struct { vec p0, e1, e2, n0, m1, m2, ng, x0, x2; int refract; double eta; } Tuple;
 
@@ -358,16 +372,16 @@ static int scatter_residual(const Tuple *T, double u, double v, vec *res, vec *j
     vec di = (T->p0 - T->x0) + u * T->e1 + v * T->e2;
     vec dov = (T->x2 - T->p0) - u * T->e1 - v * T->e2;
     vec n = T->n0 + u * T->m1 + v * T->m2;
-    double ln = length(n), li = length(di), lo = length(dov);
+    double ln = vlength(n), li = vlength(di), lo = vlength(dov);
     if (!(ln > 0.0 && li > 0.0 && lo > 0.0)) return 0;
     vec nh = n / ln, wi = di / li, wo = dov / lo;
-    vec ng = dot(T->ng, nh) >= 0.0 ? T->ng : -T->ng;
-    double side_in = -dot(di, ng), side_out = dot(dov, ng);
+    vec ng = vdot(T->ng, nh) >= 0.0 ? T->ng : -T->ng;
+    double side_in = -vdot(di, ng), side_out = vdot(dov, ng);
     if (side_in == 0.0 || side_out == 0.0) return 0;
     if (T->refract == (side_in * side_out > 0.0)) return 0;
     double s = side_in > 0.0 ? 1.0 : -1.0;
     vec no = s * nh;
-    double c = -dot(wi, no);
+    double c = -vdot(wi, no);
     if (!(c > 0.0)) return 0;
     double r = 1.0, sk = 0.0;
     vec expected;
@@ -387,7 +401,7 @@ static int scatter_residual(const Tuple *T, double u, double v, vec *res, vec *j
         vec dwi = tangent_derivative(wi, d, li);
         vec dwo = -tangent_derivative(wo, d, lo);
         vec dno = s * tangent_derivative(nh, dm, ln);
-        double dc = -(dot(dwi, no) + dot(wi, dno));
+        double dc = -(vdot(dwi, no) + vdot(wi, dno));
         vec dexp;
         if (T->refract) {
             double dsk = r * r * c * dc / sk;
@@ -405,24 +419,24 @@ static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *p
     double u = *pu, v = *pv;
     vec res, ju, jv;
     if (!scatter_residual(T, u, v, &res, &ju, &jv)) { *perr = INFINITY; *psig = 0.0; return 0; }
-    double err = length(res), last_step = INFINITY;
+    double err = vlength(res), last_step = INFINITY;
     for (int it = 0; it < POLISH_STEPS; ++it) {
         if (err < 1e-15) { last_step = 0.0; break; }
-        double a11 = dot(ju, ju), a12 = dot(ju, jv), a22 = dot(jv, jv);
-        double b1 = -dot(ju, res), b2 = -dot(jv, res);
+        double a11 = vdot(ju, ju), a12 = vdot(ju, jv), a22 = vdot(jv, jv);
+        double b1 = -vdot(ju, res), b2 = -vdot(jv, res);
         double det = a11 * a22 - a12 * a12;
         if (!(fabs(det) > 1e-300)) break;
         double du = (b1 * a22 - b2 * a12) / det, dv = (a11 * b2 - a12 * b1) / det;
         last_step = fmax(fabs(du), fabs(dv));
         vec res2, ju2, jv2;
         if (!scatter_residual(T, u + du, v + dv, &res2, &ju2, &jv2)) break;
-        double err2 = length(res2);
+        double err2 = vlength(res2);
         if (!(err2 < err)) break;
         u += du; v += dv; res = res2; ju = ju2; jv = jv2; err = err2;
     }
     int inside = u >= -INSIDE_EPSILON && v >= -INSIDE_EPSILON && u + v <= 1.0 + INSIDE_EPSILON;
     int settled = last_step <= SETTLED_STEP;
-    double a11 = dot(ju, ju), a12 = dot(ju, jv), a22 = dot(jv, jv);
+    double a11 = vdot(ju, ju), a12 = vdot(ju, jv), a22 = vdot(jv, jv);
     double half_gap = sqrt(fmax(0.0, 0.25 * (a11 - a22) * (a11 - a22) + a12 * a12));
     *psig = sqrt(fmax(0.0, 0.5 * (a11 + a22) - half_gap));
     *pu = u; *pv = v; *perr = err;
@@ -449,7 +463,7 @@ static void store_path(Paths *out, double uu, double vv, double err, double sig)
 static void probe_fold(const Tuple *T, double u, double v, Paths *out) {
     vec res, ju, jv;
     if (!scatter_residual(T, u, v, &res, &ju, &jv)) return;
-    double a11 = dot(ju, ju), a12 = dot(ju, jv), a22 = dot(jv, jv);
+    double a11 = vdot(ju, ju), a12 = vdot(ju, jv), a22 = vdot(jv, jv);
     double disc = sqrt(fmax(0.0, 0.25 * (a11 - a22) * (a11 - a22) + a12 * a12));
     double lam_min = 0.5 * (a11 + a22) - disc, lam_max = 0.5 * (a11 + a22) + disc;
     if (!(lam_max > 0.0) || lam_min > FOLD_RATIO * lam_max) return;
@@ -469,26 +483,25 @@ static void probe_fold(const Tuple *T, double u, double v, Paths *out) {
 
 static void on_axis_candidate(const Tuple *T, Paths *out, int *candidates) {
     vec w = T->x2 - T->x0;
-    double denom = dot(w, T->ng);
+    double denom = vdot(w, T->ng);
     if (denom == 0.0) return;
-    double t = dot(T->p0 - T->x0, T->ng) / denom;
+    double t = vdot(T->p0 - T->x0, T->ng) / denom;
     vec rel = (T->x0 + t * w) - T->p0;
-    double d11 = dot(T->e1, T->e1), d12 = dot(T->e1, T->e2), d22 = dot(T->e2, T->e2);
-    double r1 = dot(rel, T->e1), r2 = dot(rel, T->e2), det = d11 * d22 - d12 * d12;
+    double d11 = vdot(T->e1, T->e1), d12 = vdot(T->e1, T->e2), d22 = vdot(T->e2, T->e2);
+    double r1 = vdot(rel, T->e1), r2 = vdot(rel, T->e2), det = d11 * d22 - d12 * d12;
     if (!(det > 0.0)) return;
     double u = (r1 * d22 - r2 * d12) / det, v = (d11 * r2 - d12 * r1) / det;
     if (u < -1e-6 || v < -1e-6 || u + v > 1.0 + 1e-6) return;
     vec n = T->n0 + u * T->m1 + v * T->m2;
-    double ln = length(n), lw = length(w);
-    if (!(ln > 0.0 && lw > 0.0) || length(cross(n, w)) > 1e-2 * ln * lw) return;
+    double ln = vlength(n), lw = vlength(w);
+    if (!(ln > 0.0 && lw > 0.0) || vlength(vcross(n, w)) > 1e-2 * ln * lw) return;
     (*candidates)++;
     double err, sig;
     if (polish_and_validate(T, &u, &v, &err, &sig)) store_path(out, u, v, err, sig);
 }
 
 // _solve_system: roots of {a = 0, b = 0} in the triangle -> validated paths.
-static void solve_system(const Tuple *T, const double *a_poly, double max_a, double *b_poly, int total_b, double uni[UNI_ROWS][UNI],
-                         double chain[MAXD + 1][MAXD + 1], double stack[STACK + 1][MAXD + 4], Paths *out,
+static void solve_system(const Tuple *T, const double *a_poly, double max_a, double *b_poly, int total_b, Paths *out,
                          int *n_roots, int *n_candidates) {
     double max_b = bmax(b_poly, total_b);
     if (!(max_b > 0.0) || !isfinite(max_b)) return;
@@ -503,7 +516,9 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
     double res[UNI];
     int deg_r;
     if (nb == 0) { deg_r = total_b; for (int k = 0; k <= deg_r; ++k) res[k] = BI(b_poly, total_b, 0, k); }
-    else deg_r = resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, uni, res);
+    else deg_r = resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, res);
+    double chain[MAXD + 1][MAXD + 1];
+    double stack[STACK + 1][MAXD + 4];
     shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN);
     double v_roots[MAXD + 1], critical[MAXD + 1], found[MAXD + 1];
     int n_v = roots_in_unit_interval(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, critical, found, stack, v_roots);
@@ -571,9 +586,9 @@ static double fold_free_size(double g0, double g1, double g2) {
 // one_bounce.py elimination_labelling: 0 = (p0, p1, p2), 1 = (p0, p2, p1), 2 = (p1, p2, p0)
 static int elimination_labelling(const Tuple *T) {
     vec w = T->x2 - T->x0;
-    vec c0 = cross(T->p0 - T->x0, w), c1 = cross(T->e1, w), c2 = cross(T->e2, w);
-    double a20 = dot(c1, T->m1), a02 = dot(c2, T->m2), a11 = dot(c1, T->m2) + dot(c2, T->m1);
-    double a10 = dot(c0, T->m1) + dot(c1, T->n0), a01 = dot(c0, T->m2) + dot(c2, T->n0);
+    vec c0 = vcross(T->p0 - T->x0, w), c1 = vcross(T->e1, w), c2 = vcross(T->e2, w);
+    double a20 = vdot(c1, T->m1), a02 = vdot(c2, T->m2), a11 = vdot(c1, T->m2) + vdot(c2, T->m1);
+    double a10 = vdot(c0, T->m1) + vdot(c1, T->n0), a01 = vdot(c0, T->m2) + vdot(c2, T->n0);
     double du0 = a10, du1 = a10 + 2.0 * a20, du2 = a10 + a11;
     double dv0 = a01, dv1 = a01 + a11, dv2 = a01 + 2.0 * a02;
     double score_u = fabs(a20) + fold_free_size(du0, du1, du2);
@@ -601,15 +616,15 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
     T.n0 = C0->k0; T.m1 = C0->k1 - C0->k0; T.m2 = C0->k2 - C0->k0;
     T.refract = refract;
     int labelling = 0;
-    vec g = cross(T.e1, T.e2);
-    double area2 = length(g);
+    vec g = vcross(T.e1, T.e2);
+    double area2 = vlength(g);
     T.ng = area2 > 0.0 ? g / area2 : g;
-    double len = fmax(length(T.e1), length(T.e2));
-    double side0 = dot(T.x0 - T.p0, T.ng), side2 = dot(T.x2 - T.p0, T.ng);
+    double len = fmax(vlength(T.e1), vlength(T.e2));
+    double side0 = vdot(T.x0 - T.p0, T.ng), side2 = vdot(T.x2 - T.p0, T.ng);
     vec n_mean = 3.0 * T.n0 + T.m1 + T.m2;
     double tiny = 1e-12 * len;
     if (!(area2 > 1e-14 * len * len) || !(T.eta > 0.0) || fabs(side0) <= tiny || fabs(side2) <= tiny ||
-        ((side0 * side2 < 0.0) != refract) || length(n_mean) == 0.0)
+        ((side0 * side2 < 0.0) != refract) || vlength(n_mean) == 0.0)
         return 0;
     // the corner labelling of one_bounce.py's elimination_labelling: u is eliminated along the
     // triangle edge where the coplanarity conic does not fold
@@ -621,26 +636,26 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
             T.p0 = C0->q1; T.e1 = C0->q2 - C0->q1; T.e2 = C0->q0 - C0->q1;
             T.n0 = C0->k1; T.m1 = C0->k2 - C0->k1; T.m2 = C0->k0 - C0->k1;
         }
-        g = cross(T.e1, T.e2);
-        area2 = length(g);
+        g = vcross(T.e1, T.e2);
+        area2 = vlength(g);
         T.ng = area2 > 0.0 ? g / area2 : g;
-        len = fmax(length(T.e1), length(T.e2));
-        side0 = dot(T.x0 - T.p0, T.ng);
-        side2 = dot(T.x2 - T.p0, T.ng);
+        len = fmax(vlength(T.e1), vlength(T.e2));
+        side0 = vdot(T.x0 - T.p0, T.ng);
+        side2 = vdot(T.x2 - T.p0, T.ng);
         n_mean = 3.0 * T.n0 + T.m1 + T.m2;
     }
     double inv_l = 1.0 / len;
     vec E1 = T.e1 * inv_l, E2 = T.e2 * inv_l, A = (T.x0 - T.p0) * inv_l, B = (T.x2 - T.p0) * inv_l;
     vec w = B - A;
-    vec C = cross(w, n_mean);
-    if (!(length(C) > 1e-9 * length(w) * length(n_mean))) C = cross(E1, n_mean);
-    C = C / length(C);
+    vec C = vcross(w, n_mean);
+    if (!(vlength(C) > 1e-9 * vlength(w) * vlength(n_mean))) C = vcross(E1, n_mean);
+    C = C / vlength(C);
     vec minus_a = -A;
     double a_poly[BIV2];
-    lin_dot(a_poly, cross(minus_a, w), cross(E1, w), cross(E2, w), T.n0, T.m1, T.m2);
+    lin_dot(a_poly, vcross(minus_a, w), vcross(E1, w), vcross(E2, w), T.n0, T.m1, T.m2);
     double max_a = bmax(a_poly, 2);
     if (!isfinite(max_a)) return 0;
-    int on_axis = max_a <= 1e-13 * (length(A) + 1.0) * length(w) * (length(T.n0) + length(T.m1) + length(T.m2));
+    int on_axis = max_a <= 1e-13 * (vlength(A) + 1.0) * vlength(w) * (vlength(T.n0) + vlength(T.m1) + vlength(T.m2));
     if (!on_axis) {
         for (int i = 0; i < 3; ++i) for (int j = 0; j < 3 - i; ++j) if (fabs(BI(a_poly, 2, i, j)) <= NEGLIGIBLE * max_a) BI(a_poly, 2, i, j) = 0.0;
         if (conic_misses_triangle(a_poly, max_a)) return 0;
@@ -650,15 +665,12 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
         on_axis_candidate(&T, out, n_candidates);
     } else {
         vec zero = (vec)(0.0, 0.0, 0.0);
-        vec t0 = cross(T.n0, C), tu = cross(T.m1, C), tv = cross(T.m2, C);
+        vec t0 = vcross(T.n0, C), tu = vcross(T.m1, C), tv = vcross(T.m2, C);
         double f1[BIV2], f3[BIV2], g2[BIV2], h[BIV2];
         lin_dot(f1, minus_a, E1, E2, T.n0, T.m1, T.m2);
         lin_dot(f3, minus_a, E1, E2, t0, tu, tv);
         lin_dot(g2, w, zero, zero, t0, tu, tv);
         lin_dot(h, w, zero, zero, T.n0, T.m1, T.m2);
-        double uni[UNI_ROWS][UNI];
-        double chain[MAXD + 1][MAXD + 1];
-        double stack[STACK + 1][MAXD + 4];
         if (!refract) {
             double t1[BIV4], t2[BIV4], t3[BIV4], b_poly[BIV4];
             bmul(f1, 2, g2, 2, t1);
@@ -666,18 +678,21 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
             bmul(f1, 2, f3, 2, t3);
             for (int i = 0; i < 5; ++i) for (int j = 0; j < 5 - i; ++j)
                 BI(b_poly, 4, i, j) = BI(t1, 4, i, j) + BI(t2, 4, i, j) - 2.0 * BI(t3, 4, i, j);
-            solve_system(&T, a_poly, max_a, b_poly, 4, uni, chain, stack, out, n_roots, n_candidates);
+            solve_system(&T, a_poly, max_a, b_poly, 4, out, n_roots, n_candidates);
             on_axis_candidate(&T, out, n_candidates);
         } else {
-            double t1[BIV2], t2[BIV2], t3[BIV4], t4[BIV2], t5[BIV4], t6[BIV6], t7[BIV6], b_poly[BIV6];
-            lin_dot(t1, minus_a, E1, E2, minus_a, E1, E2);
-            lin_dot(t2, B, -E1, -E2, B, -E1, -E2);
-            bmul(f3, 2, f3, 2, t3);
-            bcombine(t4, 2, 1.0, g2, -1.0, f3);
-            bmul(t4, 2, t4, 2, t5);
-            bmul(t2, 2, t3, 4, t6);
-            bmul(t1, 2, t5, 4, t7);
-            double s0 = dot(T.ng, T.n0), s1 = dot(T.ng, T.n0 + T.m1), s2 = dot(T.ng, T.n0 + T.m2);
+            double t6[BIV6], t7[BIV6], b_poly[BIV6];
+            {  // the factors, scoped so that their private memory is reused by the solve
+                double t1[BIV2], t2[BIV2], t3[BIV4], t4[BIV2], t5[BIV4];
+                lin_dot(t1, minus_a, E1, E2, minus_a, E1, E2);
+                lin_dot(t2, B, -E1, -E2, B, -E1, -E2);
+                bmul(f3, 2, f3, 2, t3);
+                bcombine(t4, 2, 1.0, g2, -1.0, f3);
+                bmul(t4, 2, t4, 2, t5);
+                bmul(t2, 2, t3, 4, t6);
+                bmul(t1, 2, t5, 4, t7);
+            }
+            double s0 = vdot(T.ng, T.n0), s1 = vdot(T.ng, T.n0 + T.m1), s2 = vdot(T.ng, T.n0 + T.m2);
             int any_front = s0 > 0.0 || s1 > 0.0 || s2 > 0.0, any_back = s0 < 0.0 || s1 < 0.0 || s2 < 0.0;
             for (int pass = 0; pass < 2; ++pass) {
                 int outward = pass == 0;
@@ -685,7 +700,7 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
                 int from_outside = (side0 > 0.0) == outward;
                 double eta_in = from_outside ? 1.0 : T.eta, eta_out = from_outside ? T.eta : 1.0;
                 bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7);
-                solve_system(&T, a_poly, max_a, b_poly, 6, uni, chain, stack, out, n_roots, n_candidates);
+                solve_system(&T, a_poly, max_a, b_poly, 6, out, n_roots, n_candidates);
             }
             on_axis_candidate(&T, out, n_candidates);
         }

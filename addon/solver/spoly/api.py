@@ -209,13 +209,14 @@ class TupleTable:
         self._table = None  # the OpenCL upload (one bounce on a device), made on the first solve
 
     def _pairs(self, e, s):
-        e = np.asarray(e, dtype=np.int64)
-        s = np.asarray(s, dtype=np.int64)
-        if e.ndim != 1 or s.shape != e.shape:
-            raise ValueError(f"e and s must be index arrays of one shape, got {e.shape} and {s.shape}")
+        """The pairs checked against the tables, as contiguous int32 (what the device reads)."""
+        e, s = np.asarray(e), np.asarray(s)
+        if e.ndim != 1 or s.shape != e.shape or not (e.size == 0 or np.issubdtype(e.dtype, np.integer)) \
+                or not (s.size == 0 or np.issubdtype(s.dtype, np.integer)):
+            raise ValueError(f"e and s must be integer index arrays of one shape, got {e.dtype}{e.shape} and {s.dtype}{s.shape}")
         if e.size and (e.min() < 0 or e.max() >= self.x_start.shape[0] or s.min() < 0 or s.max() >= self.x_end.shape[0]):
             raise IndexError(f"pair indices outside the tables ({self.x_start.shape[0]} emitters, {self.x_end.shape[0]} points)")
-        return e, s
+        return np.ascontiguousarray(e, dtype=np.int32), np.ascontiguousarray(s, dtype=np.int32)
 
     def solve(self, e, s):
         """Paths of the tuples (e[i], s[i]): a :class:`SolveResult` whose tuple_index counts
@@ -232,7 +233,7 @@ class TupleTable:
                     self._table = one_bounce_table(index, self.x_start, self.P, self.N, self.eta, self.x_end)
                 self.device_name = report.device
                 t1 = time.perf_counter()
-                tuple_index, uv, totals, ordered = solve_one_bounce_pairs(index, self.chain == "T", self._table, e, s)
+                tuple_index, uv, totals, ordered = solve_one_bounce_pairs(index, self.chain == "T", self._table, e, s, checked=True)
                 t2 = time.perf_counter()
                 if not ordered:
                     tuple_index, uv = canonical_order(tuple_index, uv, e.size)

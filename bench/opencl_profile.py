@@ -157,7 +157,7 @@ def pair_row(solver, index, chain, args):
 
     rng = np.random.default_rng(3)
     x0, x2, P, N = random_tuples(65536, seed=4)
-    e, s = rng.integers(0, 65536, args.tuples), rng.integers(0, 65536, args.tuples)
+    e, s = rng.integers(0, 65536, args.tuples, dtype=np.int32), rng.integers(0, 65536, args.tuples, dtype=np.int32)
     table = TupleTable(chain, x0, P, N, 1.5, x2, device=f"opencl:{index}", solver=solver)
     table.solve(e[:64], s[:64])
     g0, g2, gP, gN = x0[e], x2[s], P[e], N[e]

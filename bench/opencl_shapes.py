@@ -4,7 +4,7 @@
     OCL_ICD_VENDORS=... python bench/opencl_shapes.py [--device N] [--tuples 1000000,4000000]
         [--planted-tuples 1000000] [--groups 32,64,128,256] [--repeats 2] [--no-write]
 
-Workloads: R and T tuples as (emitter, point) index pairs over tables kept on the device
+Workloads: R and T tuples as (emitter, point) int32 index pairs over tables kept on the device
 (``spoly.api.TupleTable``, as a bake sends them): "random pairs" over 65,536 random emitters
 and points, "planted pairs" one planted path per emitter.  Each row: best wall of --repeats
 solves, and the device time of the solve's kernels (profiling events) in one more.  The last
@@ -53,12 +53,12 @@ def main():
     x0r, x2r, Pr, Nr = random_tuples(65536, seed=4)
     workloads = []
     for n in (int(x) for x in args.tuples.split(",")):
-        workloads.append(("random pairs", (x0r, Pr, Nr, x2r), rng.integers(0, 65536, n), rng.integers(0, 65536, n), None))
+        workloads.append(("random pairs", (x0r, Pr, Nr, x2r), rng.integers(0, 65536, n, dtype=np.int32), rng.integers(0, 65536, n, dtype=np.int32), None))
     rows, totals = [], {}
     for chain in ("R", "T"):
         x0p, x2p, Pp, Np, _ = planted_tuples(args.planted_tuples, chain, seed=1)
         m = x0p.shape[0]
-        cases = workloads + [("planted pairs", (x0p, Pp, Np, x2p), np.arange(m), np.arange(m), None)]
+        cases = workloads + [("planted pairs", (x0p, Pp, Np, x2p), np.arange(m, dtype=np.int32), np.arange(m, dtype=np.int32), None)]
         for name, (x0, P, N, x2), e, s, _ in cases:
             table = TupleTable(chain, x0, P, N, 1.5, x2, device=f"opencl:{index}")
             reference = None

@@ -266,8 +266,8 @@ def pair_rows(solver, chain, args, device):
     x0r, x2r, Pr, Nr = random_tuples(65536, seed=4)
     x0p, x2p, Pp, Np, _ = planted_tuples(args.tuples, chain, seed=1)
     m = x0p.shape[0]
-    cases = {"random pairs": ((x0r, Pr, Nr, x2r), rng.integers(0, 65536, args.tuples), rng.integers(0, 65536, args.tuples)),
-             "planted pairs": ((x0p, Pp, Np, x2p), np.arange(m), np.arange(m))}
+    cases = {"random pairs": ((x0r, Pr, Nr, x2r), rng.integers(0, 65536, args.tuples, dtype=np.int32), rng.integers(0, 65536, args.tuples, dtype=np.int32)),
+             "planted pairs": ((x0p, Pp, Np, x2p), np.arange(m, dtype=np.int32), np.arange(m, dtype=np.int32))}
     for name, ((x0, P, N, x2), e, s) in cases.items():
         n = e.size
         table = TupleTable(chain, x0, P, N, 1.5, x2, device=device, solver=solver)

@@ -237,7 +237,12 @@ def test_pair_table_on_the_device_returns_the_numba_paths(chain, stages, monkeyp
         seen += want.report.paths
     assert device.device_name.startswith("opencl: ") and numba.device_name == "numba"
     assert seen > 0.9 * n
-    with pytest.raises(IndexError, match="outside the tables"):
-        device.solve(np.array([0]), np.array([points.shape[0]]))
+    for ints in (np.int64, np.int32):  # int32 pairs are checked by the kernel, wider ones on the host
+        with pytest.raises(IndexError, match="outside the table"):
+            device.solve(np.array([0, 1], dtype=ints), np.array([1, points.shape[0]], dtype=ints))
+        with pytest.raises(IndexError, match="outside the table"):
+            device.solve(np.array([-1, 1], dtype=ints), np.array([1, 2], dtype=ints))
+    ok = device.solve(np.arange(n, dtype=np.int32), np.arange(n, dtype=np.int32))  # the device still serves
+    assert ok.report.paths == numba.solve(np.arange(n), np.arange(n)).report.paths
     with pytest.raises(ValueError, match="of one shape"):
         device.solve(np.array([0, 1]), np.array([0]))

@@ -331,14 +331,15 @@ def solve_one_bounce_opencl(index, refract, x_start, x_end, P, N, eta):
         bufs = [d.write(role, a[b0:b1]) for role, a in zip(("x_start", "x_end", "P", "N", "eta"), arrays)]
         return _one_bounce_launch(d, refract, b1 - b0, b0, bufs, None)
 
-    return _in_batches(d, n, launch)
+    tuple_index, uv, totals, ordered = _in_batches(d, n, launch)
+    return tuple_index, uv, totals[:5], ordered
 
 
-def solve_one_bounce_pairs(index, refract, table, e, s, checked=False):
+def solve_one_bounce_pairs(index, refract, table, e, s):
     """The one-bounce solve of the tuples (table's emitter e[i], table's point s[i]) on OpenCL
     device index (the table from :func:`one_bounce_table` on the same device).  Returns as
-    :func:`solve_one_bounce_opencl`, tuple_index counting pairs.  ``checked``: the caller has
-    already checked that the indices lie in the table."""
+    :func:`solve_one_bounce_opencl`, tuple_index counting pairs.  The kernel checks the pairs
+    against the table (IndexError for any outside it); int32 pairs are sent as they are."""
     d = _context(index)
     if table.device is not d:
         raise ValueError("the table was uploaded to another OpenCL device")
@@ -348,22 +349,24 @@ def solve_one_bounce_pairs(index, refract, table, e, s, checked=False):
     n = e.shape[0]
     if s.shape != (n,):
         raise ValueError(f"emitter and point index arrays differ in shape: {e.shape} and {s.shape}")
-    if n and not checked and (int(e.min()) < 0 or int(e.max()) >= table.n_emitters or int(s.min()) < 0 or int(s.max()) >= table.n_points):
-        raise IndexError(f"pair indices outside the table ({table.n_emitters} emitters, {table.n_points} points)")
     d.host("validate", time.perf_counter() - t0)
 
     def launch(b0, b1):
-        pairs = (d.write("tuple_e", e[b0:b1]), d.write("tuple_s", s[b0:b1]))
+        pairs = (d.write("tuple_e", e[b0:b1]), d.write("tuple_s", s[b0:b1]), np.int32(table.n_emitters),
+                 np.int32(table.n_points))
         return _one_bounce_launch(d, refract, b1 - b0, b0, table.buffers, pairs)
 
-    return _in_batches(d, n, launch)
+    result = _in_batches(d, n, launch)
+    if result[2][5]:
+        raise IndexError(f"{result[2][5]:,} pair indices outside the table ({table.n_emitters} emitters, {table.n_points} points)")
+    return result[0], result[1], result[2][:5], result[3]
 
 
 def _in_batches(d, n, launch):
     """launch(b0, b1) over [0, n) in batches of ONE_BOUNCE_BATCH; the batches' paths joined,
     their statistics summed, and whether every batch came in canonical order."""
     parts_index, parts_uv = [], []
-    totals = np.zeros(5, dtype=np.int64)
+    totals = np.zeros(6, dtype=np.int64)
     ordered = True
     for b0 in range(0, n, ONE_BOUNCE_BATCH):
         ti, uv, sums, in_order = launch(b0, min(n, b0 + ONE_BOUNCE_BATCH))
@@ -385,11 +388,12 @@ def _one_bounce_launch(d, refract, n, first, inputs, pairs):
     """One launch over n tuples: inputs = the device buffers of (x_start, x_end, P, N, eta),
     pairs = the buffers of the (emitter, point) indices or None (row i of each input is tuple
     i).  Returns (tuple_index, uv, statistics, ordered): the paths (in canonical order when
-    ``ordered``) and the summed statistics (roots, candidates, paths, skipped, overflow)."""
+    ``ordered``) and the summed statistics (roots, candidates, paths, skipped, overflow, pairs
+    outside the tables)."""
     paired = np.int32(0 if pairs is None else 1)
     if pairs is None:
-        pairs = (d.buffer("no_pairs", 64), d.buffer("no_pairs", 64))
-    acc = np.zeros(1 + 5 * N_SLOTS, dtype=np.int32)
+        pairs = (d.buffer("no_pairs", 64), d.buffer("no_pairs", 64), np.int32(0), np.int32(0))
+    acc = np.zeros(2 + 5 * N_SLOTS, dtype=np.int32)  # the path counter, the statistics' slots, bad pairs
     acc_buf = d.buffer("acc", acc.nbytes)
     _fill_zero(d, acc_buf, acc.nbytes)
     args = (paired, *pairs, *inputs, np.int32(n), np.int32(first))
@@ -397,7 +401,8 @@ def _one_bounce_launch(d, refract, n, first, inputs, pairs):
         tuple_index, uv = _split_launch(d, refract, n, first, args, acc_buf, acc)
     else:
         tuple_index, uv = _whole_launch(d, refract, n, args, acc_buf, acc)
-    return tuple_index, uv, acc[1:].reshape(N_SLOTS, 5).sum(axis=0, dtype=np.int64), _two_stage(d)
+    sums = np.append(acc[1:-1].reshape(N_SLOTS, 5).sum(axis=0, dtype=np.int64), acc[-1])
+    return tuple_index, uv, sums, _two_stage(d)
 
 
 def _fill_zero(d, buf, nbytes):

@@ -728,7 +728,9 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
 
 // Tuple t's inputs: x_start, P, N, eta at row e and x_end at row s, where (e, s) = (t, t), or
 // (tuple_e[t], tuple_s[t]) when `paired` (a device-resident table of emitters and one of receiver
-// points, addressed by index pairs: only 8 bytes per tuple cross to the device).
+// points, addressed by index pairs: only 8 bytes per tuple cross to the device).  A pair outside
+// the tables (rows_e emitters, rows_s points) is not read: it is counted in acc[1 + 5 n_slots]
+// and the host refuses the call, so the host need not scan the pairs first.
 //
 // WHOLE: a tuple's stored paths (at most 8) take consecutive records from the atomic counter
 // acc[0] (records past `capacity` are counted but not written: the host grows the buffers and runs
@@ -739,7 +741,8 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
 // SOLVE: work-item i < count (= counts[count_at], the survivors) solves tuple list[i] into
 // slot_uv[SLOTS i ..] and writes slot_count[i]; work-items count <= i < n write slot_count[i] = 0.
 __kernel void solve_one_bounce(const int refract, const int stage, const int paired,
-                               __global const int *tuple_e, __global const int *tuple_s,
+                               __global const int *tuple_e, __global const int *tuple_s, const int rows_e,
+                               const int rows_s,
                                __global const double *x_start, __global const double *x_end,
                                __global const double *P, __global const double *N, __global const double *eta,
                                const int n, const int first, const int capacity, const int n_slots,
@@ -754,6 +757,11 @@ __kernel void solve_one_bounce(const int refract, const int stage, const int pai
         t = list[gid];
     }
     long e = paired ? (long)tuple_e[t] : (long)t, s = paired ? (long)tuple_s[t] : (long)t;
+    if (paired && (e < 0 || e >= rows_e || s < 0 || s >= rows_s)) {
+        if (stage == STAGE_FILTER) list[t] = 0;
+        if (stage != STAGE_SOLVE) atomic_add(acc + 1 + 5 * n_slots, 1);
+        return;
+    }
     Corners C0;
     C0.q0 = load3(P, 3L * e); C0.q1 = load3(P, 3L * e + 1); C0.q2 = load3(P, 3L * e + 2);
     C0.k0 = load3(N, 3L * e); C0.k1 = load3(N, 3L * e + 1); C0.k2 = load3(N, 3L * e + 2);

@@ -208,21 +208,26 @@ class TupleTable:
         self.device_name = "numba"
         self._table = None  # the OpenCL upload (one bounce on a device), made on the first solve
 
-    def _pairs(self, e, s):
-        """The pairs checked against the tables, as contiguous int32 (what the device reads)."""
+    def _pairs(self, e, s, on_device):
+        """The pairs as contiguous int32 (what the device reads; int32 input is not copied),
+        checked against the tables: by the OpenCL kernel when they go to the device as int32
+        (the host does not scan millions of pairs first), else here."""
         e, s = np.asarray(e), np.asarray(s)
         if e.ndim != 1 or s.shape != e.shape or not (e.size == 0 or np.issubdtype(e.dtype, np.integer)) \
                 or not (s.size == 0 or np.issubdtype(s.dtype, np.integer)):
             raise ValueError(f"e and s must be integer index arrays of one shape, got {e.dtype}{e.shape} and {s.dtype}{s.shape}")
-        if e.size and (e.min() < 0 or e.max() >= self.x_start.shape[0] or s.min() < 0 or s.max() >= self.x_end.shape[0]):
+        host_check = not on_device or e.dtype != np.int32 or s.dtype != np.int32  # wider ints could wrap
+        if host_check and e.size and (e.min() < 0 or e.max() >= self.x_start.shape[0] or s.min() < 0
+                                      or s.max() >= self.x_end.shape[0]):
             raise IndexError(f"pair indices outside the tables ({self.x_start.shape[0]} emitters, {self.x_end.shape[0]} points)")
         return np.ascontiguousarray(e, dtype=np.int32), np.ascontiguousarray(s, dtype=np.int32)
 
     def solve(self, e, s):
         """Paths of the tuples (e[i], s[i]): a :class:`SolveResult` whose tuple_index counts
         pairs, in canonical order."""
-        e, s = self._pairs(e, s)
-        if self.chain in ONE_BOUNCE_CHAINS and self.device not in (None, "numba"):
+        on_device = self.chain in ONE_BOUNCE_CHAINS and self.device not in (None, "numba")
+        e, s = self._pairs(e, s, on_device)
+        if on_device:
             t0 = time.perf_counter()
             report = SolveReport(solver=self.solver.name, chain=self.chain, tuples=e.size)
             index = self.solver._opencl_device(self.device, self.chain, report)
@@ -233,7 +238,7 @@ class TupleTable:
                     self._table = one_bounce_table(index, self.x_start, self.P, self.N, self.eta, self.x_end)
                 self.device_name = report.device
                 t1 = time.perf_counter()
-                tuple_index, uv, totals, ordered = solve_one_bounce_pairs(index, self.chain == "T", self._table, e, s, checked=True)
+                tuple_index, uv, totals, ordered = solve_one_bounce_pairs(index, self.chain == "T", self._table, e, s)
                 t2 = time.perf_counter()
                 if not ordered:
                     tuple_index, uv = canonical_order(tuple_index, uv, e.size)

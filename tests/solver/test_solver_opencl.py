@@ -246,3 +246,26 @@ def test_pair_table_on_the_device_returns_the_numba_paths(chain, stages, monkeyp
     assert ok.report.paths == numba.solve(np.arange(n), np.arange(n)).report.paths
     with pytest.raises(ValueError, match="of one shape"):
         device.solve(np.array([0, 1]), np.array([0]))
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("stages", ["1", "2"])
+def test_opencl_grazing_refractions_match_numba(stages, monkeypatch):
+    """T at grazing incidence and near the critical angle, endpoints close to large triangles
+    (tests/reference/grazing.py): the kernel interpolates the resultant at Chebyshev nodes as
+    the Numba solver does (the symbolic expansion cancels there), so it returns the same
+    paths, every planted one among them."""
+    from reference.grazing import make_grazing
+    from reference.truth import match_paths
+
+    monkeypatch.setenv("CAUSTIC_OPENCL_STAGES", stages)
+    index = opencl_device_or_skip()
+    d = make_grazing(12_000)
+    n = len(d["x0"])
+    args = (d["x0"], d["x2"], d["P"], d["N"], d["eta"])
+    numba = SpecularPolynomialSolver().solve("T", *args)
+    ocl = SpecularPolynomialSolver().solve("T", *args, device=f"opencl:{index}")
+    np.testing.assert_array_equal(ocl.tuple_index, numba.tuple_index)
+    np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
+    found = match_paths(np.arange(n), d["uv"], ocl.tuple_index, ocl.uv) >= 0
+    assert found.mean() >= 0.9999, f"{int((~found).sum())} planted paths missed of {n}"

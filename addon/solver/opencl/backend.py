@@ -150,6 +150,11 @@ class _Device:
     def _build(self, path):
         with open(path) as f:
             source = f.read()
+        if "// @NODE_TABLES@" in source:
+            lines = source.split("\n")
+            at = next(i for i, line in enumerate(lines) if line.startswith("// @NODE_TABLES@"))
+            lines[at] = _node_tables()
+            source = "\n".join(lines)
         return self.cl.Program(self.ctx, source).build(options=["-cl-std=CL1.2"])
 
     def work_group(self, kernel):
@@ -220,6 +225,20 @@ class _Device:
     def host(self, stage, seconds):
         if self.profiler is not None:
             self.profiler.host_time(stage, seconds)
+
+
+def _node_tables():
+    """The one-bounce solver's Chebyshev nodes and node-values-to-Bernstein matrices
+    (``spoly.one_bounce``) as OpenCL constants, written as hexadecimal floats so that the
+    device computes with the very same doubles."""
+    from ..spoly.one_bounce import NODES_R, NODES_T, TO_BERNSTEIN_R, TO_BERNSTEIN_T
+
+    def table(name, values):
+        flat = np.ascontiguousarray(values, dtype=np.float64).ravel()
+        return f"__constant double {name}[{flat.size}] = {{" + ", ".join(float(x).hex() for x in flat) + "};"
+
+    return "\n".join(table(name, values) for name, values in (("NODES_R", NODES_R), ("TO_BERNSTEIN_R", TO_BERNSTEIN_R),
+                                                                ("NODES_T", NODES_T), ("TO_BERNSTEIN_T", TO_BERNSTEIN_T)))
 
 
 def _context(index):

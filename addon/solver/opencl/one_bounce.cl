@@ -2,12 +2,12 @@
 // addon/solver/one_bounce.py, roots.py and path_space.py (Fan et al. 2024, eq 6, 10, 13,
 // 28-31), so both back ends return the same paths.  One work-item per tuple; all scratch is
 // private and fixed-size.  Double precision (cl_khr_fp64) is required.
-// Not yet ported: for T the Numba solver evaluates the resultant at Chebyshev nodes and
-// interpolates it (piecewise where it spans > 1e6, spoly/one_bounce.py); this kernel still
-// expands it symbolically, and can miss grazing refractions with an endpoint close to a large
-// triangle that the Numba solver finds (tests/solver/test_solver_grazing.py is Numba only).
+// R expands the resultant symbolically; T evaluates it at Chebyshev nodes and interpolates it
+// (piecewise where its values span more than 1e6), as spoly/one_bounce.py does; the node tables
+// (NODES_R, TO_BERNSTEIN_R, NODES_T, TO_BERNSTEIN_T) are the solver's own, prepended by the host.
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
+// @NODE_TABLES@ (replaced by the host: __constant double NODES_R[9], TO_BERNSTEIN_R[81], NODES_T[13], TO_BERNSTEIN_T[169])
 
 #define MAXD 12            // degree of the one-bounce resultant at most
 #define UNI 14             // univariate scratch width: the resultant's degree MAXD + 1, and a spare
@@ -29,6 +29,11 @@
 #define SETTLED_STEP 1e-9
 #define FOLD_RATIO 1e-4
 #define SWITCH_RATIO 0.1
+#define DYNAMIC_RANGE 1e-6  // node values spanning more than this: interpolate the resultant piecewise
+#define SPLIT 4             // pieces per level of that refinement
+#define SPLIT_DEPTH 2       // levels at most (16 pieces)
+#define PIECE_STACK 8       // pieces pending at most: 1 + (SPLIT - 1) * SPLIT_DEPTH
+#define MAX_V_ROOTS 25      // v roots kept per system (one_bounce.py's root_buf width)
 
 typedef double3 vec;
 
@@ -220,6 +225,130 @@ static int roots_in_unit_interval(const double *coeffs, int degree, double tol, 
     return n_out;
 }
 
+// ---------------------------------------------------------------- roots of a Bernstein form
+// roots.py bernstein_weights: w[k] = C(deg, k) b[k], dw[k] = deg C(deg - 1, k) (b[k+1] - b[k]).
+static void bernstein_weights(const double *b, int deg, double *w, double *dw) {
+    double binom = 1.0;
+    for (int k = 0; k <= deg; ++k) { w[k] = binom * b[k]; binom = binom * (deg - k) / (k + 1); }
+    binom = (double)deg;
+    for (int k = 0; k < deg; ++k) { dw[k] = binom * (b[k + 1] - b[k]); binom = binom * (deg - 1 - k) / (k + 1); }
+}
+
+// roots.py bernstein_value_and_derivative: Horner in x / (1 - x) or (1 - x) / x, scaled back.
+static double2 bernstein_value_and_derivative(const double *w, const double *dw, int deg, double x) {
+    double s = 1.0 - x, t, f, df, base;
+    if (x <= 0.5) {
+        t = x / s; f = w[deg]; df = dw[deg - 1];
+        for (int k = deg - 1; k >= 0; --k) f = f * t + w[k];
+        for (int k = deg - 2; k >= 0; --k) df = df * t + dw[k];
+        base = s;
+    } else {
+        t = s / x; f = w[0]; df = dw[0];
+        for (int k = 1; k <= deg; ++k) f = f * t + w[k];
+        for (int k = 1; k < deg; ++k) df = df * t + dw[k];
+        base = x;
+    }
+    double p = 1.0;
+    for (int i = 0; i < deg - 1; ++i) p *= base;
+    return (double2)(f * p * base, df * p);
+}
+
+// roots.py _solve_monotone_bernstein
+static double solve_monotone_bernstein(const double *w, const double *dw, int deg, double a, double c, double fa,
+                                       double fc, double tol) {
+    double x = a - fa * (c - a) / (fc - fa);
+    if (!(x > a && x < c)) x = 0.5 * (a + c);
+    int neg_a = fa < 0.0;
+    for (int it = 0; it < NEWTON_ITERATIONS; ++it) {
+        double2 fd = bernstein_value_and_derivative(w, dw, deg, x);
+        double f = fd.x, df = fd.y;
+        if (f == 0.0) return x;
+        if ((f < 0.0) == neg_a) a = x; else c = x;
+        double xn = (df != 0.0) ? x - f / df : 0.5 * (a + c);
+        if (!(xn > a && xn < c)) xn = 0.5 * (a + c);
+        if (fabs(xn - x) <= tol || c - a <= tol) return xn;
+        x = xn;
+    }
+    return x;
+}
+
+// roots.py roots_in_unit_interval_bernstein: the isolation of roots_in_unit_interval started
+// from Bernstein coefficients bern[0..deg] (Newton on the Bernstein form; pieces still ambiguous
+// after DEPTH halvings go to the derivative isolation on the power form, written to `power`).
+static int roots_in_unit_interval_bernstein(const double *bern, int deg, double tol, double touch,
+                                            double chain[MAXD + 1][MAXD + 1], double *critical, double *found,
+                                            double stack[STACK + 1][MAXD + 4], double *power, double *out) {
+    double scale = 0.0;
+    for (int k = 0; k <= deg; ++k) scale = fmax(scale, fabs(bern[k]));
+    if (scale == 0.0 || !isfinite(scale)) return 0;
+    double inv = 1.0 / scale;
+    double *top_row = stack[0];
+    for (int k = 0; k <= deg; ++k) top_row[k] = bern[k] * inv;
+    double *src = stack[STACK - 1], *src_w = stack[STACK - 2], *src_dw = stack[STACK - 3], *work = stack[STACK];
+    for (int k = 0; k <= deg; ++k) src[k] = top_row[k];
+    int have_weights = 0, have_power = 0;
+    int meta = deg + 1;
+    top_row[meta] = 0.0; top_row[meta + 1] = 1.0; top_row[meta + 2] = 0.0;
+    int top = 1, n_out = 0;
+    double piece[MAXD + 1];
+    while (top > 0) {
+        top--;
+        double *row = stack[top];
+        double lo = row[meta], hi = row[meta + 1], depth = row[meta + 2];
+        int changes = sign_changes(row, deg, touch);
+        if (changes == 0) {
+            double closest = fabs(row[0]);
+            for (int k = 1; k <= deg; ++k) closest = fmin(closest, fabs(row[k]));
+            if (closest > NEAR_TOUCH) continue;
+            changes = 2;
+            depth = DEPTH;
+        }
+        if (changes == 1) {
+            double fa = row[0], fb = row[deg];
+            if (fa != 0.0 && fb != 0.0 && ((fa < 0.0) != (fb < 0.0))) {
+                if (!have_weights) { bernstein_weights(src, deg, src_w, src_dw); have_weights = 1; }
+                double x = solve_monotone_bernstein(src_w, src_dw, deg, lo, hi, fa, fb, tol);
+                if (n_out == 0 || x - out[n_out - 1] > tol) out[n_out++] = x;
+                continue;
+            }
+        }
+        if (depth >= DEPTH) {
+            if (!have_power) {
+                double binom_deg = 1.0;
+                for (int i = 0; i <= deg; ++i) {
+                    double acc = 0.0, binom = 1.0;
+                    for (int k = 0; k <= i; ++k) {
+                        double sign = ((i - k) % 2 == 0) ? 1.0 : -1.0;
+                        acc += sign * binom * src[k];
+                        binom = binom * (i - k) / (k + 1);
+                    }
+                    power[i] = binom_deg * acc;
+                    binom_deg = binom_deg * (deg - i) / (i + 1);
+                }
+                have_power = 1;
+            }
+            int n_piece = roots_in_interval(power, deg, lo, hi, tol, touch, chain, critical, found, piece);
+            for (int j = 0; j < n_piece; ++j)
+                if (n_out == 0 || piece[j] - out[n_out - 1] > tol) out[n_out++] = piece[j];
+            continue;
+        }
+        for (int i = 0; i <= deg; ++i) work[i] = row[i];
+        double *left = stack[top + 1];
+        left[0] = work[0];
+        row[deg] = work[deg];
+        for (int r = 1; r <= deg; ++r) {
+            for (int i = 0; i <= deg - r; ++i) work[i] = 0.5 * (work[i] + work[i + 1]);
+            left[r] = work[0];
+            row[deg - r] = work[deg - r];
+        }
+        double mid = 0.5 * (lo + hi);
+        left[meta] = lo; left[meta + 1] = mid; left[meta + 2] = depth + 1.0;
+        row[meta] = mid; row[meta + 1] = hi; row[meta + 2] = depth + 1.0;
+        top += 2;
+    }
+    return n_out;
+}
+
 // ---------------------------------------------------------------- bivariate polynomials
 // A bivariate polynomial of total degree d in (u, v), stored densely by rows: the coefficient of
 // u^i v^j (i + j <= d) at p[i * (d + 1) + j], so a degree-2 polynomial takes 9 doubles and a
@@ -310,6 +439,99 @@ static int resultant_quadratic_in_u(const double *a, const double *b, int nb, in
     }
     for (int k = 0; k <= acc_deg; ++k) out[k] = acc[k];
     return acc_deg;
+}
+
+// one_bounce.py resultant_at: Res_u(a, b) at one v from the u-roots of a (q = -(a1 + sign(a1)
+// sqrt(disc)) / 2; complex roots: a2^nb |b(rho)|^2); bv receives b_i(v), i = 0..nb.
+static double resultant_at(const double *a, const double *b, int nb, int tb, double v, double *bv) {
+    double a2 = BI(a, 2, 2, 0);
+    double a1 = BI(a, 2, 1, 0) + BI(a, 2, 1, 1) * v;
+    double a0 = BI(a, 2, 0, 0) + (BI(a, 2, 0, 1) + BI(a, 2, 0, 2) * v) * v;
+    for (int i = 0; i <= nb; ++i) {
+        double acc = 0.0;
+        for (int j = tb - i; j >= 0; --j) acc = acc * v + BI(b, tb, i, j);
+        bv[i] = acc;
+    }
+    double disc = a1 * a1 - 4.0 * a2 * a0;
+    if (disc >= 0.0) {
+        double q = -0.5 * (a1 + copysign(sqrt(disc), a1));
+        if (q == 0.0) {
+            if (a2 != 0.0) return ipow(a2, nb) * bv[0] * bv[0];
+            return ipow(a0, nb) * bv[nb] * bv[nb];
+        }
+        double far = bv[nb], p = 1.0;
+        for (int i = nb - 1; i >= 0; --i) { p *= a2; far = far * q + bv[i] * p; }
+        double rho = a0 / q, near = bv[nb];
+        for (int i = nb - 1; i >= 0; --i) near = near * rho + bv[i];
+        return far * near;
+    }
+    double sa = sqrt(fabs(a2));
+    double zr = -a1 / (2.0 * a2) * sa, zi = sqrt(-disc) / (2.0 * a2) * sa;
+    double ar = bv[nb], ai = 0.0, p = 1.0;
+    for (int i = nb - 1; i >= 0; --i) {
+        p *= sa;
+        double nr = ar * zr - ai * zi + bv[i] * p, ni = ar * zi + ai * zr;
+        ar = nr; ai = ni;
+    }
+    double val = ar * ar + ai * ai;
+    if (a2 < 0.0 && nb % 2 == 1) val = -val;
+    return val;
+}
+
+// one_bounce.py resultant_bernstein: Bernstein coefficients on s in [0, 1] of
+// Res_u(a, b)(origin + width s) from its values at the Chebyshev nodes (NODES_*, TO_BERNSTEIN_*:
+// the solver's own tables, prepended to this source by the host); returns the degree 2 tb.
+static int resultant_bernstein(const double *a, const double *b, int nb, int tb, double origin, double width,
+                               double *bv, double *values, double *out) {
+    int deg = 2 * tb;
+    __constant const double *nodes = tb == 4 ? NODES_R : NODES_T;
+    __constant const double *to_bernstein = tb == 4 ? TO_BERNSTEIN_R : TO_BERNSTEIN_T;
+    for (int k = 0; k <= deg; ++k) values[k] = resultant_at(a, b, nb, tb, origin + width * nodes[k], bv);
+    for (int i = 0; i <= deg; ++i) {
+        double acc = 0.0;
+        for (int k = 0; k <= deg; ++k) acc += to_bernstein[i * (deg + 1) + k] * values[k];
+        out[i] = acc;
+    }
+    return deg;
+}
+
+// one_bounce.py _resultant_v_roots: roots in v in [-V_MARGIN, 1 + V_MARGIN] of Res_u(a, b),
+// ascending: one interpolant over the range, cut in SPLIT pieces (down to SPLIT_DEPTH levels)
+// where the node values span more than DYNAMIC_RANGE.
+static int resultant_v_roots(const double *a, const double *b, int nb, int tb, double chain[MAXD + 1][MAXD + 1],
+                             double *critical, double *found, double stack[STACK + 1][MAXD + 4], double *v_roots) {
+    double bv[7], values[MAXD + 1], res[MAXD + 1], power[MAXD + 1], piece_roots[MAXD + 1];
+    double piece_lo[PIECE_STACK], piece_hi[PIECE_STACK];
+    int piece_depth[PIECE_STACK];
+    piece_lo[0] = -V_MARGIN; piece_hi[0] = 1.0 + V_MARGIN; piece_depth[0] = 0;
+    int top = 1, n_v = 0;
+    while (top > 0) {
+        top--;
+        double lo = piece_lo[top], hi = piece_hi[top];
+        int depth = piece_depth[top];
+        int deg_r = resultant_bernstein(a, b, nb, tb, lo, hi - lo, bv, values, res);
+        if (depth < SPLIT_DEPTH) {
+            double big = 0.0, small = INFINITY;
+            for (int k = 0; k <= deg_r; ++k) { big = fmax(big, fabs(values[k])); small = fmin(small, fabs(values[k])); }
+            if (small < DYNAMIC_RANGE * big) {
+                for (int j = SPLIT - 1; j >= 0; --j) {  // pushed right to left: they come off in ascending order
+                    piece_lo[top] = lo + (hi - lo) * j / SPLIT;
+                    piece_hi[top] = lo + (hi - lo) * (j + 1) / SPLIT;
+                    piece_depth[top] = depth + 1;
+                    top++;
+                }
+                continue;
+            }
+        }
+        int n_piece = roots_in_unit_interval_bernstein(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, critical,
+                                                       found, stack, power, piece_roots);
+        for (int j = 0; j < n_piece; ++j) {
+            double v = lo + (hi - lo) * piece_roots[j];
+            if (n_v > 0 && v - v_roots[n_v - 1] <= ROOT_X_TOLERANCE) continue;  // the same root at a piece boundary
+            if (n_v < MAX_V_ROOTS) v_roots[n_v++] = v;
+        }
+    }
+    return n_v;
 }
 
 static void shift_to_unit_interval(double *c, int deg, double origin, double width) {
@@ -513,16 +735,25 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
         for (int j = 0; j <= total_b - nb; ++j) BI(b_poly, total_b, nb, j) = 0.0;
         nb--;
     }
-    double res[UNI];
-    int deg_r;
-    if (nb == 0) { deg_r = total_b; for (int k = 0; k <= deg_r; ++k) res[k] = BI(b_poly, total_b, 0, k); }
-    else deg_r = resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, res);
     double chain[MAXD + 1][MAXD + 1];
     double stack[STACK + 1][MAXD + 4];
-    shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN);
-    double v_roots[MAXD + 1], critical[MAXD + 1], found[MAXD + 1];
-    int n_v = roots_in_unit_interval(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, critical, found, stack, v_roots);
-    for (int iv = 0; iv < n_v; ++iv) v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv];
+    double v_roots[MAX_V_ROOTS], critical[MAXD + 1], found[MAXD + 1];
+    int n_v;
+    if (nb == 0 || !T->refract) {
+        // b free of u: its own roots in v; R: the product form keeps the resultant's dynamic range
+        // small, and the symbolic expansion (power basis) is the cheaper route there
+        double res[UNI];
+        int deg_r;
+        if (nb == 0) { deg_r = total_b; for (int k = 0; k <= deg_r; ++k) res[k] = BI(b_poly, total_b, 0, k); }
+        else deg_r = resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, res);
+        shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN);
+        n_v = roots_in_unit_interval(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, critical, found, stack, v_roots);
+        for (int iv = 0; iv < n_v; ++iv) v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv];
+    } else {
+        // T: the resultant from its values at the Chebyshev nodes (the square form's expansion
+        // cancels where b is small along the conic next to a path: grazing refractions)
+        n_v = resultant_v_roots(a_poly, b_poly, nb, total_b, chain, critical, found, stack, v_roots);
+    }
     *n_roots += n_v;
     double u_roots[MAXD + 1], b_at_v[MAXD + 1];
     for (int iv = 0; iv < n_v; ++iv) {

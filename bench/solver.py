@@ -184,19 +184,26 @@ def main():
 
 def opencl_lines(opencl_rows, threads_all, args):
     """The Numba-against-OpenCL table (markdown lines)."""
+    two = (f"RR, RT, TR, TT: {args.two_bounce_tuples:,}, 100 pieces" if args.two_bounce_tuples > 0
+           else "two bounces not run (--two-bounce-tuples 0)")
     lines = [f"Numba against the OpenCL back end (`device=\"opencl\"`), same tuples, same paths required "
-             f"(R, T: {args.tuples:,} tuples per row; RR, RT, TR, TT: {args.two_bounce_tuples:,}, 100 pieces; "
-             f"best of {args.repeats}; date {time.strftime('%Y-%m-%d')}):", ""]
+             f"(R, T: {args.tuples:,} tuples per row; {two}; best of {args.repeats}; date {time.strftime('%Y-%m-%d')}):", ""]
     if isinstance(opencl_rows, str):
         lines.append(opencl_rows)
         return lines
     lines.append(f"| chain | workload | Numba {threads_all} threads (µs/tuple) | OpenCL (µs/tuple) | OpenCL / Numba | device | same paths | determinants Numba / OpenCL |")
     lines.append("|---|---|---|---|---|---|---|---|")
     for r in opencl_rows:
-        digits = 3 if r["numba"] < 100 else 0
+        digits = (4 if r["opencl"] < 0.01 else 3) if r["numba"] < 100 else 0
         dets = f"{r['dets_numba']:,} / {r['dets_opencl']:,}" if "dets_numba" in r else "—"
         lines.append(f"| {r['chain']} | {r['workload']} | {r['numba']:.{digits}f} | {r['opencl']:.{digits}f} | "
                      f"{r['opencl'] / r['numba']:.2f}× | {r['device']} | {r['same']} | {dets} |")
+    lines.append("")
+    lines.append("\"pairs\" rows: the tuples as int32 (emitter, point) index pairs over tables kept on the device "
+                 "(`spoly.api.TupleTable`, as the bake's path-points pass sends them; the table's upload, once per light "
+                 "sample and chain, is not timed); Numba is timed on the gathered tuples. On GPUs the one-bounce kernel "
+                 "runs as a filter stage, prefix sums, a solve over the surviving tuples and a gather in canonical order "
+                 "(`bench/opencl_shapes.py` compares the launch shapes: bench/results/opencl_shapes_{cpu,gpu}.md).")
     lines.append("")
     lines.append("Two bounces on OpenCL: systems built and paths polished on Numba, the Bézout determinants, "
                  "Illinois brackets and refinement sub-samples on the device (`addon/solver/spoly/two_bounce/staged.py`); "

@@ -244,8 +244,11 @@ def test_pair_table_on_the_device_returns_the_numba_paths(chain, stages, monkeyp
             device.solve(np.array([-1, 1], dtype=ints), np.array([1, 2], dtype=ints))
     ok = device.solve(np.arange(n, dtype=np.int32), np.arange(n, dtype=np.int32))  # the device still serves
     assert ok.report.paths == numba.solve(np.arange(n), np.arange(n)).report.paths
-    with pytest.raises(ValueError, match="of one shape"):
-        device.solve(np.array([0, 1]), np.array([0]))
+    with pytest.raises(IndexError, match="outside the table"):
+        numba.solve(np.array([0, 1]), np.array([1, -1]))  # on the host: a negative index must not wrap
+    for bad in ((np.array([0, 1]), np.array([0])), (np.array([0.0]), np.array([0.0]))):
+        with pytest.raises(ValueError, match="integer index arrays of one shape"):
+            device.solve(*bad)
 
 
 @pytest.mark.opencl

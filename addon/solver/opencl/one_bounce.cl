@@ -13,7 +13,14 @@
 #define UNI 14             // univariate scratch width: the resultant's degree MAXD + 1, and a spare
 #define UNI_ROWS 14        // rows of the resultant's scratch: power sums 0..6 and seven work rows
 #define DEPTH 5            // Bernstein halvings before derivative isolation
-#define STACK (2 * DEPTH + 4)
+// Rows of the Bernstein subdivision stack: a depth-first halving holds at most DEPTH + 1 rows
+// (rows 0..DEPTH; one spare), then the rows at STACK - 3 .. STACK (derivative weights, weights,
+// the whole-interval form, the de Casteljau work row).
+#define STACK (DEPTH + 5)
+// The derivative chain of roots_in_interval, stored by rows of growing length: row k (the
+// degree-k derivative level, k + 1 coefficients) starts at k (k + 1) / 2.
+#define CHAIN_SIZE ((MAXD + 1) * (MAXD + 2) / 2)
+#define CH(k) (chain + (k) * ((k) + 1) / 2)
 #define NEWTON_ITERATIONS 64
 #define POLISH_STEPS 40
 #define V_MARGIN 1e-6
@@ -107,7 +114,7 @@ static int quadratic_roots_in(double c0, double c1, double c2, double lo, double
 
 // Yuksel 2022: derivative isolation + safeguarded Newton (roots.roots_in_interval).
 static int roots_in_interval(const double *coeffs, int degree, double lo, double hi, double tol, double touch,
-                             double chain[MAXD + 1][MAXD + 1], double *critical, double *found, double *out) {
+                             double *chain, double *critical, double *found, double *out) {
     double scale = fmax(fmax(fabs(lo), fabs(hi)), 1.0), norm = 0.0, p = 1.0;
     for (int i = 0; i <= degree; ++i) { norm = fmax(norm, fabs(coeffs[i]) * p); p *= scale; }
     if (norm == 0.0 || !isfinite(norm)) return 0;
@@ -116,13 +123,13 @@ static int roots_in_interval(const double *coeffs, int degree, double lo, double
     while (deg > 0 && fabs(coeffs[deg]) * p <= 1e-15 * norm) { deg--; p /= scale; }
     if (deg == 0) return 0;
     double inv = 1.0 / norm;
-    for (int i = 0; i <= deg; ++i) chain[deg][i] = coeffs[i] * inv;
-    if (deg <= 2) return quadratic_roots_in(chain[deg][0], chain[deg][1], deg == 2 ? chain[deg][2] : 0.0, lo, hi, out);
+    for (int i = 0; i <= deg; ++i) CH(deg)[i] = coeffs[i] * inv;
+    if (deg <= 2) return quadratic_roots_in(CH(deg)[0], CH(deg)[1], deg == 2 ? CH(deg)[2] : 0.0, lo, hi, out);
     for (int k = deg; k > 2; --k)
-        for (int i = 0; i < k; ++i) chain[k - 1][i] = chain[k][i + 1] * (i + 1) / k;
-    int n_critical = quadratic_roots_in(chain[2][0], chain[2][1], chain[2][2], lo, hi, critical);
+        for (int i = 0; i < k; ++i) CH(k - 1)[i] = CH(k)[i + 1] * (i + 1) / k;
+    int n_critical = quadratic_roots_in(CH(2)[0], CH(2)[1], CH(2)[2], lo, hi, critical);
     for (int k = 3; k <= deg; ++k) {
-        const double *c = chain[k];
+        const double *c = CH(k);
         int n_found = 0;
         double a = lo, fa = horner(c, k, a);
         for (int j = 0; j <= n_critical; ++j) {
@@ -159,7 +166,7 @@ static int sign_changes(const double *b, int deg, double zero_level) {
 
 // Descartes/Bernstein isolation with de Casteljau halving (roots.roots_in_unit_interval).
 static int roots_in_unit_interval(const double *coeffs, int degree, double tol, double touch,
-                                  double chain[MAXD + 1][MAXD + 1], double *critical, double *found,
+                                  double *chain, double *critical, double *found,
                                   double stack[STACK + 1][MAXD + 4], double *out) {
     double norm = 0.0;
     for (int i = 0; i <= degree; ++i) norm = fmax(norm, fabs(coeffs[i]));
@@ -276,7 +283,7 @@ static double solve_monotone_bernstein(const double *w, const double *dw, int de
 // from Bernstein coefficients bern[0..deg] (Newton on the Bernstein form; pieces still ambiguous
 // after DEPTH halvings go to the derivative isolation on the power form, written to `power`).
 static int roots_in_unit_interval_bernstein(const double *bern, int deg, double tol, double touch,
-                                            double chain[MAXD + 1][MAXD + 1], double *critical, double *found,
+                                            double *chain, double *critical, double *found,
                                             double stack[STACK + 1][MAXD + 4], double *power, double *out) {
     double scale = 0.0;
     for (int k = 0; k <= deg; ++k) scale = fmax(scale, fabs(bern[k]));
@@ -498,7 +505,7 @@ static int resultant_bernstein(const double *a, const double *b, int nb, int tb,
 // one_bounce.py _resultant_v_roots: roots in v in [-V_MARGIN, 1 + V_MARGIN] of Res_u(a, b),
 // ascending: one interpolant over the range, cut in SPLIT pieces (down to SPLIT_DEPTH levels)
 // where the node values span more than DYNAMIC_RANGE.
-static int resultant_v_roots(const double *a, const double *b, int nb, int tb, double chain[MAXD + 1][MAXD + 1],
+static int resultant_v_roots(const double *a, const double *b, int nb, int tb, double *chain,
                              double *critical, double *found, double stack[STACK + 1][MAXD + 4], double *v_roots) {
     double bv[7], values[MAXD + 1], res[MAXD + 1], power[MAXD + 1], piece_roots[MAXD + 1];
     double piece_lo[PIECE_STACK], piece_hi[PIECE_STACK];
@@ -735,7 +742,7 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
         for (int j = 0; j <= total_b - nb; ++j) BI(b_poly, total_b, nb, j) = 0.0;
         nb--;
     }
-    double chain[MAXD + 1][MAXD + 1];
+    double chain[CHAIN_SIZE];
     double stack[STACK + 1][MAXD + 4];
     double v_roots[MAX_V_ROOTS], critical[MAXD + 1], found[MAXD + 1];
     int n_v;

@@ -74,6 +74,8 @@ class ForwardFlux(Estimator):
                 self.flux_fn(ctx, item, state, ls, m, flux)
                 ctx.timer.add("flux", time.perf_counter() - t0)
                 report = _add_report(report, state.report)
+                if state.report["device"] != "numba":
+                    self.device = state.report["device"] + " (tracing)"
                 yield (p + done / count) / len(passes), f"{where}, casters {done}/{count}"
                 t0 = time.perf_counter()
             ctx.timer.add("image", time.perf_counter() - t0)
@@ -102,7 +104,7 @@ def _add_report(total, chunk):
             a, b = list(total[k]), list(v)
             n = max(len(a), len(b))
             out[k] = [(a[i] if i < len(a) else 0) + (b[i] if i < len(b) else 0) for i in range(n)]
-        elif k != "reach":
+        elif k not in ("reach", "device"):
             out[k] = total[k] + v
     out["chunks"] = total["chunks"] + 1
     return out

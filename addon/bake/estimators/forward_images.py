@@ -10,6 +10,7 @@ half a texel (:func:`prepare`), once per light sample and chain, for every recei
 
 import math
 import time
+import warnings
 
 import numpy as np
 
@@ -57,7 +58,7 @@ def _bvh_args(bvh):
 
 
 def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False, only=None,
-            coarse=0, shared=True, triangle_arrays=None):
+            coarse=0, shared=True, triangle_arrays=None, device="numba"):
     """Refine the sub-triangles of the emitters (first triangles ``emit_tri`` lit from ``x0``)
     for ``chain`` (one or two vertices; "seeded" needs two); ``second`` the global ids of
     the chain's second-vertex casters (ignored for one vertex); ``receivers`` the receivers at
@@ -66,7 +67,9 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     the chain is baked onto (None: all); ``coarse`` levels above the first grid where small
     images may stop and ``shared`` whether points shared by sub-triangles are traced once
     (:func:`refine_image_triangles`); ``triangle_arrays`` :func:`scene_arrays` of these
-    arguments when the caller has them (a chunk of casters).  Returns an ImageState."""
+    arguments when the caller has them (a chunk of casters); ``device`` "opencl[:N]" traces
+    the points on that OpenCL device (the same points as Numba; without pyopencl or a device
+    it warns and uses Numba).  Returns an ImageState, ``report["device"]`` where it traced."""
     t0 = time.perf_counter()
     tri_rec, tri_uv, second_ok = triangle_arrays or scene_arrays(scene, receivers, second, only)
     refract1, refract2 = chain[0] == "T", chain[-1] == "T"
@@ -79,6 +82,8 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     tri_role = np.ascontiguousarray(scene.tri_role, dtype=np.int64)
     bvh_args = _bvh_args(bvh)
     clock = [0.0]  # seconds inside the tracing kernel (reported as trace_seconds)
+    tracer = _device_tracer(device, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
+                            tri_role, bvh_args, x0, emit_tri, eps)
 
     def trace(e, u, v):
         """(second triangle, receiver triangle, UV, transport factor) of the points."""
@@ -88,7 +93,9 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
         rec = np.empty(m, dtype=np.int64)
         uv = np.empty((m, 2))
         fac = np.empty(m)
-        if m:
+        if m and tracer is not None:
+            tracer.trace(e, u, v, t2, rec, uv, fac)
+        elif m:
             trace_chain_points(np.ascontiguousarray(e), np.ascontiguousarray(u), np.ascontiguousarray(v), x0, emit_tri,
                                bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *bvh_args,
                                float(eps), t2, rec, uv, fac)
@@ -114,8 +121,25 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
                   tri_ior=tri_ior, tri_role=tri_role, bvh=bvh_args, eps=float(eps), trace=trace)
     report = {"emitters": int(emit_tri.size), "points_traced": int(tris["traced"]), "sub_triangles": int(r.size),
               "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "border": int(tris["border"]), "final_per_depth": tris["final_per_depth"],
-              "seconds": time.perf_counter() - t0, "trace_seconds": clock[0]}
+              "seconds": time.perf_counter() - t0, "trace_seconds": clock[0],
+              "device": "opencl: " + tracer.name if tracer is not None else "numba"}
     return ImageState(chain, emit_tri, x0, tris, arrays, report)
+
+
+def _device_tracer(device, *args):
+    """An OpenCLPointTracer of the pass's scene on ``device`` ("opencl" / "opencl:N"), or None
+    for Numba (also, with a warning, when pyopencl or the device is missing)."""
+    if device in (None, "numba"):
+        return None
+    from ...solver.opencl.backend import OpenCLUnavailable, parse_device
+
+    try:
+        from ...solver.opencl.tracing import OpenCLPointTracer
+
+        return OpenCLPointTracer(parse_device(device), *args)
+    except OpenCLUnavailable as ex:
+        warnings.warn(f"OpenCL unavailable ({ex}); tracing on Numba instead", RuntimeWarning, stacklevel=3)
+        return None
 
 
 def _small_casters(P, tri_p, receivers, only):
@@ -220,7 +244,8 @@ def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared
     for a, b in caster_chunks(work, max_work, max_casters):
         state = prepare(ctx.scene, ctx.bvh, ctx.eps, item.chain, emit_tri[a:b], x0[a:b], second, ctx.receivers,
                         max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun",
-                        only=item.receivers, coarse=coarse, shared=shared, triangle_arrays=arrays)
+                        only=item.receivers, coarse=coarse, shared=shared, triangle_arrays=arrays,
+                        device=ctx.settings.device)
         if a == 0:
             state.report["reach"] = reach_report
         yield state, b, n

@@ -1,0 +1,104 @@
+"""Forward-flux bakes with the points traced on Numba and on an OpenCL device, side by side.
+
+    OCL_ICD_VENDORS=... python bench/flux_device.py [--resolutions 512,1024] [--frames 2] [--device N] [--no-write]
+
+The scene: ``tests/fixtures/bake_scenes.wavy_sheet``, the 115,200-triangle water sheet under a
+point light (bench/animation.py's sheet cases; no Blender needed).  Per resolution: one
+warm-up bake per back end (Numba compile or cache load, OpenCL program build), then --frames
+frames each, Numba (all threads) and ``device="opencl:N"`` alternating in the same process;
+reported: seconds per frame of ``bake()``, the seconds inside the tracing calls (``image.trace``
++ ``flux.trace``: the part the device takes over) and the rest, and whether the textures are
+identical (the tracing kernel is Numba's step for step).  Writes the "flux-device" section of
+BENCHMARKS.md, one block per kind of device (CPU / GPU), unless --no-write.
+"""
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path[:0] = [ROOT, HERE, os.path.join(ROOT, "tests")]
+
+
+def bake_frame(scene, res, device):
+    from addon.bake.pipeline import BakeSettings, bake
+
+    t0 = time.perf_counter()
+    out = bake(scene, BakeSettings(resolution=res, estimator="forward-flux", device=device))
+    wall = time.perf_counter() - t0
+    timings = out.report["timings"]
+    trace = timings.get("image.trace", 0.0) + timings.get("flux.trace", 0.0)
+    return wall, trace, out
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--resolutions", default="512,1024")
+    parser.add_argument("--frames", type=int, default=2)
+    parser.add_argument("--device", type=int, default=None)
+    parser.add_argument("--no-write", action="store_true")
+    args = parser.parse_args()
+
+    from addon.solver.opencl import backend
+    from addon.solver.runtime import jit
+    from fixtures.bake_scenes import wavy_sheet
+    from solver import write_block, write_section
+
+    devices = [d for d in backend.list_devices() if d[3]]
+    index = args.device if args.device is not None else int(os.environ.get("OPENCL_DEVICE", devices[0][0]))
+    d = backend._context(index)
+    device = f"opencl:{index}"
+    threads = jit.get_num_threads()
+    rows = []
+    for res in (int(r) for r in args.resolutions.split(",")):
+        bake_frame(wavy_sheet(0, res), res, "numba")
+        bake_frame(wavy_sheet(0, res), res, device)
+        acc = {"numba": [], device: []}
+        same = True
+        for f in range(1, args.frames + 1):
+            scene = wavy_sheet(f, res)
+            a = bake_frame(scene, res, "numba")
+            b = bake_frame(scene, res, device)
+            acc["numba"].append(a[:2])
+            acc[device].append(b[:2])
+            same &= all(np.array_equal(a[2].images[k], b[2].images[k]) for k in a[2].images)
+        row = dict(res=res, same="yes" if same else "NO")
+        for key, vals in acc.items():
+            row[key] = (float(np.mean([v[0] for v in vals])), float(np.mean([v[1] for v in vals])))
+        rows.append(row)
+        print(line(row, device), flush=True)
+    kind = "cpu" if d.is_cpu else "gpu"
+    lines = [f"Device {index}: **{d.label}** ({'CPU' if d.is_cpu else 'GPU/accelerator'}, {d.dev.max_compute_units} compute "
+             f"units); host {platform.machine()}, {os.cpu_count()} cores, Numba {threads} threads, Python "
+             f"{platform.python_version()}; mean of {args.frames} frames after a warm-up bake each; date {time.strftime('%Y-%m-%d')}.",
+             "", "| scene | texels | Numba s/frame | of it tracing | OpenCL s/frame | of it tracing | tracing Numba / OpenCL "
+             "| frame Numba / OpenCL | same texture |", "|---|---|---|---|---|---|---|---|---|"]
+    lines += [line(r, device) for r in rows]
+    print("\n".join(lines))
+    if not args.no_write:
+        path = os.path.join(ROOT, "BENCHMARKS.md")
+        text = open(path).read()
+        key = f"flux-device-{kind}"
+        if "<!-- flux-device:begin -->" not in text:
+            write_section(path, "flux-device", "Forward-flux with its points traced on OpenCL (`bench/flux_device.py`)",
+                          "The 115,200-triangle wavy sheet (`tests/fixtures/bake_scenes.wavy_sheet`): the same bake with its "
+                          "points traced by Numba and by the OpenCL kernel (`addon/solver/opencl/trace.cl`); refinement, flux "
+                          "and splat stay on Numba in both. One block per kind of device, each written by its last run.\n\n"
+                          "<!-- flux-device-cpu:begin -->\n<!-- flux-device-cpu:end -->\n\n"
+                          "<!-- flux-device-gpu:begin -->\n<!-- flux-device-gpu:end -->")
+        write_block(path, key, "\n".join(lines))
+
+
+def line(r, device):
+    n, o = r["numba"], r[device]
+    return (f"| wavy sheet 115k | {r['res']}² | {n[0]:.2f} | {n[1]:.2f} | {o[0]:.2f} | {o[1]:.2f} | "
+            f"{n[1] / max(o[1], 1e-9):.1f}× | {n[0] / o[0]:.2f}× | {r['same']} |")
+
+
+if __name__ == "__main__":
+    main()

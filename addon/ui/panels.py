@@ -79,6 +79,8 @@ class RENDER_PT_caustic_bake(bpy.types.Panel):
             if props.solver == "sms":
                 col.prop(props, "sms_seeds")
             col.prop(props, "device")
+        elif props.estimator == "forward-flux":
+            col.prop(props, "device")
         elif props.estimator == "photon":
             col.prop(props, "photons")
         col.prop(props, "seed")

@@ -34,9 +34,9 @@ BOUNCE_ITEMS = (
 DEVICE_ITEMS = (
     ("numba", "CPU", "Solve on the CPU with Numba"),
     ("opencl", "OpenCL",
-     "Solve on the first OpenCL device with double precision (one-bounce chains entirely; two-bounce chains: "
-     "the resultant's determinants on the device, the rest on the CPU); no OpenCL device / pyopencl falls "
-     "back to the CPU with a warning"),
+     "Use the first OpenCL device with double precision: Forward Flux traces its points there (the same "
+     "texture); Exact Paths solves one-bounce chains there entirely and two-bounce chains' resultant "
+     "determinants; no OpenCL device / pyopencl falls back to the CPU with a warning"),
 )
 QUALITY_ITEMS = (
     ("PREVIEW", "Preview", "Fast look: 1 sample per texel, 1 light sample (the fields below are ignored)"),

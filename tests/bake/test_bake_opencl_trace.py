@@ -67,3 +67,25 @@ def test_forward_flux_bake_traced_on_opencl_equals_numba():
     for k in cpu.images:
         assert cpu.images[k].max() > 0
         np.testing.assert_array_equal(ocl.images[k], cpu.images[k])
+
+
+@pytest.mark.opencl
+def test_the_scene_goes_to_the_device_once_per_bvh():
+    """Passes and caster chunks of one bake share the scene's upload (keyed by the BVH's arrays,
+    released with them); another BVH gets its own."""
+    import gc
+
+    from addon.solver.opencl import tracing
+
+    index = opencl_device_or_skip()
+    sc = ring_scene(resolution=16)
+    bvh = _bvh_args(build_bvh(sc.tri_p))
+    args = (sc.tri_p, sc.tri_n, sc.tri_ior, sc.tri_role.astype(np.int64))
+    first = tracing.device_scene(index, *args, bvh)
+    assert tracing.device_scene(index, *args, bvh) is first
+    other = _bvh_args(build_bvh(sc.tri_p))
+    assert tracing.device_scene(index, *args, other) is not first
+    held = len(tracing._scenes)
+    del other
+    gc.collect()
+    assert len(tracing._scenes) == held - 1

@@ -8,10 +8,13 @@ refinement's sub-samples run on the device (``opencl/two_bounce.cl``), the syste
 construction and the path-space polish on Numba.
 
 Host side: each device keeps its context, queue, programs and device buffers (grow-only, by
-role) between calls; inputs are written without waiting; the one-bounce kernel compacts its
-output on the device (path records and summed statistics only, no per-tuple slots), and
-each two-bounce batch waits once.  Work-groups are small on CPUs and whole warps on GPUs
-(:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
+role) between calls; inputs are written without waiting.  One-bounce tuples come as rows
+(:func:`solve_one_bounce_opencl`) or as int32 (emitter, point) pairs over tables uploaded
+once (:func:`one_bounce_table`, :func:`solve_one_bounce_pairs`).  Its output is compacted on
+the device: on CPUs one kernel appends path records by an atomic counter (the host sorts
+them); on GPUs a filter stage, prefix sums (``scan.cl``), a solve over the surviving tuples
+only (full warps) and a gather write them in canonical order.  Each two-bounce batch waits
+once.  Work-groups are small on CPUs and several warps on GPUs (:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
 records the device time of every command and the host steps (``bench/opencl_profile.py``).
 
 Double precision is required: a

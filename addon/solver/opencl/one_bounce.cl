@@ -1,7 +1,8 @@
 // One-bounce Specular Polynomials (R, T) in OpenCL C: the same algorithm, step for step, as
-// addon/solver/one_bounce.py, roots.py and path_space.py (Fan et al. 2024, eq 6, 10, 13,
-// 28-31), so both back ends return the same paths.  One work-item per tuple; all scratch is
-// private and fixed-size.  Double precision (cl_khr_fp64) is required.
+// addon/solver/spoly/one_bounce.py, polynomials/roots.py and paths/one_vertex.py (Fan et al.
+// 2024, eq 6, 10, 13, 28-31), so both back ends return the same paths (tests/solver/
+// test_solver_opencl.py).  One work-item per tuple; all scratch is private and fixed-size.
+// Double precision (cl_khr_fp64) is required.
 // R expands the resultant symbolically; T evaluates it at Chebyshev nodes and interpolates it
 // (piecewise where its values span more than 1e6), as spoly/one_bounce.py does; the node tables
 // (NODES_R, TO_BERNSTEIN_R, NODES_T, TO_BERNSTEIN_T) are the solver's own, prepended by the host.

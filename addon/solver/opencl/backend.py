@@ -201,6 +201,21 @@ class _Device:
             self.buffers[role] = held
         return held
 
+    def upload(self, arrays):
+        """Read-only device buffers of their own holding arrays (kept by the caller, not by
+        role); returns once the copies are done, so the host arrays may go."""
+        cl = self.cl
+        buffers = []
+        for a in arrays:
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY, max(a.nbytes, 64))
+            if a.nbytes:
+                evt = cl.enqueue_copy(self.queue, buf, a, is_blocking=False)
+                if self.profiler is not None:
+                    self.profiler.event("host->device", evt)
+            buffers.append(buf)
+        self.queue.finish()
+        return buffers
+
     def write(self, role, array, stage="host->device"):
         """Enqueue (without waiting) array into role's buffer; returns the buffer."""
         buf = self.buffer(role, array.nbytes)
@@ -312,20 +327,11 @@ class OneBounceTable:
     device instead of ~190.  Built by :func:`one_bounce_table`; its buffers live as long as it."""
 
     def __init__(self, d, x_start, P, N, eta, x_end):
-        cl = d.cl
         t0 = time.perf_counter()
         arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in (x_start, x_end, P, N, eta)]
         self.n_emitters, self.n_points = arrays[0].shape[0], arrays[1].shape[0]
         d.host("pack", time.perf_counter() - t0)
-        self.buffers = []
-        for a in arrays:
-            buf = cl.Buffer(d.ctx, cl.mem_flags.READ_ONLY, max(a.nbytes, 64))
-            if a.nbytes:
-                evt = cl.enqueue_copy(d.queue, buf, a, is_blocking=False)
-                if d.profiler is not None:
-                    d.profiler.event("host->device", evt)
-            self.buffers.append(buf)
-        d.queue.finish()  # the host arrays may be released once this returns
+        self.buffers = d.upload(arrays)
         self.device = d
 
 

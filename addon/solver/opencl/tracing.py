@@ -28,20 +28,6 @@ def _kernel(index):
     return d, _programs[index]
 
 
-def _upload(d, arrays):
-    """Read-only device buffers holding arrays (written without waiting)."""
-    cl = d.cl
-    buffers = []
-    for a in arrays:
-        buf = cl.Buffer(d.ctx, cl.mem_flags.READ_ONLY, max(a.nbytes, 64))
-        if a.nbytes:
-            evt = cl.enqueue_copy(d.queue, buf, a, is_blocking=False)
-            if d.profiler is not None:
-                d.profiler.event("host->device", evt)
-        buffers.append(buf)
-    return buffers
-
-
 class DeviceScene:
     """Triangles (tri_p, tri_n, tri_ior, tri_role) and the BVH (``bvh.BVH`` fields in order) of
     one scene on one device."""
@@ -51,8 +37,7 @@ class DeviceScene:
         arrays = [np.ascontiguousarray(tri_p, dtype=np.float64), np.ascontiguousarray(tri_n, dtype=np.float64),
                   np.ascontiguousarray(tri_ior, dtype=np.float64), np.ascontiguousarray(tri_role, dtype=np.int64)]
         arrays += [np.ascontiguousarray(a, dtype=np.int64 if a.dtype.kind in "iu" else np.float64) for a in bvh_args]
-        self.buffers = _upload(d, arrays)
-        d.queue.finish()  # the host copies made above may go once this returns
+        self.buffers = d.upload(arrays)
 
 
 def device_scene(index, tri_p, tri_n, tri_ior, tri_role, bvh_args):
@@ -86,10 +71,9 @@ class OpenCLPointTracer:
         self.scene = device_scene(index, tri_p, tri_n, tri_ior, tri_role, bvh_args)
         self.scalars = (np.int32(bounces), np.int32(1 if refract1 else 0), np.int32(1 if refract2 else 0))
         self.eps = np.float64(eps)
-        self.tables = _upload(d, (np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(t1_of, dtype=np.int64),
-                                  np.ascontiguousarray(second_ok, dtype=np.uint8), np.ascontiguousarray(tri_rec, dtype=np.int64),
-                                  np.ascontiguousarray(tri_uv, dtype=np.float64)))
-        d.queue.finish()
+        self.tables = d.upload((np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(t1_of, dtype=np.int64),
+                                np.ascontiguousarray(second_ok, dtype=np.uint8), np.ascontiguousarray(tri_rec, dtype=np.int64),
+                                np.ascontiguousarray(tri_uv, dtype=np.float64)))
 
     def trace(self, e, u, v, out_t2, out_rec, out_uv, out_factor):
         """Trace points (e[i], u[i], v[i]) into the output arrays (as ``trace_chain_points``)."""

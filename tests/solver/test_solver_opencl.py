@@ -272,3 +272,20 @@ def test_opencl_grazing_refractions_match_numba(stages, monkeypatch):
     np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
     found = match_paths(np.arange(n), d["uv"], ocl.tuple_index, ocl.uv) >= 0
     assert found.mean() >= 0.9999, f"{int((~found).sum())} planted paths missed of {n}"
+
+
+@pytest.mark.opencl
+def test_pair_table_without_the_device_warns_once_and_uses_numba():
+    from addon.solver.spoly.api import TupleTable
+
+    opencl_device_or_skip()
+    x0, x2, P, N, _ = planted_tuples(300, "R", seed=81)
+    n = x0.shape[0]
+    table = TupleTable("R", x0, P, N, 1.5, x2, device="opencl:99")
+    with pytest.warns(RuntimeWarning, match="OpenCL unavailable.*does not exist"):
+        got = table.solve(np.arange(n), np.arange(n))
+    again = table.solve(np.arange(n), np.arange(n))  # no second warning: the table stays on Numba
+    want = solve_tuples("R", x0, x2, P, N, 1.5)
+    assert table.device_name == "numba" and got.report.paths == want[0].size
+    np.testing.assert_array_equal(got.tuple_index, want[0])
+    np.testing.assert_array_equal(again.uv, want[1])

@@ -209,6 +209,45 @@ static long land(const Bvh *B, __global const long *tri_rec, __global const doub
     return tr;
 }
 
+// forward_image.py _trace_one: the chain of `bounces` (1 or 2) vertices from (u1, v1) on t1 lit
+// from x0; returns the receiver triangle or -1 and sets the second triangle, the receiver's
+// barycentrics and the transport factor (0 wherever the chain is lost, as the Numba kernel)
+static long trace_one(const Bvh *B, double x0x, double x0y, double x0z, long t1, double u1, double v1, int bounces,
+                      int refract1, int refract2, __global const uchar *second_ok, __global const long *tri_rec,
+                      __global const double *tri_p, __global const double *tri_n, __global const double *tri_ior,
+                      __global const long *tri_role, double eps, long *t2, double *ur, double *vr, double *fac) {
+    *t2 = -1;
+    *fac = 0.0;
+    double3 x, nrm, g;
+    if (!bary_point(tri_p, tri_n, t1, u1, v1, &x, &nrm, &g)) return -1;
+    double dx = x.x - x0x, dy = x.y - x0y, dz = x.z - x0z;
+    double ln = sqrt(dx * dx + dy * dy + dz * dz);
+    if (!(ln > 0.0)) return -1;
+    double3 d = (double3)(dx / ln, dy / ln, dz / ln);
+    // the light must reach the point: a shadowed point is lost like a missed receiver
+    double th;
+    if (ray_closest(B, x0x, x0y, x0z, d.x, d.y, d.z, eps, ln * (1.0 - 1e-9) - eps, t1, &th) >= 0) return -1;
+    double w = vertex_weight(d, nrm, g, refract1, tri_ior[t1], tri_role[t1]);
+    if (!scatter(&d, nrm, g, refract1, tri_ior[t1])) return -1;
+    long last = t1;
+    if (bounces == 2) {
+        long s2 = ray_closest(B, x.x, x.y, x.z, d.x, d.y, d.z, eps, INFINITY, t1, &th);
+        if (s2 < 0 || !second_ok[s2]) return -1;
+        *t2 = s2;
+        double2 b = plane_barycentrics(tri_p, s2, x, d);
+        double u2 = fmin(fmax(b.x, 0.0), 1.0);
+        double v2 = fmin(fmax(b.y, 0.0), 1.0 - u2);
+        if (!bary_point(tri_p, tri_n, s2, u2, v2, &x, &nrm, &g)) return -1;
+        w *= vertex_weight(d, nrm, g, refract2, tri_ior[t1], tri_role[s2]);
+        if (!scatter(&d, nrm, g, refract2, tri_ior[t1])) return -1;
+        last = s2;
+    }
+    double c = 0.0;
+    long tr = land(B, tri_rec, tri_p, tri_n, x, d, last, eps, ur, vr, &c);
+    *fac = w * c;  // c = 0 for a lost landing, as _land's
+    return tr;
+}
+
 __kernel void trace_chain_points(__global const long *emitter, __global const double *u1, __global const double *v1,
                                  __global const double *x0, __global const long *t1_of, const int bounces,
                                  const int refract1, const int refract2, __global const uchar *second_ok,
@@ -224,56 +263,10 @@ __kernel void trace_chain_points(__global const long *emitter, __global const do
     int i = get_global_id(0);
     if (i >= n) return;
     Bvh B = {node_min, node_max, node_child, node_start, node_count, order, bv0, be1, be2};
-    long e = emitter[i], t1 = t1_of[e];
-    double x0x = x0[3 * e], x0y = x0[3 * e + 1], x0z = x0[3 * e + 2];
-    long t2 = -1, tr = -1;
-    double ur = 0.0, vr = 0.0, fac = 0.0;
-    double3 x, nrm, g;
-    // forward_image.py _trace_one
-    if (bary_point(tri_p, tri_n, t1, u1[i], v1[i], &x, &nrm, &g)) {
-        double dx = x.x - x0x, dy = x.y - x0y, dz = x.z - x0z;
-        double ln = sqrt(dx * dx + dy * dy + dz * dz);
-        if (ln > 0.0) {
-            double3 d = (double3)(dx / ln, dy / ln, dz / ln);
-            double sh_t;
-            long sh = ray_closest(&B, x0x, x0y, x0z, d.x, d.y, d.z, eps, ln * (1.0 - 1e-9) - eps, t1, &sh_t);
-            if (sh < 0) {
-                fac = vertex_weight(d, nrm, g, refract1, tri_ior[t1], tri_role[t1]);
-                if (scatter(&d, nrm, g, refract1, tri_ior[t1])) {
-                    if (bounces == 1) {
-                        double c;
-                        tr = land(&B, tri_rec, tri_p, tri_n, x, d, t1, eps, &ur, &vr, &c);
-                        fac = tr >= 0 ? fac * c : fac * 0.0;
-                    } else {
-                        double th;
-                        long s2 = ray_closest(&B, x.x, x.y, x.z, d.x, d.y, d.z, eps, INFINITY, t1, &th);
-                        if (s2 >= 0 && second_ok[s2]) {
-                            t2 = s2;
-                            double2 b = plane_barycentrics(tri_p, s2, x, d);
-                            double u2 = fmin(fmax(b.x, 0.0), 1.0);
-                            double v2 = fmin(fmax(b.y, 0.0), 1.0 - u2);
-                            if (bary_point(tri_p, tri_n, s2, u2, v2, &x, &nrm, &g)) {
-                                fac *= vertex_weight(d, nrm, g, refract2, tri_ior[t1], tri_role[s2]);
-                                if (scatter(&d, nrm, g, refract2, tri_ior[t1])) {
-                                    double c;
-                                    tr = land(&B, tri_rec, tri_p, tri_n, x, d, s2, eps, &ur, &vr, &c);
-                                    fac = tr >= 0 ? fac * c : fac * 0.0;
-                                } else {
-                                    fac = 0.0;
-                                }
-                            } else {
-                                fac = 0.0;
-                            }
-                        } else {
-                            fac = 0.0;
-                        }
-                    }
-                } else {
-                    fac = 0.0;
-                }
-            }
-        }
-    }
+    long e = emitter[i], t2;
+    double ur = 0.0, vr = 0.0, fac;
+    long tr = trace_one(&B, x0[3 * e], x0[3 * e + 1], x0[3 * e + 2], t1_of[e], u1[i], v1[i], bounces, refract1, refract2,
+                        second_ok, tri_rec, tri_p, tri_n, tri_ior, tri_role, eps, &t2, &ur, &vr, &fac);
     out_t2[i] = t2;
     out_rec[i] = tr;
     out_factor[i] = fac;

@@ -89,7 +89,9 @@ def test_zip_contents(zips):
         # The add-on itself.
         for required in ("__init__.py", "blender_manifest.toml", "addon/__init__.py",
                          "addon/ui/__init__.py", "addon/ui/operators.py", "addon/ui/panels.py",
-                         "addon/ui/properties.py", "addon/ui/state.py", "addon/solver/runtime/jit.py"):
+                         "addon/ui/properties.py", "addon/ui/state.py", "addon/solver/runtime/jit.py",
+                         "addon/solver/opencl/one_bounce.cl", "addon/solver/opencl/two_bounce.cl",
+                         "addon/solver/opencl/scan.cl", "addon/solver/opencl/trace.cl"):
             assert required in names, (platform, required)
         # Nothing from development.
         for name in names:

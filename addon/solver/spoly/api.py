@@ -181,7 +181,9 @@ class TupleTable:
     points (x_end (S, 3)); tuple i is (emitter e[i], point s[i]).  The tables are checked once
     (as :func:`validate_inputs`); on an OpenCL device a one-bounce table is uploaded once and
     each :meth:`solve` sends only the pairs (8 bytes a tuple), elsewhere the rows are gathered
-    and solved as :meth:`SpecularPolynomialSolver.solve` does.  Same paths either way."""
+    and solved as :meth:`SpecularPolynomialSolver.solve` does.  Same paths either way.
+    ``solver``: the :class:`SpecularPolynomialSolver` to use (default: the shared one);
+    ``pieces``: as its ``solve``'s (two bounces)."""
 
     def __init__(self, chain, x_start, P, N, eta, x_end, device="numba", solver=None, pieces=None):
         if chain not in CHAIN_LENGTH:

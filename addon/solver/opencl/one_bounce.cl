@@ -165,6 +165,32 @@ static int sign_changes(const double *b, int deg, double zero_level) {
     return changes;
 }
 
+// De Casteljau halving of the Bernstein piece in stack[top] (coefficients 0..deg, then lo, hi,
+// depth): its left half goes to stack[top + 1], its right half stays in stack[top], both one
+// level deeper (stack[STACK] is the work row).
+static void halve_piece(double stack[STACK + 1][MAXD + 4], int top, int deg, double lo, double hi, double depth) {
+    double *row = stack[top], *left = stack[top + 1], *work = stack[STACK];
+    int meta = deg + 1;
+    for (int i = 0; i <= deg; ++i) work[i] = row[i];
+    left[0] = work[0];
+    row[deg] = work[deg];
+    for (int r = 1; r <= deg; ++r) {
+        for (int i = 0; i <= deg - r; ++i) work[i] = 0.5 * (work[i] + work[i + 1]);
+        left[r] = work[0];
+        row[deg - r] = work[deg - r];
+    }
+    double mid = 0.5 * (lo + hi);
+    left[meta] = lo; left[meta + 1] = mid; left[meta + 2] = depth + 1.0;
+    row[meta] = mid; row[meta + 1] = hi; row[meta + 2] = depth + 1.0;
+}
+
+// Appends a piece's ascending roots to out[0..n_out), skipping those within tol of the last one.
+static int append_roots(double *out, int n_out, const double *roots, int n, double tol) {
+    for (int j = 0; j < n; ++j)
+        if (n_out == 0 || roots[j] - out[n_out - 1] > tol) out[n_out++] = roots[j];
+    return n_out;
+}
+
 // Descartes/Bernstein isolation with de Casteljau halving (roots.roots_in_unit_interval).
 static int roots_in_unit_interval(const double *coeffs, int degree, double tol, double touch,
                                   double *chain, double *critical, double *found,
@@ -212,22 +238,10 @@ static int roots_in_unit_interval(const double *coeffs, int degree, double tol, 
         }
         if (depth >= DEPTH) {
             int n_piece = roots_in_interval(coeffs, deg, lo, hi, tol, touch, chain, critical, found, piece);
-            for (int j = 0; j < n_piece; ++j)
-                if (n_out == 0 || piece[j] - out[n_out - 1] > tol) out[n_out++] = piece[j];
+            n_out = append_roots(out, n_out, piece, n_piece, tol);
             continue;
         }
-        for (int i = 0; i <= deg; ++i) work[i] = row[i];
-        double *left = stack[top + 1];
-        left[0] = work[0];
-        row[deg] = work[deg];
-        for (int r = 1; r <= deg; ++r) {
-            for (int i = 0; i <= deg - r; ++i) work[i] = 0.5 * (work[i] + work[i + 1]);
-            left[r] = work[0];
-            row[deg - r] = work[deg - r];
-        }
-        double mid = 0.5 * (lo + hi);
-        left[meta] = lo; left[meta + 1] = mid; left[meta + 2] = depth + 1.0;
-        row[meta] = mid; row[meta + 1] = hi; row[meta + 2] = depth + 1.0;
+        halve_piece(stack, top, deg, lo, hi, depth);
         top += 2;
     }
     return n_out;
@@ -292,7 +306,7 @@ static int roots_in_unit_interval_bernstein(const double *bern, int deg, double 
     double inv = 1.0 / scale;
     double *top_row = stack[0];
     for (int k = 0; k <= deg; ++k) top_row[k] = bern[k] * inv;
-    double *src = stack[STACK - 1], *src_w = stack[STACK - 2], *src_dw = stack[STACK - 3], *work = stack[STACK];
+    double *src = stack[STACK - 1], *src_w = stack[STACK - 2], *src_dw = stack[STACK - 3];
     for (int k = 0; k <= deg; ++k) src[k] = top_row[k];
     int have_weights = 0, have_power = 0;
     int meta = deg + 1;
@@ -336,22 +350,10 @@ static int roots_in_unit_interval_bernstein(const double *bern, int deg, double 
                 have_power = 1;
             }
             int n_piece = roots_in_interval(power, deg, lo, hi, tol, touch, chain, critical, found, piece);
-            for (int j = 0; j < n_piece; ++j)
-                if (n_out == 0 || piece[j] - out[n_out - 1] > tol) out[n_out++] = piece[j];
+            n_out = append_roots(out, n_out, piece, n_piece, tol);
             continue;
         }
-        for (int i = 0; i <= deg; ++i) work[i] = row[i];
-        double *left = stack[top + 1];
-        left[0] = work[0];
-        row[deg] = work[deg];
-        for (int r = 1; r <= deg; ++r) {
-            for (int i = 0; i <= deg - r; ++i) work[i] = 0.5 * (work[i] + work[i + 1]);
-            left[r] = work[0];
-            row[deg - r] = work[deg - r];
-        }
-        double mid = 0.5 * (lo + hi);
-        left[meta] = lo; left[meta + 1] = mid; left[meta + 2] = depth + 1.0;
-        row[meta] = mid; row[meta + 1] = hi; row[meta + 2] = depth + 1.0;
+        halve_piece(stack, top, deg, lo, hi, depth);
         top += 2;
     }
     return n_out;

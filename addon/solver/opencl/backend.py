@@ -425,12 +425,13 @@ def _one_bounce_launch(d, refract, n, first, inputs, pairs):
     acc_buf = d.buffer("acc", acc.nbytes)
     _fill_zero(d, acc_buf, acc.nbytes)
     args = (paired, *pairs, *inputs, np.int32(n), np.int32(first))
-    if _two_stage(d):
+    split = _two_stage(d)
+    if split:
         tuple_index, uv = _split_launch(d, refract, n, first, args, acc_buf, acc)
     else:
         tuple_index, uv = _whole_launch(d, refract, n, args, acc_buf, acc)
     sums = np.append(acc[1:-1].reshape(N_SLOTS, 5).sum(axis=0, dtype=np.int64), acc[-1])
-    return tuple_index, uv, sums, _two_stage(d)
+    return tuple_index, uv, sums, split
 
 
 def _fill_zero(d, buf, nbytes):

@@ -68,6 +68,12 @@ def validate_inputs(chain, x_start, x_end, P, N, eta):
     for name, arr in (("x_end", x_end), ("P", P), ("N", N)):
         if arr.shape[0] != n:
             raise ValueError(f"{name} has {arr.shape[0]} tuples but x_start has {n}")
+    return x_start, x_end, P, N, _as_eta(eta, n)
+
+
+def _as_eta(eta, n):
+    """eta as a contiguous (n,) float64 array (a scalar is broadcast); ValueError unless every
+    value is finite and positive."""
     eta_arr = np.asarray(eta, dtype=np.float64)
     if eta_arr.ndim == 0:
         eta_arr = np.full(n, float(eta_arr))
@@ -75,7 +81,7 @@ def validate_inputs(chain, x_start, x_end, P, N, eta):
         raise ValueError(f"eta must be a scalar or have shape ({n},), got {eta_arr.shape}")
     if not np.all(np.isfinite(eta_arr)) or np.any(eta_arr <= 0.0):
         raise ValueError("eta must be finite and positive")
-    return x_start, x_end, P, N, np.ascontiguousarray(eta_arr)
+    return np.ascontiguousarray(eta_arr)
 
 
 class SpecularPolynomialSolver:
@@ -199,12 +205,7 @@ class TupleTable:
         for name, arr in (("P", self.P), ("N", self.N)):
             if arr.shape[0] != n:
                 raise ValueError(f"{name} has {arr.shape[0]} emitter rows but x_start has {n}")
-        eta_arr = np.asarray(eta, dtype=np.float64)
-        self.eta = np.full(n, float(eta_arr)) if eta_arr.ndim == 0 else eta_arr
-        if self.eta.shape != (n,):
-            raise ValueError(f"eta must be a scalar or have shape ({n},), got {self.eta.shape}")
-        if not np.all(np.isfinite(self.eta)) or np.any(self.eta <= 0.0):
-            raise ValueError("eta must be finite and positive")
+        self.eta = _as_eta(eta, n)
         self.x_end = _as_float_array("x_end", x_end, (3,))
         self.device = device
         self.device_name = "numba"

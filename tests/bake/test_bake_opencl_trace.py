@@ -72,7 +72,8 @@ def test_forward_flux_bake_traced_on_opencl_equals_numba():
 @pytest.mark.opencl
 def test_the_scene_goes_to_the_device_once_per_bvh():
     """Passes and caster chunks of one bake share the scene's upload (keyed by the BVH's arrays,
-    released with them); another BVH gets its own."""
+    released with them); another BVH gets its own; new triangle arrays with the same BVH are
+    uploaded again."""
     import gc
 
     from addon.solver.opencl import tracing
@@ -83,9 +84,11 @@ def test_the_scene_goes_to_the_device_once_per_bvh():
     args = (sc.tri_p, sc.tri_n, sc.tri_ior, sc.tri_role.astype(np.int64))
     first = tracing.device_scene(index, *args, bvh)
     assert tracing.device_scene(index, *args, bvh) is first
+    moved = (sc.tri_p + 0.0, *args[1:])
+    assert tracing.device_scene(index, *moved, bvh) is not first
     other = _bvh_args(build_bvh(sc.tri_p))
     assert tracing.device_scene(index, *args, other) is not first
-    held = len(tracing._scenes)
+    held = len(tracing._kept)
     del other
     gc.collect()
-    assert len(tracing._scenes) == held - 1
+    assert len(tracing._kept) == held - 1

@@ -2,8 +2,9 @@
 ``estimators.forward_image.trace_chain_points`` for the forward-flux estimator.
 
 :func:`device_scene` keeps a scene's triangles and BVH on the device for as long as the BVH
-lives (one upload per bake, whatever the passes and caster chunks); :class:`OpenCLPointTracer`
-adds one pass's tables (receivers, second-vertex mask, emitters) and traces batches of
+lives (one upload per bake, whatever the passes and caster chunks), and a pass's receiver tables
+stay there for its chunks (:func:`kept_buffers`); :class:`OpenCLPointTracer` adds the chunk's
+emitters and traces batches of
 (emitter, u1, v1) points, returning what the Numba kernel returns (second triangle, receiver
 triangle, texture coordinates, transport factor), computed with the same arithmetic in the
 same order.  Double precision is required (see :mod:`.backend`).
@@ -18,7 +19,7 @@ from .backend import _context
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "trace.cl")
 _programs = {}  # device index -> the built trace kernel
-_scenes = {}  # id of a BVH's node_min array -> (weak reference to it, {device index: DeviceScene})
+_kept = {}  # id of a host array -> (weak reference to it, {(device index, what): (sources, buffers)})
 
 
 def _kernel(index):
@@ -28,32 +29,32 @@ def _kernel(index):
     return d, _programs[index]
 
 
-class DeviceScene:
-    """Triangles (tri_p, tri_n, tri_ior, tri_role) and the BVH (``bvh.BVH`` fields in order) of
-    one scene on one device."""
+def kept_buffers(index, what, sources, convert):
+    """Device buffers of ``convert(sources)`` (a tuple of host arrays) on device ``index``,
+    uploaded on first use and reused while the very same source arrays are passed again (``is``):
+    a bake's passes and caster chunks share one upload of the scene, a pass's chunks one of its
+    receiver tables.  They are dropped with the first source array."""
+    key = sources[0]
+    entry = _kept.get(id(key))
+    if entry is None or entry[0]() is not key:
+        entry = _kept[id(key)] = (weakref.ref(key), {})
+        weakref.finalize(key, _kept.pop, id(key), None)
+    held = entry[1].get((index, what))
+    if held is None or len(held[0]) != len(sources) or any(r() is not a for r, a in zip(held[0], sources)):
+        # weak references: holding the sources would keep the key alive, and the buffers forever
+        held = entry[1][(index, what)] = (tuple(weakref.ref(a) for a in sources), _context(index).upload(convert(sources)))
+    return held[1]
 
-    def __init__(self, d, tri_p, tri_n, tri_ior, tri_role, bvh_args):
-        self.tri_p = tri_p  # the host array it was made from (checked on reuse)
-        arrays = [np.ascontiguousarray(tri_p, dtype=np.float64), np.ascontiguousarray(tri_n, dtype=np.float64),
-                  np.ascontiguousarray(tri_ior, dtype=np.float64), np.ascontiguousarray(tri_role, dtype=np.int64)]
-        arrays += [np.ascontiguousarray(a, dtype=np.int64 if a.dtype.kind in "iu" else np.float64) for a in bvh_args]
-        self.buffers = d.upload(arrays)
+
+def _float_or_int64(a):
+    return np.ascontiguousarray(a, dtype=np.int64 if a.dtype.kind in "iu" else np.float64)
 
 
 def device_scene(index, tri_p, tri_n, tri_ior, tri_role, bvh_args):
-    """The :class:`DeviceScene` of these arrays on device ``index``: uploaded on first use and
-    kept while the BVH's arrays live (a bake's passes and chunks share one upload)."""
-    d = _context(index)
-    key = bvh_args[0]
-    entry = _scenes.get(id(key))
-    if entry is None or entry[0]() is not key:
-        entry = _scenes[id(key)] = (weakref.ref(key), {})
-        weakref.finalize(key, _scenes.pop, id(key), None)  # the device buffers go with the BVH
-    held = entry[1]
-    scene = held.get(index)
-    if scene is None or scene.tri_p is not tri_p:
-        scene = held[index] = DeviceScene(d, tri_p, tri_n, tri_ior, tri_role, bvh_args)
-    return scene
+    """The buffers of a scene's triangles (tri_p, tri_n, tri_ior, tri_role) and BVH (``bvh.BVH``
+    fields in order) on device ``index`` (:func:`kept_buffers`: keyed by the BVH's arrays)."""
+    return kept_buffers(index, "scene", (*bvh_args, tri_p, tri_n, tri_ior, tri_role),
+                        lambda a: [_float_or_int64(x) for x in a[len(bvh_args):] + a[:len(bvh_args)]])
 
 
 class OpenCLPointTracer:
@@ -69,11 +70,12 @@ class OpenCLPointTracer:
         self.local = d.work_group(self.kernel)
         self.name = d.label
         self.scene = device_scene(index, tri_p, tri_n, tri_ior, tri_role, bvh_args)
+        self.receivers = kept_buffers(index, "receivers", (tri_rec, tri_uv, second_ok),
+                                      lambda a: [_float_or_int64(a[0]), _float_or_int64(a[1]),
+                                                 np.ascontiguousarray(a[2], dtype=np.uint8)])
         self.scalars = (np.int32(bounces), np.int32(1 if refract1 else 0), np.int32(1 if refract2 else 0))
         self.eps = np.float64(eps)
-        self.tables = d.upload((np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(t1_of, dtype=np.int64),
-                                np.ascontiguousarray(second_ok, dtype=np.uint8), np.ascontiguousarray(tri_rec, dtype=np.int64),
-                                np.ascontiguousarray(tri_uv, dtype=np.float64)))
+        self.emitters = d.upload((np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(t1_of, dtype=np.int64)))
 
     def trace(self, e, u, v, out_t2, out_rec, out_uv, out_factor):
         """Trace points (e[i], u[i], v[i]) into the output arrays (as ``trace_chain_points``)."""
@@ -84,10 +86,11 @@ class OpenCLPointTracer:
         inputs = [d.write(f"trace_{k}", np.ascontiguousarray(a, dtype=dt))
                   for k, a, dt in (("e", e, np.int64), ("u", u, np.float64), ("v", v, np.float64))]
         outs = [d.buffer(f"trace_out{k}", a.nbytes) for k, a in enumerate((out_t2, out_rec, out_uv, out_factor))]
-        x0, t1_of, second_ok, tri_rec, tri_uv = self.tables
-        tri_p, tri_n, tri_ior, tri_role = self.scene.buffers[:4]
+        x0, t1_of = self.emitters
+        tri_rec, tri_uv, second_ok = self.receivers
+        tri_p, tri_n, tri_ior, tri_role = self.scene[:4]
         d.launch(self.kernel, "kernel trace_chain_points", n, self.local, *inputs, x0, t1_of, *self.scalars, second_ok,
-                 tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *self.scene.buffers[4:], self.eps, np.int32(n), *outs)
+                 tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *self.scene[4:], self.eps, np.int32(n), *outs)
         for a, b in zip((out_t2, out_rec, out_uv, out_factor), outs):
             d.read(a, b, wait=False)
         d.queue.finish()

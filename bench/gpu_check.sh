@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The OpenCL GPU check, for one call of the device tool on a lent NVIDIA machine
-# (see ../shared/GPU.md): pyopencl from the carried wheels (.whl/), NVIDIA's OpenCL ICD, then
+# (see ../shared/GPU.md): the environment of bench/gpu_env.sh, then
 #   1. bench/opencl_shapes.py: the one-bounce launch shapes (one stage / split pipeline, work-group
 #      sizes), while the Numba one-bounce kernels compile in the background;
 #   2. with the fastest shape: bench/solver.py --opencl (Numba on every core against OpenCL, R and
@@ -15,28 +15,15 @@
 set -u
 N1=${N1:-1000000}
 N2=${N2:-0}
-NVLIB=/usr/local/nvidia/lib64/libnvidia-opencl.so
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 cd "$(dirname "$0")/.."
 T0=$(date +%s)
 log() { echo "[$(( $(date +%s) - T0 )) s] $*" | tee -a "$OUT/steps.txt"; }
 
-log "install carried wheels"
-if [ -d .whl ]; then
-  python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl \
-    > /tmp/pip.txt 2>&1 || { log "pip install failed:"; tail -5 /tmp/pip.txt >> "$OUT/steps.txt"; }
-  export PYTHONPATH=/tmp/site
-fi
-if [ -e "$NVLIB" ]; then
-  mkdir -p /tmp/icd
-  echo "$NVLIB" > /tmp/icd/nvidia.icd
-  export OCL_ICD_VENDORS=/tmp/icd
-else
-  log "no $NVLIB: OCL_ICD_VENDORS=${OCL_ICD_VENDORS:-unset}"
-fi
-export NUMBA_CACHE_DIR=${NUMBA_CACHE_DIR:-/tmp/nc}
-export PYTHONUNBUFFERED=1
+log "environment (bench/gpu_env.sh)"
+GPU_LOG="$OUT/steps.txt" . bench/gpu_env.sh
+DEV=$OPENCL_DEVICE
 
 log "Numba one-bounce compile, in the background"
 python3 -c "import sys; sys.path.insert(0, '.'); from addon.solver import warm_up; print('warm-up s', warm_up(1))" \
@@ -56,27 +43,13 @@ for p in cl.get_platforms():
         i += 1
 EOF
 
-# The first NVIDIA device with double precision.
-DEV=$(python3 - <<'EOF'
-import pyopencl as cl
-i = 0
-for p in cl.get_platforms():
-    for d in p.get_devices():
-        if "NVIDIA" in p.name and "cl_khr_fp64" in d.extensions:
-            print(i)
-            raise SystemExit
-        i += 1
-print(0)
-EOF
-)
-export OPENCL_DEVICE=$DEV
 log "OpenCL device $DEV"
 
 log "opencl_shapes"
 timeout 170 python3 bench/opencl_shapes.py --device "$DEV" --tuples "$N1,$((4 * N1))" --groups "${SHAPE_GROUPS:-128,256}" \
   --planted-tuples "$N1" --repeats 2 > "$OUT/shapes.txt" 2>&1
 log "opencl_shapes exit $?"
-cp bench/results/opencl_shapes_*.md "$OUT/" 2>/dev/null
+cp bench/results/opencl_shapes_gpu.md "$OUT/" 2>/dev/null
 BEST=$(grep '^best:' "$OUT/shapes.txt" | tail -1)
 if [ -n "$BEST" ]; then
   export CAUSTIC_OPENCL_STAGES=$(echo "$BEST" | sed 's/.*stages=\([0-9]*\).*/\1/')

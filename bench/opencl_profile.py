@@ -34,7 +34,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
 
 from solver import write_section  # noqa: E402
-from workloads import planted_tuples, planted_two_bounce, random_tuples, random_two_bounce  # noqa: E402
+from workloads import planted_tuples, planted_two_bounce, random_pairs, random_tuples, random_two_bounce  # noqa: E402
 
 ONE = ("R", "T")
 TWO = ("RR", "RT", "TR", "TT")
@@ -155,9 +155,7 @@ def pair_row(solver, index, chain, args):
     upload is made before the timing; Numba solves the gathered tuples (gathering not timed)."""
     from addon.solver.spoly.api import TupleTable
 
-    rng = np.random.default_rng(3)
-    x0, x2, P, N = random_tuples(65536, seed=4)
-    e, s = rng.integers(0, 65536, args.tuples, dtype=np.int32), rng.integers(0, 65536, args.tuples, dtype=np.int32)
+    x0, P, N, x2, e, s = random_pairs(args.tuples)
     table = TupleTable(chain, x0, P, N, 1.5, x2, device=f"opencl:{index}", solver=solver)
     table.solve(e[:64], s[:64])
     g0, g2, gP, gN = x0[e], x2[s], P[e], N[e]

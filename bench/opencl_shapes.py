@@ -26,7 +26,7 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
 
-from workloads import planted_tuples, random_tuples  # noqa: E402
+from workloads import planted_pairs, random_pairs  # noqa: E402
 
 
 def main():
@@ -49,17 +49,12 @@ def main():
     groups = [g for g in (int(x) for x in args.groups.split(",")) if g <= limit]
     print(f"device {index}: {d.label}; kernel limit {limit}", flush=True)
 
-    rng = np.random.default_rng(3)
-    x0r, x2r, Pr, Nr = random_tuples(65536, seed=4)
-    workloads = []
-    for n in (int(x) for x in args.tuples.split(",")):
-        workloads.append(("random pairs", (x0r, Pr, Nr, x2r), rng.integers(0, 65536, n, dtype=np.int32), rng.integers(0, 65536, n, dtype=np.int32), None))
+    rng = np.random.default_rng(3)  # one stream: each size's pairs follow the previous size's
+    workloads = [("random pairs", random_pairs(int(n), rng)) for n in args.tuples.split(",")]
     rows, totals = [], {}
     for chain in ("R", "T"):
-        x0p, x2p, Pp, Np, _ = planted_tuples(args.planted_tuples, chain, seed=1)
-        m = x0p.shape[0]
-        cases = workloads + [("planted pairs", (x0p, Pp, Np, x2p), np.arange(m, dtype=np.int32), np.arange(m, dtype=np.int32), None)]
-        for name, (x0, P, N, x2), e, s, _ in cases:
+        cases = workloads + [("planted pairs", planted_pairs(args.planted_tuples, chain))]
+        for name, (x0, P, N, x2, e, s) in cases:
             table = TupleTable(chain, x0, P, N, 1.5, x2, device=f"opencl:{index}")
             reference = None
             for stages in ("1", "2"):

@@ -28,7 +28,7 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
 
-from workloads import planted_recall, planted_tuples, random_tuples  # noqa: E402
+from workloads import planted_pairs, planted_recall, planted_tuples, random_pairs, random_tuples  # noqa: E402
 
 AUTHORS_CPP_US = {"R": 0.59, "T": 1.23}
 TARGET_US = {"R": 0.9, "T": 1.5}  # planted tuples, one thread (issue 27); random: no slower than before
@@ -269,13 +269,8 @@ def pair_rows(solver, chain, args, device):
     from addon.solver.spoly.api import TupleTable
 
     rows = []
-    rng = np.random.default_rng(3)
-    x0r, x2r, Pr, Nr = random_tuples(65536, seed=4)
-    x0p, x2p, Pp, Np, _ = planted_tuples(args.tuples, chain, seed=1)
-    m = x0p.shape[0]
-    cases = {"random pairs": ((x0r, Pr, Nr, x2r), rng.integers(0, 65536, args.tuples, dtype=np.int32), rng.integers(0, 65536, args.tuples, dtype=np.int32)),
-             "planted pairs": ((x0p, Pp, Np, x2p), np.arange(m, dtype=np.int32), np.arange(m, dtype=np.int32))}
-    for name, ((x0, P, N, x2), e, s) in cases.items():
+    cases = {"random pairs": random_pairs(args.tuples), "planted pairs": planted_pairs(args.tuples, chain)}
+    for name, (x0, P, N, x2, e, s) in cases.items():
         n = e.size
         table = TupleTable(chain, x0, P, N, 1.5, x2, device=device, solver=solver)
         table.solve(e[:64], s[:64])  # the upload

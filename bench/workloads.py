@@ -27,6 +27,25 @@ def random_tuples(n, seed=0, tilt=0.3):
     return x0, x2, P, N
 
 
+def random_pairs(n, rng=None, emitters=65536):
+    """A table of ``emitters`` random emitter rows and as many random points (``random_tuples``,
+    seed 4) and n random int32 (emitter, point) pairs over them, drawn from ``rng`` (default: a
+    fresh generator of seed 3): (x0, P, N, x2, e, s), the tuples of ``spoly.api.TupleTable``."""
+    rng = np.random.default_rng(3) if rng is None else rng
+    x0, x2, P, N = random_tuples(emitters, seed=4)
+    e = rng.integers(0, emitters, n, dtype=np.int32)
+    s = rng.integers(0, emitters, n, dtype=np.int32)
+    return x0, P, N, x2, e, s
+
+
+def planted_pairs(n, chain):
+    """``planted_tuples(n, chain, seed=1)`` as a table with each emitter paired with its own
+    point: (x0, P, N, x2, e, s), e = s = 0..m-1 (int32)."""
+    x0, x2, P, N, _ = planted_tuples(n, chain, seed=1)
+    index = np.arange(x0.shape[0], dtype=np.int32)
+    return x0, P, N, x2, index, index
+
+
 def planted_tuples(n, chain, eta=1.5, seed=0, tilt=0.6):
     """Tuples that each contain the returned planted path (u, v); returns fewer than n
     when a drawn configuration is geometrically invalid (those are dropped)."""

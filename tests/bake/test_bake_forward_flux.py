@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from addon.bake.estimators import forward_flux as FF
+from addon.bake.estimators import forward_images as FI
 from addon.bake.estimators.forward_flux import ForwardFlux
 from addon.bake.pipeline import BakeSettings, bake, texel_areas
+from addon.bake.scene import Light
 from fixtures.bake_scenes import mirror_scene, wavy_sheet
 from fixtures.checks import rel_mse
 
@@ -104,3 +106,28 @@ def test_supersample_counts_are_kept_when_no_estimator_reads_the_samples():
     np.testing.assert_array_equal(second.coverage["Floor"], direct.coverage["Floor"])
     caustic_only = bake(b, BakeSettings(resolution=48, margin=0, seed=7))  # another seed: counted afresh
     assert caustic_only.report["timings"].get("raster", 0.0) > 0.0
+
+
+@pytest.mark.parametrize("case", ["sheet", "mirror", "sheet-sun"])
+def test_landed_kernel_refines_as_the_numpy_levels(monkeypatch, case):
+    """The kernel that refines the sub-triangles landing on one receiver (addon/solver/estimators/
+    refine_kernel.py) decides as the level-by-level numpy refinement it replaces: the same
+    number of final sub-triangles per level, the same partly landed / border / dropped counts
+    and the same texture (the sub-triangles come in another order: the splat's sums differ in
+    the last bits).  The sheet's images cross the floor's edge (borders, lost casters handed
+    back to the numpy levels)."""
+    if case == "mirror":
+        sc, _ = mirror_scene(resolution=64)
+    elif case == "sheet":
+        sc = wavy_sheet(4, 96, n=40)
+    else:  # parallel light: a uniform flux per area of each caster
+        sc = wavy_sheet(4, 96, n=40, light=Light("Sun", "sun", (1.0, 1.0, 1.0), 3.0, direction=(0.2, -0.1, -1.0)))
+    monkeypatch.setattr(FI, "LANDED_KERNEL", False)
+    ref, ref_rep = _bake(sc, 96)
+    monkeypatch.setattr(FI, "LANDED_KERNEL", True)
+    new, new_rep = _bake(sc, 96)
+    for a, b in zip(ref_rep["passes"], new_rep["passes"]):
+        for k in ("sub_triangles", "final_per_depth", "partial", "border", "dropped"):
+            assert a[k] == b[k], (k, a[k], b[k])
+    assert new_rep["sub_triangles"] > 1000 and ref.max() > 0
+    assert rel_mse(new, ref) <= 1e-20

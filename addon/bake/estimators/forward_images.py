@@ -22,8 +22,8 @@ IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
 IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to within this
 IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
 IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
-SMALL_CASTER = 8.0  # texels: a first triangle at most this long (world, in the receivers' smallest texels) ...
-SMALL_LOST_DEPTH = 1  # ... has its lost sub-triangles probed and dropped from this many levels below the start
+LANDED_KERNEL = True  # Numba tracing: landed sub-triangles refined in one kernel (False: numpy levels only; tests)
+LOST_PROBE_TEXELS = 4.0  # texels: lost sub-triangles are probed and dropped from the level where they are this small (world)
 
 
 class ImageState:
@@ -112,7 +112,10 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     # near-uniform density and a finely resolved border of what lands.
     extra = dict(weight=weight) if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
     if coarse and receivers:
-        extra["keep_lost_depth"] = np.where(_small_casters(tri_p[emit_tri], tri_p, receivers, only), SMALL_LOST_DEPTH - int(coarse), 1)
+        extra["keep_lost_depth"] = lost_probe_depth(caster_texels(tri_p[emit_tri], tri_p, receivers, only), int(coarse))
+    if tracer is None and LANDED_KERNEL:  # Numba: the landed sub-triangles refined in one kernel (the same rules)
+        extra["kernel_scene"] = ((x0, emit_tri, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
+                                  tri_role) + bvh_args + (float(eps),), bool(parallel))
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
                                   tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, **extra)
     r = tris["receiver"]
@@ -142,13 +145,19 @@ def _device_tracer(device, *args):
         return None
 
 
-def _small_casters(P, tri_p, receivers, only):
-    """(n,) whether each first triangle P (n, 3, 3) is at most SMALL_CASTER texels long
-    (:func:`caster_texels`): its lost parts are sampled at its own scale (SMALL_LOST_DEPTH
-    levels below the coarse start: 13 points per quarter of the triangle) instead of at 1/64
-    of it; the flux such a triangle could hide between them is below a texel's worth of its
-    image."""
-    return caster_texels(P, tri_p, receivers, only) <= SMALL_CASTER
+def lost_probe_depth(size, coarse):
+    """(n,) per first triangle of ``size`` (n,) texels (:func:`caster_texels`), the depth from
+    which its lost sub-triangles are probed and dropped (``keep_lost_depth`` of
+    :func:`~addon.solver.estimators.forward_image.refine_image_triangles`, whose refinement
+    starts at depth -``coarse``): the first level whose sub-triangles are at most
+    ``LOST_PROBE_TEXELS`` long, at most depth 1.  A lost sub-triangle's 13 points (corners,
+    edge midpoints, the 7 probes) are then at most a quarter of it, about a texel, apart: the
+    flux of a landed region hiding between them would fill at most a texel of the caster.
+    Larger casters are probed from depth 1 (1/32 of the caster: every lost region of a large
+    caster is split that far)."""
+    size = np.asarray(size, dtype=np.float64)
+    levels = np.ceil(np.log2(np.maximum(size, 1e-300) / LOST_PROBE_TEXELS))
+    return np.clip(levels, 0, 1 + coarse).astype(np.int64) - coarse
 
 
 def caster_texels(P, tri_p, receivers, only):

@@ -54,10 +54,11 @@ HOPS = 3  # re-traces to a neighbouring second triangle when Newton leaves the f
 INSIDE_HOP = 1e-9
 CHUNK = 256
 BORDER_STEPS = 5  # bisections locating a straight border on an edge: to 1/64 of the edge
-BORDER_TEXELS = 0.25  # a partly landed sub-triangle is cut at its border once its whole image is this small
+BORDER_TEXELS = 1.0  # a partly landed sub-triangle is cut at its border once its whole image is this small
 SLIVER = 4.0  # images stretched beyond this (longest edge² / twice the area) are splatted uniformly
 ROUGH_TEXELS = 0.25  # ... or approximated by its landed points once its whole image is this small (1/16: 4x the time on the metal ring, same error)
-COARSE_TEXELS = 2.0  # a sub-triangle coarser than the first grid is final only if its image is at most this long (texels)
+COARSE_TEXELS = 8.0  # a sub-triangle coarser than the first grid is final only if its image is at most this long (texels) ...
+COARSE_LINEAR_TEXELS = 1.0  # ... and, longer than this, its density linear to relative x (this / its length)²
 
 
 @kernel(inline="always")
@@ -179,7 +180,7 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, 
 
 def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=4, max_depth=6, tolerance=0.5,
                            keep_lost_depth=1, partial_depth=None, relative=0.01, weight=None, coarse=0,
-                           coarse_texels=COARSE_TEXELS, shared=True):
+                           coarse_texels=COARSE_TEXELS, shared=True, kernel_scene=None):
     """Step 2: adaptive sub-triangles of every emitter's first triangle.
 
     ``trace(emitter, u1, v1) -> (t2, rec_tri, uv[, factor])`` traces points
@@ -210,7 +211,9 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     -coarse; G must be divisible by 2^coarse): a sub-triangle there is final when it passes
     the tests above, its density is linear even if its image is within a texel (a focus
     inside a texel: the glass sphere's, tests/bake/test_bake_caustics.py) and its image is at
-    most ``coarse_texels`` long (texels), else it is split
+    most ``coarse_texels`` long (texels), an image longer than ``COARSE_LINEAR_TEXELS`` being
+    linear to ``relative`` x (COARSE_LINEAR_TEXELS / its length)² (a linear splat's error
+    shows texel by texel on a large image), else it is split
     (never cut above depth 0; probed and dropped there only where ``keep_lost_depth``, which
     may be given per emitter, is negative).  The midpoint split of the coarse grid gives
     exactly the G x G grid (the same triangles, the same corner order, the same traced
@@ -220,6 +223,12 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     density (tests/solver/test_solver_forward_image.py, tests/bake/test_bake_forward_flux.py).
     ``shared``: a corner or edge midpoint shared by sub-triangles of one emitter is traced
     once (:func:`_traced_shared`; the same result as tracing it for each, which False does).
+    ``kernel_scene`` (with ``shared``): (``trace_chain_points``' arguments from x0 to eps,
+    parallel) of the scene ``trace`` traces, ``weight`` then being :func:`light_area_density`
+    (or uniform for parallel light): the sub-triangles whose 6 points land on one receiver are
+    refined by :func:`~addon.solver.estimators.refine_kernel.refine_landed` in one kernel, the
+    others handed back to the levels below with the same rules (the same final sub-triangles,
+    in another order).
 
     Returns dict: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
     uv (m, 3, 2) their landing UVs, receiver (m,), deviation (m,) UV units, landed (m,) the
@@ -247,21 +256,57 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     base = np.array(corners, dtype=np.float64) / g  # (g², 3, 2)
     ne = int(n_emitters)
     keep_lost = np.broadcast_to(np.asarray(keep_lost_depth, dtype=np.int64), (ne,))  # per emitter
-    emitter = np.repeat(np.arange(ne, dtype=np.int64), base.shape[0])
-    bary = np.tile(base, (ne, 1, 1))
-    # corner records: a corner shared by sub-triangles of one emitter is traced once
-    _t2, rec, uv, fac, traced = _traced_shared(trace, emitter, bary, dyadic)
-    rec = rec.reshape(-1, 3)
-    uv = uv.reshape(-1, 3, 2)
-    fac = fac.reshape(-1, 3)
-    inherited = np.full(emitter.size, np.inf)
     out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full", "mid_uv", "factor")}
+    handed = {}  # depth -> the kernel's handed-back sub-triangles of that depth (emitter, bary, rec, uv, fac, inherited)
+    kernel_finals = None
+    if kernel_scene is not None and dyadic:
+        from .refine_kernel import refine_landed
+
+        trace_args, parallel = kernel_scene
+        k = refine_landed(ne, base, -c0, dyadic, trace_args, receiver_of_tri, texel_size, tolerance, relative, coarse_texels,
+                          max_depth, weight is not None, parallel)
+        traced = k["traced"]
+        kernel_finals = k["depth"]
+        nk = k["emitter"].size
+        out["emitter"].append(k["emitter"])
+        out["bary"].append(k["bary"])
+        out["uv"].append(k["uv"])
+        out["receiver"].append(k["receiver"])
+        out["deviation"].append(k["deviation"])
+        out["bary_full"].append(k["bary"])
+        out["mid_uv"].append(k["mid_uv"])
+        out["landed"].append(np.ones(nk))
+        out["factor"].append(k["factor"])
+        for d in np.unique(k["hand_depth"]):
+            sel = np.flatnonzero(k["hand_depth"] == d)
+            handed[int(d)] = (k["hand_emitter"][sel], k["hand_bary"][sel], k["hand_rec"][sel], k["hand_uv"][sel],
+                              k["hand_fac"][sel], k["hand_inherited"][sel])
+        emitter = np.zeros(0, dtype=np.int64)
+        bary, rec, uv, fac = np.zeros((0, 3, 2)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3, 2)), np.zeros((0, 3))
+        inherited = np.zeros(0)
+    else:
+        emitter = np.repeat(np.arange(ne, dtype=np.int64), base.shape[0])
+        bary = np.tile(base, (ne, 1, 1))
+        # corner records: a corner shared by sub-triangles of one emitter is traced once
+        _t2, rec, uv, fac, traced = _traced_shared(trace, emitter, bary, dyadic)
+        rec = rec.reshape(-1, 3)
+        uv = uv.reshape(-1, 3, 2)
+        fac = fac.reshape(-1, 3)
+        inherited = np.full(emitter.size, np.inf)
     dropped = 0
     partial_count = 0
     border_count = 0
     final_per_depth = []
     final_coarse = []
     for depth in range(-c0, partial_depth + 1):
+        if depth in handed:  # the kernel's sub-triangles that do not land on one receiver
+            he, hb, hr, hu, hf, hi = handed.pop(depth)
+            emitter = np.concatenate([emitter, he])
+            bary = np.concatenate([bary, hb])
+            rec = np.concatenate([rec, hr])
+            uv = np.concatenate([uv, hu])
+            fac = np.concatenate([fac, hf])
+            inherited = np.concatenate([inherited, hi])
         m = emitter.size
         if depth == 0:
             inherited = np.full(m, np.inf)  # as without coarse levels
@@ -290,13 +335,20 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         # density nearly uniform over the image: the midpoint shift, relative to the edge,
         # measures the density's variation (zero for an affine map).
         edge = np.nan_to_num(np.abs(uv - uv[:, [1, 2, 0]]).max(axis=(1, 2)), nan=np.inf)
-        linear = dev <= relative * edge
+        # coarse levels: images longer than COARSE_LINEAR_TEXELS must be linear to `relative`
+        # x (COARSE_LINEAR_TEXELS / length)² (a linear splat's error shows texel by texel
+        # once the image spans several texels; the mirror's projective density)
+        rel = relative
+        if depth < 0:
+            rel = relative * np.minimum(1.0, (COARSE_LINEAR_TEXELS * tex / np.maximum(edge, 1e-300)) ** 2)
+        with np.errstate(invalid="ignore"):  # 0 x inf where nothing landed: not linear
+            linear = dev <= rel * edge
         if weight is not None and landed.any():
             li = np.flatnonzero(landed & linear)
             if li.size:
                 w6 = weight(emitter[li], np.concatenate([bary[li], mid[li]], axis=1))
                 w6 = w6 * np.concatenate([fac[li], mfac[li]], axis=1)
-                linear[li] = density_nonlinearity(uv[li], muv[li], w6) <= relative
+                linear[li] = density_nonlinearity(uv[li], muv[li], w6) <= (rel[li] if depth < 0 else rel)
         final = landed & (dev <= tolerance * tex) & (linear | (edge <= tex))
         if depth < 0:  # coarse: small, and a linear density whatever its size (a focus inside a texel is not)
             final = landed & (dev <= tolerance * tex) & linear & (edge <= coarse_texels * tex)
@@ -367,7 +419,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         final = final | partial | border
         split = np.flatnonzero(~final & ~drop)
         if split.size == 0:
-            emitter = emitter[:0]
+            emitter, bary, rec, uv, fac, inherited = emitter[:0], bary[:0], rec[:0], uv[:0], fac[:0], inherited[:0]
             continue
         b, mb = bary[split], mid[split]
         r, mr = rec[split], mrec[split]
@@ -384,6 +436,10 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         fac = kids(f[:, :, None], mf[:, :, None])[:, :, 0]
         inherited = np.tile(0.5 * scale[split], 4)
         emitter = np.tile(emitter[split], 4)
+    if kernel_finals is not None:  # the kernel's finals per level
+        counts = np.bincount(kernel_finals + c0, minlength=c0 + partial_depth + 1)
+        final_coarse = [a + int(b) for a, b in zip(final_coarse, counts[:c0])]
+        final_per_depth = [a + int(b) for a, b in zip(final_per_depth, counts[c0:])]
     cat = {k: (np.concatenate(v) if v else None) for k, v in out.items()}
     if cat["emitter"] is None or cat["emitter"].size == 0:
         cat = dict(emitter=np.zeros(0, dtype=np.int64), bary=np.zeros((0, 3, 2)), uv=np.zeros((0, 3, 2)),

@@ -165,6 +165,18 @@ def run_chunks(chunk_kernel, args, n, chunks=256, serial_below=2):
         original[...] = copy
 
 
+def run_calls(call, items):
+    """[call(item) for item in items], the calls spread over numba's thread count (each must
+    release the GIL: a ``kernel`` call); the results in the order of ``items``, whatever thread
+    ran them.  For kernels that return their own variable-sized output per call (:func:`run_chunks`
+    is for kernels writing disjoint parts of given arrays)."""
+    items = list(items)
+    threads = get_num_threads()
+    if threads <= 1 or len(items) <= 1:
+        return [call(item) for item in items]
+    return list(_pool(threads).map(call, items))
+
+
 def _drain(chunk_kernel, args, work):
     for a, b in work:
         chunk_kernel(*args, a, b)

@@ -381,7 +381,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         bi = np.flatnonzero(border)
         b_em, b_bary, b_uv, b_rec, b_dev, b_take, b_traced = _straight_border(
             trace, emitter[bi], bary[bi], mid[bi], uv[bi], muv[bi], robj[bi], receiver_of_tri, BORDER_STEPS,
-            depth >= int(max_depth))
+            depth >= int(max_depth), kernel_scene[0] if kernel_scene is not None else None)
         traced += b_traced
         border[bi[~b_take]] = False  # a curved border: split further
         bi = bi[b_take]
@@ -568,7 +568,7 @@ def _border_point(trace, emitter, a, b, landed_c, rec, receiver_of_tri, steps):
     return pb, puv, found, t
 
 
-def _straight_border(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, steps, accept_all):
+def _straight_border(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, steps, accept_all, kernel_scene=None):
     """The landed polygon of sub-triangles whose points fit one straight border
     (:func:`_single_border`).  The border is bisected ``steps`` times on the edge where the
     run of landed corners ends (X_exit) and where it starts (X_enter), starting from the half
@@ -579,7 +579,9 @@ def _straight_border(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, 
     border, as at the corner of a slab's image).  Polygon: the landed corners, X_exit, P_a,
     P, P_c, X_enter (points left out where the perpendicular does not cross the border), cut
     into a fan from the first landed corner.  Rows that are not straight enough are
-    returned for splitting unless ``accept_all``.
+    returned for splitting unless ``accept_all``.  With ``kernel_scene`` (the arguments of
+    ``trace_chain_points`` from x0 to eps, of the scene ``trace`` traces) the rows are traced
+    in one kernel (:func:`~addon.solver.estimators.border_kernel.border_polygons`: the same points).
 
     Returns (emitter, bary (k, 3, 2), uv (k, 3, 2), receiver (k,), deviation (k,) 1/16 of the
     landed UV span (a seeding margin), rows (m,) taken, points traced)."""
@@ -587,6 +589,38 @@ def _straight_border(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, 
     empty = (np.zeros(0, dtype=np.int64), np.zeros((0, 3, 2)), np.zeros((0, 3, 2)), np.zeros(0, dtype=np.int64), np.zeros(0))
     if m == 0:
         return empty + (np.zeros(0, dtype=np.bool_), 0)
+    traced = 2 * steps * m + 3 * (steps + 2) * m
+    if kernel_scene is not None:
+        from .border_kernel import border_polygons
+
+        straight = np.zeros(m, dtype=np.bool_)
+        count = np.zeros(m, dtype=np.int64)
+        poly_b = np.zeros((m, 7, 2))
+        poly_uv = np.zeros((m, 7, 2))
+        span = np.zeros(m)
+        border_polygons(np.ascontiguousarray(emitter, dtype=np.int64), np.ascontiguousarray(bary), np.ascontiguousarray(mid),
+                        np.ascontiguousarray(uv), np.ascontiguousarray(muv), np.ascontiguousarray(robj, dtype=np.int64),
+                        np.ascontiguousarray(receiver_of_tri, dtype=np.int64), int(steps), *kernel_scene, straight, count,
+                        poly_b, poly_uv, span)
+        rec = np.max(robj, axis=1)
+    else:
+        rec, straight, count, poly_b, poly_uv, span = _border_polygons_numpy(trace, emitter, bary, mid, uv, muv, robj,
+                                                                             receiver_of_tri, steps)
+    take = straight | accept_all
+    fan_b, fan_uv, fan_row = [], [], []
+    for k in range(1, 6):
+        sel = np.flatnonzero(take & (count >= k + 2))
+        fan_b.append(poly_b[sel][:, [0, k, k + 1]])
+        fan_uv.append(poly_uv[sel][:, [0, k, k + 1]])
+        fan_row.append(sel)
+    fr = np.concatenate(fan_row)
+    return emitter[fr], np.concatenate(fan_b), np.concatenate(fan_uv), rec[fr], span[fr], take, traced
+
+
+def _border_polygons_numpy(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, steps):
+    """The rows of :func:`_straight_border` in numpy: (receiver, straight, polygon point count,
+    polygon bary, polygon uv, seeding margin)."""
+    m = emitter.shape[0]
     rows = np.arange(m)
     rec = np.max(robj, axis=1)
     ok = robj == rec[:, None]
@@ -604,16 +638,13 @@ def _straight_border(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, 
 
     x_exit, uv_exit = crossing(last, (last + 1) % 3, last)  # edge (last, last + 1): midpoint index last
     x_enter, uv_enter = crossing(start, (start + 2) % 3, (start + 2) % 3)  # edge (start - 1, start)
-    traced = 2 * steps * m
     landed_c = (bary * c[:, :, None]).sum(axis=1) / nc[:, None]
     # the border between the crossings, sampled at the chord's midpoint and then at the two
     # half-chords' (a single sample is fooled by a corner of the border: the slab image's)
     pb, puv, ok0, t0 = _border_point(trace, emitter, x_exit, x_enter, landed_c, rec, receiver_of_tri, steps)
     pa_b, pa_uv, ok1, t1 = _border_point(trace, emitter, x_exit, pb, landed_c, rec, receiver_of_tri, steps)
     pc_b, pc_uv, ok2, t2 = _border_point(trace, emitter, pb, x_enter, landed_c, rec, receiver_of_tri, steps)
-    traced += 3 * (steps + 2) * m
     straight = ok0 & ok1 & ok2 & (np.maximum(np.maximum(np.abs(t0), np.abs(t1)), np.abs(t2)) <= 1.0 / 16.0)
-    take = straight | accept_all
     ok1 &= ok0
     ok2 &= ok0
     # polygon: landed corners from `start`, X_exit, [P_a, P, P_c], X_enter
@@ -632,16 +663,9 @@ def _straight_border(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, 
         poly_b[rows[sel], count[sel]] = pt_b[sel]
         poly_uv[rows[sel], count[sel]] = pt_uv[sel]
         count += sel
-    fan_b, fan_uv, fan_row = [], [], []
-    for k in range(1, 6):
-        sel = np.flatnonzero(take & (count >= k + 2))
-        fan_b.append(poly_b[sel][:, [0, k, k + 1]])
-        fan_uv.append(poly_uv[sel][:, [0, k, k + 1]])
-        fan_row.append(sel)
-    fr = np.concatenate(fan_row)
     # seeding margin: the polygon's points are traced, its sides straight to ~1/16 of a chord
     span = np.sqrt((_landed_span(ok, uv, muv) ** 2).sum(axis=1)) / 16.0
-    return emitter[fr], np.concatenate(fan_b), np.concatenate(fan_uv), rec[fr], span[fr], take, traced
+    return rec, straight, count, poly_b, poly_uv, span
 
 
 def _probe_receivers(trace, emitter, bary, receiver_of_tri):

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..solver.geometry.bvh import build_bvh, segments_occluded
+from ..solver.geometry.bvh import box_area, build_bvh, refit_bvh, segments_occluded
 from .checks import scene_warnings
 from .context import VISIBILITY_OFFSET, BakeCancelled, BakeContext, with_resolution, world_per_uv_area
 from .estimators import make_estimator
@@ -216,7 +216,7 @@ def make_context(scene, settings):
 
         set_num_threads(settings.threads)
     t0 = time.perf_counter()
-    bvh = build_bvh(scene.tri_p)
+    bvh = scene_bvh(scene.tri_p)
     extent = scene.extent()
     receivers = [with_resolution(r, settings.resolution) if settings.resolution else r for r in scene.receivers]
     lsamples = [sample_light(light, settings.light_samples, settings.seed) for light in scene.lights]
@@ -224,6 +224,28 @@ def make_context(scene, settings):
                       warnings=list(scene.warnings) + scene_warnings(scene, receivers))
     ctx.timer.add("bvh", time.perf_counter() - t0)
     return ctx
+
+
+REFIT_GROWTH = 1.5  # a refitted tree is kept while its boxes' area is at most this times its build's
+
+
+def scene_bvh(tri_p):
+    """The BVH of the triangles ``tri_p``: the last bake's tree refitted when it has as many
+    triangles (an animation's next frame; :func:`~addon.solver.geometry.bvh.refit_bvh`, the same
+    answers as a fresh build) and its boxes' area grew at most ``REFIT_GROWTH`` times, else a
+    fresh build.  ``_BVH_KEPT`` holds the last tree and its build's box area."""
+    kept = _BVH_KEPT.get("tree")
+    if kept is not None and kept[0].order.shape[0] == tri_p.shape[0]:
+        bvh = refit_bvh(kept[0], tri_p)
+        if box_area(bvh) <= REFIT_GROWTH * kept[1]:
+            _BVH_KEPT["refits"] = _BVH_KEPT.get("refits", 0) + 1
+            return bvh
+    bvh = build_bvh(tri_p)
+    _BVH_KEPT["tree"] = (bvh, box_area(bvh))
+    return bvh
+
+
+_BVH_KEPT = {}
 
 
 class Progress:

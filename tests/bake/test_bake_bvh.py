@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from addon.solver.geometry.bvh import build_bvh, rays_closest, segments_occluded
+from addon.solver.geometry.bvh import box_area, build_bvh, rays_closest, refit_bvh, segments_occluded
 
 
 def _brute_hits(a, b, tri, eps):
@@ -98,3 +98,57 @@ def test_empty_and_degenerate():
     bvh = build_bvh(tri)
     got = segments_occluded(bvh, np.array([[0, 0, 1.0], [1, 1, -1.0]]), np.array([[0, 0, -1.0], [1, 1, 3.0]]), eps=1e-9)
     assert got.tolist() == [True, False]
+
+
+def _grid(n, z):
+    """An n x n grid of quads (2 n² triangles) over [0, 1]², heights z (n + 1, n + 1)."""
+    s = np.linspace(0.0, 1.0, n + 1)
+    X, Y = np.meshgrid(s, s, indexing="ij")
+    V = np.stack([X, Y, z], axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    q = (a, a + n + 1, a + n + 2, a + 1)
+    idx = np.concatenate([np.stack([q[0], q[1], q[2]], 1), np.stack([q[0], q[2], q[3]], 1)])
+    return V[idx]
+
+
+def test_refit_answers_as_a_fresh_build():
+    """A tree refitted to moved triangles gives every query the answer of a tree built on them:
+    closest hits (ties on shared edges go to the smallest id, whatever the tree) and any-hits;
+    its boxes hold their triangles; a far move costs box area (what scene_bvh watches)."""
+    rng = np.random.default_rng(7)
+    n = 24
+    flat = _grid(n, np.zeros((n + 1, n + 1)))
+    moved = _grid(n, 0.05 * rng.normal(size=(n + 1, n + 1)))
+    old = build_bvh(flat)
+    fresh = build_bvh(moved)
+    refit = refit_bvh(old, moved)
+    for k in range(refit.node_min.shape[0]):
+        if refit.node_child[k] < 0:
+            tri = moved[refit.order[refit.node_start[k]:refit.node_start[k] + refit.node_count[k]]]
+            assert np.all(tri.min(axis=(0, 1)) >= refit.node_min[k]) and np.all(tri.max(axis=(0, 1)) <= refit.node_max[k])
+    # rays from above: random, and straight down through grid vertices and edge midpoints (ties)
+    o = np.column_stack([rng.uniform(0, 1, (3000, 2)), np.full(3000, 2.0)])
+    g = np.arange(n + 1) / n
+    X, Y = np.meshgrid(g, (np.arange(2 * n + 1) / (2 * n)), indexing="ij")
+    o = np.concatenate([o, np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, 2.0)])])
+    d = np.tile([0.0, 0.0, -1.0], (o.shape[0], 1))
+    d[:3000] += rng.normal(scale=0.1, size=(3000, 3))
+    a_tri, a_t = rays_closest(fresh, o, d)
+    b_tri, b_t = rays_closest(refit, o, d)
+    np.testing.assert_array_equal(a_tri, b_tri)
+    np.testing.assert_array_equal(a_t, b_t)
+    assert (a_tri >= 0).mean() > 0.7
+    # on the flat grid, vertical rays through shared edges and vertices hit several triangles at
+    # the same t: the smallest id, as a brute-force search with that rule
+    flat_o = o[3000:]
+    tri_id, _ = rays_closest(old, flat_o, d[3000:])
+    hits, tv = _brute_hits(flat_o, flat_o + 4.0 * d[3000:], flat, 0.0)
+    best = tv.min(axis=1)
+    expect = np.where(hits.any(1), np.argmax(hits & (tv == best[:, None]), axis=1), -1)
+    np.testing.assert_array_equal(tri_id, expect)
+    assert (hits.sum(axis=1) > 1).sum() > 100  # ties were tested
+    b = o + 3.0 * d
+    np.testing.assert_array_equal(segments_occluded(fresh, o, b), segments_occluded(refit, o, b))
+    far = moved + rng.uniform(-5, 5, (moved.shape[0], 1, 3))  # scattered far apart: the old shape is poor
+    assert box_area(refit_bvh(old, far)) > 3.0 * box_area(build_bvh(far))

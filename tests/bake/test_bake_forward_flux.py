@@ -131,3 +131,19 @@ def test_landed_kernel_refines_as_the_numpy_levels(monkeypatch, case):
             assert a[k] == b[k], (k, a[k], b[k])
     assert new_rep["sub_triangles"] > 1000 and ref.max() > 0
     assert rel_mse(new, ref) <= 1e-20
+
+
+def test_next_frame_refits_the_bvh_and_bakes_as_a_fresh_tree(monkeypatch):
+    """An animation's next frame refits the last frame's BVH (pipeline.scene_bvh) and bakes the
+    same texture bit for bit as with a tree built for it (closest hits do not depend on the
+    tree's shape: tests/bake/test_bake_bvh.py)."""
+    from addon.bake import pipeline
+
+    monkeypatch.setattr(pipeline, "_BVH_KEPT", {})
+    bake(wavy_sheet(1, 64, n=30), BakeSettings(resolution=64, margin=0))
+    a, _ = _bake(wavy_sheet(2, 64, n=30), 64)
+    assert pipeline._BVH_KEPT.get("refits") == 1
+    monkeypatch.setattr(pipeline, "_BVH_KEPT", {})
+    b, _ = _bake(wavy_sheet(2, 64, n=30), 64)
+    assert "refits" not in pipeline._BVH_KEPT and a.max() > 0
+    np.testing.assert_array_equal(a, b)

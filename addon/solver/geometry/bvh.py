@@ -4,6 +4,10 @@
 centroids, leaves of at most ``LEAF_SIZE`` triangles) in Numba; ``segments_occluded`` answers
 any-hit queries for a batch of segments a -> b in parallel.
 
+Closest hits (``ray_closest``) take the smallest t and, at equal t (a ray through an edge two
+triangles share), the smallest triangle id: the answer does not depend on the tree's shape, so
+a tree refitted to moved triangles (:func:`refit_bvh`) answers as a fresh build of them.
+
 Robustness: a segment is tested on t in [eps / L, 1 - eps / L] (L its length, eps an absolute
 offset, typically 1e-6 of the scene size), and up to two triangle ids per segment are ignored
 (the specular vertex's own triangle, the receiver triangle), so a segment never hits the
@@ -187,6 +191,56 @@ def build_bvh(tri_p):
                order, np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1] - p[:, 0]), np.ascontiguousarray(p[:, 2] - p[:, 0]))
 
 
+@kernel
+def _refit(tri_p, order, node_min, node_max, node_child, node_start, node_count):
+    """Boxes of every node for the triangles ``tri_p``, the tree's shape kept: leaves around
+    their triangles, inner nodes around their children (children are numbered after their
+    parent, so a reverse sweep meets them first)."""
+    for k in range(node_min.shape[0] - 1, -1, -1):
+        c = node_child[k]
+        for a in range(3):
+            lo = np.inf
+            hi = -np.inf
+            if c < 0:
+                for q in range(node_start[k], node_start[k] + node_count[k]):
+                    t = order[q]
+                    for j in range(3):
+                        lo = min(lo, tri_p[t, j, a])
+                        hi = max(hi, tri_p[t, j, a])
+            else:
+                lo = min(node_min[c, a], node_min[c + 1, a])
+                hi = max(node_max[c, a], node_max[c + 1, a])
+            node_min[k, a] = lo
+            node_max[k, a] = hi
+
+
+def refit_bvh(bvh, tri_p):
+    """The BVH of ``bvh``'s shape (nodes, leaves, triangle order) around the triangles
+    ``tri_p`` (the same triangles moved: as many, in the same order), in O(nodes) instead of a
+    build.  Queries give the same answers as on ``build_bvh(tri_p)`` (see the module doc); only
+    their speed depends on how far the triangles moved from the ones the shape was built for."""
+    tri_p = np.ascontiguousarray(tri_p, dtype=np.float64).reshape(-1, 3, 3)
+    if tri_p.shape[0] != bvh.order.shape[0]:
+        raise ValueError(f"refit_bvh: {tri_p.shape[0]} triangles for a tree of {bvh.order.shape[0]}")
+    node_min = np.empty_like(bvh.node_min)
+    node_max = np.empty_like(bvh.node_max)
+    if tri_p.shape[0]:
+        _refit(tri_p, bvh.order, node_min, node_max, bvh.node_child, bvh.node_start, bvh.node_count)
+    else:
+        node_min[:] = np.inf
+        node_max[:] = -np.inf
+    p = tri_p[bvh.order]
+    return BVH(node_min, node_max, bvh.node_child, bvh.node_start, bvh.node_count, bvh.order, np.ascontiguousarray(p[:, 0]),
+               np.ascontiguousarray(p[:, 1] - p[:, 0]), np.ascontiguousarray(p[:, 2] - p[:, 0]))
+
+
+def box_area(bvh):
+    """The summed surface area of the tree's node boxes (its SAH traversal cost up to a
+    constant): how much a refitted tree lost against its build."""
+    d = np.maximum(bvh.node_max - bvh.node_min, 0.0)
+    return float(np.sum(d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]))
+
+
 @kernel(inline="always")
 def _hit_triangle(ox, oy, oz, dx, dy, dz, v0, e1, e2, q, tmin, tmax):
     """Möller–Trumbore, inclusive edges; True when the ray hits triangle q with t in [tmin, tmax]."""
@@ -336,7 +390,7 @@ def ray_closest(node_min, node_max, node_child, node_start, node_count, order, v
                 if tid == ig:
                     continue
                 hit, t = _hit_triangle(ox, oy, oz, dx, dy, dz, v0, e1, e2, q, tmin, best_t)
-                if hit and (t < best_t or best < 0):
+                if hit and (t < best_t or best < 0 or (t == best_t and tid < best)):  # ties: the smallest id
                     best_t = t
                     best = tid
         else:

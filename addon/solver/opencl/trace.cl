@@ -85,7 +85,9 @@ static long ray_closest(const Bvh *B, double ox, double oy, double oz, double dx
                 long tid = B->order[q];
                 if (tid == ig) continue;
                 double t;
-                if (hit_triangle(B, q, ox, oy, oz, dx, dy, dz, tmin, best_t, &t) && (t < best_t || best < 0)) {
+                // ties (a ray through an edge two triangles share): the smallest id, whatever the tree
+                if (hit_triangle(B, q, ox, oy, oz, dx, dy, dz, tmin, best_t, &t)
+                    && (t < best_t || best < 0 || (t == best_t && tid < best))) {
                     best_t = t;
                     best = tid;
                 }

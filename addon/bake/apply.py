@@ -34,6 +34,12 @@ restored, and the images and node group (found by its tag, not its name) are del
 that Caustic Bake wrote (the folder's manifest, :data:`FILES_MANIFEST`); a user's file is
 never deleted or overwritten.  Files are written all or nothing before anything in Blender
 changes (:mod:`addon.bake.output`), so a failed write leaves the previous bake as it was.
+
+EEVEE cannot compute caustics, and it draws refracting materials opaque and mirrors dark
+unless raytracing is on: :func:`eevee_settings_for_casters` turns on the refracting casters'
+raytraced refraction and the scene's raytracing where they were off (recorded, restored by
+``clear_bake``), so the caustic baked under water or glass shows in EEVEE too
+(tests/ui/test_ui_eevee.py).
 """
 
 import json
@@ -41,6 +47,7 @@ import math
 import os
 
 import bpy
+import numpy as np
 
 from . import output
 from .names import texture_filename
@@ -52,6 +59,7 @@ STATE_KEY = "caustic_bake_state"
 SLOT_KEY = "caustic_bake_slots"
 TAG_KEY = "caustic_bake"
 FILES_KEY = "caustic_bake_files"  # on a sequence image: JSON [absolute folder, [file names]]
+EEVEE_KEY = "caustic_bake_eevee"  # on a material / scene: JSON of the EEVEE settings the bake changed (to restore)
 BASE_COLOR_INPUTS = {"BSDF_PRINCIPLED": "Base Color", "BSDF_DIFFUSE": "Color", "BSDF_SHEEN": "Color", "BSDF_TOON": "Color"}
 
 
@@ -439,6 +447,8 @@ def clear_bake(object_names=None, delete_files=False, keep_files=()):
     for group in node_groups():
         if group.users == 0:
             bpy.data.node_groups.remove(group)
+    if wanted is None:  # the casters' EEVEE settings belong to the whole bake
+        _restore_eevee_settings()
 
 
 def _delete_sequence_files(record, keep):
@@ -460,6 +470,65 @@ def _delete_sequence_files(record, keep):
             gone.append(fname)
     if gone and os.path.isdir(abs_dir):
         output.record_written(abs_dir, forget=gone)
+
+
+def eevee_settings_for_casters(scene_model):
+    """Let EEVEE show the bake through and on the casters.  EEVEE draws a refracting material
+    opaque unless its raytraced refraction is on (Material > Settings > Raytraced
+    Transmission, ``use_raytrace_refraction``), which needs the scene's raytracing (Render >
+    Raytracing, ``eevee.use_raytracing``; without it mirrors and glass also show dark), and its
+    screen-space rays find what lies behind the water only when the depth buffer's objects are
+    taken as thick enough (Raytracing > Screen Tracing > Thickness, ``screen_trace_thickness``;
+    Blender's default 0.2 lets the refracted rays pass behind the pool floor): raised to the
+    scene's size (``scene_model.extent()``).  Turns these on where they are off: the refracting
+    casters' materials (role refract or both in ``scene_model``) and, when the scene has
+    casters, the scene.  The previous values are recorded on each material and the scene
+    (:data:`EEVEE_KEY`), so :func:`clear_bake` restores them exactly (Undo does too); Cycles
+    ignores all three.  Returns the names of what changed (materials, then scene settings)."""
+    from .scene import ROLE_NAMES
+
+    changed = []
+    refracting = scene_model.tri_role >= ROLE_NAMES["refract"]
+    names = sorted({scene_model.materials[k] for k in np.unique(scene_model.tri_material[refracting])} - {""})
+    for name in names:
+        mat = bpy.data.materials.get(name)
+        if mat is None or mat.use_raytrace_refraction or mat.get(EEVEE_KEY) is not None:
+            continue
+        mat[EEVEE_KEY] = json.dumps({"use_raytrace_refraction": False})
+        mat.use_raytrace_refraction = True
+        changed.append(name)
+    scene = bpy.context.scene
+    if not np.any(scene_model.tri_role > 0) or scene.get(EEVEE_KEY) is not None:
+        return changed
+    eevee, trace = scene.eevee, scene.eevee.ray_tracing_options
+    old = {"use_raytracing": bool(eevee.use_raytracing), "screen_trace_thickness": float(trace.screen_trace_thickness)}
+    thickness = max(old["screen_trace_thickness"], float(scene_model.extent())) if refracting.any() else None
+    on_scene = []
+    if not old["use_raytracing"]:
+        eevee.use_raytracing = True
+        on_scene.append("scene raytracing")
+    if thickness is not None and thickness > old["screen_trace_thickness"]:
+        trace.screen_trace_thickness = thickness
+        on_scene.append("screen tracing thickness {:.3g}".format(thickness))
+    if on_scene:
+        scene[EEVEE_KEY] = json.dumps(old)
+    return changed + on_scene
+
+
+def _restore_eevee_settings():
+    """Put back the EEVEE settings :func:`eevee_settings_for_casters` changed."""
+    for mat in bpy.data.materials:
+        raw = mat.get(EEVEE_KEY)
+        if raw is not None:
+            mat.use_raytrace_refraction = bool(json.loads(raw)["use_raytrace_refraction"])
+            del mat[EEVEE_KEY]
+    for scene in bpy.data.scenes:
+        raw = scene.get(EEVEE_KEY)
+        if raw is not None:
+            old = json.loads(raw)
+            scene.eevee.use_raytracing = bool(old["use_raytracing"])
+            scene.eevee.ray_tracing_options.screen_trace_thickness = float(old["screen_trace_thickness"])
+            del scene[EEVEE_KEY]
 
 
 def receivers_uv_maps(scene_model):

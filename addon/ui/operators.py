@@ -389,8 +389,8 @@ class BakeJob:
     def finish(self, context):
         """Apply the result (a frame range: its finished frames) to the scene; returns the
         one-line summary."""
-        from ..bake.apply import (apply_bake, apply_sequence, clear_bake, publish_sequence_frames, receivers_uv_maps,
-                                  write_textures)
+        from ..bake.apply import (apply_bake, apply_sequence, clear_bake, eevee_settings_for_casters,
+                                  publish_sequence_frames, receivers_uv_maps, write_textures)
 
         result = self.result
         props = context.scene.caustic_bake
@@ -411,6 +411,9 @@ class BakeJob:
             clear_bake(delete_files=True, keep_files=keep)  # an earlier sequence's other frames go
             done = apply_sequence(self.receivers, self.uv_maps, self.directory, self.done_frames)
             what = ", frames {}-{} of {}-{}".format(self.done_frames[0], self.done_frames[-1], self.frames[0], self.frames[-1])
+        eevee = eevee_settings_for_casters(self.model)
+        if eevee:
+            what += "; for EEVEE turned on raytracing: {} (Clear restores)".format(", ".join(eevee))
         plan = result.report.get("plan", {}).get("summary", [])
         props.last_plan = "\n".join(plan)
         return "Caustic Bake: {} receiver(s){} in {:.1f} s ({}): {}".format(

@@ -12,12 +12,14 @@ caster roles, see addon/bake/extract.py):
   sun: chain R, the coffee-cup cardioid.
 - glass_sphere.blend: a smooth glass sphere (Glass BSDF, IOR 1.5) above the floor, point
   light: chains TT (the focus) and R.
-- water_pool.blend: a water surface (grid with a Displace modifier, Principled transmission,
-  IOR 1.33) over a pool floor, lit by a point light and a sun: chain T (animated: frames
-  1..48 move the waves).
+- water_pool.blend: a water surface (grid with a Displace modifier, then a Subdivision
+  Surface modifier: smooth, 73,728 triangles; Principled transmission, IOR 1.33) over a pool
+  floor, lit by a point light and a sun: chain T (animated: frames 1..48 move the waves).
 - glass_slab.blend: a flat glass slab (box, Glass BSDF) above the floor: chains TT and R.
 
-Each scene has a camera and Cycles set up for a quick preview render.
+Each scene has a camera, Cycles set up for a quick preview render, and the settings EEVEE
+needs to show the bake through glass and water (raytraced refraction on the glass and water
+materials, scene raytracing, a screen-tracing thickness that reaches the floor).
 """
 
 import math
@@ -39,6 +41,12 @@ def _reset():
     sc.render.resolution_x = 480
     sc.render.resolution_y = 360
     sc.view_settings.view_transform = "AgX"
+    # EEVEE: raytracing (mirrors and glass would show dark without it) with a screen-tracing
+    # thickness that lets refracted rays reach the floor behind water and glass (Blender's
+    # 0.2 lets them pass behind it; apply.eevee_settings_for_casters does the same for a user's scene)
+    sc.eevee.use_raytracing = True
+    sc.eevee.ray_tracing_options.screen_trace_thickness = 6.0
+    sc.eevee.taa_render_samples = 32
     world = bpy.data.worlds.new("World")
     world.color = (0.02, 0.02, 0.025)
     if world.node_tree is None:
@@ -71,6 +79,8 @@ def _material(name, kind, color=(0.8, 0.8, 0.8), ior=1.5, roughness=0.0):
             bsdf.inputs["IOR"].default_value = ior
     bsdf.location = (-300, 0)
     nt.links.new(bsdf.outputs[0], out.inputs["Surface"])
+    if kind in ("glass", "water"):
+        mat.use_raytrace_refraction = True  # EEVEE draws refraction opaque without it
     return mat
 
 
@@ -181,6 +191,11 @@ def water_pool():
     disp.texture_coords_object = driver
     disp.strength = 0.12
     disp.mid_level = 0.5
+    # Smooth water: the 48 x 48 grid's interpolated normals would show the mesh as a grid of
+    # blocks in the caustic (true to the model); Catmull-Clark after the waves gives a smooth
+    # surface of 73,728 triangles (about a texel each at 512²)
+    subd = water.modifiers.new("Smooth", "SUBSURF")
+    subd.levels = subd.render_levels = 2
     water.data.materials.append(_material("Water", "water", (1.0, 1.0, 1.0), ior=1.33))
     _light("POINT", "Point", 150.0, (0.3, -0.2, 3.0), shadow_soft_size=0.0)
     _light("SUN", "Sun", 1.0, rotation=(math.radians(20), 0.0, math.radians(30)), angle=math.radians(0.5))

@@ -412,10 +412,11 @@ class BakeJob:
             done = apply_sequence(self.receivers, self.uv_maps, self.directory, self.done_frames)
             what = ", frames {}-{} of {}-{}".format(self.done_frames[0], self.done_frames[-1], self.frames[0], self.frames[-1])
         eevee = eevee_settings_for_casters(self.model)
-        if eevee:
-            what += "; for EEVEE turned on raytracing: {} (Clear restores)".format(", ".join(eevee))
+        eevee_line = "EEVEE: turned on {} (Clear restores)".format(", ".join(eevee)) if eevee else None
+        if eevee_line:
+            what += "; " + eevee_line
         plan = result.report.get("plan", {}).get("summary", [])
-        props.last_plan = "\n".join(plan)
+        props.last_plan = "\n".join(plan + ([eevee_line] if eevee_line else []))  # the panel lists these lines
         return "Caustic Bake: {} receiver(s){} in {:.1f} s ({}): {}".format(
             len(done), what, time.perf_counter() - self.t0, ", ".join(result.report.get("estimators", {})) or "nothing",
             "; ".join(plan))

@@ -190,6 +190,7 @@ def test_eevee_sees_the_caustic_under_the_water(tmp_path):
     before = _render(str(tmp_path / "before.exr"))
     assert bpy.ops.caustics.bake(save_blend=False) == {"FINISHED"}
     assert water.use_raytrace_refraction and sc.eevee.use_raytracing
+    assert "EEVEE: turned on Water, scene raytracing, screen tracing thickness" in sc.caustic_bake.last_plan  # the panel's lines
     after = _render(str(tmp_path / "after.exr"))
     added = (after - before).mean(axis=2)
     img = bpy.data.images["CausticBake PoolFloor"]

@@ -257,7 +257,9 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     ne = int(n_emitters)
     keep_lost = np.broadcast_to(np.asarray(keep_lost_depth, dtype=np.int64), (ne,))  # per emitter
     out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full", "mid_uv", "factor")}
-    handed = {}  # depth -> the kernel's handed-back sub-triangles of that depth (emitter, bary, rec, uv, fac, inherited)
+    handed = {}  # depth -> the kernel's handed-back sub-triangles of that depth (emitter, bary, rec, uv, fac, inherited,
+    # and their edge midpoints' rec, uv, fac: traced already)
+    known = None  # the current level's last rows: handed back, their midpoints' (rec, uv, fac)
     kernel_finals = None
     if kernel_scene is not None and dyadic:
         from .refine_kernel import refine_landed
@@ -279,8 +281,9 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         out["factor"].append(k["factor"])
         for d in np.unique(k["hand_depth"]):
             sel = np.flatnonzero(k["hand_depth"] == d)
-            handed[int(d)] = (k["hand_emitter"][sel], k["hand_bary"][sel], k["hand_rec"][sel], k["hand_uv"][sel],
-                              k["hand_fac"][sel], k["hand_inherited"][sel])
+            handed[int(d)] = (k["hand_emitter"][sel], k["hand_bary"][sel], k["hand_rec"][sel, :3], k["hand_uv"][sel, :3],
+                              k["hand_fac"][sel, :3], k["hand_inherited"][sel],
+                              (k["hand_rec"][sel, 3:], k["hand_uv"][sel, 3:], k["hand_fac"][sel, 3:]))
         emitter = np.zeros(0, dtype=np.int64)
         bary, rec, uv, fac = np.zeros((0, 3, 2)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3, 2)), np.zeros((0, 3))
         inherited = np.zeros(0)
@@ -299,8 +302,9 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     final_per_depth = []
     final_coarse = []
     for depth in range(-c0, partial_depth + 1):
+        known = None
         if depth in handed:  # the kernel's sub-triangles that do not land on one receiver
-            he, hb, hr, hu, hf, hi = handed.pop(depth)
+            he, hb, hr, hu, hf, hi, known = handed.pop(depth)
             emitter = np.concatenate([emitter, he])
             bary = np.concatenate([bary, hb])
             rec = np.concatenate([rec, hr])
@@ -314,7 +318,12 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
             (final_per_depth if depth >= 0 else final_coarse).append(0)
             continue
         mid = 0.5 * (bary + bary[:, [1, 2, 0]])  # midpoints of edges (0,1), (1,2), (2,0)
-        _mt2, mrec, muv, mfac, count = _traced_shared(trace, emitter, mid, dyadic)  # an edge's midpoint once
+        nk = 0 if known is None else known[0].shape[0]  # the last nk rows' midpoints: traced by the kernel
+        _mt2, mrec, muv, mfac, count = _traced_shared(trace, emitter[:m - nk], mid[:m - nk], dyadic)  # an edge's midpoint once
+        if nk:
+            mrec = np.concatenate([mrec.reshape(-1, 3), known[0]]).reshape(-1)
+            muv = np.concatenate([muv.reshape(-1, 3, 2), known[1]]).reshape(-1, 2)
+            mfac = np.concatenate([mfac.reshape(-1, 3), known[2]]).reshape(-1)
         traced += count
         mrec = mrec.reshape(-1, 3)
         muv = muv.reshape(-1, 3, 2)

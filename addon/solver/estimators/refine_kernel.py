@@ -43,7 +43,7 @@ EMITTERS_PER_CALL = 128  # emitters refined by one kernel call (a unit of work f
 CHILD_CORNERS = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]], dtype=np.int64)
 # record layouts (float64 rows): a final sub-triangle, and one handed back to the numpy refinement
 F_EMITTER, F_RECEIVER, F_DEPTH, F_DEV, F_BARY, F_UV, F_MID_UV, F_FACTOR, F_WIDTH = 0, 1, 2, 3, 4, 10, 16, 22, 28
-H_EMITTER, H_DEPTH, H_INHERITED, H_BARY, H_REC, H_UV, H_FAC, H_WIDTH = 0, 1, 2, 3, 9, 12, 18, 21
+H_EMITTER, H_DEPTH, H_INHERITED, H_BARY, H_REC, H_UV, H_FAC, H_WIDTH = 0, 1, 2, 3, 9, 15, 27, 33  # REC, UV, FAC: 6 points
 
 
 @kernel(inline="always")
@@ -239,10 +239,11 @@ def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, r
                 for c in range(3):
                     row[H_BARY + 2 * c] = p_bary[c, 0]
                     row[H_BARY + 2 * c + 1] = p_bary[c, 1]
-                    row[H_REC + c] = p_rec[c]
-                    row[H_UV + 2 * c] = p_uv[c, 0]
-                    row[H_UV + 2 * c + 1] = p_uv[c, 1]
-                    row[H_FAC + c] = p_fac[c]
+                for k in range(6):  # corners, then edge midpoints (traced: the numpy levels need not again)
+                    row[H_REC + k] = p_rec[k]
+                    row[H_UV + 2 * k] = p_uv[k, 0]
+                    row[H_UV + 2 * k + 1] = p_uv[k, 1]
+                    row[H_FAC + k] = p_fac[k]
                 nh += 1
                 continue
             dev = 0.0
@@ -314,8 +315,8 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
     refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, the BVH's
     9 arrays, eps).  Returns dict: the final sub-triangles' emitter, receiver, depth,
     deviation, bary, uv, mid_uv (m, 3, 2) and factor (m, 6); the handed-back ones' emitter,
-    depth, inherited image scale, bary, rec (scene triangle per corner, -1 lost), uv, fac; and
-    the points traced."""
+    depth, inherited image scale, bary, and rec (scene triangle, -1 lost), uv, fac of its 6
+    points (corners, then edge midpoints 01, 12, 20); and the points traced."""
     runs = [(a, min(int(n_emitters), a + EMITTERS_PER_CALL)) for a in range(0, int(n_emitters), EMITTERS_PER_CALL)]
     fixed = (np.ascontiguousarray(base, dtype=np.float64), int(depth0), int(dyadic)) + tuple(trace_args) + (
         np.ascontiguousarray(receiver_of_tri, dtype=np.int64), np.ascontiguousarray(texel_size, dtype=np.float64),
@@ -329,5 +330,5 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
                 mid_uv=f[:, F_MID_UV:F_FACTOR].reshape(-1, 3, 2).copy(), factor=f[:, F_FACTOR:F_WIDTH].copy(),
                 hand_emitter=h[:, H_EMITTER].astype(np.int64), hand_depth=h[:, H_DEPTH].astype(np.int64),
                 hand_inherited=h[:, H_INHERITED].copy(), hand_bary=h[:, H_BARY:H_REC].reshape(-1, 3, 2).copy(),
-                hand_rec=h[:, H_REC:H_UV].astype(np.int64), hand_uv=h[:, H_UV:H_FAC].reshape(-1, 3, 2).copy(),
+                hand_rec=h[:, H_REC:H_UV].astype(np.int64), hand_uv=h[:, H_UV:H_FAC].reshape(-1, 6, 2).copy(),
                 hand_fac=h[:, H_FAC:H_WIDTH].copy(), traced=int(sum(r[2] for r in results)))

@@ -39,6 +39,7 @@ from .forward_image import COARSE_LINEAR_TEXELS, _trace_one
 
 TABLE_BITS = 13  # per-emitter shared-point table: 8192 slots, filled to half at most (then points are traced unshared)
 EMITTERS_PER_CALL = 128  # emitters refined by one kernel call (a unit of work for a thread)
+MESH_SHARED = True  # a mesh vertex / edge midpoint shared by emitters' whole triangles is traced once (False: per emitter)
 # a child's corners as the parent's points (0-2 its corners, 3-5 its edge midpoints 01, 12, 20)
 CHILD_CORNERS = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]], dtype=np.int64)
 # record layouts (float64 rows): a final sub-triangle, and one handed back to the numpy refinement
@@ -144,13 +145,16 @@ def _grown(rows, n, width):
 def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec,
                     tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order,
                     v0, e1, e2, eps, receiver_of_tri, texel_size, tolerance, relative, coarse_texels, max_depth, density,
-                    parallel):
+                    parallel, top_rec, top_uv, top_fac):
     """The landed part of the refinement (see the module doc) of emitters [e_first, e_last)
     from the start grid ``base`` (k, 3, 2) at depth ``depth0``, points on the 1 / ``dyadic``
     grid.  Returns (final records (nf, F_WIDTH), handed-back records (nh, H_WIDTH), points
     traced).  ``density``: test the flux density's linearity (``relative`` applies to the
     midpoint shift alone when False); ``parallel``: the light is parallel (a uniform flux per
-    area of the first triangle)."""
+    area of the first triangle).  ``top_rec`` / ``top_uv`` / ``top_fac`` (n, 6[, 2]): when ``base``
+    is the whole triangle and they have a row per emitter, its 6 points' traces (corners, edge
+    midpoints; :func:`mesh_point_traces`), used instead of tracing them."""
+    has_top = base.shape[0] == 1 and top_rec.shape[0] == t1_of.shape[0]
     bvh_stack = np.empty(256, dtype=np.int64)
     size = 1 << TABLE_BITS
     mask = size - 1
@@ -208,6 +212,10 @@ def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, r
             for k in range(3):
                 if k0 == 3:
                     p_rec[k], p_uv[k, 0], p_uv[k, 1], p_fac[k] = s_rec[top, k], s_uv[top, k, 0], s_uv[top, k, 1], s_fac[top, k]
+            if k0 == 0 and has_top:  # the whole triangle: its points traced once for the mesh
+                for k in range(6):
+                    p_rec[k], p_uv[k, 0], p_uv[k, 1], p_fac[k] = top_rec[e, k], top_uv[e, k, 0], top_uv[e, k, 1], top_fac[e, k]
+                k0 = 6
             for k in range(k0, 6):
                 u = p_bary[k, 0]
                 v = p_bary[k, 1]
@@ -318,9 +326,13 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
     depth, inherited image scale, bary, and rec (scene triangle, -1 lost), uv, fac of its 6
     points (corners, then edge midpoints 01, 12, 20); and the points traced."""
     runs = [(a, min(int(n_emitters), a + EMITTERS_PER_CALL)) for a in range(0, int(n_emitters), EMITTERS_PER_CALL)]
-    fixed = (np.ascontiguousarray(base, dtype=np.float64), int(depth0), int(dyadic)) + tuple(trace_args) + (
+    base = np.ascontiguousarray(base, dtype=np.float64)
+    top, top_traced = (np.zeros((0, 6), dtype=np.int64), np.zeros((0, 6, 2)), np.zeros((0, 6))), 0
+    if MESH_SHARED and base.shape[0] == 1 and np.array_equal(base[0], [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]):
+        top, top_traced = mesh_point_traces(int(n_emitters), trace_args)
+    fixed = (base, int(depth0), int(dyadic)) + tuple(trace_args) + (
         np.ascontiguousarray(receiver_of_tri, dtype=np.int64), np.ascontiguousarray(texel_size, dtype=np.float64),
-        float(tolerance), float(relative), float(coarse_texels), int(max_depth), bool(density), bool(parallel))
+        float(tolerance), float(relative), float(coarse_texels), int(max_depth), bool(density), bool(parallel)) + top
     results = run_calls(lambda r: refine_emitters(r[0], r[1], *fixed), runs)
     f = np.concatenate([r[0] for r in results]) if results else np.zeros((0, F_WIDTH))
     h = np.concatenate([r[1] for r in results]) if results else np.zeros((0, H_WIDTH))
@@ -331,4 +343,87 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
                 hand_emitter=h[:, H_EMITTER].astype(np.int64), hand_depth=h[:, H_DEPTH].astype(np.int64),
                 hand_inherited=h[:, H_INHERITED].copy(), hand_bary=h[:, H_BARY:H_REC].reshape(-1, 3, 2).copy(),
                 hand_rec=h[:, H_REC:H_UV].astype(np.int64), hand_uv=h[:, H_UV:H_FAC].reshape(-1, 6, 2).copy(),
-                hand_fac=h[:, H_FAC:H_WIDTH].copy(), traced=int(sum(r[2] for r in results)))
+                hand_fac=h[:, H_FAC:H_WIDTH].copy(), traced=top_traced + int(sum(r[2] for r in results)))
+
+
+@kernel
+def group_rows(bits):
+    """Ids of equal rows of ``bits`` (m, k) uint64 (a float64 array's bit patterns): (ids (m,),
+    numbered by first occurrence, first (n,) the row where each id first occurs).  Open
+    addressing on a hash of the row, rows compared whole: exact."""
+    m, k = bits.shape
+    size = 1
+    while size < 2 * m + 2:
+        size *= 2
+    mask = size - 1
+    table = np.full(size, -1, dtype=np.int64)  # the first row of the id in each slot
+    ids = np.empty(m, dtype=np.int64)
+    first = np.empty(m, dtype=np.int64)
+    n = 0
+    for i in range(m):
+        h = np.uint64(1469598103934665603)
+        for j in range(k):
+            h = (h ^ bits[i, j]) * np.uint64(1099511628211)
+        slot = np.int64(h >> np.uint64(16)) & mask
+        while True:
+            r = table[slot]
+            if r < 0:
+                table[slot] = i
+                ids[i] = n
+                first[n] = i
+                n += 1
+                break
+            same = True
+            for j in range(k):
+                if bits[r, j] != bits[i, j]:
+                    same = False
+                    break
+            if same:
+                ids[i] = ids[r]
+                break
+            slot = (slot + 1) & mask
+    return ids, first[:n]
+
+
+CORNER_BARY = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+
+
+def mesh_point_traces(n_emitters, trace_args):
+    """The traces (rec (n, 6), uv (n, 6, 2), fac (n, 6)) of every emitter's whole first triangle
+    at its 3 corners and 3 edge midpoints (01, 12, 20), each mesh point traced once: corners
+    are the same point when their position, shading normal, light point, IOR and role are
+    equal (an emitter's neighbours in a smooth mesh under one light), edge midpoints when
+    both ends are; the trace is the first such emitter's (``trace_chain_points``), which for
+    the others differs from their own only by rounding in the barycentric interpolation.
+    Returns ((rec, uv, fac), points traced)."""
+    from .forward_image import trace_chain_points
+
+    x0, t1_of = trace_args[0], trace_args[1]
+    tri_p, tri_n, tri_ior, tri_role = trace_args[8], trace_args[9], trace_args[10], trace_args[11]
+    n = int(n_emitters)
+    t = t1_of[:n]
+    rows = np.empty((n, 3, 11))
+    rows[:, :, 0:3] = tri_p[t]
+    rows[:, :, 3:6] = tri_n[t]
+    rows[:, :, 6:9] = x0[:n, None, :]
+    rows[:, :, 9] = tri_ior[t][:, None]
+    rows[:, :, 10] = tri_role[t][:, None]
+    vid, vfirst = group_rows(np.ascontiguousarray(rows.reshape(n * 3, 11)).view(np.uint64))
+    vid = vid.reshape(n, 3)
+    a, b = vid, vid[:, [1, 2, 0]]
+    nv = np.int64(vfirst.size)
+    ekey = (np.minimum(a, b) * nv + np.maximum(a, b)).reshape(-1)
+    _u, efirst, eid = np.unique(ekey, return_index=True, return_inverse=True)
+    # representatives: (emitter, u, v) of each vertex's and edge midpoint's first occurrence
+    ve, vk = vfirst // 3, vfirst % 3
+    ee, ek = efirst // 3, efirst % 3
+    mid = 0.5 * (CORNER_BARY + CORNER_BARY[[1, 2, 0]])
+    e = np.concatenate([ve, ee]).astype(np.int64)
+    uv = np.concatenate([CORNER_BARY[vk], mid[ek]])
+    m = e.size
+    out = (np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((m, 2)), np.empty(m))
+    if m:
+        trace_chain_points(e, np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), *trace_args, *out)
+    _t2, rec, luv, fac = out
+    index = np.concatenate([vid, vfirst.size + eid.reshape(n, 3)], axis=1)  # (n, 6): corners, then edges 01, 12, 20
+    return (np.ascontiguousarray(rec[index]), np.ascontiguousarray(luv[index]), np.ascontiguousarray(fac[index])), m

@@ -4,7 +4,9 @@
   target folder first (``.<name>.<random>.tmp``) and only when all of them are complete
   renames each over its final name (``os.replace``, atomic on one file system).  A failure
   (read-only folder, disk full, OpenEXR's ``RuntimeError``) removes the temporary files and
-  raises :class:`OutputError` with one line; the files already there are untouched.
+  raises :class:`OutputError` with one line; the files already there are untouched.  The
+  renames themselves are all or none (:func:`replace_all`: a rename that fails undoes the
+  ones done), for a bake's textures as for a frame range's staged frames (:func:`move_files`).
 - Only our own files: the folder's manifest (:data:`FILES_MANIFEST`, JSON list of names) lists
   what Caustic Bake wrote there; :func:`foreign_files` names the files a bake would replace
   that are not in it (a user's files: refused, never overwritten).  The names are recorded
@@ -130,15 +132,7 @@ def _write_all(folder, writers):
                 os.chmod(tmp, 0o644)
             except (OSError, RuntimeError) as ex:
                 raise OutputError(f"cannot write {path}: {_reason(ex)}", getattr(ex, "errno", None)) from None
-        done = {}
-        for name, tmp in staged.items():
-            path = os.path.join(folder, name)
-            try:
-                os.replace(tmp, path)
-            except OSError as ex:
-                raise OutputError(f"cannot write {path}: {_reason(ex)}", ex.errno) from None
-            done[name] = path
-        return done
+        return replace_all(folder, staged)
     finally:
         for tmp in staged.values():
             if os.path.lexists(tmp):
@@ -154,15 +148,54 @@ def move_files(source, folder, names):
     Returns {file name: absolute path}.  Raises :class:`OutputError`."""
     folder = os.path.abspath(folder)
     record_written(folder, add=names)
-    done = {}
-    for name in names:
-        path = os.path.join(folder, name)
-        try:
-            os.replace(os.path.join(source, name), path)
-        except OSError as ex:
-            raise OutputError(f"cannot write {path}: {_reason(ex)}", ex.errno) from None
-        done[name] = path
-    return done
+    return replace_all(folder, {name: os.path.join(source, name) for name in names})
+
+
+def replace_all(folder, sources):
+    """Rename each file ``sources[name]`` over ``folder``/name, all or none: the files already
+    there are first renamed aside (``.<name>.<random>.old``), and when a rename fails the ones
+    done are undone (the earlier files back, the sources back where they were) before
+    :class:`OutputError` is raised; on success the earlier files are deleted.  Renames within
+    one file system are atomic; this makes the set of them one step too.  Returns {name:
+    absolute path}."""
+    done = []  # (name, path, source, the earlier file's aside name or None)
+    try:
+        for name, src in sources.items():
+            path = os.path.join(folder, name)
+            aside = None
+            try:
+                if os.path.lexists(path):
+                    fd, aside = tempfile.mkstemp(prefix="." + name + ".", suffix=".old", dir=folder)
+                    os.close(fd)
+                    os.replace(path, aside)
+                os.replace(src, path)
+            except OSError as ex:
+                if aside is not None:
+                    try:
+                        if os.path.lexists(path):
+                            os.unlink(aside)  # the earlier file was never moved aside
+                        else:
+                            os.replace(aside, path)  # this one's earlier file back
+                    except OSError:
+                        pass  # it stays under its aside name, never deleted
+                raise OutputError(f"cannot write {path}: {_reason(ex)}", ex.errno) from None
+            done.append((name, path, src, aside))
+    except OutputError:
+        for name, path, src, aside in reversed(done):  # undo: sources back, earlier files back
+            try:
+                os.replace(path, src)
+                if aside is not None:
+                    os.replace(aside, path)
+            except OSError:
+                pass
+        raise
+    for _name, _path, _src, aside in done:
+        if aside is not None:
+            try:
+                os.unlink(aside)
+            except OSError:
+                pass
+    return {name: path for name, path, _src, _aside in done}
 
 
 def write_textures(folder, images, record=True):

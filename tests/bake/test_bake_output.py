@@ -168,3 +168,54 @@ def test_cli_prints_progress_with_the_time_left(tmp_path, capsys, monkeypatch):
     assert len(lines) >= 5 and pcts == sorted(pcts) and pcts[0] < 10
     assert lines[-1] == "progress 100 %: Floor: padded"
     assert all(line.endswith("(about 1 min 5 s left)") for line in lines[:-1])
+
+
+def _failing_rename(monkeypatch, fail_on):
+    """os.replace fails (EIO) when it renames a new file over ``fail_on`` (not when it puts an
+    earlier file back from aside, ``.old``)."""
+    real = os.replace
+    calls = []
+
+    def replace(src, dst):
+        calls.append((os.path.basename(src), os.path.basename(dst)))
+        if os.path.basename(dst) == fail_on and not str(src).endswith(".old"):
+            raise OSError(errno.EIO, "Input/output error")
+        real(src, dst)
+
+    monkeypatch.setattr(output.os, "replace", replace)
+    return calls
+
+
+def test_a_rename_failing_midway_undoes_the_renames_done(tmp_path, monkeypatch):
+    """The textures are complete but the second rename fails: the first texture's earlier file
+    comes back, nothing else is left (no temporary or aside file), one line."""
+    folder = tmp_path / "out"
+    output.write_textures(str(folder), _images(0))
+    before = _state(folder)
+    calls = _failing_rename(monkeypatch, "R1.exr")
+    with pytest.raises(output.OutputError) as err:
+        output.write_textures(str(folder), _images(1))
+    assert str(err.value) == f"cannot write {folder / 'R1.exr'}: Input/output error"
+    assert any(dst == "R0.exr" for _src, dst in calls)  # the first one had been replaced ...
+    assert _state(folder) == before  # ... and is back, byte-identical
+
+
+def test_publishing_frames_is_all_or_none(tmp_path, monkeypatch):
+    """A frame range's staged frames move over the earlier sequence all or none: a rename
+    failing midway puts the earlier frames back and the staged ones back in staging (Esc /
+    a retry can still use them)."""
+    folder, staging = tmp_path / "seq", tmp_path / "seq" / ".staging"
+    output.write_textures(str(folder), {f"F.{k:04d}.exr": np.full((2, 2, 3), k, np.float32) for k in range(1, 4)})
+    output.write_textures(str(staging), {f"F.{k:04d}.exr": np.full((2, 2, 3), 10 + k, np.float32) for k in range(1, 4)},
+                          record=False)
+    before = {n: (folder / n).read_bytes() for n in sorted(os.listdir(folder)) if n.endswith(".exr")}
+    staged = {n: (staging / n).read_bytes() for n in sorted(os.listdir(staging)) if n.endswith(".exr")}
+    _failing_rename(monkeypatch, "F.0003.exr")
+    with pytest.raises(output.OutputError):
+        output.move_files(str(staging), str(folder), ["F.0001.exr", "F.0002.exr", "F.0003.exr"])
+    assert {n: (folder / n).read_bytes() for n in sorted(os.listdir(folder)) if n.endswith(".exr")} == before
+    assert {n: (staging / n).read_bytes() for n in sorted(os.listdir(staging)) if n.endswith(".exr")} == staged
+    assert not [n for n in os.listdir(folder) if n.endswith((".old", ".tmp"))]
+    monkeypatch.undo()
+    moved = output.move_files(str(staging), str(folder), ["F.0001.exr", "F.0002.exr", "F.0003.exr"])
+    assert exr.read_exr(moved["F.0003.exr"])[0, 0, 0] == 13.0

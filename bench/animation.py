@@ -16,7 +16,8 @@ costs), then bakes ``--frames`` frames and reports the mean seconds per frame of
 (the whole bake: BVH, plan, estimator, padding), the sub-triangles per frame, µs per
 sub-triangle (estimator seconds / sub-triangles) and the estimator's stages from the bake's
 timer: ``image`` (refinement: tracing the corners and midpoints, the split decisions),
-``image.trace`` (the part of it inside the tracing kernel), ``flux.*`` (the flux of the final
+``image.trace`` (the part of it inside the tracing kernels: the point tracer, and the refine
+and border kernels whole, which trace as they decide), ``flux.*`` (the flux of the final
 sub-triangles: centroid trace, light visibility, corner densities, splat).
 Forms: ``fast`` (the default estimator) and ``reference`` (``ForwardFlux.reference``: the
 numpy form without coarse levels, every point traced per sub-triangle, texel areas and

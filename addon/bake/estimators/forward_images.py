@@ -58,7 +58,7 @@ def _bvh_args(bvh):
 
 
 def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6, mode="flux", parallel=False, only=None,
-            coarse=0, shared=True, triangle_arrays=None, device="numba"):
+            coarse=0, shared=True, triangle_arrays=None, device="numba", caster_size=None, mesh_points=None):
     """Refine the sub-triangles of the emitters (first triangles ``emit_tri`` lit from ``x0``)
     for ``chain`` (one or two vertices; "seeded" needs two); ``second`` the global ids of
     the chain's second-vertex casters (ignored for one vertex); ``receivers`` the receivers at
@@ -69,7 +69,9 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     (:func:`refine_image_triangles`); ``triangle_arrays`` :func:`scene_arrays` of these
     arguments when the caller has them (a chunk of casters); ``device`` "opencl[:N]" traces
     the points on that OpenCL device (the same points as Numba; without pyopencl or a device
-    it warns and uses Numba).  Returns an ImageState, ``report["device"]`` where it traced."""
+    it warns and uses Numba); ``caster_size`` the emitters' :func:`caster_texels` when the caller
+    has them; ``mesh_points`` the emitters' whole-triangle traces (:func:`pass_mesh_points`).
+    Returns an ImageState, ``report["device"]`` where it traced."""
     t0 = time.perf_counter()
     tri_rec, tri_uv, second_ok = triangle_arrays or scene_arrays(scene, receivers, second, only)
     refract1, refract2 = chain[0] == "T", chain[-1] == "T"
@@ -112,10 +114,12 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     # near-uniform density and a finely resolved border of what lands.
     extra = dict(weight=weight) if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
     if coarse and receivers:
-        extra["keep_lost_depth"] = lost_probe_depth(caster_texels(tri_p[emit_tri], tri_p, receivers, only), int(coarse))
+        if caster_size is None:
+            caster_size = caster_texels(tri_p[emit_tri], tri_p, receivers, only)
+        extra["keep_lost_depth"] = lost_probe_depth(caster_size, int(coarse))
     if tracer is None and LANDED_KERNEL:  # Numba: the landed sub-triangles refined in one kernel (the same rules)
         extra["kernel_scene"] = ((x0, emit_tri, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
-                                  tri_role) + bvh_args + (float(eps),), bool(parallel))
+                                  tri_role) + bvh_args + (float(eps),), bool(parallel), mesh_points)
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
                                   tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, **extra)
     r = tris["receiver"]
@@ -124,7 +128,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
                   tri_ior=tri_ior, tri_role=tri_role, bvh=bvh_args, eps=float(eps), trace=trace)
     report = {"emitters": int(emit_tri.size), "points_traced": int(tris["traced"]), "sub_triangles": int(r.size),
               "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "border": int(tris["border"]), "final_per_depth": tris["final_per_depth"],
-              "seconds": time.perf_counter() - t0, "trace_seconds": clock[0],
+              "seconds": time.perf_counter() - t0, "trace_seconds": clock[0] + tris["kernel_seconds"],
               "device": "opencl: " + tracer.name if tracer is not None else "numba"}
     return ImageState(chain, emit_tri, x0, tris, arrays, report)
 
@@ -250,14 +254,42 @@ def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared
     n = emit_tri.size
     size = caster_texels(ctx.scene.tri_p[emit_tri], ctx.scene.tri_p, ctx.receivers, item.receivers)
     work = IMAGE_GRID ** 2 * (1.0 + np.minimum(size ** 2, 4.0 ** int(ctx.settings.image_depth)))
+    mesh, mesh_traced, mesh_seconds = None, 0, 0.0
+    if shared and IMAGE_GRID >> int(coarse) == 1 and ctx.settings.device in (None, "numba"):
+        t0 = time.perf_counter()
+        mesh, mesh_traced = pass_mesh_points(ctx, item.chain, emit_tri, x0, arrays)
+        mesh_seconds = time.perf_counter() - t0
     for a, b in caster_chunks(work, max_work, max_casters):
         state = prepare(ctx.scene, ctx.bvh, ctx.eps, item.chain, emit_tri[a:b], x0[a:b], second, ctx.receivers,
                         max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun",
                         only=item.receivers, coarse=coarse, shared=shared, triangle_arrays=arrays,
-                        device=ctx.settings.device)
+                        device=ctx.settings.device, caster_size=size[a:b],
+                        mesh_points=None if mesh is None else tuple(np.ascontiguousarray(v[a:b]) for v in mesh))
         if a == 0:
             state.report["reach"] = reach_report
+            state.report["points_traced"] += mesh_traced  # the pass's mesh points, traced once for all chunks
+            state.report["trace_seconds"] += mesh_seconds
         yield state, b, n
+
+
+def pass_mesh_points(ctx, chain, emit_tri, x0, arrays):
+    """The whole-triangle traces of a pass's emitters (first triangles ``emit_tri``, light points
+    ``x0``; ``arrays`` its :func:`scene_arrays`), each mesh vertex and edge midpoint traced once
+    for all of them (:func:`~addon.solver.estimators.refine_kernel.mesh_point_traces`), before
+    the casters are cut into chunks, so that which emitter traces a shared point, and with it
+    every bit of the result, does not depend on the cut; None (and 0) when the kernel does not
+    run (LANDED_KERNEL, refine_kernel.MESH_SHARED).  Returns (mesh points, points traced)."""
+    from ...solver.estimators import refine_kernel
+
+    if not (LANDED_KERNEL and refine_kernel.MESH_SHARED) or emit_tri.size == 0:
+        return None, 0
+    scene = ctx.scene
+    tri_rec, tri_uv, second_ok = arrays
+    args = (np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(emit_tri, dtype=np.int64), len(chain),
+            chain[0] == "T", chain[-1] == "T", second_ok, tri_rec, tri_uv, np.ascontiguousarray(scene.tri_p, dtype=np.float64),
+            np.ascontiguousarray(scene.tri_n, dtype=np.float64), np.ascontiguousarray(scene.tri_ior, dtype=np.float64),
+            np.ascontiguousarray(scene.tri_role, dtype=np.int64)) + _bvh_args(ctx.bvh) + (float(ctx.eps),)
+    return refine_kernel.mesh_point_traces(emit_tri.size, args)
 
 
 class ImageCache:

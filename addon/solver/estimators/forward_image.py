@@ -37,6 +37,7 @@ No bpy here; the bake (``addon.bake.estimators``) orchestrates.
 """
 
 import math
+import time
 
 import numpy as np
 
@@ -224,7 +225,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     ``shared``: a corner or edge midpoint shared by sub-triangles of one emitter is traced
     once (:func:`_traced_shared`; the same result as tracing it for each, which False does).
     ``kernel_scene`` (with ``shared``): (``trace_chain_points``' arguments from x0 to eps,
-    parallel) of the scene ``trace`` traces, ``weight`` then being :func:`light_area_density`
+    parallel[, the emitters' whole-triangle traces or None]) of the scene ``trace`` traces, ``weight`` then being :func:`light_area_density`
     (or uniform for parallel light): the sub-triangles whose 6 points land on one receiver are
     refined by :func:`~addon.solver.estimators.refine_kernel.refine_landed` in one kernel, the
     others handed back to the levels below with the same rules (the same final sub-triangles,
@@ -257,6 +258,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     ne = int(n_emitters)
     keep_lost = np.broadcast_to(np.asarray(keep_lost_depth, dtype=np.int64), (ne,))  # per emitter
     out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full", "mid_uv", "factor")}
+    kernel_seconds = 0.0  # in the refine and border kernels (they trace and decide in one)
     handed = {}  # depth -> the kernel's handed-back sub-triangles of that depth (emitter, bary, rec, uv, fac, inherited,
     # and their edge midpoints' rec, uv, fac: traced already)
     known = None  # the current level's last rows: handed back, their midpoints' (rec, uv, fac)
@@ -264,10 +266,12 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     if kernel_scene is not None and dyadic:
         from .refine_kernel import refine_landed
 
-        trace_args, parallel = kernel_scene
+        trace_args, parallel, mesh_points = (tuple(kernel_scene) + (None,))[:3]
+        kernel_clock = time.perf_counter()
         k = refine_landed(ne, base, -c0, dyadic, trace_args, receiver_of_tri, texel_size, tolerance, relative, coarse_texels,
-                          max_depth, weight is not None, parallel)
+                          max_depth, weight is not None, parallel, mesh_points)
         traced = k["traced"]
+        kernel_seconds += time.perf_counter() - kernel_clock
         kernel_finals = k["depth"]
         nk = k["emitter"].size
         out["emitter"].append(k["emitter"])
@@ -388,10 +392,13 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
             border[ci] = _single_border(robj[ci]) & ((size <= BORDER_TEXELS) | (depth >= int(max_depth)))
             small[ci] = size <= ROUGH_TEXELS
         bi = np.flatnonzero(border)
+        kernel_clock = time.perf_counter()
         b_em, b_bary, b_uv, b_rec, b_dev, b_take, b_traced = _straight_border(
             trace, emitter[bi], bary[bi], mid[bi], uv[bi], muv[bi], robj[bi], receiver_of_tri, BORDER_STEPS,
             depth >= int(max_depth), kernel_scene[0] if kernel_scene is not None else None)
         traced += b_traced
+        if kernel_scene is not None:
+            kernel_seconds += time.perf_counter() - kernel_clock
         border[bi[~b_take]] = False  # a curved border: split further
         bi = bi[b_take]
         # a border that is not straight where the whole image is within ROUGH_TEXELS (a thin
@@ -455,6 +462,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
                    receiver=np.zeros(0, dtype=np.int64), deviation=np.zeros(0), landed=np.zeros(0),
                    bary_full=np.zeros((0, 3, 2)), mid_uv=np.zeros((0, 3, 2)), factor=np.zeros((0, 6)))
     cat["traced"] = traced
+    cat["kernel_seconds"] = kernel_seconds
     cat["dropped"] = dropped
     cat["partial"] = partial_count
     cat["border"] = border_count

@@ -316,7 +316,7 @@ def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, r
 
 
 def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri, texel_size, tolerance, relative,
-                  coarse_texels, max_depth, density, parallel):
+                  coarse_texels, max_depth, density, parallel, mesh_points=None):
     """:func:`refine_emitters` over emitters [0, ``n_emitters``) in runs of
     ``EMITTERS_PER_CALL`` on the solver's threads, joined in emitter order.  ``trace_args``:
     the arguments of ``trace_chain_points`` from ``x0`` to ``eps`` (x0, t1_of, bounces,
@@ -324,11 +324,16 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
     9 arrays, eps).  Returns dict: the final sub-triangles' emitter, receiver, depth,
     deviation, bary, uv, mid_uv (m, 3, 2) and factor (m, 6); the handed-back ones' emitter,
     depth, inherited image scale, bary, and rec (scene triangle, -1 lost), uv, fac of its 6
-    points (corners, then edge midpoints 01, 12, 20); and the points traced."""
+    points (corners, then edge midpoints 01, 12, 20); and the points traced.  When ``base`` is
+    the whole triangle its 6 points are ``mesh_points`` (:func:`mesh_point_traces` of these
+    emitters, traced by the caller) or, with ``MESH_SHARED``, traced here that way."""
     runs = [(a, min(int(n_emitters), a + EMITTERS_PER_CALL)) for a in range(0, int(n_emitters), EMITTERS_PER_CALL)]
     base = np.ascontiguousarray(base, dtype=np.float64)
     top, top_traced = (np.zeros((0, 6), dtype=np.int64), np.zeros((0, 6, 2)), np.zeros((0, 6))), 0
-    if MESH_SHARED and base.shape[0] == 1 and np.array_equal(base[0], [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]):
+    whole = base.shape[0] == 1 and np.array_equal(base[0], CORNER_BARY)
+    if whole and mesh_points is not None:
+        top = tuple(mesh_points)  # traced by the caller (counted there)
+    elif whole and MESH_SHARED:
         top, top_traced = mesh_point_traces(int(n_emitters), trace_args)
     fixed = (base, int(depth0), int(dyadic)) + tuple(trace_args) + (
         np.ascontiguousarray(receiver_of_tri, dtype=np.int64), np.ascontiguousarray(texel_size, dtype=np.float64),

@@ -12,18 +12,22 @@ emitter, depth first, in a kernel:
   its density is linear to ``relative`` (:func:`_density_nonlinearity`: rho = w / |det J| of
   the quadratic element at the 6 points, w the light's flux per barycentric area times the
   transport factor) or its image is within a texel; above depth 0 (the coarse levels) it
-  must be linear and at most ``coarse_texels`` long; at ``max_depth`` it is final anyway;
+  must be linear, to ``relative`` x (COARSE_LINEAR_TEXELS / its length)² when longer than
+  that, and at most ``coarse_texels`` long; at ``max_depth`` it is final anyway;
   otherwise it is split in four (children (a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca));
 - any other sub-triangle (a point lost or on another receiver) is handed back with its
   corners, depth and inherited image scale, and the numpy refinement continues from there
   with the same rules (probes, straight-border cuts, partial hulls).
 
-The decisions are the numpy form's, item by item (tests/solver/test_solver_refine_kernel.py
-compares the two on the same scene: the same final sub-triangles, in another order).  A point
-shared by sub-triangles of one emitter (a corner, an edge midpoint) is traced once through a
-per-emitter table keyed by its dyadic coordinates, like :func:`_traced_shared`; tracing is
+The decisions are the numpy form's, item by item (tests/bake/test_bake_forward_flux.py,
+``test_landed_kernel_refines_as_the_numpy_levels``: the same final sub-triangles per level and
+the same texture, in another order).  A point shared by sub-triangles of one emitter (a
+corner, an edge midpoint) is traced once through a per-emitter table keyed by its dyadic
+coordinates, like :func:`~addon.solver.estimators.forward_image._traced_shared`; tracing is
 :func:`~addon.solver.estimators.forward_image._trace_one`, the same arithmetic as
-``trace_chain_points``.
+``trace_chain_points``.  The whole triangle's 6 points, shared with the mesh neighbours, are
+traced once for all the emitters (:func:`mesh_point_traces`: about 2 points per triangle of
+a smooth mesh instead of 6).
 
 Emitters are cut into fixed runs (``EMITTERS_PER_CALL``), each refined by one kernel call on a
 worker thread into its own growing record arrays; the runs' records are joined in emitter

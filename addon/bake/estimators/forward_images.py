@@ -119,9 +119,9 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
         extra["keep_lost_depth"] = lost_probe_depth(caster_size, int(coarse))
     if tracer is None and LANDED_KERNEL:  # Numba: the landed sub-triangles refined in one kernel (the same rules)
         extra["kernel_scene"] = ((x0, emit_tri, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
-                                  tri_role) + bvh_args + (float(eps),), bool(parallel), mesh_points)
+                                  tri_role) + bvh_args + (float(eps),), bool(parallel))
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
-                                  tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, **extra)
+                                  tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, top_points=mesh_points, **extra)
     r = tris["receiver"]
     tris["margin"] = IMAGE_MARGIN * texel[r] + 2.0 * tris["deviation"] if r.size else np.zeros(0)
     arrays = dict(tri_rec=tri_rec, second_ok=second_ok, refract1=refract1, refract2=refract2, tri_p=tri_p, tri_n=tri_n,
@@ -255,7 +255,7 @@ def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared
     size = caster_texels(ctx.scene.tri_p[emit_tri], ctx.scene.tri_p, ctx.receivers, item.receivers)
     work = IMAGE_GRID ** 2 * (1.0 + np.minimum(size ** 2, 4.0 ** int(ctx.settings.image_depth)))
     mesh, mesh_traced, mesh_seconds = None, 0, 0.0
-    if shared and IMAGE_GRID >> int(coarse) == 1 and ctx.settings.device in (None, "numba"):
+    if shared and IMAGE_GRID >> int(coarse) == 1:
         t0 = time.perf_counter()
         mesh, mesh_traced = pass_mesh_points(ctx, item.chain, emit_tri, x0, arrays)
         mesh_seconds = time.perf_counter() - t0
@@ -277,19 +277,31 @@ def pass_mesh_points(ctx, chain, emit_tri, x0, arrays):
     ``x0``; ``arrays`` its :func:`scene_arrays`), each mesh vertex and edge midpoint traced once
     for all of them (:func:`~addon.solver.estimators.refine_kernel.mesh_point_traces`), before
     the casters are cut into chunks, so that which emitter traces a shared point, and with it
-    every bit of the result, does not depend on the cut; None (and 0) when the kernel does not
-    run (LANDED_KERNEL, refine_kernel.MESH_SHARED).  Returns (mesh points, points traced)."""
+    every bit of the result, does not depend on the cut; traced on the bake's device (the same
+    points on OpenCL as on Numba), used by the refine kernel and by the numpy levels alike.
+    None (and 0) without refine_kernel.MESH_SHARED.  Returns (mesh points, points traced)."""
     from ...solver.estimators import refine_kernel
 
-    if not (LANDED_KERNEL and refine_kernel.MESH_SHARED) or emit_tri.size == 0:
+    if not refine_kernel.MESH_SHARED or emit_tri.size == 0:
         return None, 0
     scene = ctx.scene
     tri_rec, tri_uv, second_ok = arrays
-    args = (np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(emit_tri, dtype=np.int64), len(chain),
-            chain[0] == "T", chain[-1] == "T", second_ok, tri_rec, tri_uv, np.ascontiguousarray(scene.tri_p, dtype=np.float64),
-            np.ascontiguousarray(scene.tri_n, dtype=np.float64), np.ascontiguousarray(scene.tri_ior, dtype=np.float64),
-            np.ascontiguousarray(scene.tri_role, dtype=np.int64)) + _bvh_args(ctx.bvh) + (float(ctx.eps),)
-    return refine_kernel.mesh_point_traces(emit_tri.size, args)
+    x0 = np.ascontiguousarray(x0, dtype=np.float64)
+    emit_tri = np.ascontiguousarray(emit_tri, dtype=np.int64)
+    geometry = (np.ascontiguousarray(scene.tri_p, dtype=np.float64), np.ascontiguousarray(scene.tri_n, dtype=np.float64),
+                np.ascontiguousarray(scene.tri_ior, dtype=np.float64), np.ascontiguousarray(scene.tri_role, dtype=np.int64))
+    bounces, refract1, refract2 = len(chain), chain[0] == "T", chain[-1] == "T"
+    args = (x0, emit_tri, bounces, refract1, refract2, second_ok, tri_rec, tri_uv) + geometry + _bvh_args(ctx.bvh) + (
+        float(ctx.eps),)
+    tracer = _device_tracer(ctx.settings.device, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, *geometry,
+                            _bvh_args(ctx.bvh), x0, emit_tri, float(ctx.eps))
+    trace = None
+    if tracer is not None:
+        def trace(e, u, v):
+            out = (np.empty(e.size, dtype=np.int64), np.empty(e.size, dtype=np.int64), np.empty((e.size, 2)), np.empty(e.size))
+            tracer.trace(e, u, v, *out)
+            return out
+    return refine_kernel.mesh_point_traces(emit_tri.size, args, trace)
 
 
 class ImageCache:

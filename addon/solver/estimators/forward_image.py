@@ -181,7 +181,7 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, 
 
 def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=4, max_depth=6, tolerance=0.5,
                            keep_lost_depth=1, partial_depth=None, relative=0.01, weight=None, coarse=0,
-                           coarse_texels=COARSE_TEXELS, shared=True, kernel_scene=None):
+                           coarse_texels=COARSE_TEXELS, shared=True, kernel_scene=None, top_points=None):
     """Step 2: adaptive sub-triangles of every emitter's first triangle.
 
     ``trace(emitter, u1, v1) -> (t2, rec_tri, uv[, factor])`` traces points
@@ -224,8 +224,12 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     density (tests/solver/test_solver_forward_image.py, tests/bake/test_bake_forward_flux.py).
     ``shared``: a corner or edge midpoint shared by sub-triangles of one emitter is traced
     once (:func:`_traced_shared`; the same result as tracing it for each, which False does).
+    ``top_points`` (rec (n, 6), uv (n, 6, 2), factor (n, 6)): when the start is the whole
+    triangle (G = 2^coarse), the traces of its corners and edge midpoints (01, 12, 20), used
+    instead of tracing them (:func:`~addon.solver.estimators.refine_kernel.mesh_point_traces`:
+    a mesh's shared points traced once; counted by the caller).
     ``kernel_scene`` (with ``shared``): (``trace_chain_points``' arguments from x0 to eps,
-    parallel[, the emitters' whole-triangle traces or None]) of the scene ``trace`` traces, ``weight`` then being :func:`light_area_density`
+    parallel) of the scene ``trace`` traces, ``weight`` then being :func:`light_area_density`
     (or uniform for parallel light): the sub-triangles whose 6 points land on one receiver are
     refined by :func:`~addon.solver.estimators.refine_kernel.refine_landed` in one kernel, the
     others handed back to the levels below with the same rules (the same final sub-triangles,
@@ -263,13 +267,14 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     # and their edge midpoints' rec, uv, fac: traced already)
     known = None  # the current level's last rows: handed back, their midpoints' (rec, uv, fac)
     kernel_finals = None
+    whole = base.shape[0] == 1 and top_points is not None and np.asarray(top_points[0]).shape[0] == ne
     if kernel_scene is not None and dyadic:
         from .refine_kernel import refine_landed
 
-        trace_args, parallel, mesh_points = (tuple(kernel_scene) + (None,))[:3]
+        trace_args, parallel = kernel_scene
         kernel_clock = time.perf_counter()
         k = refine_landed(ne, base, -c0, dyadic, trace_args, receiver_of_tri, texel_size, tolerance, relative, coarse_texels,
-                          max_depth, weight is not None, parallel, mesh_points)
+                          max_depth, weight is not None, parallel, top_points if whole else None)
         traced = k["traced"]
         kernel_seconds += time.perf_counter() - kernel_clock
         kernel_finals = k["depth"]
@@ -291,6 +296,15 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         emitter = np.zeros(0, dtype=np.int64)
         bary, rec, uv, fac = np.zeros((0, 3, 2)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3, 2)), np.zeros((0, 3))
         inherited = np.zeros(0)
+    elif whole and top_points is not None:  # the whole triangles' points are given
+        emitter = np.arange(ne, dtype=np.int64)
+        bary = np.tile(base, (ne, 1, 1))
+        t_rec, t_uv, t_fac = (np.asarray(a) for a in top_points)
+        rec, uv, fac = t_rec[:, :3].astype(np.int64), t_uv[:, :3].copy(), t_fac[:, :3].copy()
+        handed[-c0] = (emitter[:0], bary[:0], rec[:0], uv[:0], fac[:0], np.zeros(0),
+                       (t_rec[:, 3:].astype(np.int64), t_uv[:, 3:].copy(), t_fac[:, 3:].copy()))
+        traced = 0
+        inherited = np.full(ne, np.inf)
     else:
         emitter = np.repeat(np.arange(ne, dtype=np.int64), base.shape[0])
         bary = np.tile(base, (ne, 1, 1))

@@ -397,14 +397,15 @@ def group_rows(bits):
 CORNER_BARY = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
 
 
-def mesh_point_traces(n_emitters, trace_args):
+def mesh_point_traces(n_emitters, trace_args, trace=None):
     """The traces (rec (n, 6), uv (n, 6, 2), fac (n, 6)) of every emitter's whole first triangle
     at its 3 corners and 3 edge midpoints (01, 12, 20), each mesh point traced once: corners
     are the same point when their position, shading normal, light point, IOR and role are
     equal (an emitter's neighbours in a smooth mesh under one light), edge midpoints when
     both ends are; the trace is the first such emitter's (``trace_chain_points``), which for
     the others differs from their own only by rounding in the barycentric interpolation.
-    Returns ((rec, uv, fac), points traced)."""
+    ``trace(e, u, v) -> (t2, rec, uv, fac)`` traces them instead of ``trace_chain_points``
+    (a device's tracer: the same points).  Returns ((rec, uv, fac), points traced)."""
     from .forward_image import trace_chain_points
 
     x0, t1_of = trace_args[0], trace_args[1]
@@ -431,7 +432,9 @@ def mesh_point_traces(n_emitters, trace_args):
     uv = np.concatenate([CORNER_BARY[vk], mid[ek]])
     m = e.size
     out = (np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((m, 2)), np.empty(m))
-    if m:
+    if m and trace is not None:
+        out = trace(e, np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]))
+    elif m:
         trace_chain_points(e, np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), *trace_args, *out)
     _t2, rec, luv, fac = out
     index = np.concatenate([vid, vfirst.size + eid.reshape(n, 3)], axis=1)  # (n, 6): corners, then edges 01, 12, 20

@@ -263,9 +263,10 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     keep_lost = np.broadcast_to(np.asarray(keep_lost_depth, dtype=np.int64), (ne,))  # per emitter
     out = {k: [] for k in ("emitter", "bary", "uv", "receiver", "deviation", "landed", "bary_full", "mid_uv", "factor")}
     kernel_seconds = 0.0  # in the refine and border kernels (they trace and decide in one)
-    handed = {}  # depth -> the kernel's handed-back sub-triangles of that depth (emitter, bary, rec, uv, fac, inherited,
-    # and their edge midpoints' rec, uv, fac: traced already)
-    known = None  # the current level's last rows: handed back, their midpoints' (rec, uv, fac)
+    # depth -> sub-triangles joining that level (emitter, bary, rec, uv, fac, inherited) with their
+    # edge midpoints' (rec, uv, fac), traced already: the kernel's handed-back ones, or the given
+    # whole triangles' midpoints (top_points)
+    handed = {}
     kernel_finals = None
     whole = base.shape[0] == 1 and top_points is not None and np.asarray(top_points[0]).shape[0] == ne
     if kernel_scene is not None and dyadic:
@@ -296,7 +297,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         emitter = np.zeros(0, dtype=np.int64)
         bary, rec, uv, fac = np.zeros((0, 3, 2)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3, 2)), np.zeros((0, 3))
         inherited = np.zeros(0)
-    elif whole and top_points is not None:  # the whole triangles' points are given
+    elif whole:  # the whole triangles' points are given
         emitter = np.arange(ne, dtype=np.int64)
         bary = np.tile(base, (ne, 1, 1))
         t_rec, t_uv, t_fac = (np.asarray(a) for a in top_points)
@@ -320,8 +321,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     final_per_depth = []
     final_coarse = []
     for depth in range(-c0, partial_depth + 1):
-        known = None
-        if depth in handed:  # the kernel's sub-triangles that do not land on one receiver
+        known = None  # the level's last rows' midpoints, traced already
+        if depth in handed:
             he, hb, hr, hu, hf, hi, known = handed.pop(depth)
             emitter = np.concatenate([emitter, he])
             bary = np.concatenate([bary, hb])

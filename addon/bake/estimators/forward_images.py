@@ -73,19 +73,12 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     has them; ``mesh_points`` the emitters' whole-triangle traces (:func:`pass_mesh_points`).
     Returns an ImageState, ``report["device"]`` where it traced."""
     t0 = time.perf_counter()
-    tri_rec, tri_uv, second_ok = triangle_arrays or scene_arrays(scene, receivers, second, only)
-    refract1, refract2 = chain[0] == "T", chain[-1] == "T"
-    bounces = len(chain)
-    emit_tri = np.ascontiguousarray(emit_tri, dtype=np.int64)
-    x0 = np.ascontiguousarray(x0, dtype=np.float64)
-    tri_p = np.ascontiguousarray(scene.tri_p, dtype=np.float64)
-    tri_n = np.ascontiguousarray(scene.tri_n, dtype=np.float64)
-    tri_ior = np.ascontiguousarray(scene.tri_ior, dtype=np.float64)
-    tri_role = np.ascontiguousarray(scene.tri_role, dtype=np.int64)
-    bvh_args = _bvh_args(bvh)
+    trace_args = _trace_arguments(scene, bvh, eps, chain, emit_tri, x0,
+                                  triangle_arrays or scene_arrays(scene, receivers, second, only))
+    x0, emit_tri, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role = trace_args[:12]
+    bvh_args = trace_args[12:21]
     clock = [0.0]  # seconds inside the tracing kernel (reported as trace_seconds)
-    tracer = _device_tracer(device, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
-                            tri_role, bvh_args, x0, emit_tri, eps)
+    tracer = _device_tracer(device, trace_args)
 
     def trace(e, u, v):
         """(second triangle, receiver triangle, UV, transport factor) of the points."""
@@ -118,8 +111,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
             caster_size = caster_texels(tri_p[emit_tri], tri_p, receivers, only)
         extra["keep_lost_depth"] = lost_probe_depth(caster_size, int(coarse))
     if tracer is None and LANDED_KERNEL:  # Numba: the landed sub-triangles refined in one kernel (the same rules)
-        extra["kernel_scene"] = ((x0, emit_tri, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
-                                  tri_role) + bvh_args + (float(eps),), bool(parallel))
+        extra["kernel_scene"] = (trace_args, bool(parallel))
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
                                   tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, top_points=mesh_points, **extra)
     r = tris["receiver"]
@@ -133,17 +125,30 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     return ImageState(chain, emit_tri, x0, tris, arrays, report)
 
 
-def _device_tracer(device, *args):
-    """An OpenCLPointTracer of the pass's scene on ``device`` ("opencl" / "opencl:N"), or None
-    for Numba (also, with a warning, when pyopencl or the device is missing)."""
+def _trace_arguments(scene, bvh, eps, chain, emit_tri, x0, arrays):
+    """``trace_chain_points``' arguments from x0 to eps for emitters (first triangles
+    ``emit_tri`` lit from ``x0``) of ``chain``; ``arrays`` the pass's :func:`scene_arrays`."""
+    tri_rec, tri_uv, second_ok = arrays
+    return (np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(emit_tri, dtype=np.int64), len(chain),
+            chain[0] == "T", chain[-1] == "T", second_ok, tri_rec, tri_uv, np.ascontiguousarray(scene.tri_p, dtype=np.float64),
+            np.ascontiguousarray(scene.tri_n, dtype=np.float64), np.ascontiguousarray(scene.tri_ior, dtype=np.float64),
+            np.ascontiguousarray(scene.tri_role, dtype=np.int64)) + _bvh_args(bvh) + (float(eps),)
+
+
+def _device_tracer(device, trace_args):
+    """An OpenCLPointTracer on ``device`` ("opencl" / "opencl:N") of the scene and emitters in
+    ``trace_args`` (:func:`_trace_arguments`), or None for Numba (also, with a warning, when
+    pyopencl or the device is missing)."""
     if device in (None, "numba"):
         return None
     from ...solver.opencl.backend import OpenCLUnavailable, parse_device
 
+    x0, emit_tri, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role = trace_args[:12]
     try:
         from ...solver.opencl.tracing import OpenCLPointTracer
 
-        return OpenCLPointTracer(parse_device(device), *args)
+        return OpenCLPointTracer(parse_device(device), bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n,
+                                 tri_ior, tri_role, trace_args[12:21], x0, emit_tri, trace_args[21])
     except OpenCLUnavailable as ex:
         warnings.warn(f"OpenCL unavailable ({ex}); tracing on Numba instead", RuntimeWarning, stacklevel=3)
         return None
@@ -284,24 +289,15 @@ def pass_mesh_points(ctx, chain, emit_tri, x0, arrays):
 
     if not refine_kernel.MESH_SHARED or emit_tri.size == 0:
         return None, 0
-    scene = ctx.scene
-    tri_rec, tri_uv, second_ok = arrays
-    x0 = np.ascontiguousarray(x0, dtype=np.float64)
-    emit_tri = np.ascontiguousarray(emit_tri, dtype=np.int64)
-    geometry = (np.ascontiguousarray(scene.tri_p, dtype=np.float64), np.ascontiguousarray(scene.tri_n, dtype=np.float64),
-                np.ascontiguousarray(scene.tri_ior, dtype=np.float64), np.ascontiguousarray(scene.tri_role, dtype=np.int64))
-    bounces, refract1, refract2 = len(chain), chain[0] == "T", chain[-1] == "T"
-    args = (x0, emit_tri, bounces, refract1, refract2, second_ok, tri_rec, tri_uv) + geometry + _bvh_args(ctx.bvh) + (
-        float(ctx.eps),)
-    tracer = _device_tracer(ctx.settings.device, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, *geometry,
-                            _bvh_args(ctx.bvh), x0, emit_tri, float(ctx.eps))
+    args = _trace_arguments(ctx.scene, ctx.bvh, ctx.eps, chain, emit_tri, x0, arrays)
+    tracer = _device_tracer(ctx.settings.device, args)
     trace = None
     if tracer is not None:
         def trace(e, u, v):
             out = (np.empty(e.size, dtype=np.int64), np.empty(e.size, dtype=np.int64), np.empty((e.size, 2)), np.empty(e.size))
             tracer.trace(e, u, v, *out)
             return out
-    return refine_kernel.mesh_point_traces(emit_tri.size, args, trace)
+    return refine_kernel.mesh_point_traces(args[1].size, args, trace)
 
 
 class ImageCache:

@@ -719,7 +719,7 @@ def _reach_tree(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side
                 top += 2
 
 
-def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p):
+def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p, tree=None):
     """Mask (T1,) of the first-vertex caster triangles whose scattered light can reach a target
     triangle: the receivers' triangles for a one-bounce chain, the second-vertex casters' for
     a two-bounce one (light that reaches no second caster reaches no receiver through it).
@@ -729,7 +729,8 @@ def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p):
     :func:`sphere_tree` over the targets, descended from the root while a node passes (a leaf
     that passes keeps the triangle): conservative, a triangle with a path is never dropped
     (``tests/bake/test_bake_bounds_select.py`` checks it against forward-traced paths), and its
-    cost is O(T1 log leaves) for most triangles.  ``x0`` (3,) or (T1, 3)."""
+    cost is O(T1 log leaves) for most triangles.  ``x0`` (3,) or (T1, 3); ``tree`` the
+    targets' :func:`sphere_tree` when the caller has it (casters tested in several calls)."""
     T1 = tri_p1.shape[0]
     keep = np.zeros(T1, dtype=np.bool_)
     target_p = np.asarray(target_p, dtype=np.float64)
@@ -740,7 +741,7 @@ def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p):
     x0 = np.array(np.broadcast_to(x0.reshape(-1, 3), (T1, 3)))
     eta1 = np.array(np.broadcast_to(np.asarray(eta1, dtype=np.float64), (T1,)))
     em = one_bounce_emitters(chain[0], x0, tri_p1, np.ascontiguousarray(tri_n1, dtype=np.float64), eta1)
-    centre, radius = sphere_tree(target_p)
+    centre, radius = sphere_tree(target_p) if tree is None else tree
     _reach_tree(em.part_start, em.part_c, em.part_r, em.part_d, em.part_t, em.tri_ng, em.tri_p0, em.side_req, centre, radius,
                 keep)
     return keep

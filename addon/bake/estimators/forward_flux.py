@@ -33,7 +33,7 @@ from ...solver.estimators.flux_kernel import corner_densities_kernel, subtriangl
 from ...solver.estimators.forward_image import corner_densities, solid_angle, splat_triangles
 from ..lights import emission_factor
 from .base import Estimator
-from .forward_images import IMAGE_COARSE, image_chunks
+from .forward_images import IMAGE_COARSE, ChunkSizer, image_chunks
 
 CASTER_CHUNK = 16384  # at most this many first casters refined and splatted together (a chunk: memory, a progress step)
 CHUNK_WORK = 1000000  # ... and about this many sub-triangles by their estimate (forward_images.image_chunks)
@@ -42,6 +42,7 @@ CHUNK_WORK = 1000000  # ... and about this many sub-triangles by their estimate 
 class ForwardFlux(Estimator):
     name = "forward-flux"
     reference = False  # True: the numpy reference form (no coarse levels, every point traced; tests, benchmarks)
+    timed_chunks = True  # chunks sized by time (False: by CHUNK_WORK and CASTER_CHUNK alone; tests)
 
     def __init__(self, ctx, items):
         super().__init__(ctx, items)
@@ -51,10 +52,11 @@ class ForwardFlux(Estimator):
         self.reports = []
 
     def prepare(self):
-        """Per light sample and chain (a pass), the reaching first casters in chunks
-        (``CHUNK_WORK``, ``CASTER_CHUNK``): each chunk's forward images are refined and their
-        flux splatted before the next, so memory and the time between progress steps follow
-        the chunk."""
+        """Per light sample and chain (a pass), the reaching first casters in chunks of at most
+        ``CHUNK_WORK`` and ``CASTER_CHUNK`` (memory), sized by time (a ChunkSizer:
+        forward_images.STEP_SECONDS each, so that a progress step, and Esc, come that often) when
+        ``timed_chunks``: each chunk's forward images are refined and their flux splatted before
+        the next.  The texture does not depend on the cut."""
         ctx = self.ctx
         passes = [(li, ls, m, item) for li, ls in enumerate(ctx.lsamples) for m in range(ls.size)
                   for item in self.items if item.light == li]
@@ -63,9 +65,17 @@ class ForwardFlux(Estimator):
             yield p / len(passes), where
             report = None
             flux = None  # this pass's flux per receiver: its chunks' splats, added to the total at its end
+            sizer = ChunkSizer() if self.timed_chunks else None
             t0 = time.perf_counter()
-            for state, done, count in image_chunks(ctx, item, ls, m, "flux", CHUNK_WORK, CASTER_CHUNK, self.coarse,
-                                                   shared=not self.reference):
+            for got in image_chunks(ctx, item, ls, m, "flux", CHUNK_WORK, CASTER_CHUNK, self.coarse,
+                                    shared=not self.reference, sizer=sizer):
+                if isinstance(got, str):  # a step before the first chunk (cone tests, mesh points)
+                    ctx.timer.add("image", time.perf_counter() - t0)
+                    yield p / len(passes), f"{where}, {got}"
+                    t0 = time.perf_counter()
+                    continue
+                state, done, count = got
+                t_chunk = t0
                 ctx.timer.add("image.trace", state.report["trace_seconds"])
                 ctx.timer.add("image", time.perf_counter() - t0)
                 t0 = time.perf_counter()
@@ -73,6 +83,8 @@ class ForwardFlux(Estimator):
                     flux = [np.zeros((r.resolution[0] * r.resolution[1], 3)) for r in ctx.receivers]
                 self.flux_fn(ctx, item, state, ls, m, flux)
                 ctx.timer.add("flux", time.perf_counter() - t0)
+                if sizer is not None:
+                    sizer.took(time.perf_counter() - t_chunk)
                 report = _add_report(report, state.report)
                 if state.report["device"] != "numba":
                     self.device = state.report["device"] + " (tracing)"

@@ -15,7 +15,7 @@ import warnings
 import numpy as np
 
 from ...solver.estimators.forward_image import light_area_density, refine_image_triangles, trace_chain_points
-from ..cull import first_casters_reaching
+from ..cull import first_casters_reaching, sphere_tree
 from ..lights import light_points, lit_casters
 
 IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
@@ -23,6 +23,11 @@ IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to wit
 IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
 IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
 LANDED_KERNEL = True  # Numba tracing: landed sub-triangles refined in one kernel (False: numpy levels only; tests)
+STEP_SECONDS = 0.15  # with a ChunkSizer: a chunk of casters is sized to be refined and splatted in about this long
+FIRST_STEP_WORK = 5000.0  # ... the first, before any is timed: at most this much estimated work (sub-triangles)
+FIRST_STEP_CASTERS = 16  # ... and at most this many casters (the estimate knows the caster's size, not its image's)
+REACH_STEP = 32768  # ... lit casters cone-tested per progress step
+MESH_STEP = 65536  # ... mesh points traced per progress step
 LOST_PROBE_TEXELS = 4.0  # texels: lost sub-triangles are probed and dropped from the level where they are this small (world)
 
 
@@ -205,11 +210,47 @@ def caster_chunks(work, max_work, max_casters):
     return out
 
 
-def _reaching_casters(ctx, item, ls, m):
+class ChunkSizer:
+    """Cuts a pass's casters into consecutive runs that each take about ``seconds`` to refine
+    and splat (a progress step, and how long Esc waits): the first run holds ``first_work`` of
+    the estimated work (:func:`image_chunks`) and at most FIRST_STEP_CASTERS casters, each next one what the last run's measured
+    seconds per unit of work allow, at most twice the last run's work.  Where the runs end changes
+    no bit of the texture: a caster's sub-triangles do not depend on the other casters' and
+    are splatted in caster order (refine_image_triangles returns them in emitter order);
+    tests/bake/test_bake_chunks.py."""
+
+    def __init__(self, seconds=None, first_work=None):
+        self.seconds = STEP_SECONDS if seconds is None else float(seconds)
+        self.first_work = FIRST_STEP_WORK if first_work is None else float(first_work)
+        self.rate = None  # seconds per unit of work of the last timed run
+        self.last_work = 0.0
+
+    def runs(self, work, max_work, max_casters):
+        """Yields (a, b): the next run of casters (``work`` (n,) their estimates), at most
+        ``max_work`` and ``max_casters`` (memory); :meth:`took` times each before the next."""
+        cum = np.concatenate([[0.0], np.cumsum(np.asarray(work, dtype=np.float64))])
+        n = cum.size - 1
+        a = 0
+        while a < n:
+            budget = self.first_work if self.rate is None else min(self.seconds / self.rate, 2.0 * self.last_work)
+            b = int(np.searchsorted(cum, cum[a] + min(budget, max_work), side="left"))
+            b = min(max(b, a + 1), a + int(max_casters), n, a + FIRST_STEP_CASTERS if self.rate is None else n)
+            self.last_work = float(cum[b] - cum[a])
+            yield a, b
+            a = b
+
+    def took(self, seconds):
+        """The last run took ``seconds`` (refined and splatted)."""
+        if self.last_work > 0.0:
+            self.rate = max(float(seconds), 1e-6) / self.last_work
+
+
+def _reaching_casters(ctx, item, ls, m, block=None):
     """The first-vertex casters of planned chain ``item`` that light sample ``m`` reaches and
-    whose scattered light can reach the chain's next targets: (their global triangle ids,
-    their light points, the chain's second-vertex casters, the cull's report), or None when
-    there are none."""
+    whose scattered light can reach the chain's next targets: returns (their global triangle
+    ids, their light points, the chain's second-vertex casters, the cull's report), or None
+    when there are none.  A generator: the lit casters are cone-tested in blocks of ``block``
+    (None: one), with a ``yield`` between two blocks (a progress step)."""
     scene = ctx.scene
     cast1 = item.vertices[0]
     x0_all = light_points(ls, m, scene.tri_p[cast1], ctx.extent, ctx.settings.sun_distance)
@@ -224,8 +265,15 @@ def _reaching_casters(ctx, item, ls, m):
     else:
         targets = scene.tri_p[np.concatenate([ctx.receivers[r].tri_index for r in item.receivers]
                                              or [np.zeros(0, dtype=np.int64)])]
-    reach = first_casters_reaching(item.chain, x0_all[lit], scene.tri_p[cast1[lit]], scene.tri_n[cast1[lit]],
-                                   scene.tri_ior[cast1[lit]], targets)
+    tree = sphere_tree(targets) if lit.size and targets.shape[0] else None
+    reach = np.zeros(lit.size, dtype=np.bool_)
+    step = max(1, lit.size if block is None else int(block))
+    for a in range(0, lit.size, step):
+        if block is not None:
+            yield f"cone tests {a}/{lit.size}"
+        s = lit[a:a + step]
+        reach[a:a + step] = first_casters_reaching(item.chain, x0_all[s], scene.tri_p[cast1[s]], scene.tri_n[cast1[s]],
+                                                   scene.tri_ior[cast1[s]], targets, tree)
     keep[lit[~reach]] = False
     reach_report = {"lit": int(lit.size), "reaching": int(reach.sum()), "seconds": time.perf_counter() - t0}
     if not keep.any():
@@ -241,17 +289,21 @@ def image_state(ctx, item, ls, m, mode, coarse=0, shared=True):
     return next(one_piece, (None,))[0]
 
 
-def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared=True):
+def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared=True, sizer=None):
     """The refined sub-triangles (:func:`prepare`) of planned chain ``item`` for light sample
-    ``m`` in pieces: the reaching first casters, in their order, cut into runs
-    (:func:`caster_chunks`) of at most ``max_casters`` casters and about ``max_work``
-    sub-triangles (a caster's estimate: the first grid's IMAGE_GRID² times 1 + its size in
-    texels squared, :func:`caster_texels`, at most 4^image_depth), each refined on its own (a
-    caster's sub-triangles do not depend on the others'), so that memory and the time between
-    two progress steps follow the chunk, not the caster count.  Yields (state, casters done,
-    casters) per chunk; nothing when the light reaches none.  The cull's report is in the
-    first chunk's ``state.report["reach"]``."""
-    casters = _reaching_casters(ctx, item, ls, m)
+    ``m`` in pieces: the reaching first casters, in their order, cut into runs of at most
+    ``max_casters`` casters and about ``max_work`` sub-triangles (a caster's estimate: the
+    first grid's IMAGE_GRID² times 1 + its size in texels squared, :func:`caster_texels`, at
+    most 4^image_depth) (:func:`caster_chunks`), each refined on its own (a caster's
+    sub-triangles do not depend on the others'), so that memory and the time between two
+    progress steps follow the chunk, not the caster count.  With ``sizer`` (a
+    :class:`ChunkSizer`, which the caller tells how long each chunk took) the runs are sized
+    by time within those bounds, and the work before the first chunk comes in steps too: a
+    message (str) is yielded between blocks of cone tests (``REACH_STEP`` casters) and slices
+    of mesh points (``MESH_STEP``).  Yields (state, casters done, casters) per chunk; nothing
+    when the light reaches none.  The cull's report is in the first chunk's
+    ``state.report["reach"]``."""
+    casters = yield from _reaching_casters(ctx, item, ls, m, None if sizer is None else REACH_STEP)
     if casters is None:
         return
     emit_tri, x0, second, reach_report = casters
@@ -262,9 +314,11 @@ def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared
     mesh, mesh_traced, mesh_seconds = None, 0, 0.0
     if shared and IMAGE_GRID >> int(coarse) == 1:
         t0 = time.perf_counter()
-        mesh, mesh_traced = pass_mesh_points(ctx, item.chain, emit_tri, x0, arrays)
+        mesh, mesh_traced = yield from pass_mesh_points(ctx, item.chain, emit_tri, x0, arrays,
+                                                        None if sizer is None else MESH_STEP)
         mesh_seconds = time.perf_counter() - t0
-    for a, b in caster_chunks(work, max_work, max_casters):
+    runs = caster_chunks(work, max_work, max_casters) if sizer is None else sizer.runs(work, max_work, max_casters)
+    for a, b in runs:
         state = prepare(ctx.scene, ctx.bvh, ctx.eps, item.chain, emit_tri[a:b], x0[a:b], second, ctx.receivers,
                         max_depth=int(ctx.settings.image_depth), mode=mode, parallel=ls.kind == "sun",
                         only=item.receivers, coarse=coarse, shared=shared, triangle_arrays=arrays,
@@ -277,27 +331,37 @@ def image_chunks(ctx, item, ls, m, mode, max_work, max_casters, coarse=0, shared
         yield state, b, n
 
 
-def pass_mesh_points(ctx, chain, emit_tri, x0, arrays):
+def pass_mesh_points(ctx, chain, emit_tri, x0, arrays, step=None):
     """The whole-triangle traces of a pass's emitters (first triangles ``emit_tri``, light points
     ``x0``; ``arrays`` its :func:`scene_arrays`), each mesh vertex and edge midpoint traced once
-    for all of them (:func:`~addon.solver.estimators.refine_kernel.mesh_point_traces`), before
+    for all of them (:func:`~addon.solver.estimators.refine_kernel.mesh_points`), before
     the casters are cut into chunks, so that which emitter traces a shared point, and with it
     every bit of the result, does not depend on the cut; traced on the bake's device (the same
     points on OpenCL as on Numba), used by the refine kernel and by the numpy levels alike.
-    None (and 0) without refine_kernel.MESH_SHARED.  Returns (mesh points, points traced)."""
+    None (and 0) without refine_kernel.MESH_SHARED.  A generator: the points are traced in
+    slices of ``step`` (None: one), with a ``yield`` between two (a progress step); returns
+    (mesh points, points traced)."""
     from ...solver.estimators import refine_kernel
 
     if not refine_kernel.MESH_SHARED or emit_tri.size == 0:
         return None, 0
     args = _trace_arguments(ctx.scene, ctx.bvh, ctx.eps, chain, emit_tri, x0, arrays)
     tracer = _device_tracer(ctx.settings.device, args)
-    trace = None
-    if tracer is not None:
-        def trace(e, u, v):
-            out = (np.empty(e.size, dtype=np.int64), np.empty(e.size, dtype=np.int64), np.empty((e.size, 2)), np.empty(e.size))
-            tracer.trace(e, u, v, *out)
-            return out
-    return refine_kernel.mesh_point_traces(args[1].size, args, trace)
+    e, u, v, index = refine_kernel.mesh_points(args[1].size, args)
+    m = e.size
+    out = (np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((m, 2)), np.empty(m))
+    sliced = step is not None
+    step = max(1, m if step is None else int(step))
+    for a in range(0, m, step):
+        if sliced:
+            yield f"mesh points {a}/{m}"
+        b = min(m, a + step)
+        part = tuple(o[a:b] for o in out)
+        if tracer is not None:
+            tracer.trace(e[a:b], u[a:b], v[a:b], *part)
+        else:
+            trace_chain_points(e[a:b], u[a:b], v[a:b], *args, *part)
+    return refine_kernel.gather_mesh_points(out, index), m
 
 
 class ImageCache:

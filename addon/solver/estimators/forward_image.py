@@ -235,7 +235,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     others handed back to the levels below with the same rules (the same final sub-triangles,
     in another order).
 
-    Returns dict: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
+    Returns dict, the sub-triangles in emitter order: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
     uv (m, 3, 2) their landing UVs, receiver (m,), deviation (m,) UV units, landed (m,) the
     share of the flux that lands (1 but for the approximated partly landed ones), bary_full
     (m, 3, 2) the sub-triangle itself (``bary`` of a partly landed one is shrunk to landed
@@ -476,6 +476,11 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         cat = dict(emitter=np.zeros(0, dtype=np.int64), bary=np.zeros((0, 3, 2)), uv=np.zeros((0, 3, 2)),
                    receiver=np.zeros(0, dtype=np.int64), deviation=np.zeros(0), landed=np.zeros(0),
                    bary_full=np.zeros((0, 3, 2)), mid_uv=np.zeros((0, 3, 2)), factor=np.zeros((0, 6)))
+    # emitter order (stable: an emitter's own sub-triangles in the order its refinement made
+    # them, which the other emitters do not change), so that flux splatted run after run of
+    # emitters is summed in one order whatever the runs
+    order = np.argsort(cat["emitter"], kind="stable")
+    cat = {k: v[order] for k, v in cat.items()}
     cat["traced"] = traced
     cat["kernel_seconds"] = kernel_seconds
     cat["dropped"] = dropped

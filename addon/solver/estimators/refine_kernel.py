@@ -399,15 +399,30 @@ CORNER_BARY = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
 
 def mesh_point_traces(n_emitters, trace_args, trace=None):
     """The traces (rec (n, 6), uv (n, 6, 2), fac (n, 6)) of every emitter's whole first triangle
-    at its 3 corners and 3 edge midpoints (01, 12, 20), each mesh point traced once: corners
-    are the same point when their position, shading normal, light point, IOR and role are
-    equal (an emitter's neighbours in a smooth mesh under one light), edge midpoints when
-    both ends are; the trace is the first such emitter's (``trace_chain_points``), which for
-    the others differs from their own only by rounding in the barycentric interpolation.
-    ``trace(e, u, v) -> (t2, rec, uv, fac)`` traces them instead of ``trace_chain_points``
-    (a device's tracer: the same points).  Returns ((rec, uv, fac), points traced)."""
+    at its 3 corners and 3 edge midpoints (01, 12, 20), each mesh point traced once
+    (:func:`mesh_points`); ``trace(e, u, v) -> (t2, rec, uv, fac)`` traces them instead of
+    ``trace_chain_points`` (a device's tracer: the same points).  Returns ((rec, uv, fac),
+    points traced)."""
     from .forward_image import trace_chain_points
 
+    e, u, v, index = mesh_points(n_emitters, trace_args)
+    m = e.size
+    out = (np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((m, 2)), np.empty(m))
+    if m and trace is not None:
+        out = trace(e, u, v)
+    elif m:
+        trace_chain_points(e, u, v, *trace_args, *out)
+    return gather_mesh_points(out, index), m
+
+
+def mesh_points(n_emitters, trace_args):
+    """The points of the emitters' whole first triangles, each mesh point once: corners are
+    the same point when their position, shading normal, light point, IOR and role are equal
+    (an emitter's neighbours in a smooth mesh under one light), edge midpoints when both ends
+    are; a point is traced as its first emitter's (``trace_chain_points``), which for the
+    others differs from their own only by rounding in the barycentric interpolation.
+    Returns (emitter (m,), u (m,), v (m,), index (n, 6) of each emitter's corners and edge
+    midpoints 01, 12, 20 into the m points)."""
     x0, t1_of = trace_args[0], trace_args[1]
     tri_p, tri_n, tri_ior, tri_role = trace_args[8], trace_args[9], trace_args[10], trace_args[11]
     n = int(n_emitters)
@@ -430,12 +445,12 @@ def mesh_point_traces(n_emitters, trace_args, trace=None):
     mid = 0.5 * (CORNER_BARY + CORNER_BARY[[1, 2, 0]])
     e = np.concatenate([ve, ee]).astype(np.int64)
     uv = np.concatenate([CORNER_BARY[vk], mid[ek]])
-    m = e.size
-    out = (np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((m, 2)), np.empty(m))
-    if m and trace is not None:
-        out = trace(e, np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]))
-    elif m:
-        trace_chain_points(e, np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), *trace_args, *out)
-    _t2, rec, luv, fac = out
     index = np.concatenate([vid, vfirst.size + eid.reshape(n, 3)], axis=1)  # (n, 6): corners, then edges 01, 12, 20
-    return (np.ascontiguousarray(rec[index]), np.ascontiguousarray(luv[index]), np.ascontiguousarray(fac[index])), m
+    return e, np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), index
+
+
+def gather_mesh_points(traces, index):
+    """Per emitter (rec (n, 6), uv (n, 6, 2), fac (n, 6)) from the traces (t2, rec, uv, fac) of
+    :func:`mesh_points`' points and its ``index``."""
+    _t2, rec, luv, fac = traces
+    return np.ascontiguousarray(rec[index]), np.ascontiguousarray(luv[index]), np.ascontiguousarray(fac[index])

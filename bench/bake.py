@@ -32,11 +32,15 @@ t1 = time.perf_counter()
 scene = extract_scene(resolution={res})
 t2 = time.perf_counter()
 settings = BakeSettings(resolution={res}, samples={samples}, bounces={bounces!r})
+from addon.bake.estimate import estimate_bake
+estimate = estimate_bake(scene, settings).seconds
+t2 = time.perf_counter()
 cold = bake(scene, settings)
 t3 = time.perf_counter()
 warm = bake(scene, settings)
 t4 = time.perf_counter()
-print("RESULT" + json.dumps(dict(start=t1 - t0, extract=t2 - t1, cold=t3 - t2, warm=t4 - t3, report=warm.report)))
+print("RESULT" + json.dumps(dict(start=t1 - t0, extract=t2 - t1, cold=t3 - t2, warm=t4 - t3, estimate=estimate,
+                                report=warm.report)))
 """
 
 
@@ -75,6 +79,7 @@ def main(argv=None):
             passes = [p for e in rep.get("estimators", {}).values() for p in e.get("passes", [])]
             reach = [p["reach"] for p in passes if "reach" in p]
             row = dict(scene=scene, res=res, chains=chains, cold=r["cold"], warm=r["warm"], extract=r["extract"],
+                       estimate=r["estimate"],
                        texels_per_s=c["texels_covered"] / r["warm"], tuples=c["tuples"], naive=c["tuples_naive"],
                        paths=c["paths_visible"], lit=c["texels_touched"], stages=rep["timings"], estimator=rep["estimator"],
                        summary=" / ".join(rep["plan"]["summary"]) if isinstance(rep["plan"]["summary"], list) else rep["plan"]["summary"],
@@ -100,13 +105,15 @@ def _table(rows, samples, bounces):
              "Cold: the first bake in a fresh interpreter (Numba cache on disk warm); warm: the same bake again. "
              "Casters traced: first-vertex caster triangles whose scattered light can reach the chain's next targets, of those "
              "the light reaches (summed over chains; the rest are skipped by the cone test of `cull.first_casters_reaching`, "
-             "which costs the seconds given).", "",
-             "| scene | estimator | plan | texels | cold (s) | warm (s) | texels/s (warm) | sub-triangles | casters traced | "
-             "reach test (s) | paths | texels lit |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "which costs the seconds given). Estimate: the up-front lower bound the CLI and the operator show before a "
+             "bake (`addon/bake/estimate.py`; two-bounce chains left out).", "",
+             "| scene | estimator | plan | texels | estimate (s) | cold (s) | warm (s) | texels/s (warm) | sub-triangles | "
+             "casters traced | reach test (s) | paths | texels lit |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         traced, lit = r["casters"]
-        lines.append(f"| {r['scene']} | {r['estimator']} | {r['summary']} | {r['res']}² | {r['cold']:.2f} | {r['warm']:.2f} | "
+        lines.append(f"| {r['scene']} | {r['estimator']} | {r['summary']} | {r['res']}² | {r['estimate']:.2f} | {r['cold']:.2f} | "
+                     f"{r['warm']:.2f} | "
                      f"{r['texels_per_s']:,.0f} | {r['sub_triangles']:,} | {traced:,} / {lit:,} | {r['reach_s']:.2f} | "
                      f"{r['paths']:,} | {r['lit']:,} |")
     keys = sorted({k for r in rows for k in r["stages"]})

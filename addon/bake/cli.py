@@ -14,7 +14,9 @@ Files are written all or nothing (:mod:`addon.bake.output`: temporary files rena
 place), and listed in ``DIR/.caustic_bake_files.json``; a file in ``DIR`` the bake would
 replace that is not listed there (a user's) is refused before the bake, unless ``--force``.
 Receivers whose names make the same file name get unique ones (:mod:`addon.bake.names`).
-A long bake prints a progress line with the time left every 10 s.  Wrong input and write
+A long bake prints its estimate before it starts (addon.bake.estimate) and a progress line
+with the time left every 10 s; a very large one (over 10 minutes by the estimate) asks first on
+a terminal and elsewhere stops with one line unless ``--yes``.  Wrong input and write
 failures exit with code 2 and a one-line reason on stderr (no traceback).
 """
 
@@ -85,6 +87,9 @@ def add_arguments(parser):
     parser.add_argument("--memory-budget", type=float, default=None, metavar="GB",
                         help="memory the bake's textures may take, in GB (default: half the memory available); a bake "
                         "that needs more stops before it starts, with one line")
+    parser.add_argument("--yes", action="store_true",
+                        help="bake a very large job without asking (default: a bake estimated to take more than 10 "
+                        "minutes asks on a terminal, and stops with one line elsewhere)")
     parser.add_argument("--force", action="store_true",
                         help="overwrite files in --out that Caustic Bake did not write (default: refuse with the file's name)")
     parser.add_argument("--preview", default=None, metavar="PNG",
@@ -180,13 +185,15 @@ def _run(args):
         done = 0
         try:
             for frame in frames:
-                _print_frames([bake_frame(path, frame, out, settings, resolution, force=force)])
+                check = confirm_large_bake(args, len(frames)) if frame == frames[0] else None
+                _print_frames([bake_frame(path, frame, out, settings, resolution, force=force, confirm=check)])
                 done += 1
         finally:
             if done:
                 write_sequence_index(out)  # the index of every frame in the folder
         return 0
-    scene, result = _bake_open_scene(path, None, settings, resolution, out_dir=None if force else out)
+    scene, result = _bake_open_scene(path, None, settings, resolution, out_dir=None if force else out,
+                                     confirm=confirm_large_bake(args))
     result.write(out)  # all or nothing: OutputError (one line) leaves the folder as it was
     print(f"{summary_line(result.report)} -> {args.out}")
     for w in result.report["warnings"]:
@@ -251,15 +258,42 @@ class ProgressPrinter:
             self.last = now
 
 
-def _bake_open_scene(path, frame, settings, resolution, out_dir=None, progress=True):
+LONG_BAKE_SECONDS = 60.0  # a bake estimated to take longer prints its estimate before it starts
+
+
+def confirm_large_bake(args, frames=1):
+    """The check :func:`_bake_open_scene` runs on the bake's estimate (addon.bake.estimate) of
+    ``frames`` frames before it starts: prints the estimate of a long bake, and for a very large
+    one (``needs_confirmation``) asks on a terminal, or stops with one line elsewhere, unless
+    ``--yes``."""
+    from .estimate import needs_confirmation
+
+    def check(estimate):
+        total = estimate.times(frames)
+        if total.seconds >= LONG_BAKE_SECONDS:
+            print(f"estimate: {total.line()}", flush=True)
+        if not needs_confirmation(total) or getattr(args, "yes", False):
+            return
+        question = f"the bake needs {total.line()} ({total.texels:,} texels)"
+        if sys.stdin is not None and sys.stdin.isatty():
+            if input(f"{question}; bake it? [y/N] ").strip().lower() in ("y", "yes"):
+                return
+            raise UserError(f"{question}; not baked")
+        raise UserError(f"{question}; pass --yes to bake it")
+
+    return check
+
+
+def _bake_open_scene(path, frame, settings, resolution, out_dir=None, progress=True, confirm=None):
     """Extract the open scene (at ``frame``, or the current frame) and bake it; returns
     (scene model, BakeResult) with ``report["input"]`` and the extraction time filled in.
     ``out_dir``: before the bake, refuse (:func:`refuse_foreign`) when a file the bake will
-    write there exists and Caustic Bake did not write it."""
+    write there exists and Caustic Bake did not write it; ``confirm``: called with the bake's
+    :class:`~addon.bake.estimate.BakeEstimate` before it starts (it raises to stop)."""
     import bpy
 
     from .extract import extract_scene
-    from .pipeline import bake
+    from .pipeline import bake_steps, run_steps
     from .scene import SceneError
 
     t0 = time.perf_counter()
@@ -272,8 +306,17 @@ def _bake_open_scene(path, frame, settings, resolution, out_dir=None, progress=T
             names = [r.name for r in scene.receivers]
             refuse_foreign(out_dir, [texture_filename(n, frame, receivers=names) for n in names] + [
                 SEQUENCE_REPORT if frame is None else frame_report_filename(frame)])
+        steps = bake_steps(scene, settings)  # the scene, settings and memory budget checked here
+        if confirm is not None:
+            from .estimate import estimate_bake
+
+            try:
+                confirm(estimate_bake(scene, settings))
+            except UserError:
+                steps.close()
+                raise
         prefix = f"frame {frame}: " if frame is not None else ""
-        result = bake(scene, settings, progress=ProgressPrinter(prefix) if progress else None)
+        result = run_steps(steps, progress=ProgressPrinter(prefix) if progress else None)
     except SceneError as ex:
         where = f" (frame {frame})" if frame is not None else ""
         raise UserError(f"{ex}{where}") from None
@@ -283,7 +326,7 @@ def _bake_open_scene(path, frame, settings, resolution, out_dir=None, progress=T
     return scene, result
 
 
-def bake_frame(path, frame, out_dir, settings, resolution, force=False, record=True, progress=True):
+def bake_frame(path, frame, out_dir, settings, resolution, force=False, record=True, progress=True, confirm=None):
     """Bake frame ``frame`` of the open .blend (``path``, for the report) and write that
     frame's files of the sequence in ``out_dir`` (:meth:`BakeResult.write` with the frame, all
     or nothing), refusing to replace a file Caustic Bake did not write there unless ``force``;
@@ -293,7 +336,7 @@ def bake_frame(path, frame, out_dir, settings, resolution, force=False, record=T
     from .output import OutputError
 
     _, result = _bake_open_scene(path, frame, settings, resolution, out_dir=None if force else out_dir,
-                                 progress=progress)
+                                 progress=progress, confirm=confirm)
     try:
         files = result.write(out_dir, frame=frame, record=record)
     except OutputError as ex:

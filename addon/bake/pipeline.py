@@ -153,7 +153,12 @@ def bake(scene, settings=None, progress=None):
     share of the work done is not known); returning False cancels (:class:`BakeCancelled`).
     A plain loop over :func:`bake_steps`.
     """
-    steps = bake_steps(scene, settings)
+    return run_steps(bake_steps(scene, settings), progress)
+
+
+def run_steps(steps, progress=None):
+    """Drive the generator of :func:`bake_steps` to its :class:`BakeResult`, calling
+    ``progress`` as :func:`bake` does."""
     while True:
         try:
             fraction, message = next(steps)

@@ -229,10 +229,12 @@ class BakeJob:
         self.t0 = time.perf_counter()
         self._worker = None  # modal: the ChunkWorker running the chunks
         self._pending = None  # modal: the Future of the chunk running on it
+        self.estimate = None  # the BakeEstimate of the whole job (a range: every frame), after start
 
     def start(self, context):
         load_solver()
         from ..bake.apply import foreign_files
+        from ..bake.estimate import estimate_bake
         from ..bake.pipeline import bake_steps
         from ..bake.extract import extract_scene
         from .properties import bake_frames, bake_settings
@@ -249,6 +251,7 @@ class BakeJob:
         self.frames = bake_frames(props, context.scene)
         if self.frames is None:
             self.model = extract_scene(resolution=self.resolution)
+            self.estimate = estimate_bake(self.model, settings)
             clash = foreign_files([r.name for r in self.model.receivers], self.directory)
             if clash:
                 raise UserError("{} exists and was not written by Caustic Bake; choose another output folder".format(clash[0]))
@@ -261,6 +264,7 @@ class BakeJob:
             self.warnings.append("image sequences are not packed: the frames stay in {}".format(self.directory))
         self.original_frame = context.scene.frame_current
         self._start_frame(0)
+        self.estimate = estimate_bake(self.model, settings).times(len(self.frames))  # the first frame's, for every frame
         clash = foreign_files(self.receivers, self.directory, self.frames)
         if clash:
             self.cancel()
@@ -422,6 +426,11 @@ class BakeJob:
             "; ".join(plan))
 
 
+def confirmation_message(estimate):
+    """The question a very large bake asks before it starts (its :class:`~addon.bake.estimate.BakeEstimate`)."""
+    return "This bake needs {} ({:,} texels). Bake it now?".format(estimate.line(), estimate.texels)
+
+
 class CAUSTICS_OT_bake(bpy.types.Operator):
     """Bake caustic irradiance textures onto the receivers (Esc cancels)"""
 
@@ -435,6 +444,13 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
         "when the file has a path)",
         default=False,
         options={"SKIP_SAVE"},
+    )
+    confirmed: bpy.props.BoolProperty(
+        name="Confirmed",
+        description="The user confirmed a very large bake (set by the confirmation dialog; the bake then runs "
+        "in the background with a progress bar)",
+        default=False,
+        options={"SKIP_SAVE", "HIDDEN"},
     )
 
     @classmethod
@@ -463,6 +479,8 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
 
     # -- synchronous (scripts, background mode) ------------------------------------------
     def execute(self, context):
+        if self.confirmed and not bpy.app.background and context.window is not None:
+            return self._start_modal(context)  # the confirmation dialog's OK: the UI's bake
         job = BakeJob(context)
         try:
             job.start(context)
@@ -485,6 +503,14 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
+        return self._start_modal(context, event)
+
+    def _start_modal(self, context, event=None):
+        """Start the bake in the background of the UI (progress bar, Esc cancels).  With
+        ``event`` (invoke), a very large bake (addon.bake.estimate.needs_confirmation) first asks:
+        the dialog's OK runs :meth:`execute` with ``confirmed``, which comes back here."""
+        from ..bake.estimate import needs_confirmation
+
         self._timer = None
         self._job = BakeJob(context, modal=True)
         try:
@@ -493,6 +519,14 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
             self._job.cancel()
             _report_failure(self, ex, "the bake")
             return {"CANCELLED"}
+        estimate = self._job.estimate
+        if event is not None and not self.confirmed and estimate is not None and needs_confirmation(estimate):
+            self._job.cancel()
+            self._job = None
+            self.confirmed = True
+            return context.window_manager.invoke_confirm(
+                self, event, title="Caustic Bake: a very large bake", message=confirmation_message(estimate),
+                confirm_text="Bake", icon="WARNING")
         STATE.start()
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.02, window=context.window)

@@ -169,13 +169,145 @@ def scatter_caps(chain, x0, tri_p, tri_n, eta, incoming=None):
 
     ``incoming``: optional (axis, radius) of the incoming directions instead of the vertex cap
     from x0.  ``side``: sign of (x0 - p0) . ng with ng = e1 x e2 (0: x0 in the plane, no path).
+    The caps of :func:`vertex_cap`, :func:`normal_cap` and :func:`propagate_cap`, computed per
+    triangle in one kernel (:func:`_scatter_caps`; tests/bake/test_bake_cull.py compares the two).
     """
+    T = tri_p.shape[0]
+    side, d, theta = np.empty(T), np.empty((T, 3)), np.empty(T)
+    if T == 0:
+        return side, d, theta
+    a, alpha = (np.zeros((T, 3)), np.zeros(T)) if incoming is None else incoming
+    _scatter_caps(chain == "T", np.ascontiguousarray(np.broadcast_to(x0, (T, 3)), dtype=np.float64),
+                  np.ascontiguousarray(tri_p, dtype=np.float64), np.ascontiguousarray(tri_n, dtype=np.float64),
+                  np.ascontiguousarray(np.broadcast_to(eta, (T,)), dtype=np.float64),
+                  np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(alpha, dtype=np.float64),
+                  incoming is not None, side, d, theta)
+    return side, d, theta
+
+
+def scatter_caps_numpy(chain, x0, tri_p, tri_n, eta, incoming=None):
+    """:func:`scatter_caps` in numpy (the reference the kernel is tested against)."""
     ng, lg = geometric_normals(tri_p)
     side = np.sign(np.sum((x0 - tri_p[:, 0]) * ng, axis=1))
     side[lg == 0] = 0.0
     a, alpha = vertex_cap(x0, tri_p) if incoming is None else incoming
     d, theta = propagate_cap(chain, a, alpha, tri_n, ng, side, eta)
     return side, d, theta
+
+
+@kernel(inline="always")
+def _unit3(x, y, z):
+    ln = math.sqrt(x * x + y * y + z * z)
+    if ln > 0.0:
+        return x / ln, y / ln, z / ln, ln
+    return 0.0, 0.0, 0.0, ln
+
+
+@kernel(inline="always")
+def _angle3(ax, ay, az, bx, by, bz):
+    """Angle between unit vectors, robust near 0 and pi (as :func:`_angle`); 0 against a zero
+    vector (the dot product summed from +0, as numpy's, so that atan2(0, -0) = pi never comes up)."""
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), 0.0 + ax * bx + ay * by + az * bz)
+
+
+@parallel_range("out_side", 1024)
+def _scatter_caps(refract, x0, tri_p, tri_n, eta, inc_a, inc_alpha, has_incoming, out_side, out_d, out_theta, first,
+                  last):
+    """:func:`scatter_caps` per triangle: the vertex cap from x0 (or the incoming one), the cap
+    of the corner normals, and the cap of the directions they scatter (:func:`propagate_cap`:
+    R mirrors the cap, T bounds the refracted directions, Lipschitz or tangential)."""
+    T = out_side.shape[0]
+    m = tri_n.shape[1]
+    half = 0.5 * math.pi
+    for blk in range(first, last):
+        for t in range(blk * 1024, min(T, blk * 1024 + 1024)):
+            p0x, p0y, p0z = tri_p[t, 0, 0], tri_p[t, 0, 1], tri_p[t, 0, 2]
+            e1x, e1y, e1z = tri_p[t, 1, 0] - p0x, tri_p[t, 1, 1] - p0y, tri_p[t, 1, 2] - p0z
+            e2x, e2y, e2z = tri_p[t, 2, 0] - p0x, tri_p[t, 2, 1] - p0y, tri_p[t, 2, 2] - p0z
+            ngx, ngy, ngz, lg = _unit3(e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x)
+            sd = (x0[t, 0] - p0x) * ngx + (x0[t, 1] - p0y) * ngy + (x0[t, 2] - p0z) * ngz
+            side = 0.0 if lg == 0.0 else (1.0 if sd > 0.0 else (-1.0 if sd < 0.0 else 0.0))
+            out_side[t] = side
+            # incoming cap (a, alpha)
+            if has_incoming:
+                ax, ay, az, alpha = inc_a[t, 0], inc_a[t, 1], inc_a[t, 2], inc_alpha[t]
+            else:
+                sx = sy = sz = 0.0
+                for j in range(3):
+                    wx, wy, wz, _l = _unit3(tri_p[t, j, 0] - x0[t, 0], tri_p[t, j, 1] - x0[t, 1], tri_p[t, j, 2] - x0[t, 2])
+                    sx += wx
+                    sy += wy
+                    sz += wz
+                ax, ay, az, _l = _unit3(sx, sy, sz)
+                alpha = 0.0
+                for j in range(3):
+                    wx, wy, wz, _l = _unit3(tri_p[t, j, 0] - x0[t, 0], tri_p[t, j, 1] - x0[t, 1], tri_p[t, j, 2] - x0[t, 2])
+                    alpha = max(alpha, _angle3(ax, ay, az, wx, wy, wz))
+                if not alpha < half - 1e-9:
+                    alpha = NO_CONE
+            # normal cap (c, gamma) and whether the corner normals agree with the plane's side
+            sx = sy = sz = 0.0
+            pos = neg = 0
+            for j in range(m):
+                mx, my, mz, _l = _unit3(tri_n[t, j, 0], tri_n[t, j, 1], tri_n[t, j, 2])
+                sx += mx
+                sy += my
+                sz += mz
+                mg = mx * ngx + my * ngy + mz * ngz
+                if mg > 0.0:
+                    pos += 1
+                elif mg < 0.0:
+                    neg += 1
+            cx, cy, cz, lc = _unit3(sx, sy, sz)
+            gamma = 0.0
+            for j in range(m):
+                mx, my, mz, _l = _unit3(tri_n[t, j, 0], tri_n[t, j, 1], tri_n[t, j, 2])
+                gamma = max(gamma, _angle3(cx, cy, cz, mx, my, mz))
+            if not (gamma < half - 1e-9 and lc > 0.0):
+                gamma = NO_CONE
+            consistent = pos == m or neg == m
+            alpha += ANGLE_MARGIN
+            gamma += ANGLE_MARGIN
+            capped = alpha < NO_CONE and gamma < NO_CONE
+            if not refract:
+                ac = ax * cx + ay * cy + az * cz
+                out_d[t, 0], out_d[t, 1], out_d[t, 2] = ax - 2.0 * ac * cx, ay - 2.0 * ac * cy, az - 2.0 * ac * cz
+                out_theta[t] = alpha + 2.0 * gamma if capped else NO_CONE
+                continue
+            s = side * (1.0 if ngx * cx + ngy * cy + ngz * cz >= 0.0 else -1.0)
+            r = 1.0 / eta[t] if s > 0.0 else eta[t]
+            nox, noy, noz = s * cx, s * cy, s * cz
+            cos_a = -(ax * nox + ay * noy + az * noz)
+            theta_a = math.acos(min(1.0, max(-1.0, cos_a)))
+            theta_max = theta_a + alpha + gamma
+            sin_max = math.sin(min(theta_max, half))
+            ok = (consistent and side != 0.0 and capped and cos_a > 0.0 and theta_max < half - 1e-6
+                  and r * sin_max < 1.0 - 1e-9)
+            cos_t_max = math.sqrt(max(1e-300, 1.0 - (r * sin_max) ** 2))
+            lip = max(r, r * math.cos(min(theta_max, half)) / cos_t_max)
+            k = 1.0 - r * r * (1.0 - cos_a * cos_a)
+            f = r * cos_a - math.sqrt(max(k, 0.0))
+            dx, dy, dz, _l = _unit3(r * ax + f * nox, r * ay + f * noy, r * az + f * noz)
+            beta = min(alpha + gamma, math.pi)
+            tx, ty, tz = r * (ax + cos_a * nox), r * (ay + cos_a * noy), r * (az + cos_a * noz)
+            t_len = math.sqrt(tx * tx + ty * ty + tz * tz)
+            sc = min(1.0, 1.0 / max(t_len, 1e-300))
+            t0_len = min(t_len, 1.0)
+            rest = math.sqrt(max(0.0, 1.0 - t0_len ** 2))
+            axx, axy, axz, _l = _unit3(tx * sc - rest * nox, ty * sc - rest * noy, tz * sc - rest * noz)
+            delta = r * 2.0 * math.sin(0.5 * beta) + max(0.0, t_len - 1.0)
+            rho = t0_len + delta
+            arc = delta / math.sqrt(max(1e-300, 1.0 - rho ** 2)) if rho < 1.0 else np.inf
+            chord = 2.0 * math.asin(min(1.0, 0.5 * math.sqrt(delta ** 2 + 2.0 * delta)))
+            tangential = gamma + min(arc, chord) + ANGLE_MARGIN
+            ok_t = consistent and side != 0.0 and capped and tangential < math.pi
+            if ok:
+                out_theta[t] = min(gamma + lip * (alpha + gamma), tangential)
+                out_d[t, 0], out_d[t, 1], out_d[t, 2] = dx, dy, dz
+            else:
+                out_theta[t] = tangential if ok_t else NO_CONE
+                out_d[t, 0], out_d[t, 1], out_d[t, 2] = axx, axy, axz
 
 
 class Emitters:

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..solver.geometry.optics import ROLE_BOTH, ROLE_NONE, ROLE_REFLECT, ROLE_REFRACT
+from ..solver.geometry.rows import group_rows
 
 # Surface roles (the solver's codes, addon.solver.geometry.optics): none = occluder only;
 # reflect = mirror / metal (chain R, reflectance = tint); refract = one refracting interface
@@ -156,17 +157,12 @@ class Scene:
                 continue
             size = float(np.max(p.max(0) - p.min(0))) or 1.0
             q = np.round((p - p.min(0)) / (size * 1e-9)).astype(np.int64)
-            # vertex ids: runs of equal rows in lexicographic order (np.unique(axis=0) sorts the same, slower)
-            order = np.lexsort((q[:, 2], q[:, 1], q[:, 0]))
-            qs = q[order]
-            new = np.ones(qs.shape[0], dtype=bool)
-            new[1:] = np.any(qs[1:] != qs[:-1], axis=1)
-            vid = np.empty(q.shape[0], dtype=np.int64)
-            vid[order] = np.cumsum(new) - 1
+            vid, _ = group_rows(q.view(np.uint64))  # vertex ids: equal quantised positions
             vid = vid.reshape(-1, 3)
             a = np.concatenate([vid[:, 0], vid[:, 1], vid[:, 2]])
             b = np.concatenate([vid[:, 1], vid[:, 2], vid[:, 0]])
-            _, counts = np.unique(np.minimum(a, b) * (int(vid.max()) + 1) + np.maximum(a, b), return_counts=True)
+            eid, _ = group_rows(np.ascontiguousarray(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)).view(np.uint64))
+            counts = np.bincount(eid)
             if counts.size and np.all(counts == 2):
                 out.add(int(oi))
         return out

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from addon.bake.cull import OneBounceCull, scatter_caps
+from addon.bake.cull import OneBounceCull, scatter_caps, scatter_caps_numpy
 from addon.bake.pipeline import BakeSettings, bake
 from addon.solver import solve_tuples
 
@@ -114,3 +114,29 @@ def test_bake_with_and_without_cull_is_identical():
     np.testing.assert_array_equal(a.raw["floor"], b.raw["floor"])
     assert a.report["counts"]["paths_visible"] == b.report["counts"]["paths_visible"] > 100
     assert a.report["counts"]["tuples"] < 0.5 * b.report["counts"]["tuples"]
+
+
+@pytest.mark.parametrize("chain", ["R", "T"])
+def test_scatter_caps_kernel_equals_the_numpy_caps(chain):
+    """The cone caps' kernel (cull._scatter_caps) against their numpy form (vertex_cap,
+    normal_cap, propagate_cap): gentle and wild normal fields, glancing and behind-the-plane
+    light, degenerate triangles, caps handed in (two bounces' second vertex), two IORs."""
+    rng = np.random.default_rng(11)
+    n = 4000
+    P, N = _curved_triangles(rng, n, 25.0)
+    N[: n // 4] = rng.normal(size=(n // 4, 3, 3))  # wild corner normals: inconsistent / no cone
+    P[n // 4: n // 4 + 50, 2] = P[n // 4: n // 4 + 50, 0]  # degenerate: two equal corners
+    x0 = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), rng.uniform(-0.5, 3.0, n)])
+    x0[-100:] = P[-100:, 0]  # the light in the triangle's plane (side 0)
+    eta = np.where(rng.uniform(size=n) < 0.5, 1.33, 1.5)
+    kinds = [None, (rng.normal(size=(n, 3)), rng.uniform(0.0, 1.2, n))]
+    kinds[1][0][:] /= np.linalg.norm(kinds[1][0], axis=1, keepdims=True)
+    kinds[1][1][:10] = 4.0  # no cone handed in
+    for incoming in kinds:
+        side, d, theta = scatter_caps(chain, x0, P, N, eta, incoming)
+        side_np, d_np, theta_np = scatter_caps_numpy(chain, x0, P, N, eta, incoming)
+        assert np.array_equal(side, side_np)
+        np.testing.assert_allclose(theta, theta_np, rtol=1e-12, atol=1e-12)
+        capped = theta_np < 4.0
+        assert 0.2 * n < capped.sum() < n  # both kinds present
+        np.testing.assert_allclose(d[capped], d_np[capped], rtol=0, atol=1e-12)

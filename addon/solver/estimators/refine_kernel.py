@@ -39,6 +39,7 @@ import math
 import numpy as np
 
 from ..runtime.jit import kernel, run_calls
+from ..geometry.rows import group_rows
 from .forward_image import COARSE_LINEAR_TEXELS, _trace_one
 
 TABLE_BITS = 13  # per-emitter shared-point table: 8192 slots, filled to half at most (then points are traced unshared)
@@ -353,45 +354,6 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
                 hand_inherited=h[:, H_INHERITED].copy(), hand_bary=h[:, H_BARY:H_REC].reshape(-1, 3, 2).copy(),
                 hand_rec=h[:, H_REC:H_UV].astype(np.int64), hand_uv=h[:, H_UV:H_FAC].reshape(-1, 6, 2).copy(),
                 hand_fac=h[:, H_FAC:H_WIDTH].copy(), traced=top_traced + int(sum(r[2] for r in results)))
-
-
-@kernel
-def group_rows(bits):
-    """Ids of equal rows of ``bits`` (m, k) uint64 (a float64 array's bit patterns): (ids (m,),
-    numbered by first occurrence, first (n,) the row where each id first occurs).  Open
-    addressing on a hash of the row, rows compared whole: exact."""
-    m, k = bits.shape
-    size = 1
-    while size < 2 * m + 2:
-        size *= 2
-    mask = size - 1
-    table = np.full(size, -1, dtype=np.int64)  # the first row of the id in each slot
-    ids = np.empty(m, dtype=np.int64)
-    first = np.empty(m, dtype=np.int64)
-    n = 0
-    for i in range(m):
-        h = np.uint64(1469598103934665603)
-        for j in range(k):
-            h = (h ^ bits[i, j]) * np.uint64(1099511628211)
-        slot = np.int64(h >> np.uint64(16)) & mask
-        while True:
-            r = table[slot]
-            if r < 0:
-                table[slot] = i
-                ids[i] = n
-                first[n] = i
-                n += 1
-                break
-            same = True
-            for j in range(k):
-                if bits[r, j] != bits[i, j]:
-                    same = False
-                    break
-            if same:
-                ids[i] = ids[r]
-                break
-            slot = (slot + 1) & mask
-    return ids, first[:n]
 
 
 CORNER_BARY = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])

@@ -65,6 +65,7 @@ class BakeSettings:
     gamma: float = math.inf  # bounds cull: solve a tuple with P = min(gamma Ẽ, 1) (Ẽ in W/m²), weight 1/P; inf: all
     batch_tuples: int = 1 << 18
     band_samples: int = 1 << 20
+    step_seconds: float = 0.0  # forward-flux: chunks of casters sized to take about this long (progress steps, Esc); 0: by work
     sun_distance: float = 1e5  # x scene size
     caustics: bool = True  # the specular chains
     direct: bool = False  # also the direct light (chain of length 0; for the units test)

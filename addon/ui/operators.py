@@ -211,6 +211,7 @@ class BakeJob:
     #: Smaller chunks than the pipeline's defaults, so that one timer tick stays short.
     MODAL_BATCH_TUPLES = 1 << 16
     MODAL_BAND_SAMPLES = 1 << 18
+    MODAL_STEP_SECONDS = 0.15  # forward-flux chunks sized by time (a progress step, Esc)
 
     def __init__(self, context, modal=False):
         self.scene_name = context.scene.name
@@ -244,6 +245,7 @@ class BakeJob:
         if self.modal:
             settings.batch_tuples = self.MODAL_BATCH_TUPLES
             settings.band_samples = self.MODAL_BAND_SAMPLES
+            settings.step_seconds = self.MODAL_STEP_SECONDS
         self.settings = settings
         self.resolution = int(props.resolution)
         self.directory = output_directory(props)

@@ -35,7 +35,6 @@ def test_caster_chunks_cut_by_work_and_count():
 def test_chunked_bake_equals_one_chunk(monkeypatch, chunk):
     sc = glass_sphere_scene(resolution=48, segments=16, rings=8)
     settings = BakeSettings(resolution=48, samples=1)
-    monkeypatch.setattr(forward_flux.ForwardFlux, "timed_chunks", False)
     monkeypatch.setattr(forward_flux, "CASTER_CHUNK", 10 ** 9)
     monkeypatch.setattr(forward_flux, "CHUNK_WORK", 1e18)
     whole = bake(sc, settings)
@@ -72,12 +71,10 @@ def test_time_sized_chunks_follow_the_measured_rate():
 def test_time_sized_bake_equals_one_chunk(monkeypatch):
     sc = glass_sphere_scene(resolution=48, segments=16, rings=8)
     settings = BakeSettings(resolution=48, samples=1)
-    monkeypatch.setattr(forward_flux.ForwardFlux, "timed_chunks", False)
     monkeypatch.setattr(forward_flux, "CASTER_CHUNK", 10 ** 9)
     monkeypatch.setattr(forward_flux, "CHUNK_WORK", 1e18)
     whole = bake(sc, settings)
-    monkeypatch.setattr(forward_flux.ForwardFlux, "timed_chunks", True)
-    monkeypatch.setattr(forward_images, "STEP_SECONDS", 1e-4)  # runs of a few casters, their ends set by the clock
+    settings.step_seconds = 1e-4  # runs of a few casters, their ends set by the clock
     monkeypatch.setattr(forward_images, "FIRST_STEP_WORK", 50.0)
     monkeypatch.setattr(forward_images, "REACH_STEP", 100)
     monkeypatch.setattr(forward_images, "MESH_STEP", 100)

@@ -42,7 +42,6 @@ CHUNK_WORK = 1000000  # ... and about this many sub-triangles by their estimate 
 class ForwardFlux(Estimator):
     name = "forward-flux"
     reference = False  # True: the numpy reference form (no coarse levels, every point traced; tests, benchmarks)
-    timed_chunks = True  # chunks sized by time (False: by CHUNK_WORK and CASTER_CHUNK alone; tests)
 
     def __init__(self, ctx, items):
         super().__init__(ctx, items)
@@ -53,10 +52,10 @@ class ForwardFlux(Estimator):
 
     def prepare(self):
         """Per light sample and chain (a pass), the reaching first casters in chunks of at most
-        ``CHUNK_WORK`` and ``CASTER_CHUNK`` (memory), sized by time (a ChunkSizer:
-        forward_images.STEP_SECONDS each, so that a progress step, and Esc, come that often) when
-        ``timed_chunks``: each chunk's forward images are refined and their flux splatted before
-        the next.  The texture does not depend on the cut."""
+        ``CHUNK_WORK`` and ``CASTER_CHUNK`` (memory), sized by time when the settings'
+        ``step_seconds`` is set (a ChunkSizer: so that a progress step, and Esc, come that often;
+        the operator's bake): each chunk's forward images are refined and their flux splatted
+        before the next.  The texture does not depend on the cut."""
         ctx = self.ctx
         passes = [(li, ls, m, item) for li, ls in enumerate(ctx.lsamples) for m in range(ls.size)
                   for item in self.items if item.light == li]
@@ -65,7 +64,8 @@ class ForwardFlux(Estimator):
             yield p / len(passes), where
             report = None
             flux = None  # this pass's flux per receiver: its chunks' splats, added to the total at its end
-            sizer = ChunkSizer() if self.timed_chunks else None
+            step = float(ctx.settings.step_seconds)
+            sizer = ChunkSizer(seconds=step) if step > 0.0 else None
             t0 = time.perf_counter()
             for got in image_chunks(ctx, item, ls, m, "flux", CHUNK_WORK, CASTER_CHUNK, self.coarse,
                                     shared=not self.reference, sizer=sizer):

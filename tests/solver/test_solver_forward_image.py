@@ -6,7 +6,8 @@ image source) and test_bake_caustics.py (photon reference)."""
 
 import numpy as np
 
-from addon.solver.estimators.forward_image import _closest_on_triangle, dedupe_paths, refine_image_triangles, solid_angle, splat_triangles
+from addon.solver.estimators.forward_image import _closest_on_triangle, dedupe_paths, refine_image_triangles, solid_angle
+from addon.solver.estimators.splat import splat_triangles
 
 
 def test_splat_matches_dense_sampling_and_conserves_flux():
@@ -40,6 +41,17 @@ def test_splat_matches_dense_sampling_and_conserves_flux():
         assert np.abs(one[:, 0] - cnt / cnt.sum()).sum() <= 30.0 / np.sqrt(cnt.sum())
         checked += 1
     assert checked >= 20
+    # in parallel bands of rows: bit for bit one band, triangles reaching over the texture's edges included
+    big = rng.uniform(-0.2, 1.2, (300, 3, 2))
+    big[:40] = big[:40] * 0.01 + 0.5  # inside a texel
+    fl = rng.uniform(0.1, 1.0, (300, 3))
+    dens = rng.uniform(0.5, 1.5, (300, 3))
+    one_band = np.zeros((W * H, 3))
+    splat_triangles(big, fl, W, H, one_band, dens, bands=1)
+    for bands in (2, 5, 9, 40):
+        banded = np.zeros((W * H, 3))
+        splat_triangles(big, fl, W, H, banded, dens, bands=bands)
+        assert np.array_equal(banded, one_band)
 
 
 def test_solid_angle_matches_quadrature():

@@ -8,7 +8,7 @@ centroid (Fresnel, the receiver's cos_shading / cos_geometric), the tints of its
 the fraction of its points that landed and the light's visibility from its centroid (the
 other segments are closest hits, unoccluded by construction).  The flux is spread over its
 straight image in UV space by exact texel overlap with a density linear over the image
-(:func:`addon.solver.estimators.forward_image.corner_densities`, :func:`~addon.solver.estimators.forward_image.splat_triangles`);
+(:func:`addon.solver.estimators.forward_image.corner_densities`, :func:`~addon.solver.estimators.splat.splat_triangles`);
 divided by each texel's world area it is the texel-averaged irradiance, finite at focal
 points.  Energy is conserved by construction; tested against photon references
 (tests/bake/test_bake_two_bounce.py, tests/bake/test_bake_caustics.py) and bench/glass_target.py.
@@ -30,7 +30,8 @@ import numpy as np
 
 from ...solver.geometry.bvh import segments_occluded
 from ...solver.estimators.flux_kernel import corner_densities_kernel, subtriangle_geometry
-from ...solver.estimators.forward_image import corner_densities, solid_angle, splat_triangles
+from ...solver.estimators.forward_image import corner_densities, solid_angle
+from ...solver.estimators.splat import splat_triangles
 from ..lights import emission_factor
 from .base import Estimator
 from .forward_images import IMAGE_COARSE, ChunkSizer, image_chunks

@@ -17,7 +17,8 @@ Receivers whose names make the same file name get unique ones (:mod:`addon.bake.
 A long bake prints its estimate before it starts (addon.bake.estimate) and a progress line
 with the time left every 10 s; a very large one (over 10 minutes by the estimate) asks first on
 a terminal and elsewhere stops with one line unless ``--yes``.  Wrong input and write
-failures exit with code 2 and a one-line reason on stderr (no traceback).
+failures exit with code 2 and a one-line reason on stderr (no traceback); Ctrl-C (SIGINT) with
+code 130 and one line.
 """
 
 import os
@@ -121,6 +122,9 @@ def run(args):
     except (UserError, OutputError) as ex:
         print(f"error: {ex}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C / SIGINT: every write is all or nothing, so nothing is partial
+        print("error: interrupted; files written before stay as they were, none is partly written", file=sys.stderr)
+        return 130
 
 
 def _run(args):

@@ -110,7 +110,7 @@ def write_files(folder, writers, record=True):
         record_written(folder, add=new)  # OutputError when the folder cannot be written
     try:
         return _write_all(folder, writers)
-    except OutputError:
+    except BaseException:  # OutputError, or an interrupt: the names recorded for this write are forgotten
         if new:
             try:
                 record_written(folder, forget=new)
@@ -155,7 +155,7 @@ def replace_all(folder, sources):
     """Rename each file ``sources[name]`` over ``folder``/name, all or none: the files already
     there are first renamed aside (``.<name>.<random>.old``), and when a rename fails the ones
     done are undone (the earlier files back, the sources back where they were) before
-    :class:`OutputError` is raised; on success the earlier files are deleted.  Renames within
+    :class:`OutputError` is raised (and before an interrupt, SIGINT, goes on); on success the earlier files are deleted.  Renames within
     one file system are atomic; this makes the set of them one step too.  Returns {name:
     absolute path}."""
     done = []  # (name, path, source, the earlier file's aside name or None)
@@ -169,7 +169,7 @@ def replace_all(folder, sources):
                     os.close(fd)
                     os.replace(path, aside)
                 os.replace(src, path)
-            except OSError as ex:
+            except BaseException as ex:  # OSError, or an interrupt
                 if aside is not None:
                     try:
                         if os.path.lexists(path):
@@ -178,9 +178,11 @@ def replace_all(folder, sources):
                             os.replace(aside, path)  # this one's earlier file back
                     except OSError:
                         pass  # it stays under its aside name, never deleted
-                raise OutputError(f"cannot write {path}: {_reason(ex)}", ex.errno) from None
+                if isinstance(ex, OSError):
+                    raise OutputError(f"cannot write {path}: {_reason(ex)}", ex.errno) from None
+                raise
             done.append((name, path, src, aside))
-    except OutputError:
+    except BaseException:  # OutputError, or an interrupt (SIGINT) between two renames: undo all
         for name, path, src, aside in reversed(done):  # undo: sources back, earlier files back
             try:
                 os.replace(path, src)

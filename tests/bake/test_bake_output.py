@@ -1,7 +1,7 @@
 """Faults while writing a bake's files (addon/bake/output.py, names.py, the CLI): names unique
 after sanitising, all-or-nothing writes (a failing EXR writer, a full disk, a read-only
-folder leave the previous files byte-identical and no temporary file), and the CLI never
-overwriting a file it did not write in --out."""
+folder, SIGINT while writing or renaming leave the previous files byte-identical and no
+temporary file), and the CLI never overwriting a file it did not write in --out."""
 
 import errno
 import json
@@ -170,16 +170,16 @@ def test_cli_prints_progress_with_the_time_left(tmp_path, capsys, monkeypatch):
     assert all(line.endswith("(about 1 min 5 s left)") for line in lines[:-1])
 
 
-def _failing_rename(monkeypatch, fail_on):
-    """os.replace fails (EIO) when it renames a new file over ``fail_on`` (not when it puts an
-    earlier file back from aside, ``.old``)."""
+def _failing_rename(monkeypatch, fail_on, exc=None):
+    """os.replace fails (EIO, or raises ``exc``) when it renames a new file over ``fail_on``
+    (not when it puts an earlier file back from aside, ``.old``)."""
     real = os.replace
     calls = []
 
     def replace(src, dst):
         calls.append((os.path.basename(src), os.path.basename(dst)))
         if os.path.basename(dst) == fail_on and not str(src).endswith(".old"):
-            raise OSError(errno.EIO, "Input/output error")
+            raise exc if exc is not None else OSError(errno.EIO, "Input/output error")
         real(src, dst)
 
     monkeypatch.setattr(output.os, "replace", replace)
@@ -219,3 +219,44 @@ def test_publishing_frames_is_all_or_none(tmp_path, monkeypatch):
     monkeypatch.undo()
     moved = output.move_files(str(staging), str(folder), ["F.0001.exr", "F.0002.exr", "F.0003.exr"])
     assert exr.read_exr(moved["F.0003.exr"])[0, 0, 0] == 13.0
+
+
+def test_an_interrupt_while_writing_or_renaming_leaves_the_previous_files(tmp_path, monkeypatch):
+    """SIGINT (KeyboardInterrupt) in the middle of the EXR writes, or between two renames after
+    the first texture replaced its earlier file: the interrupt goes on, the previous files are
+    byte-identical, no temporary or aside file is left and the manifest lists what it did."""
+    folder = tmp_path / "out"
+    output.write_textures(str(folder), _images(0))
+    before = _state(folder)
+    _failing_writer(monkeypatch, KeyboardInterrupt(), after=1)
+    with pytest.raises(KeyboardInterrupt):
+        output.write_textures(str(folder), _images(1))
+    assert _state(folder) == before
+    monkeypatch.undo()
+    calls = _failing_rename(monkeypatch, "R2.exr", KeyboardInterrupt())
+    with pytest.raises(KeyboardInterrupt):
+        output.write_textures(str(folder), _images(1))
+    assert any(dst == "R1.exr" for _src, dst in calls)  # R0 and R1 had been replaced ...
+    assert _state(folder) == before  # ... and are back
+    monkeypatch.undo()
+    fresh = tmp_path / "fresh"  # a first bake interrupted: its names are forgotten again
+    _failing_rename(monkeypatch, "R1.exr", KeyboardInterrupt())
+    with pytest.raises(KeyboardInterrupt):
+        output.write_textures(str(fresh), _images(1))
+    assert _state(fresh) == {output.FILES_MANIFEST: b"[]", output.MANIFEST_LOCK: b""}
+
+
+def test_cli_ctrl_c_is_one_line_and_rc_130(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("bpy")
+    from addon.__main__ import main
+    from addon.bake import cli
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_bake_open_scene", interrupted)
+    blend = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "sample_blends",
+                         "mirror_plane.blend")
+    assert main(["bake", blend, "--out", str(tmp_path / "o"), "--resolution", "8"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: interrupted; files written before stay as they were, none is partly written"]

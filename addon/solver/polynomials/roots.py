@@ -30,7 +30,7 @@ def make_root_scratch():
             np.zeros((STACK_ROWS + 1, MAX_DEGREE + 4)))
 
 
-@kernel
+@kernel(refcounted=False)
 def horner(c, deg, x):
     """Value of the polynomial ``c[0..deg]`` at ``x``."""
     f = c[deg]
@@ -39,7 +39,7 @@ def horner(c, deg, x):
     return f
 
 
-@kernel
+@kernel(refcounted=False)
 def horner_with_derivative(c, deg, x):
     """Value and first derivative of ``c[0..deg]`` at ``x`` (one Horner pass)."""
     f = c[deg]
@@ -50,7 +50,7 @@ def horner_with_derivative(c, deg, x):
     return f, df
 
 
-@kernel
+@kernel(refcounted=False)
 def magnitude_at(c, deg, x):
     """sum |c_i x^i|: the scale against which a value of the polynomial at x is 'zero'."""
     ax = abs(x)
@@ -60,7 +60,7 @@ def magnitude_at(c, deg, x):
     return m
 
 
-@kernel
+@kernel(refcounted=False)
 def _solve_monotone(c, deg, a, b, fa, fb, x_tolerance):
     """The single root of ``c`` in [a, b], where fa = c(a) and fb = c(b) differ in sign.
 
@@ -91,7 +91,7 @@ def _solve_monotone(c, deg, a, b, fa, fb, x_tolerance):
     return x
 
 
-@kernel
+@kernel(refcounted=False)
 def _sign_changes(b, deg, zero_level):
     """Sign changes in b[0..deg] (2 means 'two or more'); an entry within zero_level of zero
     counts as 2: a root may touch there, so the piece must be looked at more closely."""
@@ -109,7 +109,7 @@ def _sign_changes(b, deg, zero_level):
     return changes
 
 
-@kernel
+@kernel(refcounted=False)
 def _quadratic_roots_in(c0, c1, c2, lo, hi, out):
     """Real roots of c2 x^2 + c1 x + c0 in [lo, hi], ascending; returns the count.
 
@@ -146,7 +146,7 @@ def _quadratic_roots_in(c0, c1, c2, lo, hi, out):
     return n
 
 
-@kernel
+@kernel(refcounted=False)
 def roots_in_interval(coeffs, degree, lo, hi, x_tolerance, touch_tolerance, chain, lists, out):
     """All real roots of ``coeffs[0..degree]`` in [lo, hi], ascending; returns their count.
 
@@ -221,7 +221,7 @@ def roots_in_interval(coeffs, degree, lo, hi, x_tolerance, touch_tolerance, chai
     return n_critical
 
 
-@kernel
+@kernel(refcounted=False)
 def roots_in_unit_interval(coeffs, degree, x_tolerance, touch_tolerance, chain, lists, stack, out):
     """All real roots of ``coeffs[0..degree]`` in [0, 1], ascending; returns their count.
 
@@ -325,7 +325,7 @@ def roots_in_unit_interval(coeffs, degree, x_tolerance, touch_tolerance, chain, 
     return n_out
 
 
-@kernel
+@kernel(refcounted=False)
 def bernstein_weights(b, deg, w, dw):
     """w[k] = C(deg, k) b[k] and dw[k] = deg C(deg - 1, k) (b[k+1] - b[k]): the scaled power
     coefficients that :func:`bernstein_value_and_derivative` runs Horner on."""
@@ -339,7 +339,7 @@ def bernstein_weights(b, deg, w, dw):
         binom = binom * (deg - 1 - k) / (k + 1)
 
 
-@kernel
+@kernel(refcounted=False)
 def bernstein_value_and_derivative(w, dw, deg, x):
     """Value and derivative at x in [0, 1] of sum_k b[k] C(deg, k) x^k (1 - x)^(deg - k), from
     the weights of :func:`bernstein_weights`.
@@ -373,7 +373,7 @@ def bernstein_value_and_derivative(w, dw, deg, x):
     return f * p * base, df * p
 
 
-@kernel
+@kernel(refcounted=False)
 def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_tolerance):
     """:func:`_solve_monotone` for a polynomial in Bernstein form on [0, 1] (weights as in
     :func:`bernstein_weights`)."""
@@ -401,7 +401,7 @@ def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_tolerance):
     return x
 
 
-@kernel
+@kernel(refcounted=False)
 def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, chain, lists, stack, power, out):
     """All real roots in [0, 1] of the polynomial with Bernstein coefficients ``bern[0..deg]``,
     ascending; returns their count.

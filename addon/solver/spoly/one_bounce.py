@@ -149,7 +149,7 @@ def _umul(p, dp, q, dq, out):
                 out[i + j] += c * q[j]
 
 
-@kernel
+@kernel(refcounted=False)
 def _resultant_quadratic_in_u(a, b, nb, tb, uni, out):
     """Res_u(a, b) as a polynomial in v (see the module docstring); returns its degree.
 
@@ -221,7 +221,7 @@ def _resultant_quadratic_in_u(a, b, nb, tb, uni, out):
 # --- the resultant in v -------------------------------------------------------------------
 
 
-@kernel
+@kernel(refcounted=False)
 def resultant_at(a, b, nb, tb, v, bv):
     """Res_u(a, b) at one v, from the u-roots of a (see the module docstring).
 
@@ -271,7 +271,7 @@ def resultant_at(a, b, nb, tb, v, bv):
     return val
 
 
-@kernel
+@kernel(refcounted=False)
 def resultant_bernstein(a, b, nb, tb, origin, width, bv, values, out):
     """Bernstein coefficients on s ∈ [0, 1] of r(s) = Res_u(a, b)(origin + width s); returns the
     degree (2 tb: 8 for R, 12 for T).
@@ -302,7 +302,7 @@ def resultant_bernstein(a, b, nb, tb, origin, width, bv, values, out):
     return deg
 
 
-@kernel
+@kernel(refcounted=False)
 def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scratch_biv, scratch_uni, chain, lists, stack, root_buf, out_uv, stats):
     """All admissible one-bounce paths of one tuple; returns how many were written to out_uv.
 
@@ -349,7 +349,7 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
     return count
 
 
-@kernel
+@kernel(refcounted=False)
 def elimination_labelling(x0, x2, q0, q1, q2, k0, k1, k2):
     """Which corner labelling the resultant eliminates u in: 0 = (p0, p1, p2), 1 = (p0, p2, p1),
     2 = (p1, p2, p0), i.e. along the edge direction d = (1, 0), (0, 1) or (-1, 1) in (u, v).
@@ -402,7 +402,7 @@ def _fold_free_size(g0, g1, g2):
     return 0.0
 
 
-@kernel
+@kernel(refcounted=False)
 def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, scratch_biv, scratch_uni, chain, lists, stack, root_buf, out_uv, stats):
     """The solve of ``solve_one_bounce_tuple`` for corners q0, q1, q2 with normals k0, k1, k2."""
     p0 = q0
@@ -530,7 +530,7 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, sc
     return count
 
 
-@kernel
+@kernel(refcounted=False)
 def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
                   stop_after, scratch_uni, chain, lists, stack, root_buf, out_uv, count, stats):
     """Roots of {a = 0, b = 0} in the triangle -> validated paths appended to out_uv.
@@ -622,7 +622,7 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
     return count
 
 
-@kernel
+@kernel(refcounted=False)
 def _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, stack, v_roots):
     """Roots in v ∈ [-V_MARGIN, 1 + V_MARGIN] of Res_u(a, b), ascending; returns their count.
 
@@ -678,7 +678,7 @@ def _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, s
     return n_v
 
 
-@kernel
+@kernel(refcounted=False)
 def store_path(uu, vv, err, sigma_min, root_buf, out_uv, count):
     """Append (uu, vv) unless it is a path already stored; returns the new count.
 
@@ -712,7 +712,7 @@ def store_path(uu, vv, err, sigma_min, root_buf, out_uv, count):
     return count + 1
 
 
-@kernel
+@kernel(refcounted=False)
 def _probe_fold(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count):
     """Near a fold of the caustic two paths can lie within ~1e-5 of each other and project
     onto one (double) resultant root, so only one of them is a candidate.  When the path's
@@ -749,7 +749,7 @@ def _probe_fold(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf
     return count
 
 
-@kernel
+@kernel(refcounted=False)
 def _eval_with_gradient(p, d, u, v):
     """Value and (d/du, d/dv) of the bivariate polynomial p of total degree d."""
     f = 0.0
@@ -773,7 +773,7 @@ def _eval_with_gradient(p, d, u, v):
     return f, fu, fv
 
 
-@kernel
+@kernel(refcounted=False)
 def _refine_on_polynomials(a, b, db, u, v):
     """A few Newton steps on {a(u,v) = 0, b(u,v) = 0}, kept only while they reduce |a|+|b|."""
     fa, au, av = _eval_with_gradient(a, 2, u, v)
@@ -796,7 +796,7 @@ def _refine_on_polynomials(a, b, db, u, v):
     return u, v
 
 
-@kernel
+@kernel(refcounted=False)
 def _conic_misses_triangle(a, scale):
     """True when the coplanarity conic a(u, v) = 0 has no point on the triangle.
 
@@ -816,7 +816,7 @@ def _conic_misses_triangle(a, scale):
     return lo > margin or hi < -margin
 
 
-@kernel
+@kernel(refcounted=False)
 def _shift_to_unit_interval(c, deg, origin, width):
     """In place: c(x) -> c(origin + width s), by Taylor shift (Horner, O(deg²))."""
     for i in range(deg):
@@ -828,7 +828,7 @@ def _shift_to_unit_interval(c, deg, origin, width):
         p *= width
 
 
-@kernel
+@kernel(refcounted=False)
 def _quadratic_u_roots(a2, a1, a0, lo, hi, out):
     """Roots of a2 u² + a1 u + a0 in [lo, hi] (a1 or a2 nonzero); near-double roots kept."""
     if a2 == 0.0:
@@ -857,7 +857,7 @@ def _quadratic_u_roots(a2, a1, a0, lo, hi, out):
     return n
 
 
-@kernel
+@kernel(refcounted=False)
 def _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count, stats):
     """The path at normal incidence, where x1 lies on the line x0-x2 and n(x1) is along it.
 

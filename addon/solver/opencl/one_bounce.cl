@@ -87,6 +87,8 @@ static double solve_monotone(const double *c, int deg, double a, double b, doubl
         if (f == 0.0) return x;
         if ((f < 0.0) == neg_a) a = x; else b = x;
         double xn = (df != 0.0) ? x - f / df : 0.5 * (a + b);
+        // converged: tested before the bracket test, as in roots.py _solve_monotone
+        if (df != 0.0 && fabs(xn - x) <= tol && xn >= a && xn <= b) return xn;
         if (!(xn > a && xn < b)) xn = 0.5 * (a + b);
         if (fabs(xn - x) <= tol || b - a <= tol) return xn;
         x = xn;
@@ -287,6 +289,8 @@ static double solve_monotone_bernstein(const double *w, const double *dw, int de
         if (f == 0.0) return x;
         if ((f < 0.0) == neg_a) a = x; else c = x;
         double xn = (df != 0.0) ? x - f / df : 0.5 * (a + c);
+        // converged: tested before the bracket test, as in roots.py _solve_monotone
+        if (df != 0.0 && fabs(xn - x) <= tol && xn >= a && xn <= c) return xn;
         if (!(xn > a && xn < c)) xn = 0.5 * (a + c);
         if (fabs(xn - x) <= tol || c - a <= tol) return xn;
         x = xn;

@@ -64,8 +64,10 @@ def magnitude_at(c, deg, x):
 def _solve_monotone(c, deg, a, b, fa, fb, x_tolerance):
     """The single root of ``c`` in [a, b], where fa = c(a) and fb = c(b) differ in sign.
 
-    Newton from the regula-falsi point; any step leaving the bracket becomes a bisection,
-    and the bracket shrinks on every evaluation, so the iteration always terminates.
+    Newton from the regula-falsi point (Yuksel 2022, §4: Newton safeguarded by bisection);
+    a step below ``x_tolerance`` ends the iteration, any other step leaving the bracket
+    becomes a bisection, and the bracket shrinks on every evaluation, so the iteration
+    always terminates.
     """
     x = a - fa * (b - a) / (fb - fa)
     if not (x > a and x < b):
@@ -81,6 +83,11 @@ def _solve_monotone(c, deg, a, b, fa, fb, x_tolerance):
             b = x
         if df != 0.0:
             x_next = x - f / df
+            if abs(x_next - x) <= x_tolerance and x_next >= a and x_next <= b:
+                # Converged.  Tested before the bracket test: a step onto the bracket's end
+                # (x itself, once the step rounds to zero) would otherwise become a bisection,
+                # and the bisections would run on until the bracket is x_tolerance wide.
+                return x_next
         else:
             x_next = 0.5 * (a + b)
         if not (x_next > a and x_next < b):
@@ -391,6 +398,8 @@ def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_tolerance):
             c = x
         if df != 0.0:
             x_next = x - f / df
+            if abs(x_next - x) <= x_tolerance and x_next >= a and x_next <= c:
+                return x_next  # converged (see _solve_monotone)
         else:
             x_next = 0.5 * (a + c)
         if not (x_next > a and x_next < c):

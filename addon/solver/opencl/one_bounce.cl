@@ -12,7 +12,6 @@
 
 #define MAXD 12            // degree of the one-bounce resultant at most
 #define UNI 14             // univariate scratch width: the resultant's degree MAXD + 1, and a spare
-#define UNI_ROWS 14        // rows of the resultant's scratch: power sums 0..6 and seven work rows
 #define DEPTH 5            // Bernstein halvings before derivative isolation
 // Rows of the Bernstein subdivision stack: a depth-first halving holds at most DEPTH + 1 rows
 // (rows 0..DEPTH; one spare), then the rows at STACK - 3 .. STACK (derivative weights, weights,
@@ -405,58 +404,9 @@ static double bmax(const double *p, int d) {
     return m;
 }
 
-static void umul(const double *p, int dp, const double *q, int dq, double *out) {
-    for (int k = 0; k <= dp + dq; ++k) out[k] = 0.0;
-    for (int i = 0; i <= dp; ++i) { double c = p[i]; if (c != 0.0) for (int j = 0; j <= dq; ++j) out[i + j] += c * q[j]; }
-}
-
-// Res_u(a, b) by the power-sum identity (one_bounce._resultant_quadratic_in_u).
-static int resultant_quadratic_in_u(const double *a, const double *b, int nb, int tb, double *out) {
-    double uni[UNI_ROWS][UNI];  // local to this function: its private memory is reused by the root finder
-    double a2 = BI(a, 2, 2, 0);
-    double *a0 = uni[nb + 3], *a1 = uni[nb + 4];
-    a0[0] = BI(a, 2, 0, 0); a0[1] = BI(a, 2, 0, 1); a0[2] = BI(a, 2, 0, 2);
-    a1[0] = BI(a, 2, 1, 0); a1[1] = BI(a, 2, 1, 1);
-    uni[0][0] = 2.0;
-    if (nb >= 1) { uni[1][0] = -a1[0]; uni[1][1] = -a1[1]; }
-    double *tmp = uni[nb + 2];
-    for (int m = 2; m <= nb; ++m) {
-        umul(a1, 1, uni[m - 1], m - 1, uni[m]);
-        umul(a0, 2, uni[m - 2], m - 2, tmp);
-        for (int k = 0; k <= m; ++k) uni[m][k] = -uni[m][k] - a2 * tmp[k];
-    }
-    double *acc = uni[nb + 6], *acc_tmp = uni[nb + 7], *t_poly = uni[nb + 1], *bt = uni[nb + 5];
-    int acc_deg = -1;
-    for (int i = nb; i >= 0; --i) {
-        int deg_t = tb - i;
-        for (int k = 0; k <= deg_t; ++k) t_poly[k] = 0.0;
-        double p = ipow(a2, nb - i);
-        if (nb - i == 0) p = 1.0;
-        if (p != 0.0) for (int k = 0; k <= tb - i; ++k) t_poly[k] += p * BI(b, tb, i, k);
-        for (int j = i + 1; j <= nb; ++j) {
-            p = (nb - j == 0) ? 1.0 : ipow(a2, nb - j);
-            if (p == 0.0) continue;
-            umul(&BI(b, tb, j, 0), tb - j, uni[j - i], j - i, tmp);
-            for (int k = 0; k <= tb - i; ++k) t_poly[k] += p * tmp[k];
-        }
-        umul(&BI(b, tb, i, 0), tb - i, t_poly, deg_t, bt);
-        int deg_bt = 2 * (tb - i);
-        if (acc_deg < 0) {
-            for (int k = 0; k <= deg_bt; ++k) acc[k] = bt[k];
-            acc_deg = deg_bt;
-        } else {
-            umul(acc, acc_deg, a0, 2, acc_tmp);
-            acc_deg += 2;
-            for (int k = 0; k <= acc_deg; ++k) acc[k] = acc_tmp[k];
-            for (int k = 0; k <= deg_bt; ++k) acc[k] += bt[k];
-        }
-    }
-    for (int k = 0; k <= acc_deg; ++k) out[k] = acc[k];
-    return acc_deg;
-}
-
-// one_bounce.py resultant_at: Res_u(a, b) at one v from the u-roots of a (q = -(a1 + sign(a1)
-// sqrt(disc)) / 2; complex roots: a2^nb |b(rho)|^2); bv receives b_i(v), i = 0..nb.
+// one_bounce.py _resultant_from_b_values (resultant_at_nodes, one node at a time): Res_u(a, b)
+// at one v from the u-roots of a (q = -(a1 + sign(a1) sqrt(disc)) / 2; complex roots:
+// a2^nb |b(rho)|^2); bv receives b_i(v), i = 0..nb.
 static double resultant_at(const double *a, const double *b, int nb, int tb, double v, double *bv) {
     double a2 = BI(a, 2, 2, 0);
     double a1 = BI(a, 2, 1, 0) + BI(a, 2, 1, 1) * v;
@@ -753,19 +703,18 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
     double stack[STACK + 1][MAXD + 4];
     double v_roots[MAX_V_ROOTS], critical[MAXD + 1], found[MAXD + 1];
     int n_v;
-    if (nb == 0 || !T->refract) {
-        // b free of u: its own roots in v; R: the product form keeps the resultant's dynamic range
-        // small, and the symbolic expansion (power basis) is the cheaper route there
+    if (nb == 0) {
+        // b free of u: its own roots in v
         double res[UNI];
-        int deg_r;
-        if (nb == 0) { deg_r = total_b; for (int k = 0; k <= deg_r; ++k) res[k] = BI(b_poly, total_b, 0, k); }
-        else deg_r = resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, res);
+        int deg_r = total_b;
+        for (int k = 0; k <= deg_r; ++k) res[k] = BI(b_poly, total_b, 0, k);
         shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN);
         n_v = roots_in_unit_interval(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, critical, found, stack, v_roots);
         for (int iv = 0; iv < n_v; ++iv) v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv];
     } else {
-        // T: the resultant from its values at the Chebyshev nodes (the square form's expansion
-        // cancels where b is small along the conic next to a path: grazing refractions)
+        // R and T: the resultant from its values at the Chebyshev nodes (the square form's
+        // expansion cancels where b is small along the conic next to a path: grazing
+        // refractions; for R the nine values cost less than the symbolic expansion)
         n_v = resultant_v_roots(a_poly, b_poly, nb, total_b, chain, critical, found, stack, v_roots);
     }
     *n_roots += n_v;

@@ -90,6 +90,16 @@ def scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
 
 @kernel
 def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps, tolerance):
+    """Gauss-Newton on the path-space residual (eq 3) from (u, v), then the acceptance test
+    (:func:`polish_validate_normal_matrix` without the normal matrix).
+    Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian)."""
+    accepted, u, v, err, sigma_min, _a11, _a12, _a22 = polish_validate_normal_matrix(
+        u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps, tolerance)
+    return accepted, u, v, err, sigma_min
+
+
+@kernel
+def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps, tolerance):
     """Gauss-Newton on the path-space residual from (u, v), then the acceptance test.
 
     The polynomial roots are already close (the system is exact for one bounce), so one
@@ -98,11 +108,13 @@ def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, e
     converges only linearly, so a stalled iterate can sit ~1e-3 from the root with a
     residual of 1e-8: ``tolerance`` (well below DIRECTION_TOLERANCE) rejects such points,
     unless Newton has settled in position (its next step at rounding level).
-    Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian).
+    Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian, and the
+    entries a11, a12, a22 of J^T J at the returned (u, v), so that a caller testing for a fold
+    need not evaluate the residual there again).
     """
     ok, res, ju, jv = scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
     if not ok:
-        return False, u, v, math.inf, 0.0
+        return False, u, v, math.inf, 0.0, 0.0, 0.0, 0.0
     err = norm(res)
     last_step = math.inf
     for _ in range(max_steps):
@@ -142,7 +154,7 @@ def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, e
     a22 = dot(jv, jv)
     half_gap = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))
     sigma_min = math.sqrt(max(0.0, 0.5 * (a11 + a22) - half_gap))
-    return accepted, u, v, err, sigma_min
+    return accepted, u, v, err, sigma_min, a11, a12, a22
 
 
 @kernel

@@ -13,18 +13,18 @@ u is eliminated with the resultant r(v) = Res_u(a, b) (eq 28–30) and the real 
 each candidate is Newton-polished and validated in path space (``one_vertex.py``).
 
 Resultant.  a has total degree 2, so a = a2 u² + a1(v) u + a0(v) with a2 a constant, and
-Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a); r has degree ≤ 8 (R) or ≤ 12 (T).
-R expands it symbolically, Res = Σ_i a0^i b_i T_i with T_i = b_i a2^(n-i) + Σ_{j>i} b_j
-a2^(n-j) σ_{j-i} (power sums σ_0 = 2, σ_1 = -a1, σ_m = -a1 σ_{m-1} - a0 a2 σ_{m-2}): no
-division, exact as a2 → 0.  T evaluates it instead, per v with q = -(a1 + sign(a1) √disc) / 2:
-Res = B(q, a2) b(a0 / q), B(x, y) = Σ b_i x^i y^(n-i) (complex roots: a2^n |b(ρ)|²), at the
-Chebyshev nodes, interpolated to Bernstein form: values are good to a few ulps, where the
-square form's expansion cancels badly when b is small along the conic next to a path (an
-endpoint close to a large triangle, grazing incidence); where the node values span more than
-DYNAMIC_RANGE the range is re-interpolated piecewise (``_resultant_v_roots``).  The
-triangle's corners are relabelled per tuple so that u is eliminated along an edge where the
-conic does not fold (``elimination_labelling``).  Tested against brute force in
-tests/solver/test_solver_random.py and test_solver_grazing.py.
+Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a); r has degree ≤ 8 (R) or ≤ 12 (T).  It
+is evaluated, per v with q = -(a1 + sign(a1) √disc) / 2, as Res = B(q, a2) b(a0 / q),
+B(x, y) = Σ b_i x^i y^(n-i) (complex roots: a2^n |b(ρ)|²), at the Chebyshev nodes (all
+nodes at once, ``resultant_at_nodes``) and interpolated to Bernstein form: values are good to
+a few ulps, where an expansion of the square form cancels badly when b is small along the
+conic next to a path (an endpoint close to a large triangle, grazing incidence); where the
+node values span more than DYNAMIC_RANGE the range is re-interpolated piecewise
+(``_resultant_v_roots``).  For R (degree 8) the nine node values and their interpolation
+also cost less than the symbolic expansion of eq (28-30) that the product form would allow
+(Σ_i a0^i b_i T_i by power sums).  The triangle's corners are relabelled per tuple so that
+u is eliminated along an edge where the conic does not fold (``elimination_labelling``).
+Tested against brute force in tests/solver/test_solver_random.py and test_solver_grazing.py.
 
 The projection vector b (eq 10) and the tangent t = n × b (eq 13) are chosen per tuple as
 the normal of the plane of incidence at the mean shading normal, b = (x2 - x0) × n̄, so
@@ -38,7 +38,7 @@ import numpy as np
 
 from ..runtime.jit import kernel, parallel_range
 from ..paths.one_vertex import (endpoint_sides, line_crossing_barycentrics, polish_and_validate,
-                                scatter_residual)
+                                polish_validate_normal_matrix)
 from ..polynomials.roots import (MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval,
                                  roots_in_unit_interval_bernstein)
 from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
@@ -135,136 +135,45 @@ def _bmax(p, d):
     return m
 
 
-# --- univariate polynomials in v: the symbolic resultant (R) -------------------------------
-
-
-@kernel(inline="always")
-def _umul(p, dp, q, dq, out):
-    for k in range(dp + dq + 1):
-        out[k] = 0.0
-    for i in range(dp + 1):
-        c = p[i]
-        if c != 0.0:
-            for j in range(dq + 1):
-                out[i + j] += c * q[j]
-
-
-@kernel(refcounted=False)
-def _resultant_quadratic_in_u(a, b, nb, tb, uni, out):
-    """Res_u(a, b) as a polynomial in v (see the module docstring); returns its degree.
-
-    a: bivariate, total degree 2 (a[2, 0] is the constant a2); b: bivariate of total degree
-    tb and effective u-degree nb (b[i, :] = b_i(v), degree tb - i).
-    """
-    a2 = a[2, 0]
-    # Rows of the scratch: 0..nb sigma_m, nb+1 T_i, nb+2 product, nb+3 a0, nb+4 a1,
-    # nb+5 b_i T_i, nb+6 Horner accumulator (uses nb+7 as temporary).
-    a0 = uni[nb + 3]
-    a1 = uni[nb + 4]
-    a0[0] = a[0, 0]
-    a0[1] = a[0, 1]
-    a0[2] = a[0, 2]
-    a1[0] = a[1, 0]
-    a1[1] = a[1, 1]
-    sigma = uni
-    sigma[0, 0] = 2.0
-    if nb >= 1:
-        sigma[1, 0] = -a1[0]
-        sigma[1, 1] = -a1[1]
-    tmp = uni[nb + 2]
-    for m in range(2, nb + 1):
-        # sigma_m = -a1 sigma_{m-1} - a2 a0 sigma_{m-2}   (degree m)
-        _umul(a1, 1, sigma[m - 1], m - 1, sigma[m])
-        _umul(a0, 2, sigma[m - 2], m - 2, tmp)
-        for k in range(m + 1):
-            sigma[m, k] = -sigma[m, k] - a2 * tmp[k]
-    acc = uni[nb + 6]
-    acc_tmp = uni[nb + 7]
-    acc_deg = -1
-    t_poly = uni[nb + 1]
-    bt = uni[nb + 5]
-    for i in range(nb, -1, -1):
-        deg_t = tb - i
-        for k in range(deg_t + 1):
-            t_poly[k] = 0.0
-        # b_i a2^(nb-i)
-        p = a2 ** (nb - i)
-        if p != 0.0:
-            for k in range(tb - i + 1):
-                t_poly[k] += p * b[i, k]
-        for j in range(i + 1, nb + 1):
-            p = a2 ** (nb - j)
-            if p == 0.0:
-                continue
-            _umul(b[j], tb - j, sigma[j - i], j - i, tmp)
-            for k in range(tb - i + 1):
-                t_poly[k] += p * tmp[k]
-        _umul(b[i], tb - i, t_poly, deg_t, bt)
-        deg_bt = 2 * (tb - i)
-        # acc = acc * a0 + b_i T_i
-        if acc_deg < 0:
-            for k in range(deg_bt + 1):
-                acc[k] = bt[k]
-            acc_deg = deg_bt
-        else:
-            _umul(acc, acc_deg, a0, 2, acc_tmp)
-            acc_deg += 2
-            for k in range(acc_deg + 1):
-                acc[k] = acc_tmp[k]
-            for k in range(deg_bt + 1):
-                acc[k] += bt[k]
-    for k in range(acc_deg + 1):
-        out[k] = acc[k]
-    return acc_deg
-
-
 # --- the resultant in v -------------------------------------------------------------------
 
 
-@kernel(refcounted=False)
-def resultant_at(a, b, nb, tb, v, bv):
-    """Res_u(a, b) at one v, from the u-roots of a (see the module docstring).
+@kernel(inline="always")
+def _resultant_from_b_values(a2, a1, a0, b_at_nodes, k, nb):
+    """Res_u(a, b) at one v, from the u-roots of a = a2 u² + a1 u + a0 and b_i(v) =
+    b_at_nodes[1 + i, k] (see the module docstring).
 
-    a = a2 u² + a1 u + a0 with real roots q / a2 and a0 / q (q = -(a1 + sign(a1) √disc) / 2):
-    Res = B(q, a2) b(a0 / q), B(x, y) = Σ b_i x^i y^(nb-i) the homogeneous form, exact as
-    a2 -> 0.  Complex roots ρ, ρ̄ (then a2 ≠ 0): Res = a2^nb |b(ρ)|², evaluated with ρ √|a2|
-    (modulus √|a0|).  ``bv`` receives b_i(v), i = 0..nb.
+    Real roots q / a2 and a0 / q (q = -(a1 + sign(a1) √disc) / 2): Res = B(q, a2) b(a0 / q),
+    B(x, y) = Σ b_i x^i y^(nb-i) the homogeneous form, exact as a2 -> 0.  Complex roots ρ, ρ̄
+    (then a2 ≠ 0): Res = a2^nb |b(ρ)|², evaluated with ρ √|a2| (modulus √|a0|).
     """
-    a2 = a[2, 0]
-    a1 = a[1, 0] + a[1, 1] * v
-    a0 = a[0, 0] + (a[0, 1] + a[0, 2] * v) * v
-    for i in range(nb + 1):
-        acc = 0.0
-        for j in range(tb - i, -1, -1):
-            acc = acc * v + b[i, j]
-        bv[i] = acc
     disc = a1 * a1 - 4.0 * a2 * a0
     if disc >= 0.0:
         q = -0.5 * (a1 + math.copysign(math.sqrt(disc), a1))
         if q == 0.0:
             # a1 = 0 and a2 a0 = 0: a = a2 u² (double root 0) or the constant a0
             if a2 != 0.0:
-                return a2 ** nb * bv[0] * bv[0]
-            return a0 ** nb * bv[nb] * bv[nb]
-        far = bv[nb]
+                return a2 ** nb * b_at_nodes[1, k] * b_at_nodes[1, k]
+            return a0 ** nb * b_at_nodes[1 + nb, k] * b_at_nodes[1 + nb, k]
+        far = b_at_nodes[1 + nb, k]
         p = 1.0
         for i in range(nb - 1, -1, -1):
             p *= a2
-            far = far * q + bv[i] * p
+            far = far * q + b_at_nodes[1 + i, k] * p
         rho = a0 / q
-        near = bv[nb]
+        near = b_at_nodes[1 + nb, k]
         for i in range(nb - 1, -1, -1):
-            near = near * rho + bv[i]
+            near = near * rho + b_at_nodes[1 + i, k]
         return far * near
     s = math.sqrt(abs(a2))
     zr = -a1 / (2.0 * a2) * s
     zi = math.sqrt(-disc) / (2.0 * a2) * s
-    ar = bv[nb]
+    ar = b_at_nodes[1 + nb, k]
     ai = 0.0
     p = 1.0
     for i in range(nb - 1, -1, -1):
         p *= s
-        ar, ai = ar * zr - ai * zi + bv[i] * p, ar * zi + ai * zr
+        ar, ai = ar * zr - ai * zi + b_at_nodes[1 + i, k] * p, ar * zi + ai * zr
     val = ar * ar + ai * ai
     if a2 < 0.0 and nb % 2 == 1:
         val = -val
@@ -272,28 +181,57 @@ def resultant_at(a, b, nb, tb, v, bv):
 
 
 @kernel(refcounted=False)
-def resultant_bernstein(a, b, nb, tb, origin, width, bv, values, out):
+def resultant_at_nodes(a, b, nb, tb, origin, width, nodes, b_at_nodes, values):
+    """values[k] = Res_u(a, b)(v_k), v_k = origin + width nodes[k] (eq 28-30, evaluated as in
+    ``_resultant_from_b_values``).
+
+    ``b_at_nodes`` is scratch of at least nb + 2 rows by len(nodes): row 0 receives v_k, row
+    1 + i the coefficient b_i(v_k).  Every b_i is evaluated at all nodes together, the nodes
+    innermost: one Horner chain waits on each multiply-add, a dozen independent ones keep
+    the CPU busy (and vectorise).
+    """
+    count = nodes.shape[0]
+    vs = b_at_nodes[0]
+    for k in range(count):
+        vs[k] = origin + width * nodes[k]
+    for i in range(nb + 1):
+        bi = b_at_nodes[1 + i]
+        for k in range(count):
+            bi[k] = 0.0
+        for j in range(tb - i, -1, -1):
+            c = b[i, j]
+            for k in range(count):
+                bi[k] = bi[k] * vs[k] + c
+    a2 = a[2, 0]
+    for k in range(count):
+        v = vs[k]
+        a1 = a[1, 0] + a[1, 1] * v
+        a0 = a[0, 0] + (a[0, 1] + a[0, 2] * v) * v
+        values[k] = _resultant_from_b_values(a2, a1, a0, b_at_nodes, k, nb)
+
+
+@kernel(refcounted=False)
+def resultant_bernstein(a, b, nb, tb, origin, width, b_at_nodes, values, out):
     """Bernstein coefficients on s ∈ [0, 1] of r(s) = Res_u(a, b)(origin + width s); returns the
     degree (2 tb: 8 for R, 12 for T).
 
-    The resultant is evaluated at the Chebyshev nodes (``resultant_at``, each value to a
-    few ulps) and interpolated (eq 28-30 give the same polynomial).  Expanding it symbolically
-    instead cancels: where b is small along the conic next to a path (an endpoint close to a
-    large triangle, a grazing refraction) the power coefficients carried absolute errors far
-    above the resultant's values there.
+    The resultant is evaluated at the Chebyshev nodes (``resultant_at_nodes``, each value to
+    a few ulps) and interpolated (eq 28-30 give the same polynomial).  Expanding it
+    symbolically instead cancels: where b is small along the conic next to a path (an
+    endpoint close to a large triangle, a grazing refraction) the power coefficients carried
+    absolute errors far above the resultant's values there.  ``b_at_nodes``: scratch for
+    ``resultant_at_nodes``.
     """
     deg = 2 * tb
     if tb == 4:
-        for k in range(deg + 1):
-            values[k] = resultant_at(a, b, nb, tb, origin + width * NODES_R[k], bv)
+        resultant_at_nodes(a, b, nb, tb, origin, width, NODES_R, b_at_nodes, values)
         for i in range(deg + 1):
             acc = 0.0
             for k in range(deg + 1):
                 acc += TO_BERNSTEIN_R[i, k] * values[k]
             out[i] = acc
     else:
-        for k in range(deg + 1):
-            values[k] = resultant_at(a, b, nb, tb, origin + width * NODES_T[k], bv)
+        resultant_at_nodes(a, b, nb, tb, origin, width, NODES_T, b_at_nodes, values)
         for i in range(deg + 1):
             acc = 0.0
             for k in range(deg + 1):
@@ -556,31 +494,25 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
 
     res = scratch_uni[15]
     v_roots = root_buf[0]
-    # Roots in v ∈ [-V_MARGIN, 1 + V_MARGIN], found as roots in s ∈ [0, 1] of
-    # r(-V_MARGIN + (1 + 2 V_MARGIN) s), so the root finder's [0, 1] fast path applies.
-    if nb == 0 or not refract:
-        if nb == 0:
-            # b does not depend on u: its own roots in v are the candidates.
-            deg_r = total_b
-            for k in range(deg_r + 1):
-                res[k] = b_poly[0, k]
-        else:
-            # R: the product form keeps the resultant's dynamic range small, and the symbolic
-            # expansion (power basis) is the cheaper route there.
-            deg_r = _resultant_quadratic_in_u(a_poly, b_poly, nb, total_b, scratch_uni, res)
+    if nb == 0:
+        # b does not depend on u: its own roots in v ∈ [-V_MARGIN, 1 + V_MARGIN] are the
+        # candidates, found as roots in s ∈ [0, 1] of b(-V_MARGIN + (1 + 2 V_MARGIN) s), so
+        # the root finder's [0, 1] fast path applies.
+        deg_r = total_b
+        for k in range(deg_r + 1):
+            res[k] = b_poly[0, k]
         if stop_after == 1:
             return count
         _shift_to_unit_interval(res, deg_r, -V_MARGIN, 1.0 + 2.0 * V_MARGIN)
         n_v = roots_in_unit_interval(res, deg_r, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, stack, v_roots)
+        for iv in range(n_v):
+            v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     else:
         if stop_after == 1:
-            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, scratch_uni[0],
+            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, scratch_uni[7:15],
                                 scratch_uni[1], res)
             return count
         n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, stack, v_roots)
-    if nb == 0 or not refract:
-        for iv in range(n_v):
-            v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     stats[STAT_ROOTS] += n_v
     if stop_after == 2:
         return count
@@ -604,21 +536,24 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
             n_u = roots_in_interval(b_at_v, nb, -V_MARGIN, u_hi, ROOT_X_TOLERANCE, ROOT_TOUCH_TOLERANCE, chain, lists, u_roots)
         for iu in range(n_u):
             stats[STAT_CANDIDATES] += 1
-            ok, uu, vv, err, sig = polish_and_validate(u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
+            ok, uu, vv, err, sig, j11, j12, j22 = polish_validate_normal_matrix(
+                u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
             if not ok:
                 # Fallback: Newton on the exact polynomial system, which stays smooth where
                 # the path-space residual is undefined (a resultant root a hair past the
                 # critical angle of a grazing refraction), then polish again.  Not first:
                 # between two close roots it may jump to the neighbour and lose one.
                 uu, vv = _refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr)
-                ok, uu, vv, err, sig = polish_and_validate(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
+                ok, uu, vv, err, sig, j11, j12, j22 = polish_validate_normal_matrix(
+                    uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
             if not ok:
                 continue
             before = count
             count = store_path(uu, vv, err, sig, root_buf, out_uv, count)
             if count == before:
                 continue
-            count = _probe_fold(uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count)
+            count = _probe_fold(uu, vv, j11, j12, j22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv,
+                                count)
     return count
 
 
@@ -632,7 +567,7 @@ def _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, s
     next to the path, where the resultant is 1e-10 of its size elsewhere) the range is cut in
     SPLIT pieces, each interpolated from its own values, down to SPLIT_DEPTH levels.
     """
-    bv = scratch_uni[0]
+    b_at_nodes = scratch_uni[7:15]  # rows 7..14: see resultant_at_nodes
     values = scratch_uni[1]
     power = scratch_uni[2]
     found = scratch_uni[3]
@@ -651,7 +586,7 @@ def _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, s
         lo = piece_lo[top]
         hi = piece_hi[top]
         depth = piece_depth[top]
-        deg_r = resultant_bernstein(a_poly, b_poly, nb, total_b, lo, hi - lo, bv, values, res)
+        deg_r = resultant_bernstein(a_poly, b_poly, nb, total_b, lo, hi - lo, b_at_nodes, values, res)
         if depth < SPLIT_DEPTH:
             big = 0.0
             small = math.inf
@@ -713,17 +648,12 @@ def store_path(uu, vv, err, sigma_min, root_buf, out_uv, count):
 
 
 @kernel(refcounted=False)
-def _probe_fold(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count):
+def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count):
     """Near a fold of the caustic two paths can lie within ~1e-5 of each other and project
     onto one (double) resultant root, so only one of them is a candidate.  When the path's
-    Jacobian is nearly singular, polish from a few points along its null direction and keep
-    any new path."""
-    ok, res, ju, jv = scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta)
-    if not ok:
-        return count
-    a11 = dot(ju, ju)
-    a12 = dot(ju, jv)
-    a22 = dot(jv, jv)
+    Jacobian is nearly singular (a11, a12, a22: J^T J at the polished path (u, v), as the
+    polish returns it), polish from a few points along its null direction and keep any new
+    path."""
     tr = a11 + a22
     disc = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))
     lam_min = 0.5 * tr - disc
@@ -890,10 +820,20 @@ def solve_one_bounce_batch(refract, x_start, x_end, P, N, eta, stop_after, out_u
     n = x_start.shape[0]
     for c in range(first, last):
         biv, uni, chain, lists, stack, roots = make_scratch()
-        for t in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
-            out_count[t] = solve_one_bounce_tuple(
-                refract, row(x_start, t), row(x_end, t), P[t, 0], N[t, 0], eta[t], stop_after,
-                biv, uni, chain, lists, stack, roots, out_uv[t], stats[t])
+        _solve_chunk(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_count, stats, c * CHUNK,
+                     min(n, (c + 1) * CHUNK), biv, uni, chain, lists, stack, roots)
+
+
+@kernel(refcounted=False)
+def _solve_chunk(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_count, stats, begin, end,
+                 biv, uni, chain, lists, stack, roots):
+    """Tuples [begin, end) of a batch with one set of scratch.  Apart from the batch kernel
+    (which allocates the scratch, so it counts references), the per-tuple row views cost
+    no atomic reference counting."""
+    for t in range(begin, end):
+        out_count[t] = solve_one_bounce_tuple(
+            refract, row(x_start, t), row(x_end, t), P[t, 0], N[t, 0], eta[t], stop_after,
+            biv, uni, chain, lists, stack, roots, out_uv[t], stats[t])
 
 
 @kernel

@@ -27,6 +27,7 @@
 #define ROOT_X_TOLERANCE 1e-13
 #define ROOT_TOUCH_TOLERANCE 1e-10
 #define NEAR_TOUCH 1e-6
+#define CONVEX_MARGIN 1e-9  // second differences of a piece clear of zero by this: its second derivative keeps its sign
 #define NEGLIGIBLE 1e-13
 #define SAME_PATH 1e-7
 #define NEAR_PATH 1e-5
@@ -36,6 +37,7 @@
 #define SETTLED_STEP 1e-9
 #define FOLD_RATIO 1e-4
 #define SWITCH_RATIO 0.1
+#define SPURIOUS_B 1e-3     // |b| / sum |b_ij u^i v^j| above which b clearly does not vanish at a u-root
 #define DYNAMIC_RANGE 1e-6  // node values spanning more than this: interpolate the resultant piecewise
 #define SPLIT 4             // pieces per level of that refinement
 #define SPLIT_DEPTH 2       // levels at most (16 pieces)
@@ -76,8 +78,11 @@ static double magnitude_at(const double *c, int deg, double x) {
     return m;
 }
 
-static double solve_monotone(const double *c, int deg, double a, double b, double fa, double fb, double tol) {
-    double x = a - fa * (b - a) / (fb - fa);
+// roots.py _solve_monotone_from: started at x_start when inside (a, b), else at the regula-falsi point
+static double solve_monotone_from(const double *c, int deg, double a, double b, double fa, double fb, double x_start,
+                                  double tol) {
+    double x = x_start;
+    if (!(x > a && x < b)) x = a - fa * (b - a) / (fb - fa);
     if (!(x > a && x < b)) x = 0.5 * (a + b);
     int neg_a = fa < 0.0;
     for (int it = 0; it < NEWTON_ITERATIONS; ++it) {
@@ -93,6 +98,10 @@ static double solve_monotone(const double *c, int deg, double a, double b, doubl
         x = xn;
     }
     return x;
+}
+
+static double solve_monotone(const double *c, int deg, double a, double b, double fa, double fb, double tol) {
+    return solve_monotone_from(c, deg, a, b, fa, fb, NAN, tol);
 }
 
 static int quadratic_roots_in(double c0, double c1, double c2, double lo, double hi, double *out) {
@@ -115,8 +124,24 @@ static int quadratic_roots_in(double c0, double c1, double c2, double lo, double
 }
 
 // Yuksel 2022: derivative isolation + safeguarded Newton (roots.roots_in_interval).
-static int roots_in_interval(const double *coeffs, int degree, double lo, double hi, double tol, double touch,
-                             double *chain, double *critical, double *found, double *out) {
+// roots.py _start_next_to_extremum: root of the quadratic model of chain level k at the extremum end
+// of [a, b] (the one of smaller |p| if both are); NAN when the model has none.
+static double start_next_to_extremum(const double *chain, int k, double a, double b, double fa, double fb,
+                                     int a_is_extremum, int b_is_extremum) {
+    int at_a = a_is_extremum && (!b_is_extremum || fabs(fa) <= fabs(fb));
+    double x_m = at_a ? a : b, f_m = at_a ? fa : fb;
+    double curvature = k * (k - 1) * horner(CH(k - 2), k - 2, x_m);
+    if (!(f_m * curvature < 0.0)) return NAN;
+    double half_width = sqrt(-2.0 * f_m / curvature);
+    return at_a ? x_m + half_width : x_m - half_width;
+}
+
+// roots.py _derivative_isolation: roots_in_interval; convex: the second derivative keeps one sign on
+// [lo, hi] (the isolation starts at the first derivative); model_start: Newton next to an extremum
+// starts at the root of the quadratic model there.
+static int derivative_isolation(const double *coeffs, int degree, double lo, double hi, double tol, double touch,
+                                double *chain, double *critical, double *found, double *out, int convex,
+                                int model_start) {
     double scale = fmax(fmax(fabs(lo), fabs(hi)), 1.0), norm = 0.0, p = 1.0;
     for (int i = 0; i <= degree; ++i) { norm = fmax(norm, fabs(coeffs[i]) * p); p *= scale; }
     if (norm == 0.0 || !isfinite(norm)) return 0;
@@ -127,10 +152,12 @@ static int roots_in_interval(const double *coeffs, int degree, double lo, double
     double inv = 1.0 / norm;
     for (int i = 0; i <= deg; ++i) CH(deg)[i] = coeffs[i] * inv;
     if (deg <= 2) return quadratic_roots_in(CH(deg)[0], CH(deg)[1], deg == 2 ? CH(deg)[2] : 0.0, lo, hi, out);
-    for (int k = deg; k > 2; --k)
+    int shortcut = convex && deg >= 4;
+    int first_level = shortcut ? deg - 1 : 3;
+    for (int k = deg; k > first_level - 1; --k)
         for (int i = 0; i < k; ++i) CH(k - 1)[i] = CH(k)[i + 1] * (i + 1) / k;
-    int n_critical = quadratic_roots_in(CH(2)[0], CH(2)[1], CH(2)[2], lo, hi, critical);
-    for (int k = 3; k <= deg; ++k) {
+    int n_critical = shortcut ? 0 : quadratic_roots_in(CH(2)[0], CH(2)[1], CH(2)[2], lo, hi, critical);
+    for (int k = first_level; k <= deg; ++k) {
         const double *c = CH(k);
         int n_found = 0;
         double a = lo, fa = horner(c, k, a);
@@ -141,7 +168,10 @@ static int roots_in_interval(const double *coeffs, int degree, double lo, double
             if (fa == 0.0) {
                 if (n_found == 0 || found[n_found - 1] != a) found[n_found++] = a;
             } else if (fb != 0.0 && ((fa < 0.0) != (fb < 0.0))) {
-                found[n_found++] = solve_monotone(c, k, a, b, fa, fb, tol);
+                double x_start = NAN;
+                if (model_start && k >= 4 && (j > 0 || j < n_critical))
+                    x_start = start_next_to_extremum(chain, k, a, b, fa, fb, j > 0, j < n_critical);
+                found[n_found++] = solve_monotone_from(c, k, a, b, fa, fb, x_start, tol);
             } else if (k == deg && touch > 0.0 && j < n_critical && fb != 0.0) {
                 if (fabs(fb) <= touch * magnitude_at(c, k, b)) found[n_found++] = b;
             }
@@ -153,6 +183,22 @@ static int roots_in_interval(const double *coeffs, int degree, double lo, double
     }
     for (int j = 0; j < n_critical; ++j) out[j] = critical[j];
     return n_critical;
+}
+
+static int roots_in_interval(const double *coeffs, int degree, double lo, double hi, double tol, double touch,
+                             double *chain, double *critical, double *found, double *out) {
+    return derivative_isolation(coeffs, degree, lo, hi, tol, touch, chain, critical, found, out, 0, 0);
+}
+
+// roots.py _second_differences_one_sign
+static int second_differences_one_sign(const double *b, int deg, double margin) {
+    double smallest = INFINITY, largest = -INFINITY;
+    for (int k = 0; k < deg - 1; ++k) {
+        double d = b[k + 2] - 2.0 * b[k + 1] + b[k];
+        smallest = fmin(smallest, d);
+        largest = fmax(largest, d);
+    }
+    return smallest > margin || largest < -margin;
 }
 
 static int sign_changes(const double *b, int deg, double zero_level) {
@@ -352,7 +398,8 @@ static int roots_in_unit_interval_bernstein(const double *bern, int deg, double 
                 }
                 have_power = 1;
             }
-            int n_piece = roots_in_interval(power, deg, lo, hi, tol, touch, chain, critical, found, piece);
+            int convex = second_differences_one_sign(row, deg, CONVEX_MARGIN);
+            int n_piece = derivative_isolation(power, deg, lo, hi, tol, touch, chain, critical, found, piece, convex, 1);
             n_out = append_roots(out, n_out, piece, n_piece, tol);
             continue;
         }
@@ -686,6 +733,22 @@ static void on_axis_candidate(const Tuple *T, Paths *out, int *candidates) {
     if (polish_and_validate(T, &u, &v, &err, &sig)) store_path(out, u, v, err, sig);
 }
 
+// one_bounce.py _relative_size: |p(u, v)| / sum |p_ij u^i v^j| (p of total degree d)
+static double relative_size(const double *p, int d, double u, double v) {
+    double value = 0.0, size = 0.0, u_power = 1.0;
+    for (int i = 0; i <= d; ++i) {
+        double row_value = 0.0, row_size = 0.0;
+        for (int j = d - i; j >= 0; --j) {
+            row_value = row_value * v + BI(p, d, i, j);
+            row_size = row_size * fabs(v) + fabs(BI(p, d, i, j));
+        }
+        value += row_value * u_power;
+        size += row_size * fabs(u_power);
+        u_power *= u;
+    }
+    return size > 0.0 ? fabs(value) / size : 0.0;
+}
+
 // _solve_system: roots of {a = 0, b = 0} in the triangle -> validated paths.
 static void solve_system(const Tuple *T, const double *a_poly, double max_a, double *b_poly, int total_b, Paths *out,
                          int *n_roots, int *n_candidates) {
@@ -734,13 +797,30 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
                 double disc = a1 * a1 - 4.0 * a2 * a0;
                 if (disc < 0.0 && disc >= -1e-12 * (a1 * a1 + fabs(4.0 * a2 * a0))) disc = 0.0;
                 if (disc >= 0.0) {
+                    // both real u-roots of a(., v*), then those in range (one_bounce.py _solve_system)
                     double sq = sqrt(disc);
                     double q = a1 >= 0.0 ? -0.5 * (a1 + sq) : -0.5 * (a1 - sq);
+                    double all_u[2];
+                    int n_all = 0;
                     double r1 = q / a2;
-                    if (r1 >= -V_MARGIN && r1 <= u_hi) u_roots[n_u++] = r1;
+                    if (r1 >= -INFINITY && r1 <= INFINITY) all_u[n_all++] = r1;
                     if (q != 0.0) {
                         double r2 = a0 / q;
-                        if (r2 >= -V_MARGIN && r2 <= u_hi && (n_u == 0 || r2 != r1)) u_roots[n_u++] = r2;
+                        if (r2 >= -INFINITY && r2 <= INFINITY && (n_all == 0 || r2 != r1)) all_u[n_all++] = r2;
+                    }
+                    // b clearly nonzero at one u-root while the other accounts for the resultant's
+                    // root: that one is no root of the system, skipped
+                    int skip_first = 0, skip_second = 0;
+                    if (n_all == 2) {
+                        double size_first = relative_size(b_poly, total_b, all_u[0], vr);
+                        double size_second = relative_size(b_poly, total_b, all_u[1], vr);
+                        skip_first = size_first > SPURIOUS_B && size_second <= SPURIOUS_B;
+                        skip_second = size_second > SPURIOUS_B && size_first <= SPURIOUS_B;
+                    }
+                    for (int k = 0; k < n_all; ++k) {
+                        if (!(all_u[k] >= -V_MARGIN && all_u[k] <= u_hi)) continue;
+                        if ((skip_first && k == 0) || (skip_second && k == 1)) continue;
+                        u_roots[n_u++] = all_u[k];
                     }
                 }
             }

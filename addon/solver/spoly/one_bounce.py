@@ -59,6 +59,8 @@ FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null di
 DYNAMIC_RANGE = 1e-6  # node values spanning more than this: interpolate the resultant piecewise
 SPLIT = 4  # pieces per level of that refinement
 SPLIT_DEPTH = 2  # levels at most (16 pieces)
+NODE_SCRATCH = 16  # first row of the univariate scratch that resultant_at_nodes works in
+SPURIOUS_B = 1e-3  # |b| / Σ|b_ij u^i v^j| at a u-root of a(·, v*) above which b clearly does not vanish there
 SWITCH_RATIO = 0.1  # relabel the corners when the default elimination's |Q| is below this share of the best
 
 def _bernstein_collocation(degree):
@@ -141,7 +143,7 @@ def _bmax(p, d):
 @kernel(inline="always")
 def _resultant_from_b_values(a2, a1, a0, b_at_nodes, k, nb):
     """Res_u(a, b) at one v, from the u-roots of a = a2 u² + a1 u + a0 and b_i(v) =
-    b_at_nodes[1 + i, k] (see the module docstring).
+    b_at_nodes[NODE_B + i, k] (see the module docstring).
 
     Real roots q / a2 and a0 / q (q = -(a1 + sign(a1) √disc) / 2): Res = B(q, a2) b(a0 / q),
     B(x, y) = Σ b_i x^i y^(nb-i) the homogeneous form, exact as a2 -> 0.  Complex roots ρ, ρ̄
@@ -153,49 +155,63 @@ def _resultant_from_b_values(a2, a1, a0, b_at_nodes, k, nb):
         if q == 0.0:
             # a1 = 0 and a2 a0 = 0: a = a2 u² (double root 0) or the constant a0
             if a2 != 0.0:
-                return a2 ** nb * b_at_nodes[1, k] * b_at_nodes[1, k]
-            return a0 ** nb * b_at_nodes[1 + nb, k] * b_at_nodes[1 + nb, k]
-        far = b_at_nodes[1 + nb, k]
+                return a2 ** nb * b_at_nodes[NODE_B, k] * b_at_nodes[NODE_B, k]
+            return a0 ** nb * b_at_nodes[NODE_B + nb, k] * b_at_nodes[NODE_B + nb, k]
+        # B(q, a2) and b(a0 / q) in one loop (two independent Horner chains)
+        rho = a0 / q
+        far = b_at_nodes[NODE_B + nb, k]
+        near = far
         p = 1.0
         for i in range(nb - 1, -1, -1):
             p *= a2
-            far = far * q + b_at_nodes[1 + i, k] * p
-        rho = a0 / q
-        near = b_at_nodes[1 + nb, k]
-        for i in range(nb - 1, -1, -1):
-            near = near * rho + b_at_nodes[1 + i, k]
+            far = far * q + b_at_nodes[NODE_B + i, k] * p
+            near = near * rho + b_at_nodes[NODE_B + i, k]
         return far * near
     s = math.sqrt(abs(a2))
     zr = -a1 / (2.0 * a2) * s
     zi = math.sqrt(-disc) / (2.0 * a2) * s
-    ar = b_at_nodes[1 + nb, k]
+    ar = b_at_nodes[NODE_B + nb, k]
     ai = 0.0
     p = 1.0
     for i in range(nb - 1, -1, -1):
         p *= s
-        ar, ai = ar * zr - ai * zi + b_at_nodes[1 + i, k] * p, ar * zi + ai * zr
+        ar, ai = ar * zr - ai * zi + b_at_nodes[NODE_B + i, k] * p, ar * zi + ai * zr
     val = ar * ar + ai * ai
     if a2 < 0.0 and nb % 2 == 1:
         val = -val
     return val
 
 
-@kernel(refcounted=False)
-def resultant_at_nodes(a, b, nb, tb, origin, width, nodes, b_at_nodes, values):
-    """values[k] = Res_u(a, b)(v_k), v_k = origin + width nodes[k] (eq 28-30, evaluated as in
-    ``_resultant_from_b_values``).
+# Rows of the node scratch of ``resultant_at_nodes`` (one column per node).
+NODE_V = 0  # v_k
+NODE_B = 1  # rows NODE_B + i: b_i(v_k), i = 0..6
+NODE_A1 = 8
+NODE_A0 = 9
+NODE_DISC = 10
+NODE_Q = 11
+NODE_RHO = 12
+NODE_FAR = 13
+NODE_NEAR = 14
+NODE_ROWS = 15
 
-    ``b_at_nodes`` is scratch of at least nb + 2 rows by len(nodes): row 0 receives v_k, row
-    1 + i the coefficient b_i(v_k).  Every b_i is evaluated at all nodes together, the nodes
-    innermost: one Horner chain waits on each multiply-add, a dozen independent ones keep
-    the CPU busy (and vectorise).
+
+@kernel(refcounted=False, error_model="numpy")
+def resultant_at_nodes(a, b, nb, tb, origin, width, nodes, node_scratch, values):
+    """values[k] = Res_u(a, b)(v_k), v_k = origin + width nodes[k] (eq 28-30, evaluated as in
+    ``_resultant_from_b_values``, with the same arithmetic per node).
+
+    ``node_scratch`` has NODE_ROWS rows of at least len(nodes) (see the NODE_ constants).
+    Each step runs over all nodes, the nodes innermost: one node's Horner chains wait on
+    every multiply-add, a dozen independent ones keep the CPU busy and vectorise.  Nodes
+    where a's u-roots are complex, or q = 0, are finished one by one.  error_model="numpy":
+    no zero-division checks in the loops (the one division is guarded).
     """
     count = nodes.shape[0]
-    vs = b_at_nodes[0]
+    vs = node_scratch[NODE_V]
     for k in range(count):
         vs[k] = origin + width * nodes[k]
     for i in range(nb + 1):
-        bi = b_at_nodes[1 + i]
+        bi = node_scratch[NODE_B + i]
         for k in range(count):
             bi[k] = 0.0
         for j in range(tb - i, -1, -1):
@@ -203,11 +219,40 @@ def resultant_at_nodes(a, b, nb, tb, origin, width, nodes, b_at_nodes, values):
             for k in range(count):
                 bi[k] = bi[k] * vs[k] + c
     a2 = a[2, 0]
+    a1s = node_scratch[NODE_A1]
+    a0s = node_scratch[NODE_A0]
+    discs = node_scratch[NODE_DISC]
+    qs = node_scratch[NODE_Q]
+    rhos = node_scratch[NODE_RHO]
+    fars = node_scratch[NODE_FAR]
+    nears = node_scratch[NODE_NEAR]
+    top = node_scratch[NODE_B + nb]
     for k in range(count):
         v = vs[k]
         a1 = a[1, 0] + a[1, 1] * v
         a0 = a[0, 0] + (a[0, 1] + a[0, 2] * v) * v
-        values[k] = _resultant_from_b_values(a2, a1, a0, b_at_nodes, k, nb)
+        disc = a1 * a1 - 4.0 * a2 * a0
+        q = -0.5 * (a1 + math.copysign(math.sqrt(max(disc, 0.0)), a1))
+        a1s[k] = a1
+        a0s[k] = a0
+        discs[k] = disc
+        qs[k] = q
+        rhos[k] = a0 / q if q != 0.0 else 0.0
+        fars[k] = top[k]
+        nears[k] = top[k]
+    # B(q, a2) and b(a0 / q) at the nodes with real u-roots (the others are redone below)
+    p = 1.0
+    for i in range(nb - 1, -1, -1):
+        p *= a2
+        bi = node_scratch[NODE_B + i]
+        for k in range(count):
+            fars[k] = fars[k] * qs[k] + bi[k] * p
+            nears[k] = nears[k] * rhos[k] + bi[k]
+    for k in range(count):
+        if discs[k] >= 0.0 and qs[k] != 0.0:
+            values[k] = fars[k] * nears[k]
+        else:
+            values[k] = _resultant_from_b_values(a2, a1s[k], a0s[k], node_scratch, k, nb)
 
 
 @kernel(refcounted=False)
@@ -509,7 +554,7 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
             v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     else:
         if stop_after == 1:
-            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, scratch_uni[7:15],
+            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, scratch_uni[NODE_SCRATCH:],
                                 scratch_uni[1], res)
             return count
         n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, stack, v_roots)
@@ -524,8 +569,28 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
         a1 = a_poly[1, 0] + a_poly[1, 1] * vr
         a0 = a_poly[0, 0] + (a_poly[0, 1] + a_poly[0, 2] * vr) * vr
         u_hi = 1.0 - vr + V_MARGIN
+        skip_first = False
+        skip_second = False
         if abs(a2) + abs(a1) > 1e-10 * max_a:
-            n_u = _quadratic_u_roots(a2, a1, a0, -V_MARGIN, u_hi, u_roots)
+            # both real u-roots of a(·, v*), then those in range
+            all_u = root_buf[2]
+            n_all = _quadratic_u_roots(a2, a1, a0, -math.inf, math.inf, all_u)
+            if n_all == 2:
+                # Res = a2^n b(ρ1) b(ρ2) vanishes where b does at one u-root of a(·, v*): the
+                # other one is no root of the system (its polish would only wander off, or to a
+                # path found anyway).  Skipped when b is clearly nonzero there and the other
+                # u-root, in the triangle or not, accounts for the resultant's root.
+                size_first = _relative_size(b_poly, total_b, all_u[0], vr)
+                size_second = _relative_size(b_poly, total_b, all_u[1], vr)
+                skip_first = size_first > SPURIOUS_B and size_second <= SPURIOUS_B
+                skip_second = size_second > SPURIOUS_B and size_first <= SPURIOUS_B
+            n_u = 0
+            for k in range(n_all):
+                if all_u[k] >= -V_MARGIN and all_u[k] <= u_hi:
+                    if (skip_first and k == 0) or (skip_second and k == 1):
+                        continue
+                    u_roots[n_u] = all_u[k]
+                    n_u += 1
         else:
             # a vanishes identically in u at this v: u comes from b(u, v*) = 0.
             for i in range(nb + 1):
@@ -567,7 +632,7 @@ def _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, s
     next to the path, where the resultant is 1e-10 of its size elsewhere) the range is cut in
     SPLIT pieces, each interpolated from its own values, down to SPLIT_DEPTH levels.
     """
-    b_at_nodes = scratch_uni[7:15]  # rows 7..14: see resultant_at_nodes
+    b_at_nodes = scratch_uni[NODE_SCRATCH:]  # see resultant_at_nodes
     values = scratch_uni[1]
     power = scratch_uni[2]
     found = scratch_uni[3]
@@ -677,6 +742,25 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
             continue
         count = store_path(uu, vv, err, sig, root_buf, out_uv, count)
     return count
+
+
+@kernel(inline="always")
+def _relative_size(p, d, u, v):
+    """|p(u, v)| / Σ |p_ij u^i v^j| for the bivariate polynomial p of total degree d: how far
+    from zero p is at (u, v), against the size its terms give it there (0 when all vanish)."""
+    value = 0.0
+    size = 0.0
+    u_power = 1.0
+    for i in range(d + 1):
+        row_value = 0.0
+        row_size = 0.0
+        for j in range(d - i, -1, -1):
+            row_value = row_value * v + p[i, j]
+            row_size = row_size * abs(v) + abs(p[i, j])
+        value += row_value * u_power
+        size += row_size * abs(u_power)
+        u_power *= u
+    return abs(value) / size if size > 0.0 else 0.0
 
 
 @kernel(refcounted=False)
@@ -840,7 +924,7 @@ def _solve_chunk(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_cou
 def make_scratch():
     """Per-worker scratch: bivariate terms, univariate polynomials, root lists."""
     biv = np.zeros((13, 7, 7))
-    uni = np.zeros((16, 2 * MAX_DEGREE + 2))
+    uni = np.zeros((NODE_SCRATCH + NODE_ROWS, 2 * MAX_DEGREE + 2))
     chain = np.zeros((MAX_DEGREE + 1, MAX_DEGREE + 1))
     lists = np.zeros((2, MAX_DEGREE + 1))
     stack = np.zeros((STACK_ROWS + 1, MAX_DEGREE + 4))

@@ -322,10 +322,18 @@ static double2 bernstein_value_and_derivative(const double *w, const double *dw,
     return (double2)(f * p * base, df * p);
 }
 
+// roots.py _control_polygon_crossing: where the control polygon (k / deg, b[k]) first crosses zero
+static double control_polygon_crossing(const double *b, int deg) {
+    for (int k = 0; k < deg; ++k)
+        if ((b[k] < 0.0) != (b[k + 1] < 0.0)) return (k + b[k] / (b[k] - b[k + 1])) / deg;
+    return 0.5;
+}
+
 // roots.py _solve_monotone_bernstein
 static double solve_monotone_bernstein(const double *w, const double *dw, int deg, double a, double c, double fa,
-                                       double fc, double tol) {
-    double x = a - fa * (c - a) / (fc - fa);
+                                       double fc, double x_start, double tol) {
+    double x = x_start;
+    if (!(x > a && x < c)) x = a - fa * (c - a) / (fc - fa);
     if (!(x > a && x < c)) x = 0.5 * (a + c);
     int neg_a = fa < 0.0;
     for (int it = 0; it < NEWTON_ITERATIONS; ++it) {
@@ -378,7 +386,9 @@ static int roots_in_unit_interval_bernstein(const double *bern, int deg, double 
             double fa = row[0], fb = row[deg];
             if (fa != 0.0 && fb != 0.0 && ((fa < 0.0) != (fb < 0.0))) {
                 if (!have_weights) { bernstein_weights(src, deg, src_w, src_dw); have_weights = 1; }
-                double x = solve_monotone_bernstein(src_w, src_dw, deg, lo, hi, fa, fb, tol);
+                // Newton starts where the piece's control polygon crosses zero (roots.py)
+                double x_start = lo + (hi - lo) * control_polygon_crossing(row, deg);
+                double x = solve_monotone_bernstein(src_w, src_dw, deg, lo, hi, fa, fb, x_start, tol);
                 if (n_out == 0 || x - out[n_out - 1] > tol) out[n_out++] = x;
                 continue;
             }

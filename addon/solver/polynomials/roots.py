@@ -389,6 +389,16 @@ def roots_in_unit_interval(coeffs, degree, x_tolerance, touch_tolerance, chain, 
     return n_out
 
 
+@kernel(inline="always")
+def _control_polygon_crossing(b, deg):
+    """Where in [0, 1] the control polygon of the Bernstein coefficients b[0..deg] first
+    crosses zero (the points (k / deg, b[k])); 0.5 without a crossing."""
+    for k in range(deg):
+        if (b[k] < 0.0) != (b[k + 1] < 0.0):
+            return (k + b[k] / (b[k] - b[k + 1])) / deg
+    return 0.5
+
+
 @kernel(refcounted=False)
 def _second_differences_one_sign(b, deg, margin):
     """True when the second differences of the Bernstein coefficients b[0..deg] all exceed
@@ -453,10 +463,12 @@ def bernstein_value_and_derivative(w, dw, deg, x):
 
 
 @kernel(refcounted=False)
-def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_tolerance):
-    """:func:`_solve_monotone` for a polynomial in Bernstein form on [0, 1] (weights as in
-    :func:`bernstein_weights`)."""
-    x = a - fa * (c - a) / (fc - fa)
+def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_start, x_tolerance):
+    """:func:`_solve_monotone_from` for a polynomial in Bernstein form on [0, 1] (weights as
+    in :func:`bernstein_weights`)."""
+    x = x_start
+    if not (x > a and x < c):
+        x = a - fa * (c - a) / (fc - fa)
     if not (x > a and x < c):
         x = 0.5 * (a + c)
     negative_at_a = fa < 0.0
@@ -541,7 +553,11 @@ def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, ch
                 if not have_weights:
                     bernstein_weights(src, deg, src_w, src_dw)
                     have_weights = True
-                x = _solve_monotone_bernstein(src_w, src_dw, deg, lo, hi, fa, fb, x_tolerance)
+                # Newton starts where the piece's control polygon crosses zero: it follows the
+                # polynomial far more closely than the chord through the piece's end values
+                # (regula falsi), so Newton needs fewer steps.
+                x_start = lo + (hi - lo) * _control_polygon_crossing(row, deg)
+                x = _solve_monotone_bernstein(src_w, src_dw, deg, lo, hi, fa, fb, x_start, x_tolerance)
                 if n_out == 0 or x - out[n_out - 1] > x_tolerance:
                     out[n_out] = x
                     n_out += 1

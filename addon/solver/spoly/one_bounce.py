@@ -554,8 +554,8 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
             v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     else:
         if stop_after == 1:
-            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, scratch_uni[NODE_SCRATCH:],
-                                scratch_uni[1], res)
+            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN,
+                                scratch_uni[NODE_SCRATCH:], scratch_uni[1], res)
             return count
         n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, stack, v_roots)
     stats[STAT_ROOTS] += n_v

@@ -22,6 +22,7 @@
 #define CHAIN_SIZE ((MAXD + 1) * (MAXD + 2) / 2)
 #define CH(k) (chain + (k) * ((k) + 1) / 2)
 #define NEWTON_ITERATIONS 64
+#define NEWTON_QUADRATIC_RATIO 1e-3
 #define POLISH_STEPS 40
 #define V_MARGIN 1e-6
 #define ROOT_X_TOLERANCE 1e-13
@@ -78,6 +79,13 @@ static double magnitude_at(const double *c, int deg, double x) {
     return m;
 }
 
+// roots.py _newton_settled: the Newton step is below tol, or quadratic convergence (a step
+// NEWTON_QUADRATIC_RATIO times the previous one at most) puts the new iterate within tol
+static int newton_settled(double step, double previous_step, double tol) {
+    if (step <= tol) return 1;
+    return step * NEWTON_QUADRATIC_RATIO * NEWTON_QUADRATIC_RATIO <= tol && step <= NEWTON_QUADRATIC_RATIO * previous_step;
+}
+
 // roots.py _solve_monotone_from: started at x_start when inside (a, b), else at the regula-falsi point
 static double solve_monotone_from(const double *c, int deg, double a, double b, double fa, double fb, double x_start,
                                   double tol) {
@@ -85,15 +93,22 @@ static double solve_monotone_from(const double *c, int deg, double a, double b, 
     if (!(x > a && x < b)) x = a - fa * (b - a) / (fb - fa);
     if (!(x > a && x < b)) x = 0.5 * (a + b);
     int neg_a = fa < 0.0;
+    double previous_step = INFINITY;
     for (int it = 0; it < NEWTON_ITERATIONS; ++it) {
         double2 fd = horner_d(c, deg, x);
         double f = fd.x, df = fd.y;
         if (f == 0.0) return x;
         if ((f < 0.0) == neg_a) a = x; else b = x;
         double xn = (df != 0.0) ? x - f / df : 0.5 * (a + b);
-        // converged: tested before the bracket test, as in roots.py _solve_monotone
-        if (df != 0.0 && fabs(xn - x) <= tol && xn >= a && xn <= b) return xn;
-        if (!(xn > a && xn < b)) xn = 0.5 * (a + b);
+        // converged: tested before the bracket test, as in roots.py _solve_monotone_from
+        if (df != 0.0) {
+            double step = fabs(xn - x);
+            if (newton_settled(step, previous_step, tol) && xn >= a && xn <= b) return xn;
+            previous_step = step;
+        } else {
+            previous_step = INFINITY;
+        }
+        if (!(xn > a && xn < b)) { xn = 0.5 * (a + b); previous_step = INFINITY; }
         if (fabs(xn - x) <= tol || b - a <= tol) return xn;
         x = xn;
     }
@@ -336,15 +351,22 @@ static double solve_monotone_bernstein(const double *w, const double *dw, int de
     if (!(x > a && x < c)) x = a - fa * (c - a) / (fc - fa);
     if (!(x > a && x < c)) x = 0.5 * (a + c);
     int neg_a = fa < 0.0;
+    double previous_step = INFINITY;
     for (int it = 0; it < NEWTON_ITERATIONS; ++it) {
         double2 fd = bernstein_value_and_derivative(w, dw, deg, x);
         double f = fd.x, df = fd.y;
         if (f == 0.0) return x;
         if ((f < 0.0) == neg_a) a = x; else c = x;
         double xn = (df != 0.0) ? x - f / df : 0.5 * (a + c);
-        // converged: tested before the bracket test, as in roots.py _solve_monotone
-        if (df != 0.0 && fabs(xn - x) <= tol && xn >= a && xn <= c) return xn;
-        if (!(xn > a && xn < c)) xn = 0.5 * (a + c);
+        // converged: tested before the bracket test, as in roots.py _solve_monotone_from
+        if (df != 0.0) {
+            double step = fabs(xn - x);
+            if (newton_settled(step, previous_step, tol) && xn >= a && xn <= c) return xn;
+            previous_step = step;
+        } else {
+            previous_step = INFINITY;
+        }
+        if (!(xn > a && xn < c)) { xn = 0.5 * (a + c); previous_step = INFINITY; }
         if (fabs(xn - x) <= tol || c - a <= tol) return xn;
         x = xn;
     }

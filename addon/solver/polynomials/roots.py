@@ -19,6 +19,7 @@ from ..runtime.jit import kernel
 
 MAX_DEGREE = 24  # scratch arrays are (MAX_DEGREE + 1) wide; the one-bounce resultant has 12.
 NEWTON_ITERATIONS = 64  # bisection fallback halves the bracket: 64 steps reach any float64 width.
+NEWTON_QUADRATIC_RATIO = 1e-3  # a Newton step this much shorter than the one before: quadratic convergence
 
 
 SUBDIVISION_DEPTH = 5  # Bernstein halvings before a piece falls back to derivative isolation
@@ -67,6 +68,19 @@ def magnitude_at(c, deg, x):
     return m
 
 
+@kernel(inline="always")
+def _newton_settled(step, previous_step, x_tolerance):
+    """Whether the Newton iterate x_next = x - step is within ``x_tolerance`` of the root:
+    the step itself is that small, or the iteration converges quadratically (e_{k+1} ≈ C e_k²)
+    with step / previous_step = r <= NEWTON_QUADRATIC_RATIO, so that x_next's error ≈ r² step
+    <= x_tolerance for step <= x_tolerance / NEWTON_QUADRATIC_RATIO².  This saves the last
+    evaluation, which would only confirm a step below the tolerance."""
+    if step <= x_tolerance:
+        return True
+    return (step * NEWTON_QUADRATIC_RATIO * NEWTON_QUADRATIC_RATIO <= x_tolerance
+            and step <= NEWTON_QUADRATIC_RATIO * previous_step)
+
+
 @kernel(refcounted=False)
 def _solve_monotone(c, deg, a, b, fa, fb, x_tolerance):
     """The single root of ``c`` in [a, b], where fa = c(a) and fb = c(b) differ in sign.
@@ -89,6 +103,7 @@ def _solve_monotone_from(c, deg, a, b, fa, fb, x_start, x_tolerance):
     if not (x > a and x < b):
         x = 0.5 * (a + b)
     negative_at_a = fa < 0.0
+    previous_step = math.inf
     for _ in range(NEWTON_ITERATIONS):
         f, df = horner_with_derivative(c, deg, x)
         if f == 0.0:
@@ -99,15 +114,21 @@ def _solve_monotone_from(c, deg, a, b, fa, fb, x_start, x_tolerance):
             b = x
         if df != 0.0:
             x_next = x - f / df
-            if abs(x_next - x) <= x_tolerance and x_next >= a and x_next <= b:
-                # Converged.  Tested before the bracket test: a step onto the bracket's end
-                # (x itself, once the step rounds to zero) would otherwise become a bisection,
-                # and the bisections would run on until the bracket is x_tolerance wide.
+            step = abs(x_next - x)
+            if _newton_settled(step, previous_step, x_tolerance) and x_next >= a and x_next <= b:
+                # Converged (the step is below the tolerance, or quadratic convergence puts
+                # x_next within it: see _newton_settled).  Tested before the bracket test: a
+                # step onto the bracket's end (x itself, once the step rounds to zero) would
+                # otherwise become a bisection, and the bisections would run on until the
+                # bracket is x_tolerance wide.
                 return x_next
+            previous_step = step
         else:
             x_next = 0.5 * (a + b)
+            previous_step = math.inf
         if not (x_next > a and x_next < b):
             x_next = 0.5 * (a + b)
+            previous_step = math.inf  # the next iterate is no Newton step's
         if abs(x_next - x) <= x_tolerance or b - a <= x_tolerance:
             return x_next
         x = x_next
@@ -472,6 +493,7 @@ def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_start, x_tolerance):
     if not (x > a and x < c):
         x = 0.5 * (a + c)
     negative_at_a = fa < 0.0
+    previous_step = math.inf
     for _ in range(NEWTON_ITERATIONS):
         f, df = bernstein_value_and_derivative(w, dw, deg, x)
         if f == 0.0:
@@ -482,12 +504,16 @@ def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_start, x_tolerance):
             c = x
         if df != 0.0:
             x_next = x - f / df
-            if abs(x_next - x) <= x_tolerance and x_next >= a and x_next <= c:
-                return x_next  # converged (see _solve_monotone)
+            step = abs(x_next - x)
+            if _newton_settled(step, previous_step, x_tolerance) and x_next >= a and x_next <= c:
+                return x_next  # converged (see _solve_monotone_from)
+            previous_step = step
         else:
             x_next = 0.5 * (a + c)
+            previous_step = math.inf
         if not (x_next > a and x_next < c):
             x_next = 0.5 * (a + c)
+            previous_step = math.inf  # the next iterate is no Newton step's
         if abs(x_next - x) <= x_tolerance or c - a <= x_tolerance:
             return x_next
         x = x_next

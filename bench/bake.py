@@ -106,7 +106,8 @@ def _table(rows, samples, bounces):
              "Casters traced: first-vertex caster triangles whose scattered light can reach the chain's next targets, of those "
              "the light reaches (summed over chains; the rest are skipped by the cone test of `cull.first_casters_reaching`, "
              "which costs the seconds given). Estimate: the up-front lower bound the CLI and the operator show before a "
-             "bake (`addon/bake/estimate.py`; two-bounce chains left out).", "",
+             "bake (`addon/bake/estimate.py`; two-bounce chains left out), for a first (cold) bake: the warm one keeps "
+             "the receiver's coverage and texel areas.", "",
              "| scene | estimator | plan | texels | estimate (s) | cold (s) | warm (s) | texels/s (warm) | sub-triangles | "
              "casters traced | reach test (s) | paths | texels lit |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]

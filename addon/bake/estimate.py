@@ -14,7 +14,8 @@ estimate next to the measured time of the sample scenes):
 
 Two-bounce chains are left out: whether the planner keeps them depends on the energy its probe
 finds, and their cost on the pairs of casters that hold paths, so the figure is a lower bound
-("at least").  The texel stages, which make a very large resolution expensive, are
+("at least") of a first bake; a repeated bake of a receiver that did not move skips its texel
+stages (kept coverage and texel areas) and takes less.  The texel stages, which make a very large resolution expensive, are
 predictable.  Memory is :func:`addon.bake.memory.texel_bytes` plus ``BYTES_PER_TRIANGLE`` per
 scene triangle, what :func:`addon.bake.memory.check_budget` checks.
 """

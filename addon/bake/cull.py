@@ -221,6 +221,8 @@ def _scatter_caps(refract, x0, tri_p, tri_n, eta, inc_a, inc_alpha, has_incoming
     m = tri_n.shape[1]
     half = 0.5 * math.pi
     for blk in range(first, last):
+        w = np.empty((3, 3))  # per block: the unit directions to the corners ...
+        mu = np.empty((m, 3))  # ... and the unit corner normals of one triangle
         for t in range(blk * 1024, min(T, blk * 1024 + 1024)):
             p0x, p0y, p0z = tri_p[t, 0, 0], tri_p[t, 0, 1], tri_p[t, 0, 2]
             e1x, e1y, e1z = tri_p[t, 1, 0] - p0x, tri_p[t, 1, 1] - p0y, tri_p[t, 1, 2] - p0z
@@ -235,26 +237,26 @@ def _scatter_caps(refract, x0, tri_p, tri_n, eta, inc_a, inc_alpha, has_incoming
             else:
                 sx = sy = sz = 0.0
                 for j in range(3):
-                    wx, wy, wz, _l = _unit3(tri_p[t, j, 0] - x0[t, 0], tri_p[t, j, 1] - x0[t, 1], tri_p[t, j, 2] - x0[t, 2])
-                    sx += wx
-                    sy += wy
-                    sz += wz
+                    w[j, 0], w[j, 1], w[j, 2], _l = _unit3(tri_p[t, j, 0] - x0[t, 0], tri_p[t, j, 1] - x0[t, 1],
+                                                           tri_p[t, j, 2] - x0[t, 2])
+                    sx += w[j, 0]
+                    sy += w[j, 1]
+                    sz += w[j, 2]
                 ax, ay, az, _l = _unit3(sx, sy, sz)
                 alpha = 0.0
                 for j in range(3):
-                    wx, wy, wz, _l = _unit3(tri_p[t, j, 0] - x0[t, 0], tri_p[t, j, 1] - x0[t, 1], tri_p[t, j, 2] - x0[t, 2])
-                    alpha = max(alpha, _angle3(ax, ay, az, wx, wy, wz))
+                    alpha = max(alpha, _angle3(ax, ay, az, w[j, 0], w[j, 1], w[j, 2]))
                 if not alpha < half - 1e-9:
                     alpha = NO_CONE
             # normal cap (c, gamma) and whether the corner normals agree with the plane's side
             sx = sy = sz = 0.0
             pos = neg = 0
             for j in range(m):
-                mx, my, mz, _l = _unit3(tri_n[t, j, 0], tri_n[t, j, 1], tri_n[t, j, 2])
-                sx += mx
-                sy += my
-                sz += mz
-                mg = mx * ngx + my * ngy + mz * ngz
+                mu[j, 0], mu[j, 1], mu[j, 2], _l = _unit3(tri_n[t, j, 0], tri_n[t, j, 1], tri_n[t, j, 2])
+                sx += mu[j, 0]
+                sy += mu[j, 1]
+                sz += mu[j, 2]
+                mg = mu[j, 0] * ngx + mu[j, 1] * ngy + mu[j, 2] * ngz
                 if mg > 0.0:
                     pos += 1
                 elif mg < 0.0:
@@ -262,8 +264,7 @@ def _scatter_caps(refract, x0, tri_p, tri_n, eta, inc_a, inc_alpha, has_incoming
             cx, cy, cz, lc = _unit3(sx, sy, sz)
             gamma = 0.0
             for j in range(m):
-                mx, my, mz, _l = _unit3(tri_n[t, j, 0], tri_n[t, j, 1], tri_n[t, j, 2])
-                gamma = max(gamma, _angle3(cx, cy, cz, mx, my, mz))
+                gamma = max(gamma, _angle3(cx, cy, cz, mu[j, 0], mu[j, 1], mu[j, 2]))
             if not (gamma < half - 1e-9 and lc > 0.0):
                 gamma = NO_CONE
             consistent = pos == m or neg == m

@@ -66,7 +66,7 @@ def estimate_bake(scene, settings):
     import dataclasses
 
     from .pipeline import AREA_SAMPLES
-    from .plan import candidate_chains, chain_casters, structural_chains
+    from .plan import candidate_chains, chain_casters, closed_refracting, structural_chains
     from .raster import grid_side
     from .settings import resolve_aliases
 
@@ -79,8 +79,9 @@ def estimate_bake(scene, settings):
     forward = 0.0
     casters = 0
     n_light = len(scene.lights) * max(1, int(settings.light_samples))
-    chains = [c for c in candidate_chains(settings) if c in structural_chains(scene)] if settings.caustics else []
-    closed = scene.closed_objects() if "T" in chains else set()
+    closed = closed_refracting(scene) if settings.caustics else set()
+    allowed = structural_chains(scene, closed=closed) if settings.caustics else []
+    chains = [c for c in candidate_chains(settings) if c in allowed]
     exact = 0
     for chain in chains:
         name = settings.estimator_for(chain)

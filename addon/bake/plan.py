@@ -151,10 +151,16 @@ def chain_casters(scene, chain, closed):
     return verts
 
 
-def structural_chains(scene, max_bounces=2):
-    """The chains of up to ``max_bounces`` that the scene's roles and topology allow (step 1)."""
+def closed_refracting(scene):
+    """The refracting objects that are closed solids (a single refraction into them ends inside)."""
     refracting = np.isin(scene.tri_role, CHAIN_ROLES["T"])
-    closed = scene.closed_objects(np.unique(scene.tri_object[refracting]))
+    return scene.closed_objects(np.unique(scene.tri_object[refracting]))
+
+
+def structural_chains(scene, max_bounces=2, closed=None):
+    """The chains of up to ``max_bounces`` that the scene's roles and topology allow (step 1);
+    ``closed`` the scene's :func:`closed_refracting` when the caller has it."""
+    closed = closed_refracting(scene) if closed is None else closed
     return [c for c in CHAINS if len(c) <= max_bounces and all(v.size for v in chain_casters(scene, c, closed))]
 
 
@@ -176,8 +182,7 @@ def plan_steps(ctx):
     notes, items = [], []
     if not settings.caustics:
         return Plan("none", settings.plan_threshold, items, notes)
-    refracting = np.isin(scene.tri_role, CHAIN_ROLES["T"])
-    closed = scene.closed_objects(np.unique(scene.tri_object[refracting]))
+    closed = closed_refracting(scene)
     inside = lights_inside(scene, sorted(closed))
     chains = candidate_chains(settings)
     for li, objs in sorted(inside.items()):
@@ -194,7 +199,7 @@ def plan_steps(ctx):
     all_receivers = tuple(range(len(ctx.receivers)))
     for chain in chains:
         verts = chain_casters(scene, chain, closed)
-        solids = sorted(scene.objects[o] for o in closed if np.any(refracting & (scene.tri_object == o)))
+        solids = sorted(scene.objects[o] for o in closed)  # closed_refracting: every one refracts
         if chain == "T" and solids:
             notes.append(f"T: {CLOSED_T} ({', '.join(solids)}); its caustic is TT")
         estimator = settings.estimator_for(chain)

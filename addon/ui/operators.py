@@ -230,12 +230,10 @@ class BakeJob:
         self.t0 = time.perf_counter()
         self._worker = None  # modal: the ChunkWorker running the chunks
         self._pending = None  # modal: the Future of the chunk running on it
-        self.estimate = None  # the BakeEstimate of the whole job (a range: every frame), after start
 
     def start(self, context):
         load_solver()
         from ..bake.apply import foreign_files
-        from ..bake.estimate import estimate_bake
         from ..bake.pipeline import bake_steps
         from ..bake.extract import extract_scene
         from .properties import bake_frames, bake_settings
@@ -253,7 +251,6 @@ class BakeJob:
         self.frames = bake_frames(props, context.scene)
         if self.frames is None:
             self.model = extract_scene(resolution=self.resolution)
-            self.estimate = estimate_bake(self.model, settings)
             clash = foreign_files([r.name for r in self.model.receivers], self.directory)
             if clash:
                 raise UserError("{} exists and was not written by Caustic Bake; choose another output folder".format(clash[0]))
@@ -266,11 +263,18 @@ class BakeJob:
             self.warnings.append("image sequences are not packed: the frames stay in {}".format(self.directory))
         self.original_frame = context.scene.frame_current
         self._start_frame(0)
-        self.estimate = estimate_bake(self.model, settings).times(len(self.frames))  # the first frame's, for every frame
         clash = foreign_files(self.receivers, self.directory, self.frames)
         if clash:
             self.cancel()
             raise UserError("{} exists and was not written by Caustic Bake; choose another output folder".format(clash[0]))
+
+    def estimate(self):
+        """The :class:`~addon.bake.estimate.BakeEstimate` of the whole job, after :meth:`start`
+        (a frame range: the first frame's, for every frame)."""
+        from ..bake.estimate import estimate_bake
+
+        one = estimate_bake(self.model, self.settings)
+        return one if self.frames is None else one.times(len(self.frames))
 
     def _start_frame(self, index):
         """Extract the scene at the range's frame ``index`` and start its bake."""
@@ -521,8 +525,8 @@ class CAUSTICS_OT_bake(bpy.types.Operator):
             self._job.cancel()
             _report_failure(self, ex, "the bake")
             return {"CANCELLED"}
-        estimate = self._job.estimate
-        if event is not None and not self.confirmed and estimate is not None and needs_confirmation(estimate):
+        estimate = self._job.estimate() if event is not None and not self.confirmed else None
+        if estimate is not None and needs_confirmation(estimate):
             self._job.cancel()
             self._job = None
             self.confirmed = True

@@ -23,8 +23,7 @@ IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to wit
 IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
 IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
 LANDED_KERNEL = True  # Numba tracing: landed sub-triangles refined in one kernel (False: numpy levels only; tests)
-STEP_SECONDS = 0.15  # with a ChunkSizer: a chunk of casters is sized to be refined and splatted in about this long
-FIRST_STEP_WORK = 5000.0  # ... the first, before any is timed: at most this much estimated work (sub-triangles)
+FIRST_STEP_WORK = 5000.0  # with a ChunkSizer: the first chunk, before any is timed, at most this much estimated work
 FIRST_STEP_CASTERS = 16  # ... and at most this many casters (the estimate knows the caster's size, not its image's)
 REACH_STEP = 32768  # ... lit casters cone-tested per progress step
 MESH_STEP = 65536  # ... mesh points traced per progress step
@@ -213,14 +212,14 @@ def caster_chunks(work, max_work, max_casters):
 class ChunkSizer:
     """Cuts a pass's casters into consecutive runs that each take about ``seconds`` to refine
     and splat (a progress step, and how long Esc waits): the first run holds ``first_work`` of
-    the estimated work (:func:`image_chunks`) and at most FIRST_STEP_CASTERS casters, each next one what the last run's measured
-    seconds per unit of work allow, at most twice the last run's work.  Where the runs end changes
-    no bit of the texture: a caster's sub-triangles do not depend on the other casters' and
+    the estimated work (:func:`image_chunks`) and at most FIRST_STEP_CASTERS casters, each next
+    one what the last run's measured seconds per unit of work allow, at most twice the last
+    run's work.  Where the runs end changes no bit of the texture: a caster's sub-triangles do not depend on the other casters' and
     are splatted in caster order (refine_image_triangles returns them in emitter order);
     tests/bake/test_bake_chunks.py."""
 
-    def __init__(self, seconds=None, first_work=None):
-        self.seconds = STEP_SECONDS if seconds is None else float(seconds)
+    def __init__(self, seconds, first_work=None):
+        self.seconds = float(seconds)
         self.first_work = FIRST_STEP_WORK if first_work is None else float(first_work)
         self.rate = None  # seconds per unit of work of the last timed run
         self.last_work = 0.0

@@ -166,10 +166,10 @@ def lit_casters(ls, m, x0, tri_p):
     """Mask of caster triangles that light sample ``m`` can reach (spot cone, Lambertian lobe;
     conservative: the cap of the triangle's vertex directions must meet the emitting cone)."""
     keep = np.ones(tri_p.shape[0], dtype=bool)
-    if ls.kind == "sun":
-        return keep
-    a, alpha = vertex_cap(x0, tri_p)
     lobe = ls.lobe[m]
+    if ls.kind == "sun" or not (np.any(lobe != 0) or np.any(ls.spot_axis != 0)):
+        return keep  # a sun, or a point light without a lobe or a cone: every direction
+    a, alpha = vertex_cap(x0, tri_p)
     if np.any(lobe != 0):
         ang = np.arccos(np.clip(a @ lobe, -1, 1))
         keep &= ang - alpha < 0.5 * math.pi

@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from ..solver.estimators.forward_image import solid_angle, trace_chain_points
+from ..solver.geometry.receiver_planes import no_planes
 from .lights import emission_factor, light_points, lit_casters
 
 PROBE_POINTS = 1 << 15  # traced points per light and chain at most
@@ -71,7 +72,7 @@ def probe_chain(ctx, light_index, ls, chain, first, second, tri_rec, tri_uv, led
     trace_chain_points(e, np.ascontiguousarray(uv1[:, 0]), np.ascontiguousarray(uv1[:, 1]), x0, first, len(chain),
                        chain[0] == "T", chain[-1] == "T", second_ok, tri_rec, tri_uv, scene.tri_p, scene.tri_n, scene.tri_ior,
                        scene.tri_role, bvh.node_min, bvh.node_max, bvh.node_child, bvh.node_start, bvh.node_count, bvh.order,
-                       bvh.v0, bvh.e1, bvh.e2, float(ctx.eps), t2, rec, uv, fac)
+                       bvh.v0, bvh.e1, bvh.e2, float(ctx.eps), no_planes(), t2, rec, uv, fac)  # real landings only
     landed = np.flatnonzero(rec >= 0)
     if landed.size == 0:
         return n

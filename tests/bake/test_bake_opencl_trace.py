@@ -1,6 +1,7 @@
 """Forward-flux with its points traced on OpenCL (``addon/solver/opencl/trace.cl``, PoCL on the
 CPU in CI): the kernel is trace_chain_points step for step, so the traced points and the baked
-textures are Numba's bit for bit, for one-vertex (R, T) and two-vertex (TT) chains."""
+textures are Numba's bit for bit, for one-vertex (R, T) and two-vertex (TT) chains, rays that miss
+a flat receiver extended onto its plane included."""
 
 import numpy as np
 import pytest
@@ -19,7 +20,7 @@ def _trace_both(index, sc, chain, first, second, n=20000, seed=5):
 
     rng = np.random.default_rng(seed)
     bvh = build_bvh(sc.tri_p)
-    tri_rec, tri_uv, second_ok = scene_arrays(sc, sc.receivers, np.asarray(second, dtype=np.int64))
+    tri_rec, tri_uv, second_ok, planes = scene_arrays(sc, sc.receivers, np.asarray(second, dtype=np.int64))
     emit = np.asarray(first, dtype=np.int64)
     x0 = np.tile(np.asarray(sc.lights[0].position, dtype=np.float64), (emit.size, 1))
     e = rng.integers(0, emit.size, n)
@@ -28,9 +29,9 @@ def _trace_both(index, sc, chain, first, second, n=20000, seed=5):
     args = (len(chain), chain[0] == "T", chain[-1] == "T", second_ok, tri_rec, tri_uv, sc.tri_p, sc.tri_n,
             sc.tri_ior, sc.tri_role.astype(np.int64))
     outs = [(np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64), np.empty((n, 2)), np.empty(n)) for _ in range(2)]
-    trace_chain_points(e, u, v, x0, emit, *args, *_bvh_args(bvh), 1e-6, *outs[0])
-    OpenCLPointTracer(index, *args, _bvh_args(bvh), x0, emit, 1e-6).trace(e, u, v, *outs[1])
-    return outs
+    trace_chain_points(e, u, v, x0, emit, *args, *_bvh_args(bvh), 1e-6, planes, *outs[0])
+    OpenCLPointTracer(index, *args, _bvh_args(bvh), x0, emit, 1e-6, planes).trace(e, u, v, *outs[1])
+    return outs, planes
 
 
 @pytest.mark.opencl
@@ -47,9 +48,13 @@ def test_points_traced_on_opencl_are_numbas(case):
         sc = wavy_sheet(0, 32, n=40)
         chain = "T"
     casters = np.flatnonzero(sc.tri_role > 0)
-    numba, ocl = _trace_both(index, sc, chain, casters, casters)
+    (numba, ocl), planes = _trace_both(index, sc, chain, casters, casters)
     landed = numba[1] >= 0
     assert landed.mean() > 0.2, "the case must land a fair share of its points"
+    if case == "sheet T":  # the floor is flat: rays that miss it land on its plane, extended, on both
+        assert planes.shape[0] == 1
+        outside = landed & ((numba[2] < 0) | (numba[2] > 1)).any(axis=1)
+        assert outside.sum() > 100
     for a, b in zip(numba, ocl):
         np.testing.assert_array_equal(a, b)
 

@@ -31,7 +31,8 @@ import numpy as np
 from ...solver.geometry.bvh import segments_occluded
 from ...solver.estimators.flux_kernel import corner_densities_kernel, subtriangle_geometry
 from ...solver.estimators.forward_image import corner_densities, solid_angle
-from ...solver.estimators.splat import splat_triangles
+from ...solver.estimators.splat import region_shares, splat_triangles
+from ...solver.geometry.receiver_planes import region_of
 from ..lights import emission_factor
 from .base import Estimator
 from .forward_images import IMAGE_COARSE, ChunkSizer, image_chunks
@@ -156,13 +157,38 @@ def flux_textures(ctx, item, state, ls, m, out):
     clock = ctx.timer.since("flux.trace", clock)
     _shadow(ctx, t1, first, x1, power)
     clock = ctx.timer.since("flux.visibility", clock)
-    flux = _coloured_flux(ctx, item, tris, t1, t2, power, ls.rgb[m])
     density = np.empty((n, 3))
     corner_densities_kernel(np.ascontiguousarray(tris["uv"]), np.ascontiguousarray(tris["mid_uv"]), tri_p, state.emit_tri, e, b,
                             state.x0, sun, d, 1e6 * extent, np.ascontiguousarray(tris["factor"]), density)
+    regions = _regions(state, len(receivers))
+    share = _inside_shares(tris, density, regions)
     clock = ctx.timer.since("flux.density", clock)
-    _splat(receivers, tris, flux, density, out)
+    flux = _coloured_flux(ctx, item, tris, t1, t2, power, ls.rgb[m], share)
+    _splat(receivers, tris, flux, density, out, regions)
     ctx.timer.since("flux.splat", clock)
+
+
+def _regions(state, n_receivers):
+    """Per receiver, the UV region edges of its flat plane when the pass extended it
+    (:func:`~addon.solver.geometry.receiver_planes.region_of`), else None."""
+    planes = state.arrays.get("planes")
+    if planes is None or planes.shape[0] == 0:
+        return [None] * n_receivers
+    return [region_of(planes, r) for r in range(n_receivers)]
+
+
+def _inside_shares(tris, density, regions):
+    """(n,) the share of each sub-triangle's flux inside its receiver's region (1 but where an
+    image reaches beyond a flat receiver's edge: :func:`~addon.solver.estimators.splat.region_shares`);
+    the power booked is what the splat deposits."""
+    share = np.ones(tris["emitter"].size)
+    for r, region in enumerate(regions):
+        if region is None:
+            continue
+        sel = np.flatnonzero(tris["receiver"] == r)
+        if sel.size:
+            share[sel] = region_shares(tris["uv"][sel], density[sel], region)
+    return share
 
 
 def _centroid_transport(state, item, tris):
@@ -196,26 +222,28 @@ def _shadow(ctx, t1, first, x1, power):
         power[live[blocked]] = 0.0
 
 
-def _coloured_flux(ctx, item, tris, t1, t2, power, rgb):
+def _coloured_flux(ctx, item, tris, t1, t2, power, rgb, share):
     """The sub-triangles' RGB flux (n, 3): ``power`` x the light's ``rgb`` x the tints of the
-    chain's triangles (one-vertex chains: no second tint); booked in ``ctx.ledger``."""
+    chain's triangles (one-vertex chains: no second tint); booked in ``ctx.ledger`` times
+    ``share``, the part the splat deposits (:func:`_inside_shares`)."""
     scene = ctx.scene
     tint2 = np.where((t2 >= 0)[:, None], scene.tri_tint[np.maximum(t2, 0)], 1.0)
     flux = power[:, None] * rgb[None, :] * scene.tri_tint[t1] * tint2
     two = len(item.chain) == 2
     ctx.ledger.add(item.light, item.chain, scene.tri_object[t1], scene.tri_object[np.maximum(t2, 0)] if two else None,
-                   tris["receiver"], flux.mean(axis=1))
+                   tris["receiver"], flux.mean(axis=1) * share)
     return flux
 
 
-def _splat(receivers, tris, flux, density, out):
-    """Splat the sub-triangles' ``flux`` with corner ``density`` onto their receivers' ``out``."""
+def _splat(receivers, tris, flux, density, out, regions=None):
+    """Splat the sub-triangles' ``flux`` with corner ``density`` onto their receivers' ``out``,
+    clipped to the receiver's ``regions[r]`` where it has one (:func:`_regions`)."""
     for r, recv in enumerate(receivers):
         sel = np.flatnonzero(tris["receiver"] == r)
         if sel.size:
             W, H = recv.resolution
             splat_triangles(np.ascontiguousarray(tris["uv"][sel]), np.ascontiguousarray(flux[sel]), int(W), int(H), out[r],
-                            np.ascontiguousarray(density[sel]))
+                            np.ascontiguousarray(density[sel]), region=None if regions is None else regions[r])
 
 
 def flux_textures_reference(ctx, item, state, ls, m, out):
@@ -250,7 +278,6 @@ def flux_textures_reference(ctx, item, state, ls, m, out):
     clock = ctx.timer.since("flux.trace", clock)
     _shadow(ctx, t1, first, x1, power)
     clock = ctx.timer.since("flux.visibility", clock)
-    flux = _coloured_flux(ctx, item, tris, t1, t2, power, ls.rgb[m])
     # the transport factor at the corners (Fresnel varies over large images); partly landed
     # sub-triangles have no midpoints and get the uniform splat anyway
     cf = np.nan_to_num(tris["factor"][:, :3], nan=1.0)
@@ -259,6 +286,9 @@ def flux_textures_reference(ctx, item, state, ls, m, out):
         density = corner_densities(tris["uv"], tris["mid_uv"], far, P, b, cf)
     else:
         density = corner_densities(tris["uv"], tris["mid_uv"], x0, P, b, cf)
+    regions = _regions(state, len(receivers))
+    share = _inside_shares(tris, density, regions)
     clock = ctx.timer.since("flux.density", clock)
-    _splat(receivers, tris, flux, density, out)
+    flux = _coloured_flux(ctx, item, tris, t1, t2, power, ls.rgb[m], share)
+    _splat(receivers, tris, flux, density, out, regions)
     ctx.timer.since("flux.splat", clock)

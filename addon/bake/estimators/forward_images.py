@@ -15,6 +15,7 @@ import warnings
 import numpy as np
 
 from ...solver.estimators.forward_image import light_area_density, refine_image_triangles, trace_chain_points
+from ...solver.geometry.receiver_planes import no_planes, receiver_planes
 from ..cull import first_casters_reaching, sphere_tree
 from ..lights import light_points, lit_casters
 
@@ -22,6 +23,7 @@ IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
 IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to within this
 IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
 IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
+EXTEND_FLAT_RECEIVERS = True  # rays that miss a flat receiver land on its plane, extended (False: cut by bisection; tests)
 LANDED_KERNEL = True  # Numba tracing: landed sub-triangles refined in one kernel (False: numpy levels only; tests)
 FIRST_STEP_WORK = 5000.0  # with a ChunkSizer: the first chunk, before any is timed, at most this much estimated work
 FIRST_STEP_CASTERS = 16  # ... and at most this many casters (the estimate knows the caster's size, not its image's)
@@ -44,17 +46,22 @@ class ImageState:
 
 def scene_arrays(scene, receivers, second, only=None):
     """Receiver index and UVs per scene triangle (receivers not in ``only``, when given, count
-    as occluders), and the mask of valid second vertices."""
+    as occluders), the mask of valid second vertices, and the ``planes`` of those receivers
+    that are flat (:func:`~addon.solver.geometry.receiver_planes.receiver_planes`: rays that
+    miss them are extended onto their planes; none when ``EXTEND_FLAT_RECEIVERS`` is False)."""
     n = scene.n_triangles
     tri_rec = np.full(n, -1, dtype=np.int64)
     tri_uv = np.zeros((n, 3, 2))
+    flat = []
     for r, rec in enumerate(receivers):
         if only is None or r in only:
             tri_rec[rec.tri_index] = r
             tri_uv[rec.tri_index] = rec.uv
+            flat.append((r, rec.tri_index, rec.uv))
     second_ok = np.zeros(n, dtype=np.bool_)
     second_ok[second] = True
-    return tri_rec, tri_uv, second_ok
+    planes = receiver_planes(scene.tri_p, scene.tri_n, flat) if EXTEND_FLAT_RECEIVERS else no_planes()
+    return tri_rec, tri_uv, second_ok, planes
 
 
 def _bvh_args(bvh):
@@ -81,6 +88,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
                                   triangle_arrays or scene_arrays(scene, receivers, second, only))
     x0, emit_tri, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role = trace_args[:12]
     bvh_args = trace_args[12:21]
+    planes = trace_args[22]
     clock = [0.0]  # seconds inside the tracing kernel (reported as trace_seconds)
     tracer = _device_tracer(device, trace_args)
 
@@ -97,7 +105,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
         elif m:
             trace_chain_points(np.ascontiguousarray(e), np.ascontiguousarray(u), np.ascontiguousarray(v), x0, emit_tri,
                                bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *bvh_args,
-                               float(eps), t2, rec, uv, fac)
+                               float(eps), planes, t2, rec, uv, fac)
         clock[0] += time.perf_counter() - t_in
         return t2, rec, uv, fac
 
@@ -117,11 +125,12 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     if tracer is None and LANDED_KERNEL:  # Numba: the landed sub-triangles refined in one kernel (the same rules)
         extra["kernel_scene"] = (trace_args, bool(parallel))
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
-                                  tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, top_points=mesh_points, **extra)
+                                  tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, top_points=mesh_points, planes=planes,
+                                  **extra)
     r = tris["receiver"]
     tris["margin"] = IMAGE_MARGIN * texel[r] + 2.0 * tris["deviation"] if r.size else np.zeros(0)
     arrays = dict(tri_rec=tri_rec, second_ok=second_ok, refract1=refract1, refract2=refract2, tri_p=tri_p, tri_n=tri_n,
-                  tri_ior=tri_ior, tri_role=tri_role, bvh=bvh_args, eps=float(eps), trace=trace)
+                  tri_ior=tri_ior, tri_role=tri_role, bvh=bvh_args, eps=float(eps), planes=planes, trace=trace)
     report = {"emitters": int(emit_tri.size), "points_traced": int(tris["traced"]), "sub_triangles": int(r.size),
               "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "border": int(tris["border"]), "final_per_depth": tris["final_per_depth"],
               "seconds": time.perf_counter() - t0, "trace_seconds": clock[0] + tris["kernel_seconds"],
@@ -130,13 +139,13 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
 
 
 def _trace_arguments(scene, bvh, eps, chain, emit_tri, x0, arrays):
-    """``trace_chain_points``' arguments from x0 to eps for emitters (first triangles
+    """``trace_chain_points``' arguments from x0 to planes for emitters (first triangles
     ``emit_tri`` lit from ``x0``) of ``chain``; ``arrays`` the pass's :func:`scene_arrays`."""
-    tri_rec, tri_uv, second_ok = arrays
+    tri_rec, tri_uv, second_ok, planes = arrays
     return (np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(emit_tri, dtype=np.int64), len(chain),
             chain[0] == "T", chain[-1] == "T", second_ok, tri_rec, tri_uv, np.ascontiguousarray(scene.tri_p, dtype=np.float64),
             np.ascontiguousarray(scene.tri_n, dtype=np.float64), np.ascontiguousarray(scene.tri_ior, dtype=np.float64),
-            np.ascontiguousarray(scene.tri_role, dtype=np.int64)) + _bvh_args(bvh) + (float(eps),)
+            np.ascontiguousarray(scene.tri_role, dtype=np.int64)) + _bvh_args(bvh) + (float(eps), planes)
 
 
 def _device_tracer(device, trace_args):
@@ -152,7 +161,7 @@ def _device_tracer(device, trace_args):
         from ...solver.opencl.tracing import OpenCLPointTracer
 
         return OpenCLPointTracer(parse_device(device), bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n,
-                                 tri_ior, tri_role, trace_args[12:21], x0, emit_tri, trace_args[21])
+                                 tri_ior, tri_role, trace_args[12:21], x0, emit_tri, trace_args[21], trace_args[22])
     except OpenCLUnavailable as ex:
         warnings.warn(f"OpenCL unavailable ({ex}); tracing on Numba instead", RuntimeWarning, stacklevel=3)
         return None

@@ -93,7 +93,7 @@ def band_paths(state, rec_index, band, max_seeds=1 << 20):
         uv = np.zeros((n, 4))
         stats = np.zeros(((n + 255) // 256, 3), dtype=np.int64)
         solve_image_seeds(e, seed, s, state.x0, state.emit_tri, position, a["refract1"], a["refract2"], a["second_ok"],
-                          a["tri_rec"], a["tri_p"], a["tri_n"], a["tri_ior"], a["tri_role"], *a["bvh"], a["eps"], ok, t2, uv,
+                          a["tri_rec"], a["tri_p"], a["tri_n"], a["tri_ior"], a["tri_role"], *a["bvh"], a["eps"], a["planes"], ok, t2, uv,
                           stats)
         counts["newton"] += int(stats[:, 0].sum())
         counts["hops"] += int(stats[:, 1].sum())

@@ -19,18 +19,18 @@ from .refine_kernel import _trace_uv
 
 @kernel(inline="always")
 def _landed(e, u, v, rec, receiver_of_tri, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n,
-            tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, stack):
+            tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, planes, stack):
     """(landed on receiver ``rec``, landing u, v) of the point (u, v) of emitter e."""
     r, lu, lv, _f = _trace_uv(e, u, v, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n,
                               tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2,
-                              eps, stack)
+                              eps, planes, stack)
     return r >= 0 and receiver_of_tri[r] == rec, lu, lv
 
 
 @kernel
 def _bisect(e, lb_u, lb_v, l_u, l_v, xb_u, xb_v, steps, rec, receiver_of_tri, x0, t1_of, bounces, refract1, refract2,
             second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start,
-            node_count, order, v0, e1, e2, eps, stack):
+            node_count, order, v0, e1, e2, eps, planes, stack):
     """:func:`~addon.solver.estimators.forward_image._bisect_border` of one row: bisect between
     the landed point lb (landing l) and the lost point xb; returns (the border's estimate
     (u, v), the landing of the last landed point)."""
@@ -39,7 +39,7 @@ def _bisect(e, lb_u, lb_v, l_u, l_v, xb_u, xb_v, steps, rec, receiver_of_tri, x0
         hv = 0.5 * (lb_v + xb_v)
         hit, su, sv = _landed(e, hu, hv, rec, receiver_of_tri, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec,
                               tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start,
-                              node_count, order, v0, e1, e2, eps, stack)
+                              node_count, order, v0, e1, e2, eps, planes, stack)
         if hit:
             lb_u, lb_v, l_u, l_v = hu, hv, su, sv
         else:
@@ -50,7 +50,7 @@ def _bisect(e, lb_u, lb_v, l_u, l_v, xb_u, xb_v, steps, rec, receiver_of_tri, x0
 @kernel
 def _border_point(e, a_u, a_v, b_u, b_v, c_u, c_v, steps, rec, receiver_of_tri, x0, t1_of, bounces, refract1, refract2,
                   second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start,
-                  node_count, order, v0, e1, e2, eps, stack):
+                  node_count, order, v0, e1, e2, eps, planes, stack):
     """:func:`~addon.solver.estimators.forward_image._border_point` of one row (chord a-b, landed
     centre c): (border point (u, v), its landing (u, v), found, offset in chord lengths)."""
     mu = 0.5 * (a_u + b_u)
@@ -64,13 +64,13 @@ def _border_point(e, a_u, a_v, b_u, b_v, c_u, c_v, steps, rec, receiver_of_tri, 
     bu, bv = mu + 0.25 * nu, mv + 0.25 * nv
     hit_a, lu, lv = _landed(e, au, av, rec, receiver_of_tri, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec,
                             tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count,
-                            order, v0, e1, e2, eps, stack)
+                            order, v0, e1, e2, eps, planes, stack)
     hit_b, _u, _v = _landed(e, bu, bv, rec, receiver_of_tri, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec,
                             tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count,
-                            order, v0, e1, e2, eps, stack)
+                            order, v0, e1, e2, eps, planes, stack)
     pu, pv, qu, qv = _bisect(e, au, av, lu, lv, bu, bv, steps, rec, receiver_of_tri, x0, t1_of, bounces, refract1, refract2,
                              second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child,
-                             node_start, node_count, order, v0, e1, e2, eps, stack)
+                             node_start, node_count, order, v0, e1, e2, eps, planes, stack)
     t = ((pu - mu) * nu + (pv - mv) * nv) / max(nu * nu + nv * nv, 1e-300)
     return pu, pv, qu, qv, hit_a and not hit_b, t
 
@@ -78,7 +78,7 @@ def _border_point(e, a_u, a_v, b_u, b_v, c_u, c_v, steps, rec, receiver_of_tri, 
 @parallel_range("emitter", 16)
 def border_polygons(emitter, bary, mid, uv, muv, robj, receiver_of_tri, steps, x0, t1_of, bounces, refract1, refract2,
                     second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child,
-                    node_start, node_count, order, v0, e1, e2, eps, out_straight, out_count, out_poly_b, out_poly_uv,
+                    node_start, node_count, order, v0, e1, e2, eps, planes, out_straight, out_count, out_poly_b, out_poly_uv,
                     out_span, first, last):
     """Rows (sub-triangles fitting one straight border, see the module doc): whether the
     border is straight (``out_straight``), the landed polygon's ``out_count`` points
@@ -121,21 +121,21 @@ def border_polygons(emitter, bary, mid, uv, muv, robj, receiver_of_tri, steps, x
                 cross[side, 0], cross[side, 1], cross[side, 2], cross[side, 3] = _bisect(
                     e, lb_u, lb_v, l_u, l_v, xb_u, xb_v, steps, rec, receiver_of_tri, x0, t1_of, bounces, refract1, refract2,
                     second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start,
-                    node_count, order, v0, e1, e2, eps, stack)
+                    node_count, order, v0, e1, e2, eps, planes, stack)
             cu = ((bary[i, 0, 0] * c[0] + bary[i, 1, 0] * c[1]) + bary[i, 2, 0] * c[2]) / nc
             cv = ((bary[i, 0, 1] * c[0] + bary[i, 1, 1] * c[1]) + bary[i, 2, 1] * c[2]) / nc
             pu, pv, pqu, pqv, ok0, t0 = _border_point(
                 e, cross[0, 0], cross[0, 1], cross[1, 0], cross[1, 1], cu, cv, steps, rec, receiver_of_tri, x0, t1_of, bounces,
                 refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max,
-                node_child, node_start, node_count, order, v0, e1, e2, eps, stack)
+                node_child, node_start, node_count, order, v0, e1, e2, eps, planes, stack)
             au, av, aqu, aqv, ok1, t1 = _border_point(
                 e, cross[0, 0], cross[0, 1], pu, pv, cu, cv, steps, rec, receiver_of_tri, x0, t1_of, bounces, refract1,
                 refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child,
-                node_start, node_count, order, v0, e1, e2, eps, stack)
+                node_start, node_count, order, v0, e1, e2, eps, planes, stack)
             bu, bv, bqu, bqv, ok2, t2 = _border_point(
                 e, pu, pv, cross[1, 0], cross[1, 1], cu, cv, steps, rec, receiver_of_tri, x0, t1_of, bounces, refract1,
                 refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child,
-                node_start, node_count, order, v0, e1, e2, eps, stack)
+                node_start, node_count, order, v0, e1, e2, eps, planes, stack)
             out_straight[i] = ok0 and ok1 and ok2 and max(max(abs(t0), abs(t1)), abs(t2)) <= 1.0 / 16.0
             ok1 = ok1 and ok0
             ok2 = ok2 and ok0

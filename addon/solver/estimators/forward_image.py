@@ -48,6 +48,7 @@ from ..geometry.optics import ROLE_BOTH, ROLE_REFLECT, fresnel_dielectric
 from ..geometry.optics import scatter_direction as _scatter
 from ..geometry.surface import plane_barycentrics as _hit_bary
 from ..geometry.surface import triangle_frame
+from ..geometry.receiver_planes import beyond_region_rows, extended_landing
 
 POLISH_STEPS = 40
 ACCEPT_RESIDUAL = 1e-12  # as the exact solver (two_bounce.ACCEPT_RESIDUAL)
@@ -84,13 +85,21 @@ def _weight(dx, dy, dz, nx, ny, nz, gx, gy, gz, refract, eta, role):
 
 @kernel(inline="always")
 def _land(x, y, z, dx, dy, dz, prev, tri_rec, tri_p, tri_n, node_min, node_max, node_child, node_start, node_count, order,
-          v0, e1, e2, eps, stack):
+          v0, e1, e2, eps, planes, stack):
     """The last segment: the closest hit must be the front of a receiver.  Returns (receiver
-    triangle or -1, barycentrics, cos_shading / cos_geometric there)."""
+    triangle or -1, barycentrics, cos_shading / cos_geometric there).  A ray that lands on no
+    receiver but crosses the front of a flat receiver's plane (a row of ``planes``) outside
+    its UV region lands there, extended (:mod:`~addon.solver.geometry.receiver_planes`):
+    barycentrics of the row's triangle, factor 1 (flat shading)."""
     tr, th = ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
                           eps, np.inf, prev, stack)
     if tr < 0 or tri_rec[tr] < 0:
-        return -1, 0.0, 0.0, 0.0
+        p = extended_landing(planes, x, y, z, dx, dy, dz, eps)
+        if p < 0:
+            return -1, 0.0, 0.0, 0.0
+        tp = int(planes[p, 12])
+        ur, vr = _hit_bary(tri_p, tp, x, y, z, dx, dy, dz)
+        return tp, ur, vr, 1.0
     ur, vr = _hit_bary(tri_p, tr, x, y, z, dx, dy, dz)
     ok, hx, hy, hz, nx, ny, nz, gx, gy, gz = _bary_point(tri_p, tri_n, tr, ur, vr)
     cg = -(dx * gx + dy * gy + dz * gz)
@@ -101,7 +110,7 @@ def _land(x, y, z, dx, dy, dz, prev, tri_rec, tri_p, tri_n, node_min, node_max, 
 
 @kernel(inline="always")
 def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok, tri_rec, tri_p, tri_n, tri_ior,
-               tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, stack):
+               tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, planes, stack):
     """The forward chain of ``bounces`` (1 or 2) vertices from (u1, v1) on t1, lit from x0
     (a point in shadow is lost): (second triangle or -1, its barycentrics, receiver triangle
     or -1, its barycentrics, transport factor).  The factor is the product over the vertices of the bake's surface weights
@@ -129,7 +138,7 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok
         return -1, 0.0, 0.0, -1, 0.0, 0.0, 0.0
     if bounces == 1:
         tr, ur, vr, c = _land(x, y, z, dx, dy, dz, t1, tri_rec, tri_p, tri_n, node_min, node_max, node_child, node_start,
-                              node_count, order, v0, e1, e2, eps, stack)
+                              node_count, order, v0, e1, e2, eps, planes, stack)
         return -1, 0.0, 0.0, tr, ur, vr, fac * c
     t2, th = ray_closest(node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, x, y, z, dx, dy, dz,
                           eps, np.inf, t1, stack)
@@ -146,19 +155,21 @@ def _trace_one(x0x, x0y, x0z, t1, u1, v1, bounces, refract1, refract2, second_ok
     if not ok:
         return t2, u2, v2, -1, 0.0, 0.0, 0.0
     tr, ur, vr, c = _land(x, y, z, dx, dy, dz, t2, tri_rec, tri_p, tri_n, node_min, node_max, node_child, node_start,
-                          node_count, order, v0, e1, e2, eps, stack)
+                          node_count, order, v0, e1, e2, eps, planes, stack)
     return t2, u2, v2, tr, ur, vr, fac * c
 
 
 @parallel_range("emitter", CHUNK, serial_below=8)  # under 2048 points: on the calling thread
 def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior,
-                       tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_t2,
-                       out_rec, out_uv, out_factor, first, last):
+                       tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, planes,
+                       out_t2, out_rec, out_uv, out_factor, first, last):
     """Step 1 (see the module docstring) for points (emitter[i], u1[i], v1[i]) of a chain of
     ``bounces`` (1 or 2) vertices: the second
     triangle ``out_t2`` (-1: none), the receiver triangle ``out_rec`` (-1: lost), the
     texture coordinates ``out_uv`` of the landing point and the transport factor
-    ``out_factor`` (:func:`_trace_one`)."""
+    ``out_factor`` (:func:`_trace_one`).  ``planes``: the flat receivers whose planes take the
+    rays that miss them (:mod:`~addon.solver.geometry.receiver_planes`; landing there,
+    extended, UV outside the receiver's region; an empty array: none)."""
     n = emitter.shape[0]
     for ch in range(first, last):
         stack = np.empty(256, dtype=np.int64)
@@ -167,7 +178,7 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, 
             t2, _u2, _v2, tr, ur, vr, fac = _trace_one(x0[e, 0], x0[e, 1], x0[e, 2], t1_of[e], u1[i], v1[i], bounces, refract1,
                                                        refract2, second_ok, tri_rec, tri_p, tri_n, tri_ior, tri_role,
                                                        node_min, node_max, node_child, node_start, node_count, order, v0,
-                                                       e1, e2, eps, stack)
+                                                       e1, e2, eps, planes, stack)
             out_t2[i] = t2
             out_rec[i] = tr
             out_factor[i] = fac
@@ -181,7 +192,7 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, 
 
 def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=4, max_depth=6, tolerance=0.5,
                            keep_lost_depth=1, partial_depth=None, relative=0.01, weight=None, coarse=0,
-                           coarse_texels=COARSE_TEXELS, shared=True, kernel_scene=None, top_points=None):
+                           coarse_texels=COARSE_TEXELS, shared=True, kernel_scene=None, top_points=None, planes=None):
     """Step 2: adaptive sub-triangles of every emitter's first triangle.
 
     ``trace(emitter, u1, v1) -> (t2, rec_tri, uv[, factor])`` traces points
@@ -224,6 +235,11 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     density (tests/solver/test_solver_forward_image.py, tests/bake/test_bake_forward_flux.py).
     ``shared``: a corner or edge midpoint shared by sub-triangles of one emitter is traced
     once (:func:`_traced_shared`; the same result as tracing it for each, which False does).
+    ``planes`` (:mod:`~addon.solver.geometry.receiver_planes`, the ones ``trace`` extends rays
+    onto): a landed sub-triangle whose 6 points lie beyond one edge of its flat receiver's UV
+    region by more than twice its deviation and a texel is dropped (its image misses the
+    region); one reaching across an edge is refined and kept like any landed one (the splat
+    clips it at the edge).
     ``top_points`` (rec (n, 6), uv (n, 6, 2), factor (n, 6)): when the start is the whole
     triangle (G = 2^coarse), the traces of its corners and edge midpoints (01, 12, 20), used
     instead of tracing them (:func:`~addon.solver.estimators.refine_kernel.mesh_point_traces`:
@@ -382,6 +398,14 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
             final = landed & (dev <= tolerance * tex) & linear & (edge <= coarse_texels * tex)
         if depth >= int(max_depth):
             final = landed  # as straight as the depth allows: its deviation widens its margin
+        # an image beyond an edge of a flat receiver's region (its points extended there) by
+        # more than its deviation and a texel lands nowhere: dropped (receiver_planes)
+        outside = np.zeros(m, dtype=np.bool_)
+        if planes is not None and planes.shape[0] and landed.any():
+            li = np.flatnonzero(landed)
+            outside[li] = beyond_region_rows(planes, robj[li, 0], np.concatenate([uv[li], muv[li]], axis=1),
+                                             2.0 * dev[li] + tex[li])
+            final &= ~outside
         last = depth == partial_depth
         # Partly landed (an edge of the receiver, a silhouette, total internal reflection):
         # when its 6 points fit one straight border (one receiver, one or two corners landed,
@@ -422,8 +446,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         # (a probed 'lost' one has no landed point to approximate from: it is split, or
         # dropped at the last level)
         partial = cand & ~border & ((depth >= partial_depth) | small) & np.any(robj >= 0, axis=1)
-        drop = (~final & ~partial & ~border & last) | (lost & (depth >= kl))
-        dropped += int(np.count_nonzero(~final & ~partial & ~border & last & ~lost))
+        drop = (~final & ~partial & ~border & last) | (lost & (depth >= kl)) | outside
+        dropped += int(np.count_nonzero(~final & ~partial & ~border & last & ~lost & ~outside))
         fi = np.flatnonzero(final)
         pi = np.flatnonzero(partial)
         p_bary, p_uv, p_rec, p_dev = _partial(bary[pi], mid[pi], uv[pi], muv[pi], robj[pi])
@@ -952,8 +976,8 @@ class ImageSeeds:
 
 @parallel_range("emitter", CHUNK)
 def solve_image_seeds(emitter, seed, sample, x0, t1_of, x_end, refract1, refract2, second_ok, tri_rec, tri_p, tri_n,
-                      tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, out_ok,
-                      out_t2, out_uv, stats, first, last):
+                      tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, planes,
+                      out_ok, out_t2, out_uv, stats, first, last):
     """Step 4: per seed, the exact path through (t1, t2) to the sample point, t2 found by
     tracing the seed (and re-traced after a Newton step that leaves it).  ``stats`` (chunks,
     3): polish calls, hops, accepted."""
@@ -988,7 +1012,8 @@ def solve_image_seeds(emitter, seed, sample, x0, t1_of, x_end, refract1, refract
             for hop in range(HOPS + 1):
                 t2, u2, v2, _tr, _ur, _vr, _f = _trace_one(xs[0], xs[1], xs[2], t1, u1, v1, 2, refract1, refract2, second_ok,
                                                           tri_rec, tri_p, tri_n, tri_ior, tri_role, node_min, node_max,
-                                                          node_child, node_start, node_count, order, v0, e1, e2, eps, stack)
+                                                          node_child, node_start, node_count, order, v0, e1, e2, eps, planes,
+                                                          stack)
                 if t2 < 0 or t2 == last:
                     break
                 if hop > 0:

@@ -15,6 +15,9 @@ emitter, depth first, in a kernel:
   must be linear, to ``relative`` x (COARSE_LINEAR_TEXELS / its length)² when longer than
   that, and at most ``coarse_texels`` long; at ``max_depth`` it is final anyway;
   otherwise it is split in four (children (a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca));
+- a landed sub-triangle whose 6 points lie beyond one edge of a flat receiver's UV region
+  (extended there, :mod:`~addon.solver.geometry.receiver_planes`) by more than twice its
+  deviation and a texel is dropped: its image misses the receiver;
 - any other sub-triangle (a point lost or on another receiver) is handed back with its
   corners, depth and inherited image scale, and the numpy refinement continues from there
   with the same rules (probes, straight-border cuts, partial hulls).
@@ -39,6 +42,7 @@ import math
 import numpy as np
 
 from ..runtime.jit import kernel, run_calls
+from ..geometry.receiver_planes import beyond_region
 from ..geometry.rows import group_rows
 from .forward_image import COARSE_LINEAR_TEXELS, _trace_one
 
@@ -54,12 +58,12 @@ H_EMITTER, H_DEPTH, H_INHERITED, H_BARY, H_REC, H_UV, H_FAC, H_WIDTH = 0, 1, 2, 
 
 @kernel(inline="always")
 def _trace_uv(e, u, v, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role,
-              node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, stack):
+              node_min, node_max, node_child, node_start, node_count, order, v0, e1, e2, eps, planes, stack):
     """(receiver triangle or -1, landing u, v (NaN when lost), transport factor) of the
     point (u, v) of emitter e: trace_chain_points for one point."""
     _t2, _u2, _v2, tr, ur, vr, fac = _trace_one(x0[e, 0], x0[e, 1], x0[e, 2], t1_of[e], u, v, bounces, refract1, refract2,
                                                 second_ok, tri_rec, tri_p, tri_n, tri_ior, tri_role, node_min, node_max,
-                                                node_child, node_start, node_count, order, v0, e1, e2, eps, stack)
+                                                node_child, node_start, node_count, order, v0, e1, e2, eps, planes, stack)
     if tr >= 0:
         lu = tri_uv[tr, 0, 0] + ur * (tri_uv[tr, 1, 0] - tri_uv[tr, 0, 0]) + vr * (tri_uv[tr, 2, 0] - tri_uv[tr, 0, 0])
         lv = tri_uv[tr, 0, 1] + ur * (tri_uv[tr, 1, 1] - tri_uv[tr, 0, 1]) + vr * (tri_uv[tr, 2, 1] - tri_uv[tr, 0, 1])
@@ -149,7 +153,7 @@ def _grown(rows, n, width):
 @kernel(error_model="numpy")
 def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec,
                     tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order,
-                    v0, e1, e2, eps, receiver_of_tri, texel_size, tolerance, relative, coarse_texels, max_depth, density,
+                    v0, e1, e2, eps, planes, receiver_of_tri, texel_size, tolerance, relative, coarse_texels, max_depth, density,
                     parallel, top_rec, top_uv, top_fac):
     """The landed part of the refinement (see the module doc) of emitters [e_first, e_last)
     from the start grid ``base`` (k, 3, 2) at depth ``depth0``, points on the 1 / ``dyadic``
@@ -231,7 +235,7 @@ def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, r
                     continue
                 r, lu, lv, fac = _trace_uv(e, u, v, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p,
                                            tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count,
-                                           order, v0, e1, e2, eps, bvh_stack)
+                                           order, v0, e1, e2, eps, planes, bvh_stack)
                 traced += 1
                 p_rec[k], p_uv[k, 0], p_uv[k, 1], p_fac[k] = r, lu, lv, fac
                 if n_used < size // 2:
@@ -267,6 +271,12 @@ def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, r
                     dev = max(dev, abs(p_uv[3 + c, a] - 0.5 * (p_uv[c, a] + p_uv[c2, a])))
                     edge = max(edge, abs(p_uv[c, a] - p_uv[c2, a]))
             tex = texel_size[robj[0]]
+            if planes.shape[0]:  # beyond an edge of a flat receiver's region: lands nowhere (receiver_planes)
+                for k in range(6):
+                    pu[k] = p_uv[k, 0]
+                    pv[k] = p_uv[k, 1]
+                if beyond_region(planes, robj[0], pu, pv, 2.0 * dev + tex):
+                    continue
             rel = relative
             if depth < 0:
                 rel = relative * min(1.0, (COARSE_LINEAR_TEXELS * tex / max(edge, 1e-300)) ** 2)
@@ -324,9 +334,9 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
                   coarse_texels, max_depth, density, parallel, mesh_points=None):
     """:func:`refine_emitters` over emitters [0, ``n_emitters``) in runs of
     ``EMITTERS_PER_CALL`` on the solver's threads, joined in emitter order.  ``trace_args``:
-    the arguments of ``trace_chain_points`` from ``x0`` to ``eps`` (x0, t1_of, bounces,
+    the arguments of ``trace_chain_points`` from ``x0`` to ``planes`` (x0, t1_of, bounces,
     refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, the BVH's
-    9 arrays, eps).  Returns dict: the final sub-triangles' emitter, receiver, depth,
+    9 arrays, eps, planes).  Returns dict: the final sub-triangles' emitter, receiver, depth,
     deviation, bary, uv, mid_uv (m, 3, 2) and factor (m, 6); the handed-back ones' emitter,
     depth, inherited image scale, bary, and rec (scene triangle, -1 lost), uv, fac of its 6
     points (corners, then edge midpoints 01, 12, 20); and the points traced.  When ``base`` is

@@ -192,14 +192,62 @@ static int scatter(double3 *dir, double3 n, double3 g, int refract, double eta) 
     return 1;
 }
 
+// receiver_planes.py (rows of PLANE_WIDTH doubles; see there)
+#define PLANE_HEAD 16
+#define PLANE_WIDTH (PLANE_HEAD + 3 * 32)
+
+// receiver_planes.py region_value: the smallest signed distance of (u, v) to the region's edges
+static double region_value(__global const double *row, double u, double v) {
+    double lo = INFINITY;
+    int k_n = (int)row[14];
+    for (int k = 0; k < k_n; k++) {
+        __global const double *h = row + PLANE_HEAD + 3 * k;
+        lo = fmin(lo, h[0] * u + h[1] * v + h[2]);
+    }
+    return lo;
+}
+
+// receiver_planes.py extended_landing: the plane row whose front the ray crosses nearest (t > eps)
+// outside its receiver's UV region, or -1
+static int extended_landing(__global const double *planes, int n_planes, double3 x, double3 d, double eps) {
+    int best = -1;
+    double best_t = INFINITY;
+    for (int p = 0; p < n_planes; p++) {
+        __global const double *row = planes + PLANE_WIDTH * p;
+        double den = row[0] * d.x + row[1] * d.y + row[2] * d.z;
+        if (!(den < 0.0)) continue;
+        double t = (row[3] - (row[0] * x.x + row[1] * x.y + row[2] * x.z)) / den;
+        if (!(t > eps && t < best_t)) continue;
+        double hx = x.x + t * d.x, hy = x.y + t * d.y, hz = x.z + t * d.z;
+        double u = row[4] * hx + row[5] * hy + row[6] * hz + row[7];
+        double v = row[8] * hx + row[9] * hy + row[10] * hz + row[11];
+        double value = region_value(row, u, v);
+        if (value < 0.0 && value >= -row[15]) {
+            best = p;
+            best_t = t;
+        }
+    }
+    return best;
+}
+
 // forward_image.py _land: the closest hit must be the front of a receiver; its triangle (or -1),
-// barycentrics and cos_shading / cos_geometric there
+// barycentrics and cos_shading / cos_geometric there; a ray landing on none but crossing a flat
+// receiver's plane outside its region lands there, extended (factor 1)
 static long land(const Bvh *B, __global const long *tri_rec, __global const double *tri_p,
-                 __global const double *tri_n, double3 x, double3 d, long prev, double eps, double *ur, double *vr,
-                 double *c) {
+                 __global const double *tri_n, double3 x, double3 d, long prev, double eps,
+                 __global const double *planes, int n_planes, double *ur, double *vr, double *c) {
     double th;
     long tr = ray_closest(B, x.x, x.y, x.z, d.x, d.y, d.z, eps, INFINITY, prev, &th);
-    if (tr < 0 || tri_rec[tr] < 0) return -1;
+    if (tr < 0 || tri_rec[tr] < 0) {
+        int p = extended_landing(planes, n_planes, x, d, eps);
+        if (p < 0) return -1;
+        long tp = (long)planes[PLANE_WIDTH * p + 12];
+        double2 b = plane_barycentrics(tri_p, tp, x, d);
+        *ur = b.x;
+        *vr = b.y;
+        *c = 1.0;
+        return tp;
+    }
     double2 b = plane_barycentrics(tri_p, tr, x, d);
     double3 h, n, g;
     int ok = bary_point(tri_p, tri_n, tr, b.x, b.y, &h, &n, &g);
@@ -217,7 +265,8 @@ static long land(const Bvh *B, __global const long *tri_rec, __global const doub
 static long trace_one(const Bvh *B, double x0x, double x0y, double x0z, long t1, double u1, double v1, int bounces,
                       int refract1, int refract2, __global const uchar *second_ok, __global const long *tri_rec,
                       __global const double *tri_p, __global const double *tri_n, __global const double *tri_ior,
-                      __global const long *tri_role, double eps, long *t2, double *ur, double *vr, double *fac) {
+                      __global const long *tri_role, double eps, __global const double *planes, int n_planes,
+                      long *t2, double *ur, double *vr, double *fac) {
     *t2 = -1;
     *fac = 0.0;
     double3 x, nrm, g;
@@ -245,7 +294,7 @@ static long trace_one(const Bvh *B, double x0x, double x0y, double x0z, long t1,
         last = s2;
     }
     double c = 0.0;
-    long tr = land(B, tri_rec, tri_p, tri_n, x, d, last, eps, ur, vr, &c);
+    long tr = land(B, tri_rec, tri_p, tri_n, x, d, last, eps, planes, n_planes, ur, vr, &c);
     *fac = w * c;  // c = 0 for a lost landing, as _land's
     return tr;
 }
@@ -260,7 +309,8 @@ __kernel void trace_chain_points(__global const long *emitter, __global const do
                                  __global const long *node_child, __global const long *node_start,
                                  __global const long *node_count, __global const long *order,
                                  __global const double *bv0, __global const double *be1, __global const double *be2,
-                                 const double eps, const int n, __global long *out_t2, __global long *out_rec,
+                                 const double eps, __global const double *planes, const int n_planes,
+                                 const int n, __global long *out_t2, __global long *out_rec,
                                  __global double *out_uv, __global double *out_factor) {
     int i = get_global_id(0);
     if (i >= n) return;
@@ -268,7 +318,8 @@ __kernel void trace_chain_points(__global const long *emitter, __global const do
     long e = emitter[i], t2;
     double ur = 0.0, vr = 0.0, fac;
     long tr = trace_one(&B, x0[3 * e], x0[3 * e + 1], x0[3 * e + 2], t1_of[e], u1[i], v1[i], bounces, refract1, refract2,
-                        second_ok, tri_rec, tri_p, tri_n, tri_ior, tri_role, eps, &t2, &ur, &vr, &fac);
+                        second_ok, tri_rec, tri_p, tri_n, tri_ior, tri_role, eps, planes, n_planes, &t2, &ur, &vr,
+                        &fac);
     out_t2[i] = t2;
     out_rec[i] = tr;
     out_factor[i] = fac;

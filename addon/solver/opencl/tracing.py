@@ -15,6 +15,7 @@ import weakref
 
 import numpy as np
 
+from ..geometry.receiver_planes import no_planes
 from .backend import _context
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "trace.cl")
@@ -59,20 +60,24 @@ def device_scene(index, tri_p, tri_n, tri_ior, tri_role, bvh_args):
 
 class OpenCLPointTracer:
     """One forward-flux pass on OpenCL device ``index``: the scene (:func:`device_scene`), the
-    receiver tables (tri_rec, tri_uv), the second-vertex mask and the emitters (light points
+    receiver tables (tri_rec, tri_uv), the second-vertex mask, the flat receivers' ``planes``
+    (:mod:`~addon.solver.geometry.receiver_planes`; None: none) and the emitters (light points
     x0, first triangles t1_of).  :meth:`trace` takes the arguments and fills the outputs of
     ``trace_chain_points`` for one batch of points."""
 
     def __init__(self, index, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role,
-                 bvh_args, x0, t1_of, eps):
+                 bvh_args, x0, t1_of, eps, planes=None):
         self.device, self.kernel = _kernel(index)
         d = self.device
         self.local = d.work_group(self.kernel)
         self.name = d.label
         self.scene = device_scene(index, tri_p, tri_n, tri_ior, tri_role, bvh_args)
-        self.receivers = kept_buffers(index, "receivers", (tri_rec, tri_uv, second_ok),
+        planes = no_planes() if planes is None else planes
+        self.receivers = kept_buffers(index, "receivers", (tri_rec, tri_uv, second_ok, planes),
                                       lambda a: [_float_or_int64(a[0]), _float_or_int64(a[1]),
-                                                 np.ascontiguousarray(a[2], dtype=np.uint8)])
+                                                 np.ascontiguousarray(a[2], dtype=np.uint8),
+                                                 np.ascontiguousarray(a[3], dtype=np.float64)])
+        self.n_planes = np.int32(planes.shape[0])
         self.scalars = (np.int32(bounces), np.int32(1 if refract1 else 0), np.int32(1 if refract2 else 0))
         self.eps = np.float64(eps)
         self.emitters = d.upload((np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(t1_of, dtype=np.int64)))
@@ -87,10 +92,11 @@ class OpenCLPointTracer:
                   for k, a, dt in (("e", e, np.int64), ("u", u, np.float64), ("v", v, np.float64))]
         outs = [d.buffer(f"trace_out{k}", a.nbytes) for k, a in enumerate((out_t2, out_rec, out_uv, out_factor))]
         x0, t1_of = self.emitters
-        tri_rec, tri_uv, second_ok = self.receivers
+        tri_rec, tri_uv, second_ok, planes = self.receivers
         tri_p, tri_n, tri_ior, tri_role = self.scene[:4]
         d.launch(self.kernel, "kernel trace_chain_points", n, self.local, *inputs, x0, t1_of, *self.scalars, second_ok,
-                 tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *self.scene[4:], self.eps, np.int32(n), *outs)
+                 tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *self.scene[4:], self.eps, planes, self.n_planes, np.int32(n),
+                 *outs)
         for a, b in zip((out_t2, out_rec, out_uv, out_factor), outs):
             d.read(a, b, wait=False)
         d.queue.finish()

@@ -73,3 +73,23 @@ def test_bernstein_roots_match_numpy():
             touch = abs(_exact_value(b, g)) <= 1e-9 * np.polyval(np.abs(c)[::-1], g)
             assert crossing or touch, (trial, g, real, cplx)
     assert checked > 200
+
+
+def test_roots_from_the_power_form_are_polished_on_the_bernstein_form():
+    """A root the power-form fallback found to ~1e-9 (cancellation near a close complex pair)
+    comes back to the Bernstein form's digits; at a near-touch (a minimum just above zero, no
+    crossing) the polish only ever lowers |p| and stays in its piece."""
+    from addon.solver.polynomials.roots import _polish_on_bernstein
+
+    root = 0.591291002316
+    c = np.real(np.polynomial.polynomial.polyfromroots([root, 0.27, 1.7, 0.5695 + 0.002j, 0.5695 - 0.002j, 2.5]))
+    b = _to_bernstein(c)
+    w, dw = np.zeros(32), np.zeros(32)
+    bernstein_weights(b, 6, w, dw)
+    x = _polish_on_bernstein(w, dw, 6, root + 2e-9, 0.58, 0.6, 1e-13)
+    assert abs(x - root) <= 1e-11  # from 2e-9: the digits the Bernstein form holds
+    assert _exact_sign(b, x - 1e-11) * _exact_sign(b, x + 1e-11) < 0
+    touch = _to_bernstein(np.real(np.polynomial.polynomial.polyfromroots([0.4 + 1e-4j, 0.4 - 1e-4j, 1.5])))
+    bernstein_weights(touch, 3, w, dw)
+    y = _polish_on_bernstein(w, dw, 3, 0.4003, 0.3, 0.5, 1e-13)
+    assert 0.3 <= y <= 0.5 and abs(_exact_value(touch, y)) <= abs(_exact_value(touch, 0.4003))

@@ -22,6 +22,7 @@
 #define CHAIN_SIZE ((MAXD + 1) * (MAXD + 2) / 2)
 #define CH(k) (chain + (k) * ((k) + 1) / 2)
 #define NEWTON_ITERATIONS 64
+#define POLISH_ON_BERNSTEIN_STEPS 4
 #define NEWTON_QUADRATIC_RATIO 1e-3
 #define POLISH_STEPS 40
 #define V_MARGIN 1e-6
@@ -373,6 +374,32 @@ static double solve_monotone_bernstein(const double *w, const double *dw, int de
     return x;
 }
 
+// roots.py _polish_on_bernstein: Newton steps on the Bernstein form while each is shorter than the
+// one before, stays in [lo, hi] and lowers |p|
+static double polish_on_bernstein(const double *w, const double *dw, int deg, double x, double lo, double hi,
+                                  double tol) {
+    double2 fd = bernstein_value_and_derivative(w, dw, deg, x);
+    double f = fd.x, df = fd.y;
+    double best = x, best_f = fabs(f), previous = INFINITY;
+    for (int it = 0; it < POLISH_ON_BERNSTEIN_STEPS; ++it) {
+        if (df == 0.0 || best_f == 0.0) break;
+        double step = f / df;
+        if (!(fabs(step) < previous)) break;
+        double xn = x - step;
+        if (!(xn >= lo && xn <= hi)) break;
+        fd = bernstein_value_and_derivative(w, dw, deg, xn);
+        f = fd.x;
+        df = fd.y;
+        if (!(fabs(f) < best_f)) break;
+        best = xn;
+        best_f = fabs(f);
+        previous = fabs(step);
+        x = xn;
+        if (previous <= tol) break;
+    }
+    return best;
+}
+
 // roots.py roots_in_unit_interval_bernstein: the isolation of roots_in_unit_interval started
 // from Bernstein coefficients bern[0..deg] (Newton on the Bernstein form; pieces still ambiguous
 // after DEPTH halvings go to the derivative isolation on the power form, written to `power`).
@@ -432,6 +459,8 @@ static int roots_in_unit_interval_bernstein(const double *bern, int deg, double 
             }
             int convex = second_differences_one_sign(row, deg, CONVEX_MARGIN);
             int n_piece = derivative_isolation(power, deg, lo, hi, tol, touch, chain, critical, found, piece, convex, 1);
+            if (n_piece && !have_weights) { bernstein_weights(src, deg, src_w, src_dw); have_weights = 1; }
+            for (int j = 0; j < n_piece; ++j) piece[j] = polish_on_bernstein(src_w, src_dw, deg, piece[j], lo, hi, tol);
             n_out = append_roots(out, n_out, piece, n_piece, tol);
             continue;
         }

@@ -18,6 +18,7 @@ import numpy as np
 from ..runtime.jit import kernel
 
 MAX_DEGREE = 24  # scratch arrays are (MAX_DEGREE + 1) wide; the one-bounce resultant has 12.
+POLISH_ON_BERNSTEIN_STEPS = 4  # Newton steps on the Bernstein form for a root isolated on the power form
 NEWTON_ITERATIONS = 64  # bisection fallback halves the bracket: 64 steps reach any float64 width.
 NEWTON_QUADRATIC_RATIO = 1e-3  # a Newton step this much shorter than the one before: quadratic convergence
 
@@ -520,6 +521,37 @@ def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_start, x_tolerance):
     return x
 
 
+@kernel(inline="always")
+def _polish_on_bernstein(w, dw, deg, x, lo, hi, x_tolerance):
+    """Newton steps from ``x`` on the Bernstein form (weights of :func:`bernstein_weights`),
+    kept while each step is shorter than the one before, stays in [lo, hi] and lowers |p|:
+    a root found on the power form to the digits its conditioning left, brought to those of
+    the Bernstein form; a near-touch (no crossing), where Newton does not contract, stays put."""
+    f, df = bernstein_value_and_derivative(w, dw, deg, x)
+    best = x
+    best_f = abs(f)
+    previous = math.inf
+    for _ in range(POLISH_ON_BERNSTEIN_STEPS):
+        if df == 0.0 or best_f == 0.0:
+            break
+        step = f / df
+        if not abs(step) < previous:
+            break
+        x_next = x - step
+        if not (x_next >= lo and x_next <= hi):
+            break
+        f, df = bernstein_value_and_derivative(w, dw, deg, x_next)
+        if not abs(f) < best_f:
+            break
+        best = x_next
+        best_f = abs(f)
+        previous = abs(step)
+        x = x_next
+        if previous <= x_tolerance:
+            break
+    return best
+
+
 @kernel(refcounted=False)
 def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, chain, lists, stack, power, out):
     """All real roots in [0, 1] of the polynomial with Bernstein coefficients ``bern[0..deg]``,
@@ -605,8 +637,13 @@ def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, ch
             convex = _second_differences_one_sign(row, deg, CONVEX_MARGIN)
             n_piece = _derivative_isolation(power, deg, lo, hi, x_tolerance, touch_tolerance, chain, lists, lists[1],
                                             convex, True)
+            if n_piece and not have_weights:
+                bernstein_weights(src, deg, src_w, src_dw)
+                have_weights = True
             for j in range(n_piece):
-                x = lists[1, j]
+                # the power form loses digits to cancellation near clustered roots: polished
+                # on the Bernstein form the root regains them
+                x = _polish_on_bernstein(src_w, src_dw, deg, lists[1, j], lo, hi, x_tolerance)
                 if n_out == 0 or x - out[n_out - 1] > x_tolerance:
                     out[n_out] = x
                     n_out += 1

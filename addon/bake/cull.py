@@ -825,33 +825,6 @@ def sphere_tree(tri_p, depth=REACH_DEPTH, pieces=REACH_PIECES):
     return centre, radius
 
 
-@parallel_range("side_req", REACH_BLOCK)
-def _reach_tree(part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c, node_r, keep, first, last):
-    """keep[t] = some leaf of the sphere tree passes the cone test of emitter t (depth first,
-    a node that fails prunes its subtree).  The stack holds at most depth + 1 nodes."""
-    n_nodes = node_r.shape[0]
-    n = side_req.shape[0]
-    for block in range(first, last):
-        stack = np.empty(64, dtype=np.int64)  # one per block of emitters, not per emitter
-        for t in range(block * REACH_BLOCK, min(n, (block + 1) * REACH_BLOCK)):
-            stack[0] = 0
-            top = 1
-            while top > 0:
-                top -= 1
-                k = stack[top]
-                if node_r[k] < 0.0:
-                    continue
-                if not _tile_ok(t, k, part_start, part_c, part_r, part_d, part_t, tri_ng, tri_p0, side_req, node_c,
-                                node_r):
-                    continue
-                if 2 * k + 2 >= n_nodes:  # a leaf
-                    keep[t] = True
-                    break
-                stack[top] = 2 * k + 2
-                stack[top + 1] = 2 * k + 1
-                top += 2
-
-
 def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p, tree=None):
     """Mask (T1,) of the first-vertex caster triangles whose scattered light can reach a target
     triangle: the receivers' triangles for a one-bounce chain, the second-vertex casters' for
@@ -873,11 +846,90 @@ def first_casters_reaching(chain, x0, tri_p1, tri_n1, eta1, target_p, tree=None)
     x0 = np.asarray(x0, dtype=np.float64)
     x0 = np.array(np.broadcast_to(x0.reshape(-1, 3), (T1, 3)))
     eta1 = np.array(np.broadcast_to(np.asarray(eta1, dtype=np.float64), (T1,)))
-    em = one_bounce_emitters(chain[0], x0, tri_p1, np.ascontiguousarray(tri_n1, dtype=np.float64), eta1)
+    side, cap_d, cap_t = scatter_caps(chain[0], x0, tri_p1, np.ascontiguousarray(tri_n1, dtype=np.float64), eta1)
     centre, radius = sphere_tree(target_p) if tree is None else tree
-    _reach_tree(em.part_start, em.part_c, em.part_r, em.part_d, em.part_t, em.tri_ng, em.tri_p0, em.side_req, centre, radius,
-                keep)
+    _reach_casters(tri_p1, side if chain[0] == "R" else -side, cap_d, cap_t, centre, radius, keep)
     return keep
+
+
+@kernel(inline="always")
+def _sphere_in_cap(dx, dy, dz, cos_t, sin_t, cx, cy, cz, reach):
+    """:func:`_cap_meets` without trigonometry, for a cap of radius theta given as cos_t, sin_t
+    of theta + ANGLE_MARGIN (< pi): the sphere at c (relative) of radius ``reach`` is seen
+    within the cap when angle(d, c) <= theta + ANGLE_MARGIN + asin(reach / |c|), i.e. d . c >=
+    |c| cos(theta + ANGLE_MARGIN + beta) = |c| (cos_t cos(beta) - sin_t sin(beta)), the sum of
+    the angles being below pi (else every direction)."""
+    dist = math.sqrt(cx * cx + cy * cy + cz * cz)
+    if not dist > reach:
+        return True
+    sb = reach / dist
+    cb = math.sqrt(max(0.0, 1.0 - sb * sb))
+    if sin_t * cb + cos_t * sb <= 0.0:
+        return True  # theta + beta >= pi (its sine <= 0 on [0, 3 pi / 2)): every direction
+    return dx * cx + dy * cy + dz * cz >= dist * (cos_t * cb - sin_t * sb) - 1e-12 * dist
+
+
+@parallel_range("side_req", REACH_BLOCK)
+def _reach_casters(tri_p, side_req, cap_d, cap_t, node_c, node_r, keep, first, last):
+    """keep[t] = some leaf of the sphere tree passes the cone test of caster t: the side rule of
+    its plane (``side_req`` +1 / -1, 0 no path) and the cap (``cap_d``, ``cap_t``) of its scattered
+    directions from its bounding sphere (centroid, farthest corner) meeting the node's sphere
+    (:func:`_sphere_in_cap`), depth first, a node that fails pruning its subtree, the child
+    nearer the cap's axis descended first.  The stack holds at most 2 (depth + 1) nodes."""
+    n_nodes = node_r.shape[0]
+    n = side_req.shape[0]
+    for block in range(first, last):
+        stack = np.empty(128, dtype=np.int64)
+        for t in range(block * REACH_BLOCK, min(n, (block + 1) * REACH_BLOCK)):
+            req = side_req[t]
+            if req == 0.0:
+                continue
+            p0x, p0y, p0z = tri_p[t, 0, 0], tri_p[t, 0, 1], tri_p[t, 0, 2]
+            qx = (p0x + tri_p[t, 1, 0] + tri_p[t, 2, 0]) / 3.0
+            qy = (p0y + tri_p[t, 1, 1] + tri_p[t, 2, 1]) / 3.0
+            qz = (p0z + tri_p[t, 1, 2] + tri_p[t, 2, 2]) / 3.0
+            rt = 0.0
+            for j in range(3):
+                ex, ey, ez = tri_p[t, j, 0] - qx, tri_p[t, j, 1] - qy, tri_p[t, j, 2] - qz
+                rt = max(rt, math.sqrt(ex * ex + ey * ey + ez * ez))
+            rt = rt * (1.0 + 1e-12) + 1e-300
+            e1x, e1y, e1z = tri_p[t, 1, 0] - p0x, tri_p[t, 1, 1] - p0y, tri_p[t, 1, 2] - p0z
+            e2x, e2y, e2z = tri_p[t, 2, 0] - p0x, tri_p[t, 2, 1] - p0y, tri_p[t, 2, 2] - p0z
+            ngx, ngy, ngz, _lg = _unit3(e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x)
+            theta = cap_t[t] + ANGLE_MARGIN
+            every = cap_t[t] >= NO_CONE or theta >= math.pi
+            cos_t, sin_t = math.cos(theta), math.sin(theta)
+            dx, dy, dz = cap_d[t, 0], cap_d[t, 1], cap_d[t, 2]
+            stack[0] = 0
+            top = 1
+            while top > 0:
+                top -= 1
+                k = stack[top]
+                if node_r[k] < 0.0:
+                    continue
+                # side: the node's sphere must reach the required side of the caster's plane
+                sd = (node_c[k, 0] - p0x) * ngx + (node_c[k, 1] - p0y) * ngy + (node_c[k, 2] - p0z) * ngz
+                if req != 2.0 and req * sd <= -node_r[k]:
+                    continue
+                if not every and not _sphere_in_cap(dx, dy, dz, cos_t, sin_t, node_c[k, 0] - qx, node_c[k, 1] - qy,
+                                                    node_c[k, 2] - qz, rt + node_r[k]):
+                    continue
+                if 2 * k + 2 >= n_nodes:  # a leaf
+                    keep[t] = True
+                    break
+                a, b = 2 * k + 1, 2 * k + 2
+                ax, ay, az = node_c[a, 0] - qx, node_c[a, 1] - qy, node_c[a, 2] - qz
+                bx, by, bz = node_c[b, 0] - qx, node_c[b, 1] - qy, node_c[b, 2] - qz
+                la = math.sqrt(ax * ax + ay * ay + az * az)
+                lb = math.sqrt(bx * bx + by * by + bz * bz)
+                # the child nearer the cap's axis on top (popped first): a reaching caster stops sooner
+                if (dx * ax + dy * ay + dz * az) * lb >= (dx * bx + dy * by + dz * bz) * la:
+                    stack[top] = b
+                    stack[top + 1] = a
+                else:
+                    stack[top] = a
+                    stack[top + 1] = b
+                top += 2
 
 
 class OneBounceCull(TupleCull):

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from addon.bake import cull
 from addon.bake.cull import OneBounceCull, scatter_caps, scatter_caps_numpy
 from addon.bake.pipeline import BakeSettings, bake
 from addon.solver import solve_tuples
@@ -140,3 +141,32 @@ def test_scatter_caps_kernel_equals_the_numpy_caps(chain):
         capped = theta_np < 4.0
         assert 0.2 * n < capped.sum() < n  # both kinds present
         np.testing.assert_allclose(d[capped], d_np[capped], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("case", ["sheet T", "ring R", "sphere T"])
+def test_reach_kernel_decides_as_the_emitters_cone_test(case):
+    """first_casters_reaching's kernel (sphere, plane and the cap's cosine per caster, no
+    trigonometry per node, nearer child first) keeps exactly the casters for which some leaf
+    of the target sphere tree passes the Emitters' cone test (_tile_ok, the path-points cull's)
+    at every node down to it: a brute-force descent over the whole tree here."""
+    from fixtures.bake_scenes import glass_sphere_scene, ring_scene, wavy_sheet
+
+    sc = {"sheet T": lambda: wavy_sheet(3, 64, n=24), "ring R": lambda: ring_scene(64),
+          "sphere T": lambda: glass_sphere_scene(resolution=64)}[case]()
+    chain = case[-1]
+    cas, rec = np.flatnonzero(sc.tri_role > 0), np.flatnonzero(sc.tri_role == 0)
+    x0 = np.tile(np.asarray(sc.lights[0].position, float), (cas.size, 1))
+    P, N, eta = sc.tri_p[cas], sc.tri_n[cas], sc.tri_ior[cas]
+    centre, radius = cull.sphere_tree(sc.tri_p[rec], depth=4)
+    got = cull.first_casters_reaching(chain, x0, P, N, eta, sc.tri_p[rec], (centre, radius))
+    em = cull.one_bounce_emitters(chain, x0, P, N, eta)
+    args = (em.part_start, em.part_c, em.part_r, em.part_d, em.part_t, em.tri_ng, em.tri_p0, em.side_req, centre, radius)
+
+    def reaches(t, k):
+        if radius[k] < 0 or not cull._tile_ok(t, k, *args):
+            return False
+        return 2 * k + 2 >= radius.size or reaches(t, 2 * k + 1) or reaches(t, 2 * k + 2)
+
+    want = np.array([reaches(t, 0) for t in range(cas.size)])
+    assert 0 < want.sum()
+    np.testing.assert_array_equal(got, want)

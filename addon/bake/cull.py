@@ -45,6 +45,7 @@ import math
 import numpy as np
 
 from ..solver.runtime.jit import kernel, parallel_range
+from .scene import point_bounds
 
 ANGLE_MARGIN = 1e-6
 NO_CONE = 4.0  # > pi: "keep every direction"
@@ -805,7 +806,7 @@ def sphere_tree(tri_p, depth=REACH_DEPTH, pieces=REACH_PIECES):
     radius = np.full(n_nodes, -1.0)
     if tri_p.shape[0] == 0:
         return centre, radius
-    lo, hi = tri_p.reshape(-1, 3).min(axis=0), tri_p.reshape(-1, 3).max(axis=0)
+    lo, hi = point_bounds(tri_p.reshape(-1, 3))
     tri_p = _split_large(tri_p, 0.5 * np.linalg.norm(hi - lo) / 32.0, pieces)
     c, r = tri_spheres(tri_p)
     groups = {0: np.arange(c.shape[0])}

@@ -21,7 +21,8 @@ and border kernels whole, which trace as they decide), ``flux.*`` (the flux of t
 sub-triangles: centroid trace, light visibility, corner densities, splat).
 Forms: ``fast`` (the default estimator) and ``reference`` (``ForwardFlux.reference``: the
 numpy form without coarse levels, every point traced per sub-triangle, texel areas and
-supersample counts measured every frame: the estimator as it was before the fast form), run in
+supersample counts measured every frame, a receiver's edge cut by bisection (no flat-receiver
+extension): the estimator as it was before the fast form), run in
 the same process one after the other, so their ratio is measured under the same load; ``rel. diff`` is the relMSE of the fast textures
 against the reference ones (last frame, all receivers; ``tests/fixtures/checks.rel_mse``: the
 mean over lit texels of (fast - ref)² / (ref² + 1e-2 mean(ref)²)).
@@ -72,13 +73,17 @@ def run_case(key, frames, form, scene_at):
     from addon.bake.estimators.forward_flux import ForwardFlux
     from addon.bake.pipeline import BakeSettings, bake
 
+    from addon.bake.estimators import forward_images
+
     name, res, _make = CASES[key]
     ForwardFlux.reference = form == "reference"
+    forward_images.EXTEND_FLAT_RECEIVERS = form != "reference"
     settings = BakeSettings(resolution=res, estimator="forward-flux")
     try:
         return _run(key, name, res, frames, form, scene_at, settings, bake)
     finally:
         ForwardFlux.reference = False
+        forward_images.EXTEND_FLAT_RECEIVERS = True
 
 
 def _run(key, name, res, frames, form, scene_at, settings, bake):
@@ -113,7 +118,8 @@ def table(rows):
     labels = dict(zip(TABLE, ("image", "trace", "flux", "centre", "vis.", "density", "splat")))
     lines = [f"{os.cpu_count()} cores, {numba.config.NUMBA_NUM_THREADS} Numba threads, shared (compare forms within a case); "
              f"{time.strftime('%Y-%m-%d')}. `bake()` s/frame after a warm-up frame. reference = forward-flux before (numpy "
-             "terms, no coarse levels, each point traced per sub-triangle, texel areas / sample counts every frame); fast = "
+             "terms, no coarse levels, each point traced per sub-triangle, texel areas / sample counts every frame, receiver "
+             "edges bisected); fast = "
              "the default. µs/sub = (image + flux) / sub-triangles; rel. diff = relMSE fast vs reference. trace ⊂ image; "
              "centre, vis., density, splat ⊂ flux; other: BVH, plan, raster, texel areas, pad.", "",
              "| case | texels | form | s/frame | sub-triangles | points traced | µs/sub | rel. diff | "

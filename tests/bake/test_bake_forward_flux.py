@@ -195,6 +195,7 @@ def test_flat_floor_extended_beyond_its_edge_bakes_as_the_bisected_border(monkey
     assert a.max() > 0 and pa["border"] > 100
     assert rel_mse(b, a) <= 1e-6
     assert pb["points_traced"] <= 0.7 * pa["points_traced"] and pb["border"] == 0
+    assert pb["extended_receivers"] == ["Floor"] and pa["extended_receivers"] == []
     lo, hi = (int(round(96 * x)) for x in uv_box)
     outside = np.ones((96, 96), dtype=bool)
     outside[lo:hi, lo:hi] = False

@@ -118,7 +118,7 @@ def _add_report(total, chunk):
             a, b = list(total[k]), list(v)
             n = max(len(a), len(b))
             out[k] = [(a[i] if i < len(a) else 0) + (b[i] if i < len(b) else 0) for i in range(n)]
-        elif k not in ("reach", "device"):
+        elif k not in ("reach", "device", "extended_receivers"):  # the same for every chunk
             out[k] = total[k] + v
     out["chunks"] = total["chunks"] + 1
     return out

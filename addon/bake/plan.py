@@ -33,7 +33,7 @@ from .context import EnergyLedger
 from .estimators.path_points import chain_status
 from .checks import lights_inside
 from .lights import sample_light
-from .probe import probe_chain
+from .probe import PROBE_POINTS, PROBE_POINTS_TWO_BOUNCE, probe_chain
 from .scene import ROLE_BOTH, ROLE_REFLECT, ROLE_REFRACT
 
 CHAINS = ("R", "T", "RR", "RT", "TR", "TT")
@@ -220,7 +220,9 @@ def plan_steps(ctx):
         yield k / max(1, len(items)), f"planning: probe {it.chain} ({k + 1}/{len(items)})"
         if it.status == "baked":
             second = it.vertices[1] if len(it.vertices) > 1 else np.zeros(0, dtype=np.int64)
-            points += probe_chain(ctx, it.light, centres[it.light], it.chain, it.vertices[0], second, tri_rec, tri_uv, probe)
+            budget = PROBE_POINTS_TWO_BOUNCE if len(it.chain) > 1 else PROBE_POINTS
+            points += probe_chain(ctx, it.light, centres[it.light], it.chain, it.vertices[0], second, tri_rec, tri_uv, probe,
+                                  budget)
     for it in items:
         if it.status != "baked":
             continue

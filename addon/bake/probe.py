@@ -4,7 +4,7 @@ receiver, per light and caster objects.
 For one light (its centre: one sample) and one chain, the first-vertex casters the light
 reaches are sampled at the centroids of a g x g grid of sub-triangles each (at most
 ``PROBE_POINTS`` points per light and chain: meshes with more triangles than that take every
-s-th triangle, weighted s), and each point is traced forward exactly through the chain
+s-th triangle, weighted s; ``PROBE_POINTS_TWO_BOUNCE`` for a two-bounce chain), and each point is traced forward exactly through the chain
 (:func:`addon.solver.estimators.forward_image.trace_chain_points`: shadow ray from the light, scattering
 with the interpolated normal and the contract's side rules, closest hits, Fresnel).  A point
 that lands on a receiver carries its sub-triangle's flux, as the forward-flux estimator
@@ -23,7 +23,8 @@ from ..solver.estimators.forward_image import solid_angle, trace_chain_points
 from ..solver.geometry.receiver_planes import no_planes
 from .lights import emission_factor, light_points, lit_casters
 
-PROBE_POINTS = 1 << 15  # traced points per light and chain at most
+PROBE_POINTS = 1 << 15  # traced points per light and one-bounce chain at most
+PROBE_POINTS_TWO_BOUNCE = 1 << 13  # ... and two-bounce chain (four of them per light: most of a plan's time)
 PROBE_GRID_MAX = 64  # sub-triangles per side of a caster triangle (few large triangles: a dense grid)
 
 

@@ -244,7 +244,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     triangle (G = 2^coarse), the traces of its corners and edge midpoints (01, 12, 20), used
     instead of tracing them (:func:`~addon.solver.estimators.refine_kernel.mesh_point_traces`:
     a mesh's shared points traced once; counted by the caller).
-    ``kernel_scene`` (with ``shared``): (``trace_chain_points``' arguments from x0 to eps,
+    ``kernel_scene`` (with ``shared``): (``trace_chain_points``' arguments from x0 to planes,
     parallel) of the scene ``trace`` traces, ``weight`` then being :func:`light_area_density`
     (or uniform for parallel light): the sub-triangles whose 6 points land on one receiver are
     refined by :func:`~addon.solver.estimators.refine_kernel.refine_landed` in one kernel, the
@@ -641,7 +641,7 @@ def _straight_border(trace, emitter, bary, mid, uv, muv, robj, receiver_of_tri, 
     P, P_c, X_enter (points left out where the perpendicular does not cross the border), cut
     into a fan from the first landed corner.  Rows that are not straight enough are
     returned for splitting unless ``accept_all``.  With ``kernel_scene`` (the arguments of
-    ``trace_chain_points`` from x0 to eps, of the scene ``trace`` traces) the rows are traced
+    ``trace_chain_points`` from x0 to planes, of the scene ``trace`` traces) the rows are traced
     in one kernel (:func:`~addon.solver.estimators.border_kernel.border_polygons`: the same points).
 
     Returns (emitter, bary (k, 3, 2), uv (k, 3, 2), receiver (k,), deviation (k,) 1/16 of the

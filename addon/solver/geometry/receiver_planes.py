@@ -48,8 +48,23 @@ def no_planes():
 
 def _convex_hull(points):
     """Counter-clockwise convex hull (Andrew's monotone chain) of 2-D points (n, 2), without
-    collinear points."""
-    pts = np.unique(points, axis=0)
+    collinear points.  Points strictly inside the polygon of the extreme points in 8 directions
+    (Akl-Toussaint) are no hull vertices and are left out first: a subdivided floor's UVs keep
+    only their border."""
+    pts = points
+    d = np.stack([pts[:, 0], pts[:, 0] + pts[:, 1], pts[:, 1], pts[:, 1] - pts[:, 0]], axis=1)
+    ext = pts[np.concatenate([np.argmin(d, axis=0), np.argmax(d, axis=0)])]  # angles 180..315, then 0..135
+    inside = np.ones(pts.shape[0], dtype=np.bool_)
+    edges = 0
+    for i in range(8):
+        a, b = ext[i], ext[(i + 1) % 8]
+        if np.array_equal(a, b):
+            continue
+        edges += 1
+        inside &= (b[0] - a[0]) * (pts[:, 1] - a[1]) - (b[1] - a[1]) * (pts[:, 0] - a[0]) > 0.0
+    if edges >= 3:
+        pts = pts[~inside]
+    pts = np.unique(pts, axis=0)
     if pts.shape[0] < 3:
         return pts
 

@@ -21,8 +21,10 @@ from ..lights import light_points, lit_casters
 
 IMAGE_GRID = 4  # first level: G x G sub-triangles per caster triangle
 IMAGE_TOLERANCE = 0.5  # texels: a final sub-triangle's image is straight to within this
+IMAGE_RELATIVE = 0.01  # "flux": ... and its flux density linear over it to within this (refine_image_triangles' relative)
 IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured deviation)
 IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
+IMAGE_COARSE_LINEAR = 4.0  # texels: ... those longer than this linear to IMAGE_RELATIVE x (this / their length)²
 EXTEND_FLAT_RECEIVERS = True  # rays that miss a flat receiver land on its plane, extended (False: cut by bisection; tests)
 LANDED_KERNEL = True  # Numba tracing: landed sub-triangles refined in one kernel (False: numpy levels only; tests)
 FIRST_STEP_WORK = 5000.0  # with a ChunkSizer: the first chunk, before any is timed, at most this much estimated work
@@ -117,7 +119,8 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     texel = np.array([1.0 / max(r.resolution) for r in receivers]) if receivers else np.ones(1)
     # "seeded" needs images straight to the margin only (Newton does the rest); "flux" also a
     # near-uniform density and a finely resolved border of what lands.
-    extra = dict(weight=weight) if mode == "flux" else dict(relative=np.inf, partial_depth=max_depth)
+    extra = dict(weight=weight, relative=IMAGE_RELATIVE, coarse_linear_texels=IMAGE_COARSE_LINEAR) if mode == "flux" else dict(
+        relative=np.inf, partial_depth=max_depth)
     if coarse and receivers:
         if caster_size is None:
             caster_size = caster_texels(tri_p[emit_tri], tri_p, receivers, only)

@@ -192,7 +192,8 @@ def trace_chain_points(emitter, u1, v1, x0, t1_of, bounces, refract1, refract2, 
 
 def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=4, max_depth=6, tolerance=0.5,
                            keep_lost_depth=1, partial_depth=None, relative=0.01, weight=None, coarse=0,
-                           coarse_texels=COARSE_TEXELS, shared=True, kernel_scene=None, top_points=None, planes=None):
+                           coarse_texels=COARSE_TEXELS, shared=True, kernel_scene=None, top_points=None, planes=None,
+                           coarse_linear_texels=COARSE_LINEAR_TEXELS):
     """Step 2: adaptive sub-triangles of every emitter's first triangle.
 
     ``trace(emitter, u1, v1) -> (t2, rec_tri, uv[, factor])`` traces points
@@ -223,8 +224,8 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     -coarse; G must be divisible by 2^coarse): a sub-triangle there is final when it passes
     the tests above, its density is linear even if its image is within a texel (a focus
     inside a texel: the glass sphere's, tests/bake/test_bake_caustics.py) and its image is at
-    most ``coarse_texels`` long (texels), an image longer than ``COARSE_LINEAR_TEXELS`` being
-    linear to ``relative`` x (COARSE_LINEAR_TEXELS / its length)² (a linear splat's error
+    most ``coarse_texels`` long (texels), an image longer than ``coarse_linear_texels`` being
+    linear to ``relative`` x (coarse_linear_texels / its length)² (a linear splat's error
     shows texel by texel on a large image), else it is split
     (never cut above depth 0; probed and dropped there only where ``keep_lost_depth``, which
     may be given per emitter, is negative).  The midpoint split of the coarse grid gives
@@ -291,7 +292,7 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         trace_args, parallel = kernel_scene
         kernel_clock = time.perf_counter()
         k = refine_landed(ne, base, -c0, dyadic, trace_args, receiver_of_tri, texel_size, tolerance, relative, coarse_texels,
-                          max_depth, weight is not None, parallel, top_points if whole else None)
+                          coarse_linear_texels, max_depth, weight is not None, parallel, top_points if whole else None)
         traced = k["traced"]
         kernel_seconds += time.perf_counter() - kernel_clock
         kernel_finals = k["depth"]
@@ -379,12 +380,12 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         # density nearly uniform over the image: the midpoint shift, relative to the edge,
         # measures the density's variation (zero for an affine map).
         edge = np.nan_to_num(np.abs(uv - uv[:, [1, 2, 0]]).max(axis=(1, 2)), nan=np.inf)
-        # coarse levels: images longer than COARSE_LINEAR_TEXELS must be linear to `relative`
-        # x (COARSE_LINEAR_TEXELS / length)² (a linear splat's error shows texel by texel
-        # once the image spans several texels; the mirror's projective density)
+        # coarse levels: images longer than coarse_linear_texels must be linear to `relative`
+        # x (coarse_linear_texels / length)² (a linear splat's error shows texel by texel
+        # once the image spans several texels)
         rel = relative
         if depth < 0:
-            rel = relative * np.minimum(1.0, (COARSE_LINEAR_TEXELS * tex / np.maximum(edge, 1e-300)) ** 2)
+            rel = relative * np.minimum(1.0, (coarse_linear_texels * tex / np.maximum(edge, 1e-300)) ** 2)
         with np.errstate(invalid="ignore"):  # 0 x inf where nothing landed: not linear
             linear = dev <= rel * edge
         if weight is not None and landed.any():

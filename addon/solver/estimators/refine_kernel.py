@@ -12,8 +12,8 @@ emitter, depth first, in a kernel:
   its density is linear to ``relative`` (:func:`_density_nonlinearity`: rho = w / |det J| of
   the quadratic element at the 6 points, w the light's flux per barycentric area times the
   transport factor) or its image is within a texel; above depth 0 (the coarse levels) it
-  must be linear, to ``relative`` x (COARSE_LINEAR_TEXELS / its length)² when longer than
-  that, and at most ``coarse_texels`` long; at ``max_depth`` it is final anyway;
+  must be linear whatever its size and at most ``coarse_texels`` long; at ``max_depth`` it
+  is final anyway;
   otherwise it is split in four (children (a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca));
 - a landed sub-triangle whose 6 points lie beyond one edge of a flat receiver's UV region
   (extended there, :mod:`~addon.solver.geometry.receiver_planes`) by more than twice its
@@ -44,7 +44,7 @@ import numpy as np
 from ..runtime.jit import kernel, run_calls
 from ..geometry.receiver_planes import beyond_region
 from ..geometry.rows import group_rows
-from .forward_image import COARSE_LINEAR_TEXELS, _trace_one
+from .forward_image import _trace_one
 
 TABLE_BITS = 13  # per-emitter shared-point table: 8192 slots, filled to half at most (then points are traced unshared)
 EMITTERS_PER_CALL = 128  # emitters refined by one kernel call (a unit of work for a thread)
@@ -153,8 +153,8 @@ def _grown(rows, n, width):
 @kernel(error_model="numpy")
 def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, refract1, refract2, second_ok, tri_rec,
                     tri_uv, tri_p, tri_n, tri_ior, tri_role, node_min, node_max, node_child, node_start, node_count, order,
-                    v0, e1, e2, eps, planes, receiver_of_tri, texel_size, tolerance, relative, coarse_texels, max_depth, density,
-                    parallel, top_rec, top_uv, top_fac):
+                    v0, e1, e2, eps, planes, receiver_of_tri, texel_size, tolerance, relative, coarse_texels, coarse_linear_texels,
+                    max_depth, density, parallel, top_rec, top_uv, top_fac):
     """The landed part of the refinement (see the module doc) of emitters [e_first, e_last)
     from the start grid ``base`` (k, 3, 2) at depth ``depth0``, points on the 1 / ``dyadic``
     grid.  Returns (final records (nf, F_WIDTH), handed-back records (nh, H_WIDTH), points
@@ -279,7 +279,7 @@ def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, r
                     continue
             rel = relative
             if depth < 0:
-                rel = relative * min(1.0, (COARSE_LINEAR_TEXELS * tex / max(edge, 1e-300)) ** 2)
+                rel = relative * min(1.0, (coarse_linear_texels * tex / max(edge, 1e-300)) ** 2)
             linear = dev <= rel * edge
             if linear and density:
                 for k in range(6):
@@ -331,7 +331,7 @@ def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, r
 
 
 def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri, texel_size, tolerance, relative,
-                  coarse_texels, max_depth, density, parallel, mesh_points=None):
+                  coarse_texels, coarse_linear_texels, max_depth, density, parallel, mesh_points=None):
     """:func:`refine_emitters` over emitters [0, ``n_emitters``) in runs of
     ``EMITTERS_PER_CALL`` on the solver's threads, joined in emitter order.  ``trace_args``:
     the arguments of ``trace_chain_points`` from ``x0`` to ``planes`` (x0, t1_of, bounces,
@@ -352,7 +352,8 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
         top, top_traced = mesh_point_traces(int(n_emitters), trace_args)
     fixed = (base, int(depth0), int(dyadic)) + tuple(trace_args) + (
         np.ascontiguousarray(receiver_of_tri, dtype=np.int64), np.ascontiguousarray(texel_size, dtype=np.float64),
-        float(tolerance), float(relative), float(coarse_texels), int(max_depth), bool(density), bool(parallel)) + top
+        float(tolerance), float(relative), float(coarse_texels), float(coarse_linear_texels), int(max_depth), bool(density),
+        bool(parallel)) + top
     results = run_calls(lambda r: refine_emitters(r[0], r[1], *fixed), runs)
     f = np.concatenate([r[0] for r in results]) if results else np.zeros((0, F_WIDTH))
     h = np.concatenate([r[1] for r in results]) if results else np.zeros((0, H_WIDTH))

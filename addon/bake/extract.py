@@ -115,39 +115,52 @@ def _prop(ob, key, allowed, default):
     return val
 
 
-def _mesh_arrays(ob_eval):
-    """(positions (v,3), loop triangles: vertex ids (t,3), loop ids (t,3), material index (t,),
-    corner normals (l,3), uv layers {name: (l,2)}, active uv name) of an evaluated object."""
+def _mesh_arrays(ob_eval, need_uv=True, need_material=True):
+    """(positions (v,3), loop triangles' vertex ids (t,3), their loop ids (t,3) or None, material
+    index (t,) or None, normals (k,3), each triangle corner's row of them (t,3), uv layers
+    {name: (l,2)}, active uv name) of an evaluated object.  Smooth meshes (normals on the
+    point domain) give their vertex normals, others their corner normals; the loop ids, UV
+    layers (``need_uv``) and material indices (``need_material``) are read only when asked for
+    or needed (a caster's UVs are never used; one material needs no index)."""
     me = ob_eval.to_mesh()
     try:
         me.calc_loop_triangles()
         nv, nt, nl = len(me.vertices), len(me.loop_triangles), len(me.loops)
         co = np.empty(nv * 3)
         me.vertices.foreach_get("co", co)
-        tv = np.empty(nt * 3, dtype=np.int64)
-        tl = np.empty(nt * 3, dtype=np.int64)
-        tm = np.empty(nt, dtype=np.int64)
         tri32 = np.empty(nt * 3, dtype=np.int32)
         me.loop_triangles.foreach_get("vertices", tri32)
-        tv[:] = tri32
-        me.loop_triangles.foreach_get("loops", tri32)
-        tl[:] = tri32
-        m32 = np.empty(nt, dtype=np.int32)
-        me.loop_triangles.foreach_get("material_index", m32)
-        tm[:] = m32
-        cn = np.empty(nl * 3)
-        me.corner_normals.foreach_get("vector", cn)
+        tv = tri32.astype(np.int64).reshape(-1, 3)
+        by_point = me.normals_domain == "POINT"
+        tl = None
+        if need_uv or not by_point:
+            me.loop_triangles.foreach_get("loops", tri32)
+            tl = tri32.astype(np.int64).reshape(-1, 3)
+        tm = None
+        if need_material:
+            m32 = np.empty(nt, dtype=np.int32)
+            me.loop_triangles.foreach_get("material_index", m32)
+            tm = m32.astype(np.int64)
+        if by_point:
+            normals = np.empty(nv * 3)
+            me.vertex_normals.foreach_get("vector", normals)
+            n_index = tv
+        else:
+            normals = np.empty(nl * 3)
+            me.corner_normals.foreach_get("vector", normals)
+            n_index = tl
         uvs = {}
         active = None
-        for layer in me.uv_layers:
-            uv = np.empty(nl * 2)
-            layer.uv.foreach_get("vector", uv)
-            uvs[layer.name] = uv.reshape(-1, 2)
-            if layer.active_render:
-                active = layer.name
-        if active is None and me.uv_layers.active is not None:
-            active = me.uv_layers.active.name
-        return co.reshape(-1, 3), tv.reshape(-1, 3), tl.reshape(-1, 3), tm, cn.reshape(-1, 3), uvs, active
+        if need_uv:
+            for layer in me.uv_layers:
+                uv = np.empty(nl * 2)
+                layer.uv.foreach_get("vector", uv)
+                uvs[layer.name] = uv.reshape(-1, 2)
+                if layer.active_render:
+                    active = layer.name
+            if active is None and me.uv_layers.active is not None:
+                active = me.uv_layers.active.name
+        return co.reshape(-1, 3), tv, tl, tm, normals.reshape(-1, 3), n_index, uvs, active
     finally:
         ob_eval.to_mesh_clear()
 
@@ -188,9 +201,9 @@ def _light_model(ob, matrix, warnings):
     return None
 
 
-def _world_normals(corner_normals, A, P, tl, name):
+def _world_normals(normals, A, P, n_index, name):
     """World corner normals (n, 3, 3) of triangles ``P`` (world positions) whose local corner
-    normals are ``corner_normals[tl]``, under the linear part ``A`` of the object's transform:
+    normals are ``normals[n_index]``, under the linear part ``A`` of the object's transform:
     the inverse transpose, or where ``A`` is singular (a flat plane scaled to zero thickness)
     its cofactor matrix, which maps a face's normal to the world face's normal wherever the
     world triangle has area.  Corners whose normal collapses take their world face normal.
@@ -204,15 +217,28 @@ def _world_normals(corner_normals, A, P, tl, name):
         size = float(np.abs(P).max()) if P.size else 0.0
         if not np.any(face_len > 1e-24 * max(size * size, 1e-300)):
             raise SceneError(f"object {name!r} has a degenerate (zero-scale) transform") from None
-    ncorner = corner_normals @ nmat.T
+    ncorner = normals @ nmat.T
     ln = np.linalg.norm(ncorner, axis=1, keepdims=True)
     ncorner = np.divide(ncorner, ln, out=np.zeros_like(ncorner), where=ln > 0)
-    N = ncorner[tl]
+    N = ncorner[n_index]
     collapsed = np.linalg.norm(N, axis=2) < 0.5
     if collapsed.any():
         unit = np.divide(face, face_len[:, None], out=np.zeros_like(face), where=face_len[:, None] > 0)
         N = np.where(collapsed[:, :, None], unit[:, None, :], N)
     return N
+
+
+def _surely_caster(slot_mats, override, role_cache):
+    """True when every triangle of an object with these material slots scatters (its role
+    override, or every slot's material role): it cannot be an automatic receiver."""
+    if override != "auto":
+        return override != "none"
+    for mat in slot_mats:
+        key = mat.name if mat is not None else ""
+        role = role_cache[key][0] if key in role_cache else material_role(mat, [])[0]
+        if role == ROLE_NONE:
+            return False
+    return True
 
 
 def extract_scene(depsgraph=None, resolution=256, frame=None):
@@ -244,21 +270,16 @@ def extract_scene(depsgraph=None, resolution=256, frame=None):
             continue
         if ob.type not in GEOMETRY_TYPES:
             continue
-        co, tv, tl, tm, cn, uvs, active_uv = _mesh_arrays(ob)
-        if tv.shape[0] == 0:
-            continue
-        M = np.array(inst.matrix_world, dtype=np.float64)
-        A = M[:3, :3]
-        world = co @ A.T + M[:3, 3]
-        P = world[tv]
-        N = _world_normals(cn, A, P, tl, orig.name)
-        m = P.shape[0]
-        oi = len(names)
-        name = orig.name if not inst.is_instance else f"{orig.name} [instance {oi}]"
-        names.append(name)
-        # Materials: per slot, roles auto-detected, then the object override.
         slots = list(orig.material_slots) if not inst.is_instance else list(ob.material_slots)
         slot_mats = [s.material for s in slots] or [None]
+        override = _prop(orig, "caustic_role", set(ROLE_NAMES) | {"auto"}, "auto")
+        want = _prop(orig, "caustic_receiver", {"auto", "yes", "no"}, "auto")
+        # UVs only where the object can be a receiver (a caster by every slot cannot)
+        need_uv = want == "yes" or (want == "auto" and not _surely_caster(slot_mats, override, role_cache))
+        co, tv, tl, tm, normals, n_index, uvs, active_uv = _mesh_arrays(ob, need_uv, len(slot_mats) > 1)
+        if tv.shape[0] == 0:
+            continue
+        # Materials: per slot, roles auto-detected, then the object override.
         local_role = np.zeros(len(slot_mats), dtype=np.int64)
         local_ior = np.full(len(slot_mats), 1.5)
         local_tint = np.ones((len(slot_mats), 3))
@@ -272,8 +293,16 @@ def extract_scene(depsgraph=None, resolution=256, frame=None):
                 mat_index[key] = len(materials)
                 materials.append(key)
             local_mat[k] = mat_index[key]
-        override = _prop(orig, "caustic_role", set(ROLE_NAMES) | {"auto"}, "auto")
-        mi = np.clip(tm, 0, len(slot_mats) - 1)
+        M = np.array(inst.matrix_world, dtype=np.float64)
+        A = M[:3, :3]
+        world = co @ A.T + M[:3, 3]
+        P = world[tv]
+        N = _world_normals(normals, A, P, n_index, orig.name)
+        m = P.shape[0]
+        oi = len(names)
+        name = orig.name if not inst.is_instance else f"{orig.name} [instance {oi}]"
+        names.append(name)
+        mi = np.clip(tm, 0, len(slot_mats) - 1) if tm is not None else np.zeros(m, dtype=np.int64)
         role = local_role[mi]
         if override != "auto":
             role = np.full(m, ROLE_NAMES[override], dtype=np.int64)
@@ -284,7 +313,6 @@ def extract_scene(depsgraph=None, resolution=256, frame=None):
         tri_ior.append(local_ior[mi])
         tri_tint.append(local_tint[mi])
         tri_mat.append(local_mat[mi])
-        want = _prop(orig, "caustic_receiver", {"auto", "yes", "no"}, "auto")
         is_caster = bool(np.any(role != ROLE_NONE))
         if want == "yes" or (want == "auto" and not is_caster and uvs):
             if inst.is_instance:

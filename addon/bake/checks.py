@@ -11,11 +11,15 @@
 :func:`scene_warnings` gives the warnings of the first two, one line each.
 """
 
+import hashlib
+
 import numpy as np
 
 UV_OVERLAP_GRID = 256  # sample points per side of the UV square for the overlap measure
 UV_OVERLAP_WARN = 0.002  # warn above this share of the covered UV area
 _MAX_PAIRS = 1 << 24
+_OVERLAP_KEPT = {}  # uv_overlap per hash of the UVs and grid, most recent last (an animation's receiver keeps its UVs)
+OVERLAP_KEPT_SIZE = 8
 
 
 def zero_power_lights(scene):
@@ -26,8 +30,20 @@ def zero_power_lights(scene):
 
 def uv_overlap(receiver, grid=UV_OVERLAP_GRID):
     """Share of ``receiver``'s covered UV area (measured on a ``grid`` x ``grid`` lattice of
-    points in the unit square) that lies strictly inside two or more of its UV triangles."""
-    uv = np.asarray(receiver.uv, dtype=np.float64)
+    points in the unit square) that lies strictly inside two or more of its UV triangles
+    (a function of the UVs alone: kept for the next frame's bake of the same UVs)."""
+    uv = np.ascontiguousarray(receiver.uv, dtype=np.float64)
+    key = hashlib.sha1(uv.tobytes() + np.int64(grid).tobytes()).hexdigest()
+    share = _OVERLAP_KEPT.pop(key, None)
+    if share is None:
+        share = _uv_overlap(uv, grid)
+    _OVERLAP_KEPT[key] = share
+    while len(_OVERLAP_KEPT) > OVERLAP_KEPT_SIZE:
+        _OVERLAP_KEPT.pop(next(iter(_OVERLAP_KEPT)))
+    return share
+
+
+def _uv_overlap(uv, grid):
     n = uv.shape[0]
     if n == 0:
         return 0.0
@@ -37,7 +53,7 @@ def uv_overlap(receiver, grid=UV_OVERLAP_GRID):
     ny = np.maximum(hi[:, 1] - lo[:, 1] + 1, 0)
     pairs = int(np.sum(nx * ny))
     if pairs > _MAX_PAIRS and grid > 16:
-        return uv_overlap(receiver, grid // 2)
+        return _uv_overlap(uv, grid // 2)
     counts = np.zeros(grid * grid, dtype=np.int32)
     covered = np.zeros(grid * grid, dtype=bool)
     per = nx * ny

@@ -31,6 +31,39 @@ from ..solver.geometry.rows import group_rows
 # such as water (chain T, 1 - F x tint); both = glass (R with dielectric Fresnel F, T with 1 - F).
 ROLE_NAMES = {"none": ROLE_NONE, "reflect": ROLE_REFLECT, "refract": ROLE_REFRACT, "both": ROLE_BOTH}
 ROLE_LABELS = {v: k for k, v in ROLE_NAMES.items()}
+_WELD_KEPT = {}  # closedness per object (name, corners): its welding (each corner's first equal corner) and answer
+WELD_KEPT_SIZE = 8
+
+
+def _closed_surface(p, key):
+    """Whether the triangles with corners ``p`` (3m, 3) form a closed surface (see
+    :meth:`Scene.closed_objects`).  The answer depends only on which corners are equal after
+    quantisation; the last answer for ``key`` (an animated object's previous frame) is reused
+    when the same corners are equal now and no others (each corner equals the corner it was
+    welded to, and those are pairwise distinct): the same welding, so the same answer."""
+    lo, hi = point_bounds(p)
+    size = float(np.max(hi - lo)) or 1.0
+    q = np.round((p - lo) / (size * 1e-9)).astype(np.int64)
+    kept = _WELD_KEPT.pop(key, None)
+    if kept is not None:
+        rep, first, closed = kept
+        if rep.size == q.shape[0] and np.array_equal(q, q[rep]):
+            _ids, distinct = group_rows(np.ascontiguousarray(q[first]).view(np.uint64))
+            if distinct.size == first.size:
+                _WELD_KEPT[key] = kept
+                return closed
+    vid, first = group_rows(q.view(np.uint64))  # vertex ids: equal quantised positions
+    tri = vid.reshape(-1, 3)
+    a = np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2]])
+    b = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])
+    eid, _ = group_rows(np.ascontiguousarray(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)).view(np.uint64))
+    counts = np.bincount(eid)
+    closed = bool(counts.size and np.all(counts == 2))
+    _WELD_KEPT[key] = (first[vid], first, closed)
+    while len(_WELD_KEPT) > WELD_KEPT_SIZE:
+        _WELD_KEPT.pop(next(iter(_WELD_KEPT)))
+    return closed
+
 
 LIGHT_TYPES = ("point", "spot", "sun", "area")
 
@@ -159,18 +192,7 @@ class Scene:
         out = set()
         for oi in np.unique(self.tri_object) if objects is None else np.unique(np.asarray(list(objects), dtype=np.int64)):
             p = self.tri_p[self.tri_object == oi].reshape(-1, 3)
-            if p.size == 0:
-                continue
-            lo, hi = point_bounds(p)
-            size = float(np.max(hi - lo)) or 1.0
-            q = np.round((p - lo) / (size * 1e-9)).astype(np.int64)
-            vid, _ = group_rows(q.view(np.uint64))  # vertex ids: equal quantised positions
-            vid = vid.reshape(-1, 3)
-            a = np.concatenate([vid[:, 0], vid[:, 1], vid[:, 2]])
-            b = np.concatenate([vid[:, 1], vid[:, 2], vid[:, 0]])
-            eid, _ = group_rows(np.ascontiguousarray(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)).view(np.uint64))
-            counts = np.bincount(eid)
-            if counts.size and np.all(counts == 2):
+            if p.size and _closed_surface(p, (self.objects[oi] if oi < len(self.objects) else "", p.shape[0])):
                 out.add(int(oi))
         return out
 

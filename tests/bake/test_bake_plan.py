@@ -42,6 +42,27 @@ def test_closed_objects():
     assert _scene().closed_objects() == {1, 3}
 
 
+def test_closedness_follows_an_animated_object():
+    """An object's welding is reused from its last frame only while the same corners coincide:
+    a cube that moves and bends stays closed, one whose face comes loose (a corner no longer
+    on its neighbours') is open, and one whose loose face comes back is closed again."""
+    sc = _scene()
+    assert sc.closed_objects([1]) == {1}
+    for frame in range(1, 4):
+        sc.tri_p[sc.tri_object == 1] += (0.1, 0.0, 0.05 * frame)  # moves
+        sc.tri_p[sc.tri_object == 1] *= 1.0 + 0.01 * frame  # and grows
+        assert sc.closed_objects([1]) == {1}
+    cube = np.flatnonzero(sc.tri_object == 1)
+    corner = sc.tri_p[cube[0], 0].copy()
+    sc.tri_p[cube[0], 0] += (0.0, 0.0, 0.3)  # one corner of one triangle torn off its vertex
+    assert sc.closed_objects([1]) == set()
+    sc.tri_p[cube[0], 0] = corner
+    assert sc.closed_objects([1]) == {1}
+    open_sheet = _scene()  # the water sheet is one triangle: never closed, every frame
+    for _ in range(2):
+        assert open_sheet.closed_objects([2]) == set()
+
+
 def test_forced_one_bounce_plan():
     sc = _scene()
     plan = _plan(sc, bounces=1)

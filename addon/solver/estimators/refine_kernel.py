@@ -410,8 +410,8 @@ def mesh_points(n_emitters, trace_args):
     vid = vid.reshape(n, 3)
     a, b = vid, vid[:, [1, 2, 0]]
     nv = np.int64(vfirst.size)
-    ekey = (np.minimum(a, b) * nv + np.maximum(a, b)).reshape(-1)
-    _u, efirst, eid = np.unique(ekey, return_index=True, return_inverse=True)
+    ekey = (np.minimum(a, b) * nv + np.maximum(a, b)).reshape(-1, 1)
+    eid, efirst = group_rows(ekey.view(np.uint64))
     # representatives: (emitter, u, v) of each vertex's and edge midpoint's first occurrence
     ve, vk = vfirst // 3, vfirst % 3
     ee, ek = efirst // 3, efirst % 3

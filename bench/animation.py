@@ -1,7 +1,7 @@
 """Animation: seconds per frame of the default estimator (``forward-flux``).
 
-    .venv/bin/python bench/animation.py [--cases pool512,sheet512,sheet1024] [--frames 3] [--forms reference,fast]
-                                        [--no-write]
+    .venv/bin/python bench/animation.py [--cases pool512,sheet512,sheet1024,ocean512,ocean512rough] [--frames 3]
+                                        [--forms reference,fast] [--no-write]
 
 Cases:
 
@@ -9,11 +9,16 @@ Cases:
   point light and a sun, chain T) at 512², frames 1, 2, ... (the waves move; each frame is
   extracted from Blender, extraction not counted);
 - ``sheet512`` / ``sheet1024``: ``tests/fixtures/bake_scenes.wavy_sheet``, a generated 115,200-triangle water sheet
-  (IOR 1.33, analytic normals) 1 m above a 4 x 4 m floor under a point light, at 512² / 1024².
+  (IOR 1.33, analytic normals) 1 m above a 4 x 4 m floor under a point light, at 512² / 1024²;
+- ``ocean512`` / ``ocean512rough``: ``tests/fixtures/animated_scene.build_ocean_sheet``, a 240 x 240
+  grid (115,200 triangles) displaced by Blender's Ocean modifier with its time keyframed, 1 m
+  above a 4 x 4 m floor, point light, 512² (waves of about 5 cm, and rough: about 20 cm with
+  full choppiness), built and extracted with the bpy module each frame.
 
 Each case first bakes one frame that is not counted (Numba compile / cache load and first-touch
 costs), then bakes ``--frames`` frames and reports the mean seconds per frame of ``bake()``
-(the whole bake: BVH, plan, estimator, padding), the sub-triangles per frame, µs per
+(the whole bake: BVH, plan, estimator, padding; ``extract``: the seconds to extract a frame
+from Blender, not in s/frame), the sub-triangles per frame, µs per
 sub-triangle (estimator seconds / sub-triangles) and the estimator's stages from the bake's
 timer: ``image`` (refinement: tracing the corners and midpoints, the split decisions),
 ``image.trace`` (the part of it inside the tracing kernels: the point tracer, and the refine
@@ -59,10 +64,22 @@ def pool_frames(resolution):
     return at
 
 
+def ocean_frames(resolution, **waves):
+    """A function frame -> the Ocean-modifier sheet's scene model at that frame (bpy)."""
+    from fixtures.animated_scene import build_ocean_sheet
+
+    from addon.bake.extract import extract_scene
+
+    build_ocean_sheet(resolution, **waves)
+    return lambda frame: extract_scene(resolution=resolution, frame=frame)
+
+
 CASES = {
     "pool512": ("water_pool", 512, lambda: pool_frames(512)),
     "sheet512": ("wavy sheet 115k", 512, lambda: sheet_frames(512)),
     "sheet1024": ("wavy sheet 115k", 1024, lambda: sheet_frames(1024)),
+    "ocean512": ("Ocean modifier 115k", 512, lambda: ocean_frames(512)),
+    "ocean512rough": ("Ocean modifier 115k, rough", 512, lambda: ocean_frames(512, wave_scale=0.2, choppiness=1.0)),
 }
 STAGES = ("bvh", "plan", "image", "image.trace", "flux", "flux.trace", "flux.visibility", "flux.density", "flux.splat", "raster",
           "texel_area", "pad")
@@ -92,9 +109,11 @@ def _run(key, name, res, frames, form, scene_at, settings, bake):
     from addon.bake import pipeline
 
     bake(scene_at(1), settings)  # warm-up: compile / cache load, first touch
-    total, subs, points, stages = 0.0, 0, 0, {}
+    total, subs, points, stages, extract = 0.0, 0, 0, {}, 0.0
     for f in range(2, 2 + frames):
+        t0 = time.perf_counter()
         scene = scene_at(f)
+        extract += time.perf_counter() - t0
         if form == "reference":  # as before: texel areas and supersample counts measured every frame
             pipeline._AREA_CACHE.clear()
             pipeline._COVER_CACHE.clear()
@@ -108,7 +127,8 @@ def _run(key, name, res, frames, form, scene_at, settings, bake):
             stages[k] = stages.get(k, 0.0) + v
     est_s = stages.get("image", 0.0) + stages.get("flux", 0.0)
     image = np.concatenate([r.raw[k].ravel() for k in sorted(r.raw)])
-    return dict(case=key, scene=name, res=res, form=form, spf=total / frames, subs=subs / frames, points=points / frames,
+    return dict(case=key, scene=name, res=res, form=form, spf=total / frames, extract=extract / frames, subs=subs / frames,
+                points=points / frames,
                 us=1e6 * est_s / max(subs, 1), stages={k: v / frames for k, v in stages.items()}, image=image)
 
 
@@ -122,12 +142,12 @@ def table(rows):
              "edges bisected); fast = "
              "the default. µs/sub = (image + flux) / sub-triangles; rel. diff = relMSE fast vs reference. trace ⊂ image; "
              "centre, vis., density, splat ⊂ flux; other: BVH, plan, raster, texel areas, pad.", "",
-             "| case | texels | form | s/frame | sub-triangles | points traced | µs/sub | rel. diff | "
+             "| case | texels | form | s/frame | extract | sub-triangles | points traced | µs/sub | rel. diff | "
              + " | ".join(labels[k] for k in TABLE) + " | other |",
-             "|---|---|---|---|---|---|---|---|" + "---|" * (len(TABLE) + 1)]
+             "|---|---|---|---|---|---|---|---|---|" + "---|" * (len(TABLE) + 1)]
     for r in rows:
         diff = f"{r['rel']:.1e}" if "rel" in r else "-"
-        lines.append(f"| {r['scene']} | {r['res']}² | {r['form']} | {r['spf']:.2f} | {r['subs']:,.0f} | {r['points']:,.0f} | {r['us']:.1f} | {diff} | "
+        lines.append(f"| {r['scene']} | {r['res']}² | {r['form']} | {r['spf']:.2f} | {r['extract']:.2f} | {r['subs']:,.0f} | {r['points']:,.0f} | {r['us']:.1f} | {diff} | "
                      + " | ".join(f"{r['stages'].get(k, 0.0):.2f}" for k in TABLE)
                      + f" | {r['spf'] - r['stages'].get('image', 0.0) - r['stages'].get('flux', 0.0):.2f} |")
     return "\n".join(lines)

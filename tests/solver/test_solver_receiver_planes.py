@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from addon.solver.estimators.splat import region_shares, splat_triangles
-from addon.solver.geometry.receiver_planes import (PLANE_HEAD, beyond_region, beyond_region_rows, extended_landing,
+from addon.solver.geometry.receiver_planes import (EXTEND_FRACTION, PLANE_HEAD, beyond_region, beyond_region_rows, extended_landing,
                                                    receiver_plane_row, region_of)
 
 
@@ -45,7 +45,7 @@ def test_a_flat_quad_gets_its_plane_uv_map_and_region():
     pts = P.reshape(-1, 3)
     np.testing.assert_allclose(pts @ row[4:7] + row[7], UV.reshape(-1, 2)[:, 0], atol=1e-12)
     np.testing.assert_allclose(pts @ row[8:11] + row[11], UV.reshape(-1, 2)[:, 1], atol=1e-12)
-    assert row[13] == 3 and row[14] == 4 and abs(row[15] - 0.25 * 0.5) <= 1e-12
+    assert row[13] == 3 and row[14] == 4 and abs(row[15] - EXTEND_FRACTION * 0.5) <= 1e-12
     region = region_of(row[None], 3)
     corners = np.array([[0.2, 0.1], [0.7, 0.1], [0.7, 0.6], [0.2, 0.6]])
     values = corners @ region[:, :2].T + region[:, 2]
@@ -85,7 +85,8 @@ def test_a_ray_missing_the_receiver_lands_on_its_plane_within_reach():
         d /= np.linalg.norm(d)
         return extended_landing(planes, *start, *d, 1e-9), d
 
-    # just beyond the edge x = side (u = 0.7): UV (0.7 + 0.5 * 0.1 / 2, 0.35), inside the reach 0.125
+    reach = EXTEND_FRACTION * 0.5  # of the UV region [0.2, 0.7] x [0.1, 0.6]
+    # just beyond the edge x = side (u = 0.7): UV (0.7 + 0.5 * 0.1 / 2, 0.35), inside the reach
     p, d = land(o + 2.1 * s + 1.0 * t)
     assert p == 0
     tt = (planes[0, 3] - planes[0, :3] @ start) / (planes[0, :3] @ d)
@@ -93,7 +94,8 @@ def test_a_ray_missing_the_receiver_lands_on_its_plane_within_reach():
     np.testing.assert_allclose([hit @ planes[0, 4:7] + planes[0, 7], hit @ planes[0, 8:11] + planes[0, 11]],
                                [0.725, 0.35], atol=1e-12)
     assert land(o + 1.0 * s + 1.0 * t)[0] == -1  # inside the region: a ray that misses it there is blocked, not extended
-    assert land(o + 2.6 * s + 1.0 * t)[0] == -1  # beyond the reach (u = 0.85 > 0.7 + 0.125)
+    assert land(o + (2.0 + (reach - 0.01) / 0.25) * s + 1.0 * t)[0] == 0  # just inside the reach (u = 0.7 + reach - 0.0025)
+    assert land(o + (2.0 + (reach + 0.01) / 0.25) * s + 1.0 * t)[0] == -1  # beyond it
     behind = o - 3.0 * n  # from the back: the bake's front rule
     d = (o + 2.1 * s + t) - behind
     assert extended_landing(planes, *behind, *(d / np.linalg.norm(d)), 1e-9) == -1

@@ -7,7 +7,7 @@ straight border in texture space: the edges of its UV region.  The forward-flux 
 receiver by bisection inside the caster's sub-triangles, about 30 traced points per cut
 sub-triangle, and probes the lost ones; for such a receiver the tracer instead reports a ray
 that lands nowhere but crosses the receiver's plane (from the front) outside its UV region as
-landed at that *extended* point (:func:`extended_landing`; up to EXTEND_FRACTION of the
+landed at that *extended* point (:func:`extended_landing`; up to EXTEND_FRACTION (one) of the
 region's size beyond it: farther, rays grazing the plane would give images of any size, which
 the refinement could not straighten): the point is not on the receiver,
 and no ray through it could be (a ray meets a plane once), so the image of a sub-triangle is
@@ -37,7 +37,7 @@ from ..runtime.jit import kernel
 PLANE_MAX_EDGES = 32  # a receiver's convex UV region with more edges is not extended
 PLANE_HEAD = 16
 PLANE_WIDTH = PLANE_HEAD + 3 * PLANE_MAX_EDGES
-EXTEND_FRACTION = 0.25  # rays are extended onto the plane up to this fraction of the region's size beyond its edges
+EXTEND_FRACTION = 1.0  # rays are extended onto the plane up to this fraction of the region's size beyond its edges
 FLAT_TOLERANCE = 1e-9  # plane distance (x the receiver's size), normals (1 - cos), UVs (UV units), areas (relative)
 
 

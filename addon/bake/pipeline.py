@@ -40,7 +40,7 @@ from .memory import check_budget, out_of_memory
 from .output import write_files, write_text
 from .names import frame_report_filename, safe_filename, texture_filename
 from .plan import CHAINS, candidate_chains, plan_steps
-from .raster import bands, grid_side, pad, rasterise
+from .raster import bands, grid_side, pad, raster_texels, rasterise
 from .scene import SceneError
 from .settings import BakeSettings, check_settings, resolve_aliases
 
@@ -417,6 +417,13 @@ def _bake_gen(scene, settings):
                 yield progress.tell("rows", rows_done / max(1, total_rows), f"{rec.name}: rows {H}/{H}")
         for j0, j1 in (bands(rec, settings.samples, settings.band_samples) if cover is not kept else ()):
             t0 = time.perf_counter()
+            if counts_only:  # no estimator reads the samples: their texels only
+                texel, _tri = raster_texels(rec, settings.samples, settings.seed, settings.jitter, rows=(j0, j1))
+                cover += np.bincount(texel, minlength=W * H)
+                timer.add("raster", time.perf_counter() - t0)
+                rows_done += j1 - j0
+                yield progress.tell("rows", rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}")
+                continue
             band = rasterise(scene, rec, settings.samples, settings.seed, settings.jitter, rows=(j0, j1))
             cover += np.bincount(band.texel, minlength=W * H)
             timer.add("raster", time.perf_counter() - t0)
@@ -528,9 +535,9 @@ def _texel_area_steps(scene, rec, samples, band_samples, area):
     S = grid_side(max(int(samples), AREA_SAMPLES)) ** 2
     ratio = world_per_uv_area(scene, rec)
     for j0, j1 in bands(rec, S, band_samples):
-        band = rasterise(scene, rec, S, 0, False, rows=(j0, j1))
-        if band.size:
-            area += np.bincount(band.texel, weights=ratio[band.tri], minlength=W * H) / (W * H * S)
+        texel, tri = raster_texels(rec, S, 0, False, rows=(j0, j1))
+        if texel.size:
+            area += np.bincount(texel, weights=ratio[tri], minlength=W * H) / (W * H * S)
         yield j1
 
 

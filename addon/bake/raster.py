@@ -132,11 +132,15 @@ def _raster_rows(uv, tri_list, W, H, row0, row1, s, seed, jitter, owner, bary, s
                         suv[r, i, k, 1] = pv
 
 
-def rasterise(scene, receiver, samples=1, seed=0, jitter=False, rows=None):
-    """The covered supersamples of a receiver (all rows, or texel rows ``rows`` = (j0, j1)).
+def raster_texels(receiver, samples=1, seed=0, jitter=False, rows=None):
+    """(texel (m,), global triangle (m,)) of the covered supersamples of a receiver: the
+    first two fields of :func:`rasterise`'s band, without the samples' geometry (what texel
+    areas and supersample counts need)."""
+    texel, tri, _local, _keep, _bary, _suv = _raster(receiver, samples, seed, jitter, rows)
+    return texel, tri
 
-    Returns a :class:`SampleBand`; see the module docstring for the conventions.
-    """
+
+def _raster(receiver, samples, seed, jitter, rows):
     W, H = receiver.resolution
     row0, row1 = (0, H) if rows is None else (max(0, int(rows[0])), min(H, int(rows[1])))
     s = grid_side(samples)
@@ -158,7 +162,17 @@ def rasterise(scene, receiver, samples=1, seed=0, jitter=False, rows=None):
     keep = np.flatnonzero(own >= 0)
     texel = (np.arange(nr * W * S, dtype=np.int64) // S + row0 * W)[keep]
     local = tri_list[own[keep]] if keep.size else np.zeros(0, dtype=np.int64)
-    tri = receiver.tri_index[local]
+    return texel, receiver.tri_index[local], local, keep, bary, suv
+
+
+def rasterise(scene, receiver, samples=1, seed=0, jitter=False, rows=None):
+    """The covered supersamples of a receiver (all rows, or texel rows ``rows`` = (j0, j1)).
+
+    Returns a :class:`SampleBand`; see the module docstring for the conventions.
+    """
+    W, H = receiver.resolution
+    row0, row1 = (0, H) if rows is None else (max(0, int(rows[0])), min(H, int(rows[1])))
+    texel, tri, _local, keep, bary, suv = _raster(receiver, samples, seed, jitter, rows)
     bc = bary.reshape(-1, 2)[keep]
     p = scene.tri_p[tri]
     n = scene.tri_n[tri]

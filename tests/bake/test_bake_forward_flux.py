@@ -182,6 +182,35 @@ def test_mesh_points_are_traced_once(monkeypatch):
     assert ref.max() > 0 and rel_mse(new, ref) <= 1e-12
 
 
+def test_mesh_points_are_shared_only_between_equal_light_points_and_materials():
+    """mesh_points on a 2 x 2 grid of quads (8 triangles: 9 vertices, 16 edges, 25 points):
+    under one light point every corner and midpoint is one point; emitters of two light points
+    (an area light's samples) or of two IORs share nothing across them."""
+    from addon.solver.estimators.refine_kernel import mesh_points
+
+    s = np.linspace(0.0, 1.0, 3)
+    V = np.array([[x, y, 0.0] for x in s for y in s])
+    quads = [(i * 3 + j, (i + 1) * 3 + j, (i + 1) * 3 + j + 1, i * 3 + j + 1) for i in range(2) for j in range(2)]
+    idx = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    tri_p = V[idx]
+    tri_n = np.broadcast_to([0.0, 0.0, 1.0], tri_p.shape).copy()
+
+    def count(x0, t1, ior):
+        args = [np.asarray(x0, dtype=np.float64), np.asarray(t1, dtype=np.int64)] + [None] * 6 + [
+            tri_p, tri_n, np.asarray(ior, dtype=np.float64), np.full(8, 2, dtype=np.int64)]
+        e, u, v, index = mesh_points(len(t1), args)
+        assert index.shape == (len(t1), 6) and index.max() == e.size - 1
+        return e.size
+
+    t1 = np.arange(8)
+    one = np.tile([0.3, 0.2, 2.0], (8, 1))
+    assert count(one, t1, np.full(8, 1.33)) == 25
+    two = np.concatenate([one, one + [0.01, 0.0, 0.0]])
+    assert count(two, np.concatenate([t1, t1]), np.full(8, 1.33)) == 50
+    assert count(np.concatenate([one, one]), np.concatenate([t1, t1]), np.full(8, 1.33)) == 25
+    assert count(one, t1, np.where(t1 < 4, 1.33, 1.5)) == 25 + 5  # the 3 vertices and 2 edges on x = 0.5 split
+
+
 @pytest.mark.parametrize("uv_box", [(0.0, 1.0), (0.25, 0.75)])
 def test_flat_floor_extended_beyond_its_edge_bakes_as_the_bisected_border(monkeypatch, uv_box):
     """A third of the sheet's light falls past the floor's edge.  Extended onto the floor's

@@ -400,13 +400,20 @@ def mesh_points(n_emitters, trace_args):
     tri_p, tri_n, tri_ior, tri_role = trace_args[8], trace_args[9], trace_args[10], trace_args[11]
     n = int(n_emitters)
     t = t1_of[:n]
-    rows = np.empty((n, 3, 11))
+    # the light point, IOR and role join the key only where they vary (one point light over
+    # one material: they do not, and equal columns decide nothing)
+    extra = [c for c in (np.ascontiguousarray(x0[:n], dtype=np.float64), tri_ior[t][:, None].astype(np.float64),
+                         tri_role[t][:, None].astype(np.float64))
+             if n and not np.array_equal(c.view(np.uint64), np.broadcast_to(c[:1].view(np.uint64), c.shape))]
+    width = 6 + sum(c.shape[1] for c in extra)
+    rows = np.empty((n, 3, width))
     rows[:, :, 0:3] = tri_p[t]
     rows[:, :, 3:6] = tri_n[t]
-    rows[:, :, 6:9] = x0[:n, None, :]
-    rows[:, :, 9] = tri_ior[t][:, None]
-    rows[:, :, 10] = tri_role[t][:, None]
-    vid, vfirst = group_rows(np.ascontiguousarray(rows.reshape(n * 3, 11)).view(np.uint64))
+    k = 6
+    for c in extra:
+        rows[:, :, k:k + c.shape[1]] = c[:, None, :]
+        k += c.shape[1]
+    vid, vfirst = group_rows(rows.reshape(n * 3, width).view(np.uint64))
     vid = vid.reshape(n, 3)
     a, b = vid, vid[:, [1, 2, 0]]
     nv = np.int64(vfirst.size)

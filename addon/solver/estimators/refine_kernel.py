@@ -12,8 +12,9 @@ emitter, depth first, in a kernel:
   its density is linear to ``relative`` (:func:`_density_nonlinearity`: rho = w / |det J| of
   the quadratic element at the 6 points, w the light's flux per barycentric area times the
   transport factor) or its image is within a texel; above depth 0 (the coarse levels) it
-  must be linear whatever its size and at most ``coarse_texels`` long; at ``max_depth`` it
-  is final anyway;
+  must be linear whatever its size (to ``relative`` x (``coarse_linear_texels`` / its
+  length)² when longer than that) and at most ``coarse_texels`` long; at ``max_depth`` it is
+  final anyway;
   otherwise it is split in four (children (a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca));
 - a landed sub-triangle whose 6 points lie beyond one edge of a flat receiver's UV region
   (extended there, :mod:`~addon.solver.geometry.receiver_planes`) by more than twice its

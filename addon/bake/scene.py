@@ -32,7 +32,7 @@ from ..solver.geometry.rows import group_rows
 ROLE_NAMES = {"none": ROLE_NONE, "reflect": ROLE_REFLECT, "refract": ROLE_REFRACT, "both": ROLE_BOTH}
 ROLE_LABELS = {v: k for k, v in ROLE_NAMES.items()}
 _WELD_KEPT = {}  # closedness per object (name, corners): its welding (each corner's first equal corner) and answer
-WELD_KEPT_SIZE = 8
+WELD_KEPT_SIZE = 4  # objects kept (a 1M-triangle object keeps 28 MB of welding)
 
 
 def _closed_surface(p, key):

@@ -228,17 +228,17 @@ def _world_normals(normals, A, P, n_index, name):
     return N
 
 
-def _surely_caster(slot_mats, override, role_cache):
-    """True when every triangle of an object with these material slots scatters (its role
-    override, or every slot's material role): it cannot be an automatic receiver."""
-    if override != "auto":
-        return override != "none"
+def _slot_roles(slot_mats, role_cache):
+    """The (role, ior, tint, warnings) of each slot's material, each material read once per
+    extraction (``role_cache``, by name); its warnings are reported where it is first used."""
+    out = []
     for mat in slot_mats:
         key = mat.name if mat is not None else ""
-        role = role_cache[key][0] if key in role_cache else material_role(mat, [])[0]
-        if role == ROLE_NONE:
-            return False
-    return True
+        if key not in role_cache:
+            said = []
+            role_cache[key] = material_role(mat, said) + (said,)
+        out.append(role_cache[key])
+    return out
 
 
 def extract_scene(depsgraph=None, resolution=256, frame=None):
@@ -274,8 +274,10 @@ def extract_scene(depsgraph=None, resolution=256, frame=None):
         slot_mats = [s.material for s in slots] or [None]
         override = _prop(orig, "caustic_role", set(ROLE_NAMES) | {"auto"}, "auto")
         want = _prop(orig, "caustic_receiver", {"auto", "yes", "no"}, "auto")
-        # UVs only where the object can be a receiver (a caster by every slot cannot)
-        need_uv = want == "yes" or (want == "auto" and not _surely_caster(slot_mats, override, role_cache))
+        roles = _slot_roles(slot_mats, role_cache)
+        # UVs only where the object can be a receiver (a caster by its override or every slot cannot)
+        surely_caster = override != "none" if override != "auto" else all(r[0] != ROLE_NONE for r in roles)
+        need_uv = want == "yes" or (want == "auto" and not surely_caster)
         co, tv, tl, tm, normals, n_index, uvs, active_uv = _mesh_arrays(ob, need_uv, len(slot_mats) > 1)
         if tv.shape[0] == 0:
             continue
@@ -284,14 +286,13 @@ def extract_scene(depsgraph=None, resolution=256, frame=None):
         local_ior = np.full(len(slot_mats), 1.5)
         local_tint = np.ones((len(slot_mats), 3))
         local_mat = np.zeros(len(slot_mats), dtype=np.int64)
-        for k, mat in enumerate(slot_mats):
+        for k, (mat, (role, ior, tint, said)) in enumerate(zip(slot_mats, roles)):
             key = mat.name if mat is not None else ""
-            if key not in role_cache:
-                role_cache[key] = material_role(mat, warnings)
-            local_role[k], local_ior[k], local_tint[k] = role_cache[key][0], role_cache[key][1], role_cache[key][2]
+            local_role[k], local_ior[k], local_tint[k] = role, ior, tint
             if key not in mat_index:
                 mat_index[key] = len(materials)
                 materials.append(key)
+                warnings.extend(said)
             local_mat[k] = mat_index[key]
         M = np.array(inst.matrix_world, dtype=np.float64)
         A = M[:3, :3]

@@ -15,6 +15,8 @@ import hashlib
 
 import numpy as np
 
+from .kept import keep_recent
+
 UV_OVERLAP_GRID = 256  # sample points per side of the UV square for the overlap measure
 UV_OVERLAP_WARN = 0.002  # warn above this share of the covered UV area
 _MAX_PAIRS = 1 << 24
@@ -34,13 +36,8 @@ def uv_overlap(receiver, grid=UV_OVERLAP_GRID):
     (a function of the UVs alone: kept for the next frame's bake of the same UVs)."""
     uv = np.ascontiguousarray(receiver.uv, dtype=np.float64)
     key = hashlib.sha1(uv.tobytes() + np.int64(grid).tobytes()).hexdigest()
-    share = _OVERLAP_KEPT.pop(key, None)
-    if share is None:
-        share = _uv_overlap(uv, grid)
-    _OVERLAP_KEPT[key] = share
-    while len(_OVERLAP_KEPT) > OVERLAP_KEPT_SIZE:
-        _OVERLAP_KEPT.pop(next(iter(_OVERLAP_KEPT)))
-    return share
+    share = _OVERLAP_KEPT.get(key)
+    return keep_recent(_OVERLAP_KEPT, key, _uv_overlap(uv, grid) if share is None else share, OVERLAP_KEPT_SIZE)
 
 
 def _uv_overlap(uv, grid):

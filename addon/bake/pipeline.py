@@ -36,6 +36,7 @@ from .estimators import make_estimator
 from . import exr
 from .estimators.base import Estimator
 from .lights import emission_factor, sample_light
+from .kept import keep_recent
 from .memory import check_budget, out_of_memory
 from .output import write_files, write_text
 from .names import frame_report_filename, safe_filename, texture_filename
@@ -419,15 +420,13 @@ def _bake_gen(scene, settings):
             t0 = time.perf_counter()
             if counts_only:  # no estimator reads the samples: their texels only
                 texel, _tri = raster_texels(rec, settings.samples, settings.seed, settings.jitter, rows=(j0, j1))
-                cover += np.bincount(texel, minlength=W * H)
-                timer.add("raster", time.perf_counter() - t0)
-                rows_done += j1 - j0
-                yield progress.tell("rows", rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}")
-                continue
-            band = rasterise(scene, rec, settings.samples, settings.seed, settings.jitter, rows=(j0, j1))
-            cover += np.bincount(band.texel, minlength=W * H)
+                band = None
+            else:
+                band = rasterise(scene, rec, settings.samples, settings.seed, settings.jitter, rows=(j0, j1))
+                texel = band.texel
+            cover += np.bincount(texel, minlength=W * H)
             timer.add("raster", time.perf_counter() - t0)
-            if band.size:
+            if band is not None and band.size:
                 if settings.direct:
                     for ls in ctx.lsamples:
                         direct_light(ctx, ls, band, sums)
@@ -514,12 +513,8 @@ def _kept(cache, key):
 def _keep(cache, key, value):
     """Keep ``value`` (made read-only) under ``key``, the most recent last, at most
     AREA_CACHE_SIZE entries; returns it."""
-    cache.pop(key, None)
     value.flags.writeable = False
-    cache[key] = value
-    while len(cache) > AREA_CACHE_SIZE:
-        cache.pop(next(iter(cache)))
-    return value
+    return keep_recent(cache, key, value, AREA_CACHE_SIZE)
 
 def _texel_areas(scene, rec, samples, band_samples):
     W, H = rec.resolution

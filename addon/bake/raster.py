@@ -136,7 +136,7 @@ def raster_texels(receiver, samples=1, seed=0, jitter=False, rows=None):
     """(texel (m,), global triangle (m,)) of the covered supersamples of a receiver: the
     first two fields of :func:`rasterise`'s band, without the samples' geometry (what texel
     areas and supersample counts need)."""
-    texel, tri, _local, _keep, _bary, _suv = _raster(receiver, samples, seed, jitter, rows)
+    texel, tri, _keep, _bary, _suv, _rows = _raster(receiver, samples, seed, jitter, rows)
     return texel, tri
 
 
@@ -162,7 +162,7 @@ def _raster(receiver, samples, seed, jitter, rows):
     keep = np.flatnonzero(own >= 0)
     texel = (np.arange(nr * W * S, dtype=np.int64) // S + row0 * W)[keep]
     local = tri_list[own[keep]] if keep.size else np.zeros(0, dtype=np.int64)
-    return texel, receiver.tri_index[local], local, keep, bary, suv
+    return texel, receiver.tri_index[local], keep, bary, suv, (row0, row1)
 
 
 def rasterise(scene, receiver, samples=1, seed=0, jitter=False, rows=None):
@@ -170,9 +170,7 @@ def rasterise(scene, receiver, samples=1, seed=0, jitter=False, rows=None):
 
     Returns a :class:`SampleBand`; see the module docstring for the conventions.
     """
-    W, H = receiver.resolution
-    row0, row1 = (0, H) if rows is None else (max(0, int(rows[0])), min(H, int(rows[1])))
-    texel, tri, _local, keep, bary, suv = _raster(receiver, samples, seed, jitter, rows)
+    texel, tri, keep, bary, suv, (row0, row1) = _raster(receiver, samples, seed, jitter, rows)
     bc = bary.reshape(-1, 2)[keep]
     p = scene.tri_p[tri]
     n = scene.tri_n[tri]
@@ -184,6 +182,7 @@ def rasterise(scene, receiver, samples=1, seed=0, jitter=False, rows=None):
     geo = _normalise(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]))
     flip = np.sum(geo * normal, axis=1) < 0
     geo[flip] *= -1.0
+    W, H = receiver.resolution
     return SampleBand(W, H, row0, row1, texel, tri, bc, suv.reshape(-1, 2)[keep], position, normal, geo)
 
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..solver.geometry.optics import ROLE_BOTH, ROLE_NONE, ROLE_REFLECT, ROLE_REFRACT
 from ..solver.geometry.rows import group_rows
+from .kept import keep_recent
 
 # Surface roles (the solver's codes, addon.solver.geometry.optics): none = occluder only;
 # reflect = mirror / metal (chain R, reflectance = tint); refract = one refracting interface
@@ -44,13 +45,13 @@ def _closed_surface(p, key):
     lo, hi = point_bounds(p)
     size = float(np.max(hi - lo)) or 1.0
     q = np.round((p - lo) / (size * 1e-9)).astype(np.int64)
-    kept = _WELD_KEPT.pop(key, None)
+    kept = _WELD_KEPT.get(key)
     if kept is not None:
         rep, first, closed = kept
         if rep.size == q.shape[0] and np.array_equal(q, q[rep]):
             _ids, distinct = group_rows(np.ascontiguousarray(q[first]).view(np.uint64))
             if distinct.size == first.size:
-                _WELD_KEPT[key] = kept
+                keep_recent(_WELD_KEPT, key, kept, WELD_KEPT_SIZE)
                 return closed
     vid, first = group_rows(q.view(np.uint64))  # vertex ids: equal quantised positions
     tri = vid.reshape(-1, 3)
@@ -59,9 +60,7 @@ def _closed_surface(p, key):
     eid, _ = group_rows(np.ascontiguousarray(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)).view(np.uint64))
     counts = np.bincount(eid)
     closed = bool(counts.size and np.all(counts == 2))
-    _WELD_KEPT[key] = (first[vid], first, closed)
-    while len(_WELD_KEPT) > WELD_KEPT_SIZE:
-        _WELD_KEPT.pop(next(iter(_WELD_KEPT)))
+    keep_recent(_WELD_KEPT, key, (first[vid], first, closed), WELD_KEPT_SIZE)
     return closed
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..runtime.jit import kernel, parallel_range
 
-LEAF_SIZE = 8  # triangles per leaf at most (8: a ray on a 115k-triangle sheet 7 % faster than with 4)
+LEAF_SIZE = 8  # triangles per leaf at most (a fine caster mesh: fewer node tests per ray than with smaller leaves)
 N_BINS = 16
 
 BVH = namedtuple("BVH", "node_min node_max node_child node_start node_count order v0 e1 e2")

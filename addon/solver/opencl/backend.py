@@ -247,16 +247,19 @@ class _Device:
 
 def _node_tables():
     """The one-bounce solver's Chebyshev nodes and node-values-to-Bernstein matrices
-    (``spoly.one_bounce``) as OpenCL constants, written as hexadecimal floats so that the
+    (``spoly.one_bounce``: the full resultants' and the deflated ones') as OpenCL constants, written as hexadecimal floats so that the
     device computes with the very same doubles."""
-    from ..spoly.one_bounce import NODES_R, NODES_T, TO_BERNSTEIN_R, TO_BERNSTEIN_T
+    from ..spoly import one_bounce
 
-    def table(name, values):
-        flat = np.ascontiguousarray(values, dtype=np.float64).ravel()
+    def table(name):
+        flat = np.ascontiguousarray(getattr(one_bounce, name), dtype=np.float64).ravel()
         return f"__constant double {name}[{flat.size}] = {{" + ", ".join(float(x).hex() for x in flat) + "};"
 
-    return "\n".join(table(name, values) for name, values in (("NODES_R", NODES_R), ("TO_BERNSTEIN_R", TO_BERNSTEIN_R),
-                                                                ("NODES_T", NODES_T), ("TO_BERNSTEIN_T", TO_BERNSTEIN_T)))
+    names = []
+    for chain in ("R", "T"):
+        for suffix in ("", "_DEFLATED", "_DEFLATED_WIDE"):
+            names += [f"NODES_{chain}{suffix}", f"TO_BERNSTEIN_{chain}{suffix}"]
+    return "\n".join(table(name) for name in names)
 
 
 def _context(index):

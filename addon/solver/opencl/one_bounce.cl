@@ -3,12 +3,13 @@
 // 2024, eq 6, 10, 13, 28-31), so both back ends return the same paths (tests/solver/
 // test_solver_opencl.py).  One work-item per tuple; all scratch is private and fixed-size.
 // Double precision (cl_khr_fp64) is required.
-// R expands the resultant symbolically; T evaluates it at Chebyshev nodes and interpolates it
-// (piecewise where its values span more than 1e6), as spoly/one_bounce.py does; the node tables
-// (NODES_R, TO_BERNSTEIN_R, NODES_T, TO_BERNSTEIN_T) are the solver's own, prepended by the host.
+// The resultant is evaluated at Chebyshev nodes, its double-point factor divided out, and
+// interpolated (piecewise where its values span more than 1e6), as spoly/one_bounce.py does; the
+// node tables (NODES_*, TO_BERNSTEIN_*) are the solver's own, prepended by the host.
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
-// @NODE_TABLES@ (replaced by the host: __constant double NODES_R[9], TO_BERNSTEIN_R[81], NODES_T[13], TO_BERNSTEIN_T[169])
+// @NODE_TABLES@ (replaced by the host: __constant double NODES_R[9], TO_BERNSTEIN_R[81], NODES_T[13], TO_BERNSTEIN_T[169]
+// and the deflated NODES_R_DEFLATED[8], NODES_T_DEFLATED[11] and their _WIDE sets, with their matrices)
 
 #define MAXD 12            // degree of the one-bounce resultant at most
 #define UNI 14             // univariate scratch width: the resultant's degree MAXD + 1, and a spare
@@ -40,6 +41,7 @@
 #define FOLD_RATIO 1e-4
 #define SWITCH_RATIO 0.1
 #define SPURIOUS_B 1e-3     // |b| / sum |b_ij u^i v^j| above which b clearly does not vanish at a u-root
+#define DOUBLE_POINT_F3 1e-9  // |f3| / sum |f3_ij u^i v^j| under which a root of Res_u(a, g) is the double point
 #define DYNAMIC_RANGE 1e-6  // node values spanning more than this: interpolate the resultant piecewise
 #define SPLIT 4             // pieces per level of that refinement
 #define SPLIT_DEPTH 2       // levels at most (16 pieces)
@@ -550,15 +552,45 @@ static double resultant_at(const double *a, const double *b, int nb, int tb, dou
     return val;
 }
 
+static double nearest_node(__constant const double *nodes, int count, double s) {
+    double d = INFINITY;
+    for (int k = 0; k < count; ++k) d = fmin(d, fabs(nodes[k] - s));
+    return d;
+}
+
 // one_bounce.py resultant_bernstein: Bernstein coefficients on s in [0, 1] of
-// Res_u(a, b)(origin + width s) from its values at the Chebyshev nodes (NODES_*, TO_BERNSTEIN_*:
-// the solver's own tables, prepended to this source by the host); returns the degree 2 tb.
+// Res_u(a, b)(origin + width s), divided by (v - v_double)^m (m = 1 for R, 2 for T) when v_double
+// is finite, from its values at the Chebyshev nodes (NODES_*, TO_BERNSTEIN_*: the solver's own
+// tables, prepended to this source by the host; of the two deflated sets the one whose nodes lie
+// farther from v_double); returns the degree 2 tb - m.
 static int resultant_bernstein(const double *a, const double *b, int nb, int tb, double origin, double width,
-                               double *bv, double *values, double *out) {
-    int deg = 2 * tb;
+                               double v_double, double *bv, double *values, double *out) {
+    int multiplicity = 0;
     __constant const double *nodes = tb == 4 ? NODES_R : NODES_T;
     __constant const double *to_bernstein = tb == 4 ? TO_BERNSTEIN_R : TO_BERNSTEIN_T;
-    for (int k = 0; k <= deg; ++k) values[k] = resultant_at(a, b, nb, tb, origin + width * nodes[k], bv);
+    if (isfinite(v_double)) {
+        double s = (v_double - origin) / width;
+        multiplicity = tb == 4 ? 1 : 2;
+        int count = 2 * tb - multiplicity + 1;
+        __constant const double *narrow = tb == 4 ? NODES_R_DEFLATED : NODES_T_DEFLATED;
+        __constant const double *wide = tb == 4 ? NODES_R_DEFLATED_WIDE : NODES_T_DEFLATED_WIDE;
+        if (nearest_node(narrow, count, s) >= nearest_node(wide, count, s)) {
+            nodes = narrow;
+            to_bernstein = tb == 4 ? TO_BERNSTEIN_R_DEFLATED : TO_BERNSTEIN_T_DEFLATED;
+        } else {
+            nodes = wide;
+            to_bernstein = tb == 4 ? TO_BERNSTEIN_R_DEFLATED_WIDE : TO_BERNSTEIN_T_DEFLATED_WIDE;
+        }
+    }
+    int deg = 2 * tb - multiplicity;
+    for (int k = 0; k <= deg; ++k) {
+        double v = origin + width * nodes[k];
+        values[k] = resultant_at(a, b, nb, tb, v, bv);
+        if (multiplicity > 0) {
+            double d = v - v_double;
+            values[k] /= multiplicity == 1 ? d : d * d;
+        }
+    }
     for (int i = 0; i <= deg; ++i) {
         double acc = 0.0;
         for (int k = 0; k <= deg; ++k) acc += to_bernstein[i * (deg + 1) + k] * values[k];
@@ -570,7 +602,7 @@ static int resultant_bernstein(const double *a, const double *b, int nb, int tb,
 // one_bounce.py _resultant_v_roots: roots in v in [-V_MARGIN, 1 + V_MARGIN] of Res_u(a, b),
 // ascending: one interpolant over the range, cut in SPLIT pieces (down to SPLIT_DEPTH levels)
 // where the node values span more than DYNAMIC_RANGE.
-static int resultant_v_roots(const double *a, const double *b, int nb, int tb, double *chain,
+static int resultant_v_roots(const double *a, const double *b, int nb, int tb, double v_double, double *chain,
                              double *critical, double *found, double stack[STACK + 1][MAXD + 4], double *v_roots) {
     double bv[7], values[MAXD + 1], res[MAXD + 1], power[MAXD + 1], piece_roots[MAXD + 1];
     double piece_lo[PIECE_STACK], piece_hi[PIECE_STACK];
@@ -581,7 +613,7 @@ static int resultant_v_roots(const double *a, const double *b, int nb, int tb, d
         top--;
         double lo = piece_lo[top], hi = piece_hi[top];
         int depth = piece_depth[top];
-        int deg_r = resultant_bernstein(a, b, nb, tb, lo, hi - lo, bv, values, res);
+        int deg_r = resultant_bernstein(a, b, nb, tb, lo, hi - lo, v_double, bv, values, res);
         if (depth < SPLIT_DEPTH) {
             double big = 0.0, small = INFINITY;
             for (int k = 0; k <= deg_r; ++k) { big = fmax(big, fabs(values[k])); small = fmin(small, fabs(values[k])); }
@@ -810,8 +842,39 @@ static double relative_size(const double *p, int d, double u, double v) {
     return size > 0.0 ? fabs(value) / size : 0.0;
 }
 
+// one_bounce.py double_point_v: v of the point where the line g = 0 meets the conic a = 0 and
+// d0.t = d1.t = 0 (the resultant's spurious double root for T, simple root for R), or NaN.
+static double double_point_v(const double *a, const double *f3, const double *g) {
+    double gu = BI(g, 2, 1, 0), gv = BI(g, 2, 0, 1), g0 = BI(g, 2, 0, 0);
+    if (!(fabs(gu) > 1e-8 * (fabs(g0) + fabs(gv)))) return NAN;
+    double a20 = BI(a, 2, 2, 0);
+    double d2 = a20 * gv * gv - BI(a, 2, 1, 1) * gv * gu + BI(a, 2, 0, 2) * gu * gu;
+    double d1 = 2.0 * a20 * g0 * gv - (BI(a, 2, 1, 0) * gv + BI(a, 2, 1, 1) * g0) * gu + BI(a, 2, 0, 1) * gu * gu;
+    double d0 = a20 * g0 * g0 - BI(a, 2, 1, 0) * g0 * gu + BI(a, 2, 0, 0) * gu * gu;
+    double best = NAN, best_size = DOUBLE_POINT_F3;
+    for (int k = 0; k < 2; ++k) {
+        double v;
+        if (d2 == 0.0) {
+            if (k == 1 || d1 == 0.0) break;
+            v = -d0 / d1;
+        } else {
+            double disc = d1 * d1 - 4.0 * d2 * d0;
+            if (disc < 0.0) break;
+            double q = -0.5 * (d1 + copysign(sqrt(disc), d1));
+            if (k == 0) v = q / d2;
+            else if (q != 0.0) v = d0 / q;
+            else break;
+        }
+        double u = -(g0 + gv * v) / gu;
+        double size = relative_size(f3, 2, u, v);
+        if (isfinite(v) && size < best_size) { best = v; best_size = size; }
+    }
+    return best;
+}
+
 // _solve_system: roots of {a = 0, b = 0} in the triangle -> validated paths.
-static void solve_system(const Tuple *T, const double *a_poly, double max_a, double *b_poly, int total_b, Paths *out,
+static void solve_system(const Tuple *T, const double *a_poly, double max_a, double *b_poly, int total_b, double v_double,
+                         Paths *out,
                          int *n_roots, int *n_candidates) {
     double max_b = bmax(b_poly, total_b);
     if (!(max_b > 0.0) || !isfinite(max_b)) return;
@@ -839,7 +902,7 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
         // R and T: the resultant from its values at the Chebyshev nodes (the square form's
         // expansion cancels where b is small along the conic next to a path: grazing
         // refractions; for R the nine values cost less than the symbolic expansion)
-        n_v = resultant_v_roots(a_poly, b_poly, nb, total_b, chain, critical, found, stack, v_roots);
+        n_v = resultant_v_roots(a_poly, b_poly, nb, total_b, v_double, chain, critical, found, stack, v_roots);
     }
     *n_roots += n_v;
     double u_roots[MAXD + 1], b_at_v[MAXD + 1];
@@ -1006,6 +1069,7 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
         lin_dot(f3, minus_a, E1, E2, t0, tu, tv);
         lin_dot(g2, w, zero, zero, t0, tu, tv);
         lin_dot(h, w, zero, zero, T.n0, T.m1, T.m2);
+        double v_double = double_point_v(a_poly, f3, g2);
         if (!refract) {
             double t1[BIV4], t2[BIV4], t3[BIV4], b_poly[BIV4];
             bmul(f1, 2, g2, 2, t1);
@@ -1013,7 +1077,7 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
             bmul(f1, 2, f3, 2, t3);
             for (int i = 0; i < 5; ++i) for (int j = 0; j < 5 - i; ++j)
                 BI(b_poly, 4, i, j) = BI(t1, 4, i, j) + BI(t2, 4, i, j) - 2.0 * BI(t3, 4, i, j);
-            solve_system(&T, a_poly, max_a, b_poly, 4, out, n_roots, n_candidates);
+            solve_system(&T, a_poly, max_a, b_poly, 4, v_double, out, n_roots, n_candidates);
             on_axis_candidate(&T, out, n_candidates);
         } else {
             double t6[BIV6], t7[BIV6], b_poly[BIV6];
@@ -1035,7 +1099,7 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
                 int from_outside = (side0 > 0.0) == outward;
                 double eta_in = from_outside ? 1.0 : T.eta, eta_out = from_outside ? T.eta : 1.0;
                 bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7);
-                solve_system(&T, a_poly, max_a, b_poly, 6, out, n_roots, n_candidates);
+                solve_system(&T, a_poly, max_a, b_poly, 6, v_double, out, n_roots, n_candidates);
             }
             on_axis_candidate(&T, out, n_candidates);
         }

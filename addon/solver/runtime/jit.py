@@ -88,7 +88,9 @@ def _compile_without_literals(dispatcher):
     plain signature gives the same machine arithmetic for a fraction of the compile time."""
     from numba.core import types
 
-    resolve = dispatcher.get_call_template
+    resolve = getattr(dispatcher, "get_call_template", None)
+    if resolve is None:  # NUMBA_DISABLE_JIT=1 (debugging in plain Python): a plain function
+        return dispatcher
 
     def get_call_template(args, kws):
         return resolve(tuple(types.unliteral(a) for a in args), {k: types.unliteral(v) for k, v in kws.items()})

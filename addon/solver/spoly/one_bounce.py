@@ -62,20 +62,29 @@ SPLIT_DEPTH = 2  # levels at most (16 pieces)
 NODE_SCRATCH = 16  # first row of the univariate scratch that resultant_at_nodes works in
 SPURIOUS_B = 1e-3  # |b| / Σ|b_ij u^i v^j| at a u-root of a(·, v*) above which b clearly does not vanish there
 SWITCH_RATIO = 0.1  # relabel the corners when the default elimination's |Q| is below this share of the best
+DOUBLE_POINT_F3 = 1e-9  # |f3| / Σ|f3_ij u^i v^j| under which a root of Res_u(a, g) is the double point
 
-def _bernstein_collocation(degree):
-    """(nodes, inverse): Chebyshev nodes of [0, 1] and the inverse of the matrix of the degree
-    ``degree`` Bernstein basis at them (values at the nodes -> Bernstein coefficients)."""
+def _bernstein_collocation(degree, lo=0.0, hi=1.0):
+    """(nodes, inverse): Chebyshev nodes of [lo, hi] and the inverse of the matrix of the degree
+    ``degree`` Bernstein basis of [0, 1] at them (values at the nodes -> Bernstein coefficients)."""
     from math import comb
 
     k = np.arange(degree + 1)
-    nodes = 0.5 * (1.0 - np.cos((2.0 * k + 1.0) * np.pi / (2.0 * degree + 2.0)))
+    nodes = lo + (hi - lo) * 0.5 * (1.0 - np.cos((2.0 * k + 1.0) * np.pi / (2.0 * degree + 2.0)))
     basis = np.array([[comb(degree, j) * x ** j * (1.0 - x) ** (degree - j) for j in range(degree + 1)] for x in nodes])
     return nodes, np.linalg.inv(basis)
 
 
 NODES_R, TO_BERNSTEIN_R = _bernstein_collocation(8)  # the R resultant has degree <= 8 in v
 NODES_T, TO_BERNSTEIN_T = _bernstein_collocation(12)  # the T resultant, degree <= 12
+# The resultants with the spurious root of the double point divided out (``double_point_v``):
+# degree 7 (R) and 10 (T).  Each has a second node set, of a slightly wider interval, used when a
+# node of the first lies close to the divided-out root (where the division amplifies rounding):
+# one of the two sets always keeps every node at least 0.005 of the interval away from it.
+NODES_R_DEFLATED, TO_BERNSTEIN_R_DEFLATED = _bernstein_collocation(7)
+NODES_R_DEFLATED_WIDE, TO_BERNSTEIN_R_DEFLATED_WIDE = _bernstein_collocation(7, -0.07, 1.07)
+NODES_T_DEFLATED, TO_BERNSTEIN_T_DEFLATED = _bernstein_collocation(10)
+NODES_T_DEFLATED_WIDE, TO_BERNSTEIN_T_DEFLATED_WIDE = _bernstein_collocation(10, -0.085, 1.065)
 
 
 # Indices into the per-tuple statistics row.
@@ -256,33 +265,116 @@ def resultant_at_nodes(a, b, nb, tb, origin, width, nodes, node_scratch, values)
 
 
 @kernel(refcounted=False)
-def resultant_bernstein(a, b, nb, tb, origin, width, b_at_nodes, values, out):
-    """Bernstein coefficients on s ∈ [0, 1] of r(s) = Res_u(a, b)(origin + width s); returns the
-    degree (2 tb: 8 for R, 12 for T).
+def resultant_bernstein(a, b, nb, tb, origin, width, v_double, b_at_nodes, values, out):
+    """Bernstein coefficients on s ∈ [0, 1] of r(s) = Res_u(a, b)(origin + width s), divided by
+    (v - v_double)^m when ``v_double`` is finite (m = 1 for R, 2 for T: ``double_point_v``);
+    returns the degree (2 tb - m: 8 or 7 for R, 12 or 10 for T).
 
     The resultant is evaluated at the Chebyshev nodes (``resultant_at_nodes``, each value to
     a few ulps) and interpolated (eq 28-30 give the same polynomial).  Expanding it
     symbolically instead cancels: where b is small along the conic next to a path (an
     endpoint close to a large triangle, a grazing refraction) the power coefficients carried
-    absolute errors far above the resultant's values there.  ``b_at_nodes``: scratch for
-    ``resultant_at_nodes``.
+    absolute errors far above the resultant's values there.  The division is exact (the
+    factor divides the resultant); it is done on the node values, from the node set whose
+    nodes lie farther from v_double.  ``b_at_nodes``: scratch for ``resultant_at_nodes``.
     """
-    deg = 2 * tb
+    if not np.isfinite(v_double):
+        if tb == 4:
+            return _interpolate_resultant(a, b, nb, tb, origin, width, v_double, 0, NODES_R, TO_BERNSTEIN_R,
+                                          b_at_nodes, values, out)
+        return _interpolate_resultant(a, b, nb, tb, origin, width, v_double, 0, NODES_T, TO_BERNSTEIN_T,
+                                      b_at_nodes, values, out)
+    s = (v_double - origin) / width
     if tb == 4:
-        resultant_at_nodes(a, b, nb, tb, origin, width, NODES_R, b_at_nodes, values)
-        for i in range(deg + 1):
-            acc = 0.0
-            for k in range(deg + 1):
-                acc += TO_BERNSTEIN_R[i, k] * values[k]
-            out[i] = acc
-    else:
-        resultant_at_nodes(a, b, nb, tb, origin, width, NODES_T, b_at_nodes, values)
-        for i in range(deg + 1):
-            acc = 0.0
-            for k in range(deg + 1):
-                acc += TO_BERNSTEIN_T[i, k] * values[k]
-            out[i] = acc
+        if _nearest_node(NODES_R_DEFLATED, s) >= _nearest_node(NODES_R_DEFLATED_WIDE, s):
+            return _interpolate_resultant(a, b, nb, tb, origin, width, v_double, 1, NODES_R_DEFLATED,
+                                          TO_BERNSTEIN_R_DEFLATED, b_at_nodes, values, out)
+        return _interpolate_resultant(a, b, nb, tb, origin, width, v_double, 1, NODES_R_DEFLATED_WIDE,
+                                      TO_BERNSTEIN_R_DEFLATED_WIDE, b_at_nodes, values, out)
+    if _nearest_node(NODES_T_DEFLATED, s) >= _nearest_node(NODES_T_DEFLATED_WIDE, s):
+        return _interpolate_resultant(a, b, nb, tb, origin, width, v_double, 2, NODES_T_DEFLATED,
+                                      TO_BERNSTEIN_T_DEFLATED, b_at_nodes, values, out)
+    return _interpolate_resultant(a, b, nb, tb, origin, width, v_double, 2, NODES_T_DEFLATED_WIDE,
+                                  TO_BERNSTEIN_T_DEFLATED_WIDE, b_at_nodes, values, out)
+
+
+@kernel(inline="always")
+def _nearest_node(nodes, s):
+    """Distance from s to the nearest of ``nodes``."""
+    d = math.inf
+    for k in range(nodes.shape[0]):
+        d = min(d, abs(nodes[k] - s))
+    return d
+
+
+@kernel(inline="always")
+def _interpolate_resultant(a, b, nb, tb, origin, width, v_double, multiplicity, nodes, to_bernstein, b_at_nodes,
+                           values, out):
+    """``resultant_bernstein`` with one node set: values at the nodes, divided by
+    (v - v_double)^multiplicity, times the inverse collocation matrix."""
+    resultant_at_nodes(a, b, nb, tb, origin, width, nodes, b_at_nodes, values)
+    deg = nodes.shape[0] - 1
+    if multiplicity > 0:
+        for k in range(deg + 1):
+            d = origin + width * nodes[k] - v_double
+            values[k] /= d if multiplicity == 1 else d * d
+    for i in range(deg + 1):
+        acc = 0.0
+        for k in range(deg + 1):
+            acc += to_bernstein[i, k] * values[k]
+        out[i] = acc
     return deg
+
+
+@kernel(refcounted=False)
+def double_point_v(a, f3, g):
+    """v of the double point of the square form (T) / simple root of the product form (R), or
+    NaN when there is none to divide out.
+
+    With the fixed projection vector C, t = n × C, f3 = d0·t = C·(d0 × n) and g = w·t =
+    C·(w × n).  On the conic a = 0 the vectors d0, w, n are coplanar, so d0 × n = α (w × n)
+    and f3 = α g, d1·t = (1 - α) g: where the line g = 0 (g is linear) meets the conic away
+    from the point where n ∥ w, both d0·t and d1·t vanish.  There the square form eq (10)
+    has a double zero and the product form eq (13) a simple one, for any η: a root of the
+    resultant that is never a path (the plane of incidence there contains C), and as a double
+    root the one that rounding splits into a near pair no isolation separates cheaply.
+    The line meets the conic where D(v) = Res_u(a, g) = a2 c² - a1 c g_u + a0 g_u² vanishes
+    (c = g00 + g01 v); of its two roots the double point is the one where f3 vanishes too.
+    Tested in tests/solver/test_solver_random.py (test_double_point_divides_the_resultant).
+    """
+    gu = g[1, 0]
+    gv = g[0, 1]
+    g0 = g[0, 0]
+    if not abs(gu) > 1e-8 * (abs(g0) + abs(gv)):
+        return math.nan  # flat normals (g constant) or a line along u: nothing to divide out
+    a20 = a[2, 0]
+    d2 = a20 * gv * gv - a[1, 1] * gv * gu + a[0, 2] * gu * gu
+    d1 = 2.0 * a20 * g0 * gv - (a[1, 0] * gv + a[1, 1] * g0) * gu + a[0, 1] * gu * gu
+    d0 = a20 * g0 * g0 - a[1, 0] * g0 * gu + a[0, 0] * gu * gu
+    best = math.nan
+    best_size = DOUBLE_POINT_F3
+    for k in range(2):
+        if d2 == 0.0:
+            if k == 1 or d1 == 0.0:
+                break
+            v = -d0 / d1
+        else:
+            disc = d1 * d1 - 4.0 * d2 * d0
+            if disc < 0.0:
+                break
+            q = -0.5 * (d1 + math.copysign(math.sqrt(disc), d1))
+            if k == 0:
+                v = q / d2
+            elif q != 0.0:
+                v = d0 / q
+            else:
+                break
+        u = -(g0 + gv * v) / gu
+        size = _relative_size(f3, 2, u, v)
+        if np.isfinite(v) and size < best_size:
+            best = v
+            best_size = size
+    return best
 
 
 @kernel(refcounted=False)
@@ -464,6 +556,7 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, sc
         stats[STAT_SKIPPED] = 1
         return 0
 
+    v_double = double_point_v(a_poly, f3, g)
     count = 0
     if not refract:
         # Product form, eq (13): (d0·n)(d1·t) + (d0·t)(d1·n) = f1 g + f3 h - 2 f1 f3.
@@ -473,7 +566,7 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, sc
         for i in range(5):
             for j in range(5 - i):
                 b_poly[i, j] = t1[i, j] + t2[i, j] - 2.0 * t3[i, j]
-        count = _solve_system(a_poly, max_a, b_poly, 4, False, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
+        count = _solve_system(a_poly, max_a, b_poly, 4, v_double, False, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
                               stop_after, scratch_uni, chain, lists, stack, root_buf, out_uv, count, stats)
         if stop_after == 0:
             count = _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count, stats)
@@ -505,7 +598,7 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, sc
         eta_in = 1.0 if from_outside else eta
         eta_out = eta if from_outside else 1.0
         _bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7)
-        count = _solve_system(a_poly, max_a, b_poly, 6, True, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
+        count = _solve_system(a_poly, max_a, b_poly, 6, v_double, True, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
                               stop_after, scratch_uni, chain, lists, stack, root_buf, out_uv, count, stats)
     if stop_after == 0:
         count = _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count, stats)
@@ -514,7 +607,7 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, sc
 
 
 @kernel(refcounted=False)
-def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
+def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
                   stop_after, scratch_uni, chain, lists, stack, root_buf, out_uv, count, stats):
     """Roots of {a = 0, b = 0} in the triangle -> validated paths appended to out_uv.
 
@@ -554,10 +647,10 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
             v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     else:
         if stop_after == 1:
-            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN,
+            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, v_double,
                                 scratch_uni[NODE_SCRATCH:], scratch_uni[1], res)
             return count
-        n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, stack, v_roots)
+        n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, v_double, scratch_uni, chain, lists, stack, v_roots)
     stats[STAT_ROOTS] += n_v
     if stop_after == 2:
         return count
@@ -623,8 +716,9 @@ def _solve_system(a_poly, max_a, b_poly, total_b, refract, x0, x2, p0, e1, e2, n
 
 
 @kernel(refcounted=False)
-def _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, stack, v_roots):
-    """Roots in v ∈ [-V_MARGIN, 1 + V_MARGIN] of Res_u(a, b), ascending; returns their count.
+def _resultant_v_roots(a_poly, b_poly, nb, total_b, v_double, scratch_uni, chain, lists, stack, v_roots):
+    """Roots in v ∈ [-V_MARGIN, 1 + V_MARGIN] of Res_u(a, b) (its double-point factor divided out
+    when ``v_double`` is finite: ``resultant_bernstein``), ascending; returns their count.
 
     One Bernstein interpolant over the whole range first.  Its coefficients carry errors of
     ~1e-12 of the resultant's largest value there, so where the values at the nodes span more
@@ -651,7 +745,7 @@ def _resultant_v_roots(a_poly, b_poly, nb, total_b, scratch_uni, chain, lists, s
         lo = piece_lo[top]
         hi = piece_hi[top]
         depth = piece_depth[top]
-        deg_r = resultant_bernstein(a_poly, b_poly, nb, total_b, lo, hi - lo, b_at_nodes, values, res)
+        deg_r = resultant_bernstein(a_poly, b_poly, nb, total_b, lo, hi - lo, v_double, b_at_nodes, values, res)
         if depth < SPLIT_DEPTH:
             big = 0.0
             small = math.inf

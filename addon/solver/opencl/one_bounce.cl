@@ -39,6 +39,9 @@
 #define INSIDE_EPSILON 1e-9
 #define SETTLED_STEP 1e-9
 #define FOLD_RATIO 1e-4
+#define FOLD_MODEL_STEP 1e-4  // the residual along a fold's null direction is sampled at +-this
+#define FOLD_REACH 1e-2       // the model's second root farther than this is left to the resultant
+#define FOLD_MISS 0.8         // |model residual| at its second root over |r1 t*| above which no root is there
 #define SWITCH_RATIO 0.1
 #define SPURIOUS_B 1e-3     // |b| / sum |b_ij u^i v^j| above which b clearly does not vanish at a u-root
 #define DOUBLE_POINT_F3 1e-9  // |f3| / sum |f3_ij u^i v^j| under which a root of Res_u(a, g) is the double point
@@ -799,6 +802,23 @@ static void probe_fold(const Tuple *T, double u, double v, Paths *out) {
     else { su = 0.0; sv = 1.0; }
     double ls = sqrt(su * su + sv * sv);
     su /= ls; sv /= ls;
+    // one_bounce.py _probe_fold: the residual along s as r1 t + r2 t^2 from t = 0, +-h; a polish
+    // from its second root t* when that is near and the model nearly vanishes there
+    const double h = FOLD_MODEL_STEP;
+    vec rp, rm, jpu, jpv;
+    int okp = scatter_residual(T, u + h * su, v + h * sv, &rp, &jpu, &jpv);
+    int okm = okp && scatter_residual(T, u - h * su, v - h * sv, &rm, &jpu, &jpv);
+    if (okp && okm) {
+        vec r1 = (rp - rm) * (0.5 / h), r2 = (rp + rm - 2.0 * res) * (0.5 / (h * h));
+        double curvature = vdot(r2, r2);
+        if (!(curvature > 0.0)) return;
+        double t = -vdot(r1, r2) / curvature;
+        if (!(fabs(t) <= FOLD_REACH)) return;
+        if (!(vlength(t * r1 + (t * t) * r2) <= FOLD_MISS * vlength(r1) * fabs(t))) return;
+        double uu = u + t * su, vv = v + t * sv, err, sig;
+        if (polish_and_validate(T, &uu, &vv, &err, &sig)) store_path(out, uu, vv, err, sig);
+        return;
+    }
     const double steps[3] = {1e-5, 1e-4, 1e-3};
     for (int k = 0; k < 6; ++k) {
         double step = steps[k / 2] * ((k % 2 == 0) ? 1.0 : -1.0);

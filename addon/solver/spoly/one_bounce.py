@@ -38,10 +38,10 @@ import numpy as np
 
 from ..runtime.jit import kernel, parallel_range
 from ..paths.one_vertex import (endpoint_sides, line_crossing_barycentrics, polish_and_validate,
-                                polish_validate_normal_matrix)
+                                polish_validate_normal_matrix, scatter_residual)
 from ..polynomials.roots import (MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval,
                                  roots_in_unit_interval_bernstein)
-from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
+from ..geometry.vec3 import add, cross, dot, madd, norm, row, scale, sub
 
 MAX_PATHS_ONE_BOUNCE = 8  # per tuple; a one-bounce tuple seldom has more than 2
 CHUNK = 256  # tuples per parallel work item (scratch is allocated once per chunk)
@@ -55,7 +55,10 @@ POLISH_STEPS = 40  # Gauss-Newton steps at most (stops once converged or a step 
 ACCEPT_RESIDUAL = 1e-12  # residual accepted outright; above it (up to 1e-7) Newton must have settled
 NEGLIGIBLE = 1e-13  # relative size below which a coefficient is treated as exactly zero
 FOLD_RATIO = 1e-4  # lam_min / lam_max of J^T J under which a path counts as near a fold
-FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null direction
+FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null direction (no model)
+FOLD_MODEL_STEP = 1e-4  # the residual along the null direction is sampled at ±this for its quadratic model
+FOLD_REACH = 1e-2  # the model's second root farther than this is left to the resultant
+FOLD_MISS = 0.8  # |model residual| at its second root over |r1 t*| above which no root is there
 DYNAMIC_RANGE = 1e-6  # node values spanning more than this: interpolate the resultant piecewise
 SPLIT = 4  # pieces per level of that refinement
 SPLIT_DEPTH = 2  # levels at most (16 pieces)
@@ -811,8 +814,17 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
     """Near a fold of the caustic two paths can lie within ~1e-5 of each other and project
     onto one (double) resultant root, so only one of them is a candidate.  When the path's
     Jacobian is nearly singular (a11, a12, a22: J^T J at the polished path (u, v), as the
-    polish returns it), polish from a few points along its null direction and keep any new
-    path."""
+    polish returns it), look for the other path along its null direction s.
+
+    The residual along s is modelled as r(t) = r1 t + r2 t² from its values at t = 0, ±h
+    (FOLD_MODEL_STEP); the second root of the model is where |r(t)| is least, t* = -(r1·r2) /
+    |r2|².  A polish starts there when t* is within FOLD_REACH and the model nearly vanishes at
+    t* (|r(t*)| <= FOLD_MISS |r1 t*|: a fold that only comes close to a second root, the common
+    case, leaves |r(t*)| ≈ |r1 t*|).  Where the model cannot be evaluated (a probe past the
+    critical angle) the fixed probes FOLD_STEPS are polished instead.  A safety net: with the
+    resultant evaluated at nodes (and its double point divided out), every path the probe finds
+    on the brute-force sets of tests/solver (two-path, near-TIR, curved normals) is also a root
+    of the resultant, so no test depends on it."""
     tr = a11 + a22
     disc = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))
     lam_min = 0.5 * tr - disc
@@ -829,6 +841,25 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
     ls = math.sqrt(su * su + sv * sv)
     su /= ls
     sv /= ls
+    h = FOLD_MODEL_STEP
+    ok0, r0, _j0, _k0 = scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta)
+    okp, rp, _jp, _kp = scatter_residual(u + h * su, v + h * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta)
+    okm, rm, _jm, _km = scatter_residual(u - h * su, v - h * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta)
+    if ok0 and okp and okm:
+        r1 = scale(sub(rp, rm), 0.5 / h)
+        r2 = scale(madd(add(rp, rm), r0, -2.0), 0.5 / (h * h))
+        curvature = dot(r2, r2)
+        if not curvature > 0.0:
+            return count
+        t = -dot(r1, r2) / curvature
+        if not abs(t) <= FOLD_REACH:
+            return count
+        if not norm(madd(scale(r1, t), r2, t * t)) <= FOLD_MISS * norm(r1) * abs(t):
+            return count
+        ok2, uu, vv, err, sig = polish_and_validate(u + t * su, v + t * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
+        if ok2:
+            count = store_path(uu, vv, err, sig, root_buf, out_uv, count)
+        return count
     for k in range(6):
         step = FOLD_STEPS[k // 2] * (1.0 if k % 2 == 0 else -1.0)
         ok2, uu, vv, err, sig = polish_and_validate(u + step * su, v + step * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)

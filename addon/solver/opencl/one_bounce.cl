@@ -26,6 +26,7 @@
 #define POLISH_ON_BERNSTEIN_STEPS 4
 #define NEWTON_QUADRATIC_RATIO 1e-3
 #define POLISH_STEPS 40
+#define CANDIDATE_REACH 1e-2  // a resultant candidate whose first Gauss-Newton step is longer is no path's root
 #define V_MARGIN 1e-6
 #define ROOT_X_TOLERANCE 1e-13
 #define ROOT_TOUCH_TOLERANCE 1e-10
@@ -744,7 +745,9 @@ static int scatter_residual(const Tuple *T, double u, double v, vec *res, vec *j
 }
 
 // polish_and_validate: returns accepted; writes u, v, err, sigma_min.
-static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *perr, double *psig) {
+// (max_first_step: paths/one_vertex.py polish_validate_normal_matrix's, INFINITY outside the
+// candidate polish)
+static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *perr, double *psig, double max_first_step) {
     double u = *pu, v = *pv;
     vec res, ju, jv;
     if (!scatter_residual(T, u, v, &res, &ju, &jv)) { *perr = INFINITY; *psig = 0.0; return 0; }
@@ -756,6 +759,9 @@ static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *p
         double det = a11 * a22 - a12 * a12;
         if (!(fabs(det) > 1e-300)) break;
         double du = (b1 * a22 - b2 * a12) / det, dv = (a11 * b2 - a12 * b1) / det;
+        if (last_step == INFINITY && !(fmax(fabs(du), fabs(dv)) <= max_first_step)) {
+            *perr = err; *psig = 0.0; return 0;
+        }
         last_step = fmax(fabs(du), fabs(dv));
         vec res2, ju2, jv2;
         if (!scatter_residual(T, u + du, v + dv, &res2, &ju2, &jv2)) break;
@@ -816,14 +822,14 @@ static void probe_fold(const Tuple *T, double u, double v, Paths *out) {
         if (!(fabs(t) <= FOLD_REACH)) return;
         if (!(vlength(t * r1 + (t * t) * r2) <= FOLD_MISS * vlength(r1) * fabs(t))) return;
         double uu = u + t * su, vv = v + t * sv, err, sig;
-        if (polish_and_validate(T, &uu, &vv, &err, &sig)) store_path(out, uu, vv, err, sig);
+        if (polish_and_validate(T, &uu, &vv, &err, &sig, INFINITY)) store_path(out, uu, vv, err, sig);
         return;
     }
     const double steps[3] = {1e-5, 1e-4, 1e-3};
     for (int k = 0; k < 6; ++k) {
         double step = steps[k / 2] * ((k % 2 == 0) ? 1.0 : -1.0);
         double uu = u + step * su, vv = v + step * sv, err, sig;
-        if (polish_and_validate(T, &uu, &vv, &err, &sig)) store_path(out, uu, vv, err, sig);
+        if (polish_and_validate(T, &uu, &vv, &err, &sig, INFINITY)) store_path(out, uu, vv, err, sig);
     }
 }
 
@@ -843,7 +849,7 @@ static void on_axis_candidate(const Tuple *T, Paths *out, int *candidates) {
     if (!(ln > 0.0 && lw > 0.0) || vlength(vcross(n, w)) > 1e-2 * ln * lw) return;
     (*candidates)++;
     double err, sig;
-    if (polish_and_validate(T, &u, &v, &err, &sig)) store_path(out, u, v, err, sig);
+    if (polish_and_validate(T, &u, &v, &err, &sig, INFINITY)) store_path(out, u, v, err, sig);
 }
 
 // one_bounce.py _relative_size: |p(u, v)| / sum |p_ij u^i v^j| (p of total degree d)
@@ -979,11 +985,11 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
         for (int iu = 0; iu < n_u; ++iu) {
             (*n_candidates)++;
             double uu = u_roots[iu], vv = vr, err, sig;
-            int ok = polish_and_validate(T, &uu, &vv, &err, &sig);
+            int ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH);
             if (!ok) {
                 double2 r = refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr);
                 uu = r.x; vv = r.y;
-                ok = polish_and_validate(T, &uu, &vv, &err, &sig);
+                ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH);
             }
             if (!ok) continue;
             int before = out->count;

@@ -94,12 +94,13 @@ def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, e
     (:func:`polish_validate_normal_matrix` without the normal matrix).
     Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian)."""
     accepted, u, v, err, sigma_min, _a11, _a12, _a22 = polish_validate_normal_matrix(
-        u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps, tolerance)
+        u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps, tolerance, math.inf)
     return accepted, u, v, err, sigma_min
 
 
 @kernel
-def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps, tolerance):
+def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps, tolerance,
+                                  max_first_step):
     """Gauss-Newton on the path-space residual from (u, v), then the acceptance test.
 
     The polynomial roots are already close (the system is exact for one bounce), so one
@@ -108,6 +109,9 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
     converges only linearly, so a stalled iterate can sit ~1e-3 from the root with a
     residual of 1e-8: ``tolerance`` (well below DIRECTION_TOLERANCE) rejects such points,
     unless Newton has settled in position (its next step at rounding level).
+    A start whose first step would move it farther than ``max_first_step`` (in u or v) is no
+    path's root and is rejected unpolished: a polish from there is a search that at best
+    finds a path some other candidate finds.
     Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian, and the
     entries a11, a12, a22 of J^T J at the returned (u, v), so that a caller testing for a fold
     need not evaluate the residual there again).
@@ -132,6 +136,8 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
             break
         du = (b1 * a22 - b2 * a12) / det
         dv = (a11 * b2 - a12 * b1) / det
+        if last_step == math.inf and not max(abs(du), abs(dv)) <= max_first_step:
+            return False, u, v, err, 0.0, 0.0, 0.0, 0.0
         last_step = max(abs(du), abs(dv))
         ok2, res2, ju2, jv2 = scatter_residual(u + du, v + dv, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
         if not ok2:

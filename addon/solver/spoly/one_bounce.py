@@ -51,6 +51,7 @@ ROOT_TOUCH_TOLERANCE = 1e-10
 V_MARGIN = 1e-6  # v roots are searched slightly outside [0, 1]; the inside test is exact
 SAME_PATH = 1e-7  # barycentric distance under which two polished candidates are one path
 NEAR_PATH = 1e-5  # largest merge radius, used where the Jacobian barely pins the path
+CANDIDATE_REACH = 1e-2  # a resultant candidate whose first Gauss-Newton step is longer is no path's root
 POLISH_STEPS = 40  # Gauss-Newton steps at most (stops once converged or a step stops helping)
 ACCEPT_RESIDUAL = 1e-12  # residual accepted outright; above it (up to 1e-7) Newton must have settled
 NEGLIGIBLE = 1e-13  # relative size below which a coefficient is treated as exactly zero
@@ -698,7 +699,8 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
         for iu in range(n_u):
             stats[STAT_CANDIDATES] += 1
             ok, uu, vv, err, sig, j11, j12, j22 = polish_validate_normal_matrix(
-                u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
+                u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL,
+                CANDIDATE_REACH)
             if not ok:
                 # Fallback: Newton on the exact polynomial system, which stays smooth where
                 # the path-space residual is undefined (a resultant root a hair past the
@@ -706,7 +708,8 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
                 # between two close roots it may jump to the neighbour and lose one.
                 uu, vv = _refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr)
                 ok, uu, vv, err, sig, j11, j12, j22 = polish_validate_normal_matrix(
-                    uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
+                    uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL,
+                    CANDIDATE_REACH)
             if not ok:
                 continue
             before = count

@@ -79,3 +79,19 @@ def order_by_tuple(tuple_index, uv, n, out_index, out_uv):
     for t in range(n):
         if start[t + 1] - start[t] > 1:
             _sort_run(out_uv, start[t], start[t + 1], row)
+
+
+@kernel
+def stat_totals(stats, paths_column, capacity, totals):
+    """totals[k] = the sum of column k of the per-tuple statistics stats (n, k); returns how many
+    tuples found more paths (column ``paths_column``) than the ``capacity`` they could store.
+    One pass over the rows (numpy's axis-0 sum of a narrow int64 table strides far slower)."""
+    for k in range(totals.shape[0]):
+        totals[k] = 0
+    over = 0
+    for t in range(stats.shape[0]):
+        for k in range(totals.shape[0]):
+            totals[k] += stats[t, k]
+        if stats[t, paths_column] > capacity:
+            over += 1
+    return over

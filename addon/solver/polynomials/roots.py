@@ -33,6 +33,16 @@ NEAR_TOUCH = 1e-6  # a root-free Bernstein piece this close to zero is re-checke
 CONVEX_MARGIN = 1e-9
 
 
+def _binomials(n):
+    """C(i, k) for 0 <= k <= i <= n, as exact floats (zero above the diagonal)."""
+    from math import comb
+
+    return np.array([[float(comb(i, k)) if k <= i else 0.0 for k in range(n + 1)] for i in range(n + 1)])
+
+
+BINOMIAL = _binomials(MAX_DEGREE)
+
+
 def make_root_scratch():
     """Scratch arrays for the root finders: derivative chain, two root lists, Bernstein stack."""
     return (np.zeros((MAX_DEGREE + 1, MAX_DEGREE + 1)), np.zeros((2, MAX_DEGREE + 1)),
@@ -440,14 +450,10 @@ def _second_differences_one_sign(b, deg, margin):
 def bernstein_weights(b, deg, w, dw):
     """w[k] = C(deg, k) b[k] and dw[k] = deg C(deg - 1, k) (b[k+1] - b[k]): the scaled power
     coefficients that :func:`bernstein_value_and_derivative` runs Horner on."""
-    binom = 1.0
     for k in range(deg + 1):
-        w[k] = binom * b[k]
-        binom = binom * (deg - k) / (k + 1)
-    binom = float(deg)
+        w[k] = BINOMIAL[deg, k] * b[k]
     for k in range(deg):
-        dw[k] = binom * (b[k + 1] - b[k])
-        binom = binom * (deg - 1 - k) / (k + 1)
+        dw[k] = (deg * BINOMIAL[deg - 1, k]) * (b[k + 1] - b[k])
 
 
 @kernel(refcounted=False)

@@ -49,7 +49,9 @@ def _as_float_array(name, value, shape_tail):
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim != 1 + len(shape_tail) or tuple(arr.shape[1:]) != shape_tail:
         raise ValueError(f"{name} must have shape (n, {', '.join(map(str, shape_tail))}), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    # one pass over the values first: a NaN or Inf makes the sum non-finite (so does an
+    # overflow of finite values, which the full test then lets through)
+    if arr.size and not np.isfinite(arr.sum()) and not np.all(np.isfinite(arr)):
         bad = int(np.argwhere(~np.isfinite(arr))[0][0])
         raise ValueError(f"{name} contains NaN or Inf (first at tuple {bad})")
     return np.ascontiguousarray(arr)
@@ -122,8 +124,7 @@ class SpecularPolynomialSolver:
                 solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), out_uv, out_count, stats)
             t2 = time.perf_counter()
             tuple_index, uv = compact_paths(out_uv, out_count)
-            totals = stats.sum(axis=0)
-            report.overflow = int(np.count_nonzero(stats[:, 2] > MAX_PATHS_ONE_BOUNCE))
+            totals, report.overflow = _stat_totals(stats, MAX_PATHS_ONE_BOUNCE)
         t3 = time.perf_counter()
         report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals[:4])
         report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
@@ -173,9 +174,8 @@ class SpecularPolynomialSolver:
         t2 = time.perf_counter()
         tuple_index, uv = compact_paths(out_uv, out_count)
         t3 = time.perf_counter()
-        totals = stats.sum(axis=0)
+        totals, report.overflow = _stat_totals(stats, MAX_PATHS_TWO_BOUNCE)
         report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals[:4])
-        report.overflow = int(np.count_nonzero(stats[:, 2] > MAX_PATHS_TWO_BOUNCE))
         report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
         report.determinants = int(totals[4])
         return SolveResult(tuple_index, uv, report)
@@ -254,6 +254,16 @@ class TupleTable:
                                    pieces=self.pieces, device=self.device)
         self.device_name = result.report.device
         return result
+
+
+def _stat_totals(stats, capacity):
+    """(column sums of the per-tuple statistics, tuples with more paths than ``capacity``);
+    column 2 counts paths in both the one- and the two-bounce tables."""
+    from ..paths.order import stat_totals
+
+    totals = np.zeros(stats.shape[1], dtype=np.int64)
+    over = stat_totals(stats, 2, capacity, totals) if stats.shape[0] else 0
+    return totals, int(over)
 
 
 def compact_paths(out_uv, out_count):

@@ -666,28 +666,30 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
         a1 = a_poly[1, 0] + a_poly[1, 1] * vr
         a0 = a_poly[0, 0] + (a_poly[0, 1] + a_poly[0, 2] * vr) * vr
         u_hi = 1.0 - vr + V_MARGIN
-        skip_first = False
-        skip_second = False
         if abs(a2) + abs(a1) > 1e-10 * max_a:
             # both real u-roots of a(·, v*), then those in range
             all_u = root_buf[2]
             n_all = _quadratic_u_roots(a2, a1, a0, -math.inf, math.inf, all_u)
-            if n_all == 2:
-                # Res = a2^n b(ρ1) b(ρ2) vanishes where b does at one u-root of a(·, v*): the
-                # other one is no root of the system (its polish would only wander off, or to a
-                # path found anyway).  Skipped when b is clearly nonzero there and the other
-                # u-root, in the triangle or not, accounts for the resultant's root.
-                size_first = _relative_size(b_poly, total_b, all_u[0], vr)
-                size_second = _relative_size(b_poly, total_b, all_u[1], vr)
-                skip_first = size_first > SPURIOUS_B and size_second <= SPURIOUS_B
-                skip_second = size_second > SPURIOUS_B and size_first <= SPURIOUS_B
             n_u = 0
+            # Res = a2^n b(ρ1) b(ρ2) vanishes where b does at one u-root of a(·, v*): the other
+            # one is no root of the system (its polish would only wander off, or to a path found
+            # anyway).  An in-range u-root is skipped when b is clearly nonzero there and the
+            # other u-root, in the triangle or not, accounts for the resultant's root.  The sizes
+            # are evaluated only as that test needs them.
+            size = (-1.0, -1.0)
             for k in range(n_all):
-                if all_u[k] >= -V_MARGIN and all_u[k] <= u_hi:
-                    if (skip_first and k == 0) or (skip_second and k == 1):
+                if not (all_u[k] >= -V_MARGIN and all_u[k] <= u_hi):
+                    continue
+                if n_all == 2:
+                    own = _relative_size(b_poly, total_b, all_u[k], vr) if size[k] < 0.0 else size[k]
+                    other = size[1 - k]
+                    if own > SPURIOUS_B and other < 0.0:
+                        other = _relative_size(b_poly, total_b, all_u[1 - k], vr)
+                    size = (own, other) if k == 0 else (other, own)
+                    if own > SPURIOUS_B and other <= SPURIOUS_B:
                         continue
-                    u_roots[n_u] = all_u[k]
-                    n_u += 1
+                u_roots[n_u] = all_u[k]
+                n_u += 1
         else:
             # a vanishes identically in u at this v: u comes from b(u, v*) = 0.
             for i in range(nb + 1):

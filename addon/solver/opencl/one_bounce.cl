@@ -39,6 +39,8 @@
 #define DIRECTION_TOLERANCE 1e-7
 #define INSIDE_EPSILON 1e-9
 #define SETTLED_STEP 1e-9
+#define FLOOR_RESIDUAL 1e-13  // residual and step at rounding level: the step is taken unevaluated
+#define FLOOR_STEP 1e-12
 #define FOLD_RATIO 1e-4
 #define FOLD_MODEL_STEP 1e-4  // the residual along a fold's null direction is sampled at +-this
 #define FOLD_REACH 1e-2       // the model's second root farther than this is left to the resultant
@@ -763,6 +765,7 @@ static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *p
             *perr = err; *psig = 0.0; return 0;
         }
         last_step = fmax(fabs(du), fabs(dv));
+        if (err <= FLOOR_RESIDUAL && last_step <= FLOOR_STEP) { u += du; v += dv; break; }  // at the rounding floor
         vec res2, ju2, jv2;
         if (!scatter_residual(T, u + du, v + dv, &res2, &ju2, &jv2)) break;
         double err2 = vlength(res2);

@@ -17,6 +17,8 @@ from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub, tangent_der
 DIRECTION_TOLERANCE = 1e-7  # |wo - expected| for an accepted path (unit vectors)
 INSIDE_EPSILON = 1e-9  # barycentric slack at triangle edges
 SETTLED_STEP = 1e-9  # a Newton step this small in (u, v) means the iterate has converged
+FLOOR_RESIDUAL = 1e-13  # a residual this small, with a step under FLOOR_STEP, is at rounding level:
+FLOOR_STEP = 1e-12  # the last step is taken unevaluated
 
 
 @kernel
@@ -104,7 +106,8 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
     """Gauss-Newton on the path-space residual from (u, v), then the acceptance test.
 
     The polynomial roots are already close (the system is exact for one bounce), so one
-    or two steps reach rounding level; the loop stops early once the step stalls.
+    or two steps reach rounding level; the loop stops early once the step stalls, and a step
+    from a residual at rounding level (FLOOR_RESIDUAL, FLOOR_STEP) is taken unevaluated.
     Near a fold of the caustic the residual is flat along one direction and Gauss-Newton
     converges only linearly, so a stalled iterate can sit ~1e-3 from the root with a
     residual of 1e-8: ``tolerance`` (well below DIRECTION_TOLERANCE) rejects such points,
@@ -139,6 +142,12 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
         if last_step == math.inf and not max(abs(du), abs(dv)) <= max_first_step:
             return False, u, v, err, 0.0, 0.0, 0.0, 0.0
         last_step = max(abs(du), abs(dv))
+        if err <= FLOOR_RESIDUAL and last_step <= FLOOR_STEP:
+            # At the rounding floor: Newton's step from here lands within rounding of the root,
+            # so it is taken without the evaluation that would only confirm it.
+            u += du
+            v += dv
+            break
         ok2, res2, ju2, jv2 = scatter_residual(u + du, v + dv, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
         if not ok2:
             break

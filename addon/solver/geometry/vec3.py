@@ -52,3 +52,12 @@ def tangent_derivative(unit, d, length):
     """Derivative of normalize(x) along dx = d, where unit = x/|x| and length = |x|."""
     s = dot(unit, d)
     return ((d[0] - s * unit[0]) / length, (d[1] - s * unit[1]) / length, (d[2] - s * unit[2]) / length)
+
+
+@kernel(inline="always")
+def tangent_derivative_by_inverse(unit, d, inverse_length):
+    """:func:`tangent_derivative` given 1 / |x|: three multiplies instead of three divisions,
+    for the per-candidate hot loop (the result differs from it in the last bit at most)."""
+    s = dot(unit, d)
+    return ((d[0] - s * unit[0]) * inverse_length, (d[1] - s * unit[1]) * inverse_length,
+            (d[2] - s * unit[2]) * inverse_length)

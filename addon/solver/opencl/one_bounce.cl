@@ -695,7 +695,8 @@ static double2 refine_on_polynomials(const double *a, const double *b, int db, d
 }
 
 // ---------------------------------------------------------------- path space
-static vec tangent_derivative(vec unit, vec d, double len) { return (d - vdot(unit, d) * unit) / len; }
+// derivative of normalize(x) along d, given unit = x / |x| and 1 / |x| (vec3.tangent_derivative_by_inverse)
+static vec tangent_derivative(vec unit, vec d, double inverse_length) { return (d - vdot(unit, d) * unit) * inverse_length; }
 
 typedef struct { vec p0, e1, e2, n0, m1, m2, ng, x0, x2; int refract; double eta; } Tuple;
 
@@ -730,9 +731,9 @@ static int scatter_residual(const Tuple *T, double u, double v, vec *res, vec *j
     for (int axis = 0; axis < 2; ++axis) {
         vec d = axis == 0 ? T->e1 : T->e2;
         vec dm = axis == 0 ? T->m1 : T->m2;
-        vec dwi = tangent_derivative(wi, d, li);
-        vec dwo = -tangent_derivative(wo, d, lo);
-        vec dno = s * tangent_derivative(nh, dm, ln);
+        vec dwi = tangent_derivative(wi, d, 1.0 / li);
+        vec dwo = -tangent_derivative(wo, d, 1.0 / lo);
+        vec dno = s * tangent_derivative(nh, dm, 1.0 / ln);
         double dc = -(vdot(dwi, no) + vdot(wi, dno));
         vec dexp;
         if (T->refract) {

@@ -12,7 +12,7 @@ no refracted direction.  The rules are spelled out in ``CONTRACT.md``.
 import math
 
 from ..runtime.jit import kernel
-from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative
+from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub, tangent_derivative_by_inverse
 
 DIRECTION_TOLERANCE = 1e-7  # |wo - expected| for an accepted path (unit vectors)
 INSIDE_EPSILON = 1e-9  # barycentric slack at triangle edges
@@ -41,9 +41,12 @@ def scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
     lo = norm(do)
     if not (ln > 0.0 and li > 0.0 and lo > 0.0):
         return False, zero, zero, zero
-    nh = scale(n, 1.0 / ln)
-    wi = scale(di, 1.0 / li)
-    wo = scale(do, 1.0 / lo)
+    inv_ln = 1.0 / ln
+    inv_li = 1.0 / li
+    inv_lo = 1.0 / lo
+    nh = scale(n, inv_ln)
+    wi = scale(di, inv_li)
+    wo = scale(do, inv_lo)
     ng = ng_raw if dot(ng_raw, nh) >= 0.0 else scale(ng_raw, -1.0)
     side_in = -dot(di, ng)
     side_out = dot(do, ng)
@@ -73,9 +76,9 @@ def scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta)
     for axis in range(2):
         d = e1 if axis == 0 else e2
         dm = m1 if axis == 0 else m2
-        dwi = tangent_derivative(wi, d, li)
-        dwo = scale(tangent_derivative(wo, d, lo), -1.0)
-        dno = scale(tangent_derivative(nh, dm, ln), s)
+        dwi = tangent_derivative_by_inverse(wi, d, inv_li)
+        dwo = scale(tangent_derivative_by_inverse(wo, d, inv_lo), -1.0)
+        dno = scale(tangent_derivative_by_inverse(nh, dm, inv_ln), s)
         dc = -(dot(dwi, no) + dot(wi, dno))
         if refract:
             dsk = r * r * c * dc / sk

@@ -400,17 +400,19 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
     k2 = row(tri_n, 2)
     # The side tests of _solve_labelled first, in the caller's labelling: most tuples of an
     # unculled batch end here, before the labelling costs anything.
-    ok, _ng, _length, side0, side2 = endpoint_sides(x0, x2, q0, sub(q1, q0), sub(q2, q0), eta)
+    ok, ng, length, side0, side2 = endpoint_sides(x0, x2, q0, sub(q1, q0), sub(q2, q0), eta)
     if not ok or (side0 * side2 < 0.0) != refract:
         stats[STAT_SKIPPED] = 1
         return 0
     labelling = elimination_labelling(x0, x2, q0, q1, q2, k0, k1, k2)
     if labelling == 0:
-        return _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, scratch_biv, scratch_uni,
+        return _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, True, ng, length, side0, side2,
+                               stop_after, scratch_biv, scratch_uni,
                                chain, lists, stack, root_buf, out_uv, stats)
     if labelling == 1:
         # corners (p0, p2, p1): u' = v, v' = u
-        count = _solve_labelled(refract, x0, x2, q0, q2, q1, k0, k2, k1, eta, stop_after, scratch_biv, scratch_uni,
+        count = _solve_labelled(refract, x0, x2, q0, q2, q1, k0, k2, k1, eta, False, ng, length, side0, side2,
+                                stop_after, scratch_biv, scratch_uni,
                                 chain, lists, stack, root_buf, out_uv, stats)
         for q in range(min(count, out_uv.shape[0])):
             up = out_uv[q, 0]
@@ -418,7 +420,8 @@ def solve_one_bounce_tuple(refract, x0, x2, tri_p, tri_n, eta, stop_after, scrat
             out_uv[q, 1] = up
         return count
     # corners (p1, p2, p0): x = p1 + u' (p2 - p1) + v' (p0 - p1), so u = 1 - u' - v', v = u'
-    count = _solve_labelled(refract, x0, x2, q1, q2, q0, k1, k2, k0, eta, stop_after, scratch_biv, scratch_uni,
+    count = _solve_labelled(refract, x0, x2, q1, q2, q0, k1, k2, k0, eta, False, ng, length, side0, side2,
+                            stop_after, scratch_biv, scratch_uni,
                             chain, lists, stack, root_buf, out_uv, stats)
     for q in range(min(count, out_uv.shape[0])):
         up = out_uv[q, 0]
@@ -482,19 +485,23 @@ def _fold_free_size(g0, g1, g2):
 
 
 @kernel(refcounted=False)
-def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, stop_after, scratch_biv, scratch_uni, chain, lists, stack, root_buf, out_uv, stats):
-    """The solve of ``solve_one_bounce_tuple`` for corners q0, q1, q2 with normals k0, k1, k2."""
+def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, sides_known, ng, length, side0, side2, stop_after,
+                    scratch_biv, scratch_uni, chain, lists, stack, root_buf, out_uv, stats):
+    """The solve of ``solve_one_bounce_tuple`` for corners q0, q1, q2 with normals k0, k1, k2;
+    ``sides_known``: (ng, length, side0, side2) are endpoint_sides' for these corners already
+    (the caller's own labelling), else they are recomputed here."""
     p0 = q0
     e1 = sub(q1, q0)
     e2 = sub(q2, q0)
     n0 = k0
     m1 = sub(k1, k0)
     m2 = sub(k2, k0)
-    # the labelling's own edges set the scale (length) of the local frame below
-    ok, ng, length, side0, side2 = endpoint_sides(x0, x2, p0, e1, e2, eta)
-    if not ok or (side0 * side2 < 0.0) != refract:
-        stats[STAT_SKIPPED] = 1
-        return 0
+    if not sides_known:
+        # the labelling's own edges set the scale (length) of the local frame below
+        ok, ng, length, side0, side2 = endpoint_sides(x0, x2, p0, e1, e2, eta)
+        if not ok or (side0 * side2 < 0.0) != refract:
+            stats[STAT_SKIPPED] = 1
+            return 0
     n_mean = madd(madd(scale(n0, 3.0), m1, 1.0), m2, 1.0)
     if norm(n_mean) == 0.0:
         stats[STAT_SKIPPED] = 1

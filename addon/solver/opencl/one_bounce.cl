@@ -26,6 +26,7 @@
 #define POLISH_ON_BERNSTEIN_STEPS 4
 #define NEWTON_QUADRATIC_RATIO 1e-3
 #define POLISH_STEPS 40
+#define FAR_START -1.0       // the error polish_and_validate reports for a start rejected by max_first_step
 #define CANDIDATE_REACH 1e-2  // a resultant candidate whose first Gauss-Newton step is longer is no path's root
 #define V_MARGIN 1e-6
 #define ROOT_X_TOLERANCE 1e-13
@@ -763,7 +764,7 @@ static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *p
         if (!(fabs(det) > 1e-300)) break;
         double du = (b1 * a22 - b2 * a12) / det, dv = (a11 * b2 - a12 * b1) / det;
         if (last_step == INFINITY && !(fmax(fabs(du), fabs(dv)) <= max_first_step)) {
-            *perr = err; *psig = 0.0; return 0;
+            *perr = FAR_START; *psig = 0.0; return 0;
         }
         last_step = fmax(fabs(du), fabs(dv));
         if (err <= FLOOR_RESIDUAL && last_step <= FLOOR_STEP) { u += du; v += dv; break; }  // at the rounding floor
@@ -990,7 +991,7 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
             (*n_candidates)++;
             double uu = u_roots[iu], vv = vr, err, sig;
             int ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH);
-            if (!ok) {
+            if (!ok && err != FAR_START) {  // not for a candidate rejected as far from any path
                 double2 r = refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr);
                 uu = r.x; vv = r.y;
                 ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH);

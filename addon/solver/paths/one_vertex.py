@@ -17,6 +17,7 @@ from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub, tangent_der
 DIRECTION_TOLERANCE = 1e-7  # |wo - expected| for an accepted path (unit vectors)
 INSIDE_EPSILON = 1e-9  # barycentric slack at triangle edges
 SETTLED_STEP = 1e-9  # a Newton step this small in (u, v) means the iterate has converged
+FAR_START = -1.0  # the |residual| polish_validate_normal_matrix reports for a start rejected as far from any path
 FLOOR_RESIDUAL = 1e-13  # a residual this small, with a step under FLOOR_STEP, is at rounding level:
 FLOOR_STEP = 1e-12  # the last step is taken unevaluated
 
@@ -116,8 +117,8 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
     residual of 1e-8: ``tolerance`` (well below DIRECTION_TOLERANCE) rejects such points,
     unless Newton has settled in position (its next step at rounding level).
     A start whose first step would move it farther than ``max_first_step`` (in u or v) is no
-    path's root and is rejected unpolished: a polish from there is a search that at best
-    finds a path some other candidate finds.
+    path's root and is rejected unpolished (|residual| reported as FAR_START): a polish from
+    there is a search that at best finds a path some other candidate finds.
     Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian, and the
     entries a11, a12, a22 of J^T J at the returned (u, v), so that a caller testing for a fold
     need not evaluate the residual there again).
@@ -143,7 +144,7 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
         du = (b1 * a22 - b2 * a12) / det
         dv = (a11 * b2 - a12 * b1) / det
         if last_step == math.inf and not max(abs(du), abs(dv)) <= max_first_step:
-            return False, u, v, err, 0.0, 0.0, 0.0, 0.0
+            return False, u, v, FAR_START, 0.0, 0.0, 0.0, 0.0
         last_step = max(abs(du), abs(dv))
         if err <= FLOOR_RESIDUAL and last_step <= FLOOR_STEP:
             # At the rounding floor: Newton's step from here lands within rounding of the root,

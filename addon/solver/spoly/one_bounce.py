@@ -37,7 +37,7 @@ import math
 import numpy as np
 
 from ..runtime.jit import kernel, parallel_range
-from ..paths.one_vertex import (endpoint_sides, line_crossing_barycentrics, polish_and_validate,
+from ..paths.one_vertex import (FAR_START, endpoint_sides, line_crossing_barycentrics, polish_and_validate,
                                 polish_validate_normal_matrix, scatter_residual)
 from ..polynomials.roots import (MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval,
                                  roots_in_unit_interval_bernstein)
@@ -710,11 +710,13 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
             ok, uu, vv, err, sig, j11, j12, j22 = polish_validate_normal_matrix(
                 u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL,
                 CANDIDATE_REACH)
-            if not ok:
+            if not ok and err != FAR_START:
                 # Fallback: Newton on the exact polynomial system, which stays smooth where
                 # the path-space residual is undefined (a resultant root a hair past the
                 # critical angle of a grazing refraction), then polish again.  Not first:
-                # between two close roots it may jump to the neighbour and lose one.
+                # between two close roots it may jump to the neighbour and lose one.  Not
+                # for a candidate rejected as far from any path: it is a root of the system
+                # already, and Newton there would not move it.
                 uu, vv = _refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr)
                 ok, uu, vv, err, sig, j11, j12, j22 = polish_validate_normal_matrix(
                     uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL,

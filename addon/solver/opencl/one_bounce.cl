@@ -27,7 +27,8 @@
 #define NEWTON_QUADRATIC_RATIO 1e-3
 #define POLISH_STEPS 40
 #define FAR_START -1.0       // the error polish_and_validate reports for a start rejected by max_first_step
-#define CANDIDATE_REACH 1e-2  // a resultant candidate whose first Gauss-Newton step is longer is no path's root
+#define INEXACT_ROOT 1e-9      // |b| / sum |b_ij u^i v^j| above which a candidate is no exact root of the system
+#define CANDIDATE_REACH 0.1  // a resultant candidate whose first Gauss-Newton step is longer is no path's root
 #define V_MARGIN 1e-6
 #define ROOT_X_TOLERANCE 1e-13
 #define ROOT_TOUCH_TOLERANCE 1e-10
@@ -43,11 +44,9 @@
 #define FLOOR_RESIDUAL 1e-13  // residual and step at rounding level: the step is taken unevaluated
 #define FLOOR_STEP 1e-12
 #define FOLD_RATIO 1e-4
-#define FOLD_MODEL_STEP 1e-4  // the residual along a fold's null direction is sampled at +-this
-#define FOLD_REACH 1e-2       // the model's second root farther than this is left to the resultant
-#define FOLD_MISS 0.8         // |model residual| at its second root over |r1 t*| above which no root is there
 #define SWITCH_RATIO 0.1
 #define SPURIOUS_B 1e-3     // |b| / sum |b_ij u^i v^j| above which b clearly does not vanish at a u-root
+#define DOUBLE_POINT_REACH 0.25  // the double point is divided out only within this distance of [0, 1]
 #define DOUBLE_POINT_F3 1e-9  // |f3| / sum |f3_ij u^i v^j| under which a root of Res_u(a, g) is the double point
 #define DYNAMIC_RANGE 1e-6  // node values spanning more than this: interpolate the resultant piecewise
 #define SPLIT 4             // pieces per level of that refinement
@@ -813,23 +812,6 @@ static void probe_fold(const Tuple *T, double u, double v, Paths *out) {
     else { su = 0.0; sv = 1.0; }
     double ls = sqrt(su * su + sv * sv);
     su /= ls; sv /= ls;
-    // one_bounce.py _probe_fold: the residual along s as r1 t + r2 t^2 from t = 0, +-h; a polish
-    // from its second root t* when that is near and the model nearly vanishes there
-    const double h = FOLD_MODEL_STEP;
-    vec rp, rm, jpu, jpv;
-    int okp = scatter_residual(T, u + h * su, v + h * sv, &rp, &jpu, &jpv);
-    int okm = okp && scatter_residual(T, u - h * su, v - h * sv, &rm, &jpu, &jpv);
-    if (okp && okm) {
-        vec r1 = (rp - rm) * (0.5 / h), r2 = (rp + rm - 2.0 * res) * (0.5 / (h * h));
-        double curvature = vdot(r2, r2);
-        if (!(curvature > 0.0)) return;
-        double t = -vdot(r1, r2) / curvature;
-        if (!(fabs(t) <= FOLD_REACH)) return;
-        if (!(vlength(t * r1 + (t * t) * r2) <= FOLD_MISS * vlength(r1) * fabs(t))) return;
-        double uu = u + t * su, vv = v + t * sv, err, sig;
-        if (polish_and_validate(T, &uu, &vv, &err, &sig, INFINITY)) store_path(out, uu, vv, err, sig);
-        return;
-    }
     const double steps[3] = {1e-5, 1e-4, 1e-3};
     for (int k = 0; k < 6; ++k) {
         double step = steps[k / 2] * ((k % 2 == 0) ? 1.0 : -1.0);
@@ -933,7 +915,9 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
         // R and T: the resultant from its values at the Chebyshev nodes (the square form's
         // expansion cancels where b is small along the conic next to a path: grazing
         // refractions; for R the nine values cost less than the symbolic expansion)
-        n_v = resultant_v_roots(a_poly, b_poly, nb, total_b, v_double, chain, critical, found, stack, v_roots);
+        // the double point divides the resultant of the untrimmed b only
+        n_v = resultant_v_roots(a_poly, b_poly, nb, total_b, nb == total_b ? v_double : NAN, chain, critical, found, stack,
+                                v_roots);
     }
     *n_roots += n_v;
     double u_roots[MAXD + 1], b_at_v[MAXD + 1];
@@ -991,7 +975,9 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
             (*n_candidates)++;
             double uu = u_roots[iu], vv = vr, err, sig;
             int ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH);
-            if (!ok && err != FAR_START) {  // not for a candidate rejected as far from any path
+            // the polynomial fallback, for a candidate rejected as far from any path only when it
+            // is an inexact root of the system (one_bounce.py _solve_system)
+            if (!ok && (err != FAR_START || relative_size(b_poly, total_b, u_roots[iu], vr) > INEXACT_ROOT)) {
                 double2 r = refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr);
                 uu = r.x; vv = r.y;
                 ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH);
@@ -1101,6 +1087,7 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
         lin_dot(g2, w, zero, zero, t0, tu, tv);
         lin_dot(h, w, zero, zero, T.n0, T.m1, T.m2);
         double v_double = double_point_v(a_poly, f3, g2);
+        if (!(v_double >= -DOUBLE_POINT_REACH && v_double <= 1.0 + DOUBLE_POINT_REACH)) v_double = NAN;
         if (!refract) {
             double t1[BIV4], t2[BIV4], t3[BIV4], b_poly[BIV4];
             bmul(f1, 2, g2, 2, t1);

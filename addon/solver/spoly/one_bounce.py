@@ -38,10 +38,10 @@ import numpy as np
 
 from ..runtime.jit import kernel, parallel_range
 from ..paths.one_vertex import (FAR_START, endpoint_sides, line_crossing_barycentrics, polish_and_validate,
-                                polish_validate_normal_matrix, scatter_residual)
+                                polish_validate_normal_matrix)
 from ..polynomials.roots import (MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval,
                                  roots_in_unit_interval_bernstein)
-from ..geometry.vec3 import add, cross, dot, madd, norm, row, scale, sub
+from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
 
 MAX_PATHS_ONE_BOUNCE = 8  # per tuple; a one-bounce tuple seldom has more than 2
 CHUNK = 256  # tuples per parallel work item (scratch is allocated once per chunk)
@@ -51,21 +51,20 @@ ROOT_TOUCH_TOLERANCE = 1e-10
 V_MARGIN = 1e-6  # v roots are searched slightly outside [0, 1]; the inside test is exact
 SAME_PATH = 1e-7  # barycentric distance under which two polished candidates are one path
 NEAR_PATH = 1e-5  # largest merge radius, used where the Jacobian barely pins the path
-CANDIDATE_REACH = 1e-2  # a resultant candidate whose first Gauss-Newton step is longer is no path's root
+CANDIDATE_REACH = 0.1  # a resultant candidate whose first Gauss-Newton step is longer is no path's root
+INEXACT_ROOT = 1e-9  # |b| / Σ|b_ij u^i v^j| above which a candidate is no exact root of the system
 POLISH_STEPS = 40  # Gauss-Newton steps at most (stops once converged or a step stops helping)
 ACCEPT_RESIDUAL = 1e-12  # residual accepted outright; above it (up to 1e-7) Newton must have settled
 NEGLIGIBLE = 1e-13  # relative size below which a coefficient is treated as exactly zero
 FOLD_RATIO = 1e-4  # lam_min / lam_max of J^T J under which a path counts as near a fold
-FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null direction (no model)
-FOLD_MODEL_STEP = 1e-4  # the residual along the null direction is sampled at ±this for its quadratic model
-FOLD_REACH = 1e-2  # the model's second root farther than this is left to the resultant
-FOLD_MISS = 0.8  # |model residual| at its second root over |r1 t*| above which no root is there
+FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null direction
 DYNAMIC_RANGE = 1e-6  # node values spanning more than this: interpolate the resultant piecewise
 SPLIT = 4  # pieces per level of that refinement
 SPLIT_DEPTH = 2  # levels at most (16 pieces)
 NODE_SCRATCH = 16  # first row of the univariate scratch that resultant_at_nodes works in
 SPURIOUS_B = 1e-3  # |b| / Σ|b_ij u^i v^j| at a u-root of a(·, v*) above which b clearly does not vanish there
 SWITCH_RATIO = 0.1  # relabel the corners when the default elimination's |Q| is below this share of the best
+DOUBLE_POINT_REACH = 0.25  # the double point is divided out only within this distance of v's range [0, 1]
 DOUBLE_POINT_F3 = 1e-9  # |f3| / Σ|f3_ij u^i v^j| under which a root of Res_u(a, g) is the double point
 
 def _bernstein_collocation(degree, lo=0.0, hi=1.0):
@@ -568,6 +567,8 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, sides_known, n
         return 0
 
     v_double = double_point_v(a_poly, f3, g)
+    if not (v_double >= -DOUBLE_POINT_REACH and v_double <= 1.0 + DOUBLE_POINT_REACH):
+        v_double = math.nan  # a double root that far from [0, 1] splits no root pair inside it
     count = 0
     if not refract:
         # Product form, eq (13): (d0·n)(d1·t) + (d0·t)(d1·n) = f1 g + f3 h - 2 f1 f3.
@@ -661,7 +662,9 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
             resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, v_double,
                                 scratch_uni[NODE_SCRATCH:], scratch_uni[1], res)
             return count
-        n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, v_double, scratch_uni, chain, lists, stack, v_roots)
+        # the double point divides the resultant of the whole b only: with negligible leading
+        # u-terms trimmed off b (a far u-root) it is no exact double root any more
+        n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, v_double if nb == total_b else math.nan, scratch_uni, chain, lists, stack, v_roots)
     stats[STAT_ROOTS] += n_v
     if stop_after == 2:
         return count
@@ -710,13 +713,14 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
             ok, uu, vv, err, sig, j11, j12, j22 = polish_validate_normal_matrix(
                 u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL,
                 CANDIDATE_REACH)
-            if not ok and err != FAR_START:
+            if not ok and (err != FAR_START or _relative_size(b_poly, total_b, u_roots[iu], vr) > INEXACT_ROOT):
                 # Fallback: Newton on the exact polynomial system, which stays smooth where
                 # the path-space residual is undefined (a resultant root a hair past the
                 # critical angle of a grazing refraction), then polish again.  Not first:
-                # between two close roots it may jump to the neighbour and lose one.  Not
-                # for a candidate rejected as far from any path: it is a root of the system
-                # already, and Newton there would not move it.
+                # between two close roots it may jump to the neighbour and lose one.  For a
+                # candidate rejected as far from any path only when it is an inexact root of
+                # the system (near grazing the resultant's root can be off by 1e-4): at an
+                # exact one Newton would not move it.
                 uu, vv = _refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr)
                 ok, uu, vv, err, sig, j11, j12, j22 = polish_validate_normal_matrix(
                     uu, vv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL,
@@ -828,17 +832,11 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
     """Near a fold of the caustic two paths can lie within ~1e-5 of each other and project
     onto one (double) resultant root, so only one of them is a candidate.  When the path's
     Jacobian is nearly singular (a11, a12, a22: J^T J at the polished path (u, v), as the
-    polish returns it), look for the other path along its null direction s.
-
-    The residual along s is modelled as r(t) = r1 t + r2 t² from its values at t = 0, ±h
-    (FOLD_MODEL_STEP); the second root of the model is where |r(t)| is least, t* = -(r1·r2) /
-    |r2|².  A polish starts there when t* is within FOLD_REACH and the model nearly vanishes at
-    t* (|r(t*)| <= FOLD_MISS |r1 t*|: a fold that only comes close to a second root, the common
-    case, leaves |r(t*)| ≈ |r1 t*|).  Where the model cannot be evaluated (a probe past the
-    critical angle) the fixed probes FOLD_STEPS are polished instead.  A safety net: with the
-    resultant evaluated at nodes (and its double point divided out), every path the probe finds
-    on the brute-force sets of tests/solver (two-path, near-TIR, curved normals) is also a root
-    of the resultant, so no test depends on it."""
+    polish returns it), polish from a few points along its null direction (FOLD_STEPS, both
+    ways) and keep any new path.  Near the critical angle of a refraction the partner can lie
+    off that line in a curved valley of the residual, where a quadratic model of the residual
+    along the line sees no second root: only the probes find it
+    (tests/solver/test_solver_grazing.py, light leaving just under the critical angle)."""
     tr = a11 + a22
     disc = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))
     lam_min = 0.5 * tr - disc
@@ -855,25 +853,6 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
     ls = math.sqrt(su * su + sv * sv)
     su /= ls
     sv /= ls
-    h = FOLD_MODEL_STEP
-    ok0, r0, _j0, _k0 = scatter_residual(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta)
-    okp, rp, _jp, _kp = scatter_residual(u + h * su, v + h * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta)
-    okm, rm, _jm, _km = scatter_residual(u - h * su, v - h * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta)
-    if ok0 and okp and okm:
-        r1 = scale(sub(rp, rm), 0.5 / h)
-        r2 = scale(madd(add(rp, rm), r0, -2.0), 0.5 / (h * h))
-        curvature = dot(r2, r2)
-        if not curvature > 0.0:
-            return count
-        t = -dot(r1, r2) / curvature
-        if not abs(t) <= FOLD_REACH:
-            return count
-        if not norm(madd(scale(r1, t), r2, t * t)) <= FOLD_MISS * norm(r1) * abs(t):
-            return count
-        ok2, uu, vv, err, sig = polish_and_validate(u + t * su, v + t * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
-        if ok2:
-            count = store_path(uu, vv, err, sig, root_buf, out_uv, count)
-        return count
     for k in range(6):
         step = FOLD_STEPS[k // 2] * (1.0 if k % 2 == 0 else -1.0)
         ok2, uu, vv, err, sig = polish_and_validate(u + step * su, v + step * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)

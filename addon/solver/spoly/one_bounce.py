@@ -10,7 +10,9 @@ vertex x1.  Two bivariate polynomials vanish at every admissible path:
 
 u is eliminated with the resultant r(v) = Res_u(a, b) (eq 28–30) and the real roots of r in
 [0, 1] are found by Bernstein isolation (``roots.py``); u follows from a(u, v*) = 0, and
-each candidate is Newton-polished and validated in path space (``one_vertex.py``).
+each candidate is Newton-polished and validated in path space (``one_vertex.py``).  r always
+has a spurious root where d0·t and d1·t vanish together (a double root for T): it is divided
+out first (``double_point_v``), so that rounding does not split it into a near pair.
 
 Resultant.  a has total degree 2, so a = a2 u² + a1(v) u + a0(v) with a2 a constant, and
 Res_u(a, b) = a2^n b(ρ1) b(ρ2) (ρ the u-roots of a); r has degree ≤ 8 (R) or ≤ 12 (T).  It
@@ -343,7 +345,10 @@ def double_point_v(a, f3, g):
     root the one that rounding splits into a near pair no isolation separates cheaply.
     The line meets the conic where D(v) = Res_u(a, g) = a2 c² - a1 c g_u + a0 g_u² vanishes
     (c = g00 + g01 v); of its two roots the double point is the one where f3 vanishes too.
-    Tested in tests/solver/test_solver_random.py (test_double_point_divides_the_resultant).
+    The caller divides it out only within DOUBLE_POINT_REACH of [0, 1] (a double root farther
+    out splits no pair inside) and only from the resultant of the untrimmed b (``_solve_system``:
+    with negligible leading u-terms dropped it is no exact double root).  Tested in
+    tests/solver/test_solver_double_point.py against an independent evaluation of the resultant.
     """
     gu = g[1, 0]
     gv = g[0, 1]

@@ -327,23 +327,16 @@ static void bernstein_weights(const double *b, int deg, double *w, double *dw) {
     for (int k = 0; k < deg; ++k) { dw[k] = binom * (b[k + 1] - b[k]); binom = binom * (deg - 1 - k) / (k + 1); }
 }
 
-// roots.py bernstein_value_and_derivative: Horner in x / (1 - x) or (1 - x) / x, scaled back.
+// roots.py bernstein_value_and_derivative: Horner in x on sum_k w[k] x^k s^(deg - k), s = 1 - x.
 static double2 bernstein_value_and_derivative(const double *w, const double *dw, int deg, double x) {
-    double s = 1.0 - x, t, f, df, base;
-    if (x <= 0.5) {
-        t = x / s; f = w[deg]; df = dw[deg - 1];
-        for (int k = deg - 1; k >= 0; --k) f = f * t + w[k];
-        for (int k = deg - 2; k >= 0; --k) df = df * t + dw[k];
-        base = s;
-    } else {
-        t = s / x; f = w[0]; df = dw[0];
-        for (int k = 1; k <= deg; ++k) f = f * t + w[k];
-        for (int k = 1; k < deg; ++k) df = df * t + dw[k];
-        base = x;
+    double s = 1.0 - x, f = w[deg], df = dw[deg - 1], s_power = 1.0;
+    for (int k = deg - 1; k > 0; --k) {
+        s_power *= s;
+        f = f * x + w[k] * s_power;
+        df = df * x + dw[k - 1] * s_power;
     }
-    double p = 1.0;
-    for (int i = 0; i < deg - 1; ++i) p *= base;
-    return (double2)(f * p * base, df * p);
+    s_power *= s;
+    return (double2)(f * x + w[0] * s_power, df);
 }
 
 // roots.py _control_polygon_crossing: where the control polygon (k / deg, b[k]) first crosses zero

@@ -461,33 +461,22 @@ def bernstein_value_and_derivative(w, dw, deg, x):
     """Value and derivative at x in [0, 1] of sum_k b[k] C(deg, k) x^k (1 - x)^(deg - k), from
     the weights of :func:`bernstein_weights`.
 
-    Horner in t = x / (1 - x) (or (1 - x) / x past the middle), scaled back by the power of
-    the larger of x, 1 - x: O(deg), no division in the loop, as stable as de Casteljau on
-    [0, 1].  The derivative is the degree deg - 1 form with coefficients deg (b[k+1] - b[k]).
+    Horner in x on the homogeneous form sum_k w[k] x^k s^(deg - k), s = 1 - x, the powers of
+    s built alongside: O(deg), no division, and with x, s in [0, 1] no term grows, so the
+    rounding is bounded by that of the terms' absolute sum (as for de Casteljau).  The
+    derivative is the degree deg - 1 form with coefficients deg (b[k+1] - b[k]) (``dw``), in
+    the same loop: its chain and the value's wait on different multiply-adds.
     """
-    # The value, derivative and power chains advance in one loop: each step of one chain
-    # waits on its previous multiply-add, three chains side by side keep the CPU busy.
     s = 1.0 - x
-    p = 1.0
-    if x <= 0.5:
-        t = x / s
-        base = s
-        f = w[deg] * t + w[deg - 1]
-        df = dw[deg - 1]
-        for k in range(deg - 2, -1, -1):
-            f = f * t + w[k]
-            df = df * t + dw[k]
-            p *= base
-    else:
-        t = s / x
-        base = x
-        f = w[0] * t + w[1]
-        df = dw[0]
-        for k in range(1, deg):
-            f = f * t + w[k + 1]
-            df = df * t + dw[k]
-            p *= base
-    return f * p * base, df * p
+    f = w[deg]
+    df = dw[deg - 1]
+    s_power = 1.0  # s^(deg - k) at step k
+    for k in range(deg - 1, 0, -1):
+        s_power *= s
+        f = f * x + w[k] * s_power
+        df = df * x + dw[k - 1] * s_power
+    s_power *= s
+    return f * x + w[0] * s_power, df
 
 
 @kernel(refcounted=False)

@@ -44,6 +44,7 @@
 #define FLOOR_RESIDUAL 1e-13  // residual and step at rounding level: the step is taken unevaluated
 #define FLOOR_STEP 1e-12
 #define FOLD_RATIO 1e-4
+#define SINGULAR_MARGIN 0.01  // barycentric slack of the test for a path at normal incidence
 #define SWITCH_RATIO 0.1
 #define SPURIOUS_B 1e-3     // |b| / sum |b_ij u^i v^j| above which b clearly does not vanish at a u-root
 #define DOUBLE_POINT_REACH 0.25  // the double point is divided out only within this distance of [0, 1]
@@ -813,6 +814,17 @@ static void probe_fold(const Tuple *T, double u, double v, Paths *out) {
     }
 }
 
+// one_bounce.py _singular_point_near_triangle: whether the conic a has a singular point (where a
+// path at normal incidence lies) within SINGULAR_MARGIN of the triangle; 1 when it cannot tell
+static int singular_point_near_triangle(const double *a) {
+    double h11 = 2.0 * BI(a, 2, 2, 0), h12 = BI(a, 2, 1, 1), h22 = 2.0 * BI(a, 2, 0, 2);
+    double det = h11 * h22 - h12 * h12;
+    if (!(fabs(det) > 1e-12 * (h11 * h11 + h12 * h12 + h22 * h22))) return 1;
+    double u = (-BI(a, 2, 1, 0) * h22 + BI(a, 2, 0, 1) * h12) / det;
+    double v = (-BI(a, 2, 0, 1) * h11 + BI(a, 2, 1, 0) * h12) / det;
+    return u >= -SINGULAR_MARGIN && v >= -SINGULAR_MARGIN && u + v <= 1.0 + SINGULAR_MARGIN;
+}
+
 static void on_axis_candidate(const Tuple *T, Paths *out, int *candidates) {
     vec w = T->x2 - T->x0;
     double denom = vdot(w, T->ng);
@@ -1089,7 +1101,7 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
             for (int i = 0; i < 5; ++i) for (int j = 0; j < 5 - i; ++j)
                 BI(b_poly, 4, i, j) = BI(t1, 4, i, j) + BI(t2, 4, i, j) - 2.0 * BI(t3, 4, i, j);
             solve_system(&T, a_poly, max_a, b_poly, 4, v_double, out, n_roots, n_candidates);
-            on_axis_candidate(&T, out, n_candidates);
+            if (singular_point_near_triangle(a_poly)) on_axis_candidate(&T, out, n_candidates);
         } else {
             double t6[BIV6], t7[BIV6], b_poly[BIV6];
             {  // the factors, scoped so that their private memory is reused by the solve
@@ -1112,7 +1124,7 @@ static int one_bounce_tuple(const Corners *C0, const int refract, const int solv
                 bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7);
                 solve_system(&T, a_poly, max_a, b_poly, 6, v_double, out, n_roots, n_candidates);
             }
-            on_axis_candidate(&T, out, n_candidates);
+            if (singular_point_near_triangle(a_poly)) on_axis_candidate(&T, out, n_candidates);
         }
     }
     for (int q = 0; q < min(out->count, 8); ++q) {

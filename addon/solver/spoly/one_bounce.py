@@ -65,6 +65,7 @@ SPLIT = 4  # pieces per level of that refinement
 SPLIT_DEPTH = 2  # levels at most (16 pieces)
 NODE_SCRATCH = 16  # first row of the univariate scratch that resultant_at_nodes works in
 SPURIOUS_B = 1e-3  # |b| / Σ|b_ij u^i v^j| at a u-root of a(·, v*) above which b clearly does not vanish there
+SINGULAR_MARGIN = 0.01  # barycentric slack of the test for a path at normal incidence
 SWITCH_RATIO = 0.1  # relabel the corners when the default elimination's |Q| is below this share of the best
 DOUBLE_POINT_REACH = 0.25  # the double point is divided out only within this distance of v's range [0, 1]
 DOUBLE_POINT_F3 = 1e-9  # |f3| / Σ|f3_ij u^i v^j| under which a root of Res_u(a, g) is the double point
@@ -585,7 +586,7 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, sides_known, n
                 b_poly[i, j] = t1[i, j] + t2[i, j] - 2.0 * t3[i, j]
         count = _solve_system(a_poly, max_a, b_poly, 4, v_double, False, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
                               stop_after, scratch_uni, chain, lists, stack, root_buf, out_uv, count, stats)
-        if stop_after == 0:
+        if stop_after == 0 and _singular_point_near_triangle(a_poly):
             count = _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count, stats)
         stats[STAT_PATHS] = count
         return count
@@ -617,7 +618,7 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, sides_known, n
         _bcombine(b_poly, 6, eta_in * eta_in, t6, -eta_out * eta_out, t7)
         count = _solve_system(a_poly, max_a, b_poly, 6, v_double, True, x0, x2, p0, e1, e2, n0, m1, m2, ng, eta,
                               stop_after, scratch_uni, chain, lists, stack, root_buf, out_uv, count, stats)
-    if stop_after == 0:
+    if stop_after == 0 and _singular_point_near_triangle(a_poly):
         count = _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_buf, out_uv, count, stats)
     stats[STAT_PATHS] = count
     return count
@@ -992,6 +993,24 @@ def _quadratic_u_roots(a2, a1, a0, lo, hi, out):
             out[n] = r2
             n += 1
     return n
+
+
+@kernel(refcounted=False)
+def _singular_point_near_triangle(a):
+    """False when the coplanarity conic a(u, v) has no singular point within SINGULAR_MARGIN of
+    the triangle, so that no path at normal incidence can lie in it: there x1 - x0 ∥ w and
+    n ∥ w, which zero both ∂a/∂u = (e1 × w)·n + (d0 × w)·m1 and ∂a/∂v.  The singular point
+    solves the 2x2 system ∇a = 0; with a (nearly) singular Hessian (a parabola or a line) the
+    test cannot tell and answers True."""
+    h11 = 2.0 * a[2, 0]
+    h12 = a[1, 1]
+    h22 = 2.0 * a[0, 2]
+    det = h11 * h22 - h12 * h12
+    if not abs(det) > 1e-12 * (h11 * h11 + h12 * h12 + h22 * h22):
+        return True
+    u = (-a[1, 0] * h22 + a[0, 1] * h12) / det
+    v = (-a[0, 1] * h11 + a[1, 0] * h12) / det
+    return u >= -SINGULAR_MARGIN and v >= -SINGULAR_MARGIN and u + v <= 1.0 + SINGULAR_MARGIN
 
 
 @kernel(refcounted=False)

@@ -953,17 +953,11 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
                         if (r2 >= -INFINITY && r2 <= INFINITY && (n_all == 0 || r2 != r1)) all_u[n_all++] = r2;
                     }
                     // an in-range u-root where b is clearly nonzero while the other u-root accounts
-                    // for the resultant's root is no root of the system, skipped (sizes evaluated
-                    // only as the test needs them)
-                    double size[2] = {-1.0, -1.0};
+                    // for the resultant's root is no root of the system, skipped
                     for (int k = 0; k < n_all; ++k) {
                         if (!(all_u[k] >= -V_MARGIN && all_u[k] <= u_hi)) continue;
-                        if (n_all == 2) {
-                            if (size[k] < 0.0) size[k] = relative_size(b_poly, total_b, all_u[k], vr);
-                            if (size[k] > SPURIOUS_B && size[1 - k] < 0.0)
-                                size[1 - k] = relative_size(b_poly, total_b, all_u[1 - k], vr);
-                            if (size[k] > SPURIOUS_B && size[1 - k] <= SPURIOUS_B) continue;
-                        }
+                        if (n_all == 2 && relative_size(b_poly, total_b, all_u[k], vr) > SPURIOUS_B &&
+                            relative_size(b_poly, total_b, all_u[1 - k], vr) <= SPURIOUS_B) continue;
                         u_roots[n_u++] = all_u[k];
                     }
                 }

@@ -103,7 +103,7 @@ class SpecularPolynomialSolver:
             return self._solve_two_bounce(chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0, device_index)
         if chain not in ONE_BOUNCE_CHAINS:
             raise ValueError(f"chain {chain!r} is not supported yet by the {self.name} solver")
-        from .one_bounce import MAX_PATHS_ONE_BOUNCE, N_STATS, solve_one_bounce_batch
+        from .one_bounce import MAX_PATHS_ONE_BOUNCE, N_STATS, STAT_PATHS, solve_one_bounce_batch
 
         n = x_start.shape[0]
         t1 = time.perf_counter()
@@ -124,7 +124,7 @@ class SpecularPolynomialSolver:
                 solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), out_uv, out_count, stats)
             t2 = time.perf_counter()
             tuple_index, uv = compact_paths(out_uv, out_count)
-            totals, report.overflow = _stat_totals(stats, MAX_PATHS_ONE_BOUNCE)
+            totals, report.overflow = _stat_totals(stats, STAT_PATHS, MAX_PATHS_ONE_BOUNCE)
         t3 = time.perf_counter()
         report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals[:4])
         report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
@@ -149,7 +149,7 @@ class SpecularPolynomialSolver:
         return index
 
     def _solve_two_bounce(self, chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0, device_index=None):
-        from .two_bounce.params import DEFAULT_PIECES, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, N_STATS
+        from .two_bounce.params import DEFAULT_PIECES, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, N_STATS, STAT_PATHS
         from .two_bounce.solve import solve_two_bounce_batch
 
         pieces = DEFAULT_PIECES if pieces is None else int(pieces)
@@ -174,7 +174,7 @@ class SpecularPolynomialSolver:
         t2 = time.perf_counter()
         tuple_index, uv = compact_paths(out_uv, out_count)
         t3 = time.perf_counter()
-        totals, report.overflow = _stat_totals(stats, MAX_PATHS_TWO_BOUNCE)
+        totals, report.overflow = _stat_totals(stats, STAT_PATHS, MAX_PATHS_TWO_BOUNCE)
         report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals[:4])
         report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
         report.determinants = int(totals[4])
@@ -256,13 +256,13 @@ class TupleTable:
         return result
 
 
-def _stat_totals(stats, capacity):
-    """(column sums of the per-tuple statistics, tuples with more paths than ``capacity``);
-    column 2 counts paths in both the one- and the two-bounce tables."""
+def _stat_totals(stats, paths_column, capacity):
+    """(column sums of the per-tuple statistics, tuples whose column ``paths_column`` counts
+    more paths than ``capacity``)."""
     from ..paths.order import stat_totals
 
     totals = np.zeros(stats.shape[1], dtype=np.int64)
-    over = stat_totals(stats, 2, capacity, totals) if stats.shape[0] else 0
+    over = stat_totals(stats, paths_column, capacity, totals) if stats.shape[0] else 0
     return totals, int(over)
 
 

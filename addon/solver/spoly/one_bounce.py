@@ -664,13 +664,14 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
         for iv in range(n_v):
             v_roots[iv] = -V_MARGIN + (1.0 + 2.0 * V_MARGIN) * v_roots[iv]
     else:
-        if stop_after == 1:
-            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, v_double,
-                                scratch_uni[NODE_SCRATCH:], scratch_uni[1], res)
-            return count
         # the double point divides the resultant of the whole b only: with negligible leading
         # u-terms trimmed off b (a far u-root) it is no exact double root any more
-        n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, v_double if nb == total_b else math.nan, scratch_uni, chain, lists, stack, v_roots)
+        v_divided = v_double if nb == total_b else math.nan
+        if stop_after == 1:
+            resultant_bernstein(a_poly, b_poly, nb, total_b, -V_MARGIN, 1.0 + 2.0 * V_MARGIN, v_divided,
+                                scratch_uni[NODE_SCRATCH:], scratch_uni[1], res)
+            return count
+        n_v = _resultant_v_roots(a_poly, b_poly, nb, total_b, v_divided, scratch_uni, chain, lists, stack, v_roots)
     stats[STAT_ROOTS] += n_v
     if stop_after == 2:
         return count
@@ -687,23 +688,11 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
             all_u = root_buf[2]
             n_all = _quadratic_u_roots(a2, a1, a0, -math.inf, math.inf, all_u)
             n_u = 0
-            # Res = a2^n b(ρ1) b(ρ2) vanishes where b does at one u-root of a(·, v*): the other
-            # one is no root of the system (its polish would only wander off, or to a path found
-            # anyway).  An in-range u-root is skipped when b is clearly nonzero there and the
-            # other u-root, in the triangle or not, accounts for the resultant's root.  The sizes
-            # are evaluated only as that test needs them.
-            size = (-1.0, -1.0)
             for k in range(n_all):
                 if not (all_u[k] >= -V_MARGIN and all_u[k] <= u_hi):
                     continue
-                if n_all == 2:
-                    own = _relative_size(b_poly, total_b, all_u[k], vr) if size[k] < 0.0 else size[k]
-                    other = size[1 - k]
-                    if own > SPURIOUS_B and other < 0.0:
-                        other = _relative_size(b_poly, total_b, all_u[1 - k], vr)
-                    size = (own, other) if k == 0 else (other, own)
-                    if own > SPURIOUS_B and other <= SPURIOUS_B:
-                        continue
+                if n_all == 2 and _spurious_u_root(b_poly, total_b, all_u[k], all_u[1 - k], vr):
+                    continue
                 u_roots[n_u] = all_u[k]
                 n_u += 1
         else:
@@ -839,10 +828,10 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
     onto one (double) resultant root, so only one of them is a candidate.  When the path's
     Jacobian is nearly singular (a11, a12, a22: J^T J at the polished path (u, v), as the
     polish returns it), polish from a few points along its null direction (FOLD_STEPS, both
-    ways) and keep any new path.  Near the critical angle of a refraction the partner can lie
-    off that line in a curved valley of the residual, where a quadratic model of the residual
-    along the line sees no second root: only the probes find it
-    (tests/solver/test_solver_grazing.py, light leaving just under the critical angle)."""
+    ways) and keep any new path.  The probes are polished, not predicted from the residual
+    along that line: near the critical angle of a refraction the partner can lie off the line
+    in a curved valley of the residual (tests/solver/test_solver_grazing.py, light leaving
+    just under the critical angle)."""
     tr = a11 + a22
     disc = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))
     lam_min = 0.5 * tr - disc
@@ -866,6 +855,17 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
             continue
         count = store_path(uu, vv, err, sig, root_buf, out_uv, count)
     return count
+
+
+@kernel(inline="always")
+def _spurious_u_root(b_poly, total_b, u, u_other, v):
+    """Whether the u-root u of a(·, v) is no root of the system although v is a root of the
+    resultant: Res = a2^n b(ρ1) b(ρ2) vanishes where b does at one u-root of a(·, v), so u is
+    skipped when b is clearly nonzero there (SPURIOUS_B) and the other u-root, in the triangle
+    or not, accounts for the resultant's root (its polish would only wander off, or to a path
+    found anyway).  The other root's size is evaluated only when the test needs it."""
+    return (_relative_size(b_poly, total_b, u, v) > SPURIOUS_B
+            and _relative_size(b_poly, total_b, u_other, v) <= SPURIOUS_B)
 
 
 @kernel(inline="always")

@@ -11,7 +11,8 @@ import numpy as np
 from fractions import Fraction
 from math import comb
 
-from addon.solver.polynomials.roots import (bernstein_value_and_derivative, bernstein_weights, make_root_scratch,
+from addon.solver.polynomials.roots import (bernstein_second_weights, bernstein_value_and_derivative,
+                                            bernstein_value_and_two_derivatives, bernstein_weights, make_root_scratch,
                                             roots_in_unit_interval_bernstein)
 
 
@@ -37,6 +38,7 @@ def test_bernstein_roots_match_numpy():
     out = np.zeros(32)
     w = np.zeros(32)
     dw = np.zeros(32)
+    ddw = np.zeros(32)
     checked = 0
     for trial in range(400):
         deg = 8 if trial % 2 else 12
@@ -49,10 +51,16 @@ def test_bernstein_roots_match_numpy():
         c = np.real(np.polynomial.polynomial.polyfromroots(roots)) * 10.0 ** rng.uniform(-20, 5)
         b = _to_bernstein(c)
         bernstein_weights(b, deg, w, dw)
+        bernstein_second_weights(b, deg, ddw)
+        size = np.abs(c).sum()
         for x in (0.1, 0.5, 0.9):
             f, df = bernstein_value_and_derivative(w, dw, deg, x)
-            assert abs(f - np.polynomial.polynomial.polyval(x, c)) <= 1e-12 * np.abs(c).sum()
-            assert abs(df - np.polynomial.polynomial.polyval(x, np.polynomial.polynomial.polyder(c))) <= 1e-11 * np.abs(c).sum() * deg
+            assert abs(f - np.polynomial.polynomial.polyval(x, c)) <= 1e-12 * size
+            assert abs(df - np.polynomial.polynomial.polyval(x, np.polynomial.polynomial.polyder(c))) <= 1e-11 * size * deg
+            f2, df2, ddf2 = bernstein_value_and_two_derivatives(w, dw, ddw, deg, x)
+            assert f2 == f and df2 == df  # the same chains as the two-value evaluation
+            want_dd = np.polynomial.polynomial.polyval(x, np.polynomial.polynomial.polyder(c, 2))
+            assert abs(ddf2 - want_dd) <= 1e-11 * size * deg * deg
         n = roots_in_unit_interval_bernstein(b, deg, 1e-13, 1e-10, chain, lists, stack, power, out)
         got = np.sort(out[:n])
         assert np.all(np.diff(got) > 0)
@@ -93,3 +101,31 @@ def test_roots_from_the_power_form_are_polished_on_the_bernstein_form():
     bernstein_weights(touch, 3, w, dw)
     y = _polish_on_bernstein(w, dw, 3, 0.4003, 0.3, 0.5, 1e-13)
     assert 0.3 <= y <= 0.5 and abs(_exact_value(touch, y)) <= abs(_exact_value(touch, 0.4003))
+
+
+def test_close_real_roots_are_separated_and_converged():
+    """Pairs of real roots 1e-4 .. 1e-2 apart inside [0, 1] (the pieces are split between the
+    control polygon's crossings, the roots solved by Halley's iteration): both roots of every pair
+    are found (and no point that is neither a crossing nor a near-touch), near the designed roots, and the exact input polynomial changes sign within 2e-12
+    of each (the designed roots themselves moved when the coefficients were rounded)."""
+    rng = np.random.default_rng(11)
+    chain, lists, stack = make_root_scratch()
+    power = np.zeros(32)
+    out = np.zeros(32)
+    for trial in range(200):
+        deg = 8 if trial % 2 else 12
+        centre = rng.uniform(0.1, 0.9)
+        gap = 10.0 ** rng.uniform(-4, -2)
+        pair = np.array([centre - 0.5 * gap, centre + 0.5 * gap])
+        rest = np.concatenate([rng.uniform(1.5, 3.0, deg - 4), [0.3 + 0.5j, 0.3 - 0.5j]])
+        c = np.real(np.polynomial.polynomial.polyfromroots(np.concatenate([pair, rest])))
+        b = _to_bernstein(c)
+        n = roots_in_unit_interval_bernstein(b, deg, 1e-13, 1e-10, chain, lists, stack, power, out)
+        got = out[:n]
+        for r in pair:
+            g = got[np.argmin(np.abs(got - r))]
+            assert abs(g - r) <= 1e-3 * gap, (trial, pair, got)
+            assert _exact_sign(b, g - 2e-12) * _exact_sign(b, g + 2e-12) < 0, (trial, pair, g)
+        for g in got:  # anything else is a near-touch (the minimum between the pair), as above
+            crossing = _exact_sign(b, g - 1e-9) * _exact_sign(b, g + 1e-9) <= 0
+            assert crossing or abs(_exact_value(b, g)) <= 1e-9 * np.polyval(np.abs(c)[::-1], g), (trial, g)

@@ -14,10 +14,10 @@
 #define MAXD 12            // degree of the one-bounce resultant at most
 #define UNI 14             // univariate scratch width: the resultant's degree MAXD + 1, and a spare
 #define DEPTH 5            // Bernstein halvings before derivative isolation
-// Rows of the Bernstein subdivision stack: a depth-first halving holds at most DEPTH + 1 rows
-// (rows 0..DEPTH; one spare), then the rows at STACK - 3 .. STACK (derivative weights, weights,
-// the whole-interval form, the de Casteljau work row).
-#define STACK (DEPTH + 5)
+// Rows of the Bernstein subdivision stack: a depth-first subdivision holds at most DEPTH + 1 rows
+// (rows 0..DEPTH; one spare), then the rows at STACK - 4 .. STACK (second and first derivative
+// weights, weights, the whole-interval form, the de Casteljau work row).
+#define STACK (DEPTH + 6)
 // The derivative chain of roots_in_interval, stored by rows of growing length: row k (the
 // degree-k derivative level, k + 1 coefficients) starts at k (k + 1) / 2.
 #define CHAIN_SIZE ((MAXD + 1) * (MAXD + 2) / 2)
@@ -33,6 +33,7 @@
 #define ROOT_X_TOLERANCE 1e-13
 #define ROOT_TOUCH_TOLERANCE 1e-10
 #define NEAR_TOUCH 1e-6
+#define SPLIT_LOW 0.125     // a Bernstein piece is split no closer than this share of it to either end
 #define CONVEX_MARGIN 1e-9  // second differences of a piece clear of zero by this: its second derivative keeps its sign
 #define NEGLIGIBLE 1e-13
 #define SAME_PATH 1e-7
@@ -340,6 +341,65 @@ static double2 bernstein_value_and_derivative(const double *w, const double *dw,
     return (double2)(f * x + w[0] * s_power, df);
 }
 
+// roots.py bernstein_second_weights: ddw[k] = deg (deg - 1) C(deg - 2, k) (b[k+2] - 2 b[k+1] + b[k]).
+static void bernstein_second_weights(const double *b, int deg, double *ddw) {
+    double binom = (double)(deg * (deg - 1));
+    for (int k = 0; k < deg - 1; ++k) {
+        ddw[k] = binom * (b[k + 2] - 2.0 * b[k + 1] + b[k]);
+        binom = binom * (deg - 2 - k) / (k + 1);
+    }
+}
+
+// roots.py bernstein_value_and_two_derivatives: three Horner chains in one loop (deg >= 2).
+static double3 bernstein_value_and_two_derivatives(const double *w, const double *dw, const double *ddw, int deg,
+                                                   double x) {
+    double s = 1.0 - x, f = w[deg], df = dw[deg - 1], ddf = ddw[deg - 2], s_power = 1.0;
+    for (int k = deg - 1; k > 1; --k) {
+        s_power *= s;
+        f = f * x + w[k] * s_power;
+        df = df * x + dw[k - 1] * s_power;
+        ddf = ddf * x + ddw[k - 2] * s_power;
+    }
+    s_power *= s;
+    f = f * x + w[1] * s_power;
+    df = df * x + dw[0] * s_power;
+    s_power *= s;
+    return (double3)(f * x + w[0] * s_power, df, ddf);
+}
+
+// roots.py _split_between_crossings: halfway between the control polygon's first two crossings,
+// within [SPLIT_LOW, 1 - SPLIT_LOW]; 0.5 with fewer crossings
+static double split_between_crossings(const double *b, int deg) {
+    double first = -1.0;
+    for (int k = 0; k < deg; ++k) {
+        if ((b[k] < 0.0) != (b[k + 1] < 0.0)) {
+            double crossing = (k + b[k] / (b[k] - b[k + 1])) / deg;
+            if (first < 0.0) first = crossing;
+            else return fmin(fmax(0.5 * (first + crossing), SPLIT_LOW), 1.0 - SPLIT_LOW);
+        }
+    }
+    return 0.5;
+}
+
+// De Casteljau split of the Bernstein piece in stack[top] at t (roots.py
+// roots_in_unit_interval_bernstein): as halve_piece, at lo + t (hi - lo).
+static void split_piece(double stack[STACK + 1][MAXD + 4], int top, int deg, double lo, double hi, double depth,
+                        double t) {
+    double *row = stack[top], *left = stack[top + 1], *work = stack[STACK];
+    int meta = deg + 1;
+    for (int i = 0; i <= deg; ++i) work[i] = row[i];
+    left[0] = work[0];
+    row[deg] = work[deg];
+    for (int r = 1; r <= deg; ++r) {
+        for (int i = 0; i <= deg - r; ++i) work[i] = work[i] + t * (work[i + 1] - work[i]);
+        left[r] = work[0];
+        row[deg - r] = work[deg - r];
+    }
+    double mid = lo + t * (hi - lo);
+    left[meta] = lo; left[meta + 1] = mid; left[meta + 2] = depth + 1.0;
+    row[meta] = mid; row[meta + 1] = hi; row[meta + 2] = depth + 1.0;
+}
+
 // roots.py _control_polygon_crossing: where the control polygon (k / deg, b[k]) first crosses zero
 static double control_polygon_crossing(const double *b, int deg) {
     for (int k = 0; k < deg; ++k)
@@ -347,26 +407,38 @@ static double control_polygon_crossing(const double *b, int deg) {
     return 0.5;
 }
 
-// roots.py _solve_monotone_bernstein
-static double solve_monotone_bernstein(const double *w, const double *dw, int deg, double a, double c, double fa,
-                                       double fc, double x_start, double tol) {
+// roots.py _halley_settled: the step is below tol, or cubic convergence (step ratio r at most
+// NEWTON_QUADRATIC_RATIO, r^3 step <= tol); a first step is held to newton_settled's bound
+static int halley_settled(double step, double previous_step, double tol) {
+    if (step <= tol) return 1;
+    if (previous_step == INFINITY) return step * NEWTON_QUADRATIC_RATIO * NEWTON_QUADRATIC_RATIO <= tol;
+    double r = step / previous_step;
+    return r <= NEWTON_QUADRATIC_RATIO && r * r * r * step <= tol;
+}
+
+// roots.py _solve_monotone_bernstein: Halley's step where |f f''| < f'^2, else Newton's
+static double solve_monotone_bernstein(const double *w, const double *dw, const double *ddw, int deg, double a,
+                                       double c, double fa, double fc, double x_start, double tol) {
     double x = x_start;
     if (!(x > a && x < c)) x = a - fa * (c - a) / (fc - fa);
     if (!(x > a && x < c)) x = 0.5 * (a + c);
     int neg_a = fa < 0.0;
     double previous_step = INFINITY;
     for (int it = 0; it < NEWTON_ITERATIONS; ++it) {
-        double2 fd = bernstein_value_and_derivative(w, dw, deg, x);
-        double f = fd.x, df = fd.y;
+        double3 fd = bernstein_value_and_two_derivatives(w, dw, ddw, deg, x);
+        double f = fd.x, df = fd.y, ddf = fd.z;
         if (f == 0.0) return x;
         if ((f < 0.0) == neg_a) a = x; else c = x;
-        double xn = (df != 0.0) ? x - f / df : 0.5 * (a + c);
-        // converged: tested before the bracket test, as in roots.py _solve_monotone_from
+        double xn;
         if (df != 0.0) {
+            double curvature = f * ddf;
+            if (fabs(curvature) < df * df) xn = x - 2.0 * f * df / (2.0 * df * df - curvature);
+            else xn = x - f / df;
             double step = fabs(xn - x);
-            if (newton_settled(step, previous_step, tol) && xn >= a && xn <= c) return xn;
+            if (halley_settled(step, previous_step, tol) && xn >= a && xn <= c) return xn;
             previous_step = step;
         } else {
+            xn = 0.5 * (a + c);
             previous_step = INFINITY;
         }
         if (!(xn > a && xn < c)) { xn = 0.5 * (a + c); previous_step = INFINITY; }
@@ -415,8 +487,9 @@ static int roots_in_unit_interval_bernstein(const double *bern, int deg, double 
     double *top_row = stack[0];
     for (int k = 0; k <= deg; ++k) top_row[k] = bern[k] * inv;
     double *src = stack[STACK - 1], *src_w = stack[STACK - 2], *src_dw = stack[STACK - 3];
+    double *src_ddw = stack[STACK - 4];
     for (int k = 0; k <= deg; ++k) src[k] = top_row[k];
-    int have_weights = 0, have_power = 0;
+    int have_weights = 0, have_second = 0, have_power = 0;
     int meta = deg + 1;
     top_row[meta] = 0.0; top_row[meta + 1] = 1.0; top_row[meta + 2] = 0.0;
     int top = 1, n_out = 0;
@@ -437,9 +510,10 @@ static int roots_in_unit_interval_bernstein(const double *bern, int deg, double 
             double fa = row[0], fb = row[deg];
             if (fa != 0.0 && fb != 0.0 && ((fa < 0.0) != (fb < 0.0))) {
                 if (!have_weights) { bernstein_weights(src, deg, src_w, src_dw); have_weights = 1; }
-                // Newton starts where the piece's control polygon crosses zero (roots.py)
+                if (!have_second) { bernstein_second_weights(src, deg, src_ddw); have_second = 1; }
+                // Halley starts where the piece's control polygon crosses zero (roots.py)
                 double x_start = lo + (hi - lo) * control_polygon_crossing(row, deg);
-                double x = solve_monotone_bernstein(src_w, src_dw, deg, lo, hi, fa, fb, x_start, tol);
+                double x = solve_monotone_bernstein(src_w, src_dw, src_ddw, deg, lo, hi, fa, fb, x_start, tol);
                 if (n_out == 0 || x - out[n_out - 1] > tol) out[n_out++] = x;
                 continue;
             }
@@ -466,7 +540,7 @@ static int roots_in_unit_interval_bernstein(const double *bern, int deg, double 
             n_out = append_roots(out, n_out, piece, n_piece, tol);
             continue;
         }
-        halve_piece(stack, top, deg, lo, hi, depth);
+        split_piece(stack, top, deg, lo, hi, depth, split_between_crossings(row, deg));
         top += 2;
     }
     return n_out;

@@ -23,8 +23,9 @@ NEWTON_ITERATIONS = 64  # bisection fallback halves the bracket: 64 steps reach 
 NEWTON_QUADRATIC_RATIO = 1e-3  # a Newton step this much shorter than the one before: quadratic convergence
 
 
-SUBDIVISION_DEPTH = 5  # Bernstein halvings before a piece falls back to derivative isolation
+SUBDIVISION_DEPTH = 5  # Bernstein subdivisions before a piece falls back to derivative isolation
 STACK_ROWS = 2 * SUBDIVISION_DEPTH + 4
+SPLIT_LOW = 0.125  # a Bernstein piece is split no closer than this share of it to either end
 NEAR_TOUCH = 1e-6  # a root-free Bernstein piece this close to zero is re-checked for touching roots
 # Second differences of a piece's Bernstein coefficients (scaled to the largest coefficient of the
 # whole interval) at least this large and of one sign: the second derivative cannot change sign
@@ -146,22 +147,22 @@ def _solve_monotone_from(c, deg, a, b, fa, fb, x_start, x_tolerance):
     return x
 
 
-@kernel(refcounted=False)
+@kernel(inline="always")
 def _sign_changes(b, deg, zero_level):
     """Sign changes in b[0..deg] (2 means 'two or more'); an entry within zero_level of zero
-    counts as 2: a root may touch there, so the piece must be looked at more closely."""
+    counts as 2: a root may touch there, so the piece must be looked at more closely.
+    Counted without branches (data-dependent exits mispredict more often than not)."""
     changes = 0
-    prev = 0
-    for k in range(deg + 1):
-        if abs(b[k]) <= zero_level:
-            return 2
-        sign = 1 if b[k] > 0.0 else -1
-        if prev != 0 and sign != prev:
-            changes += 1
-            if changes >= 2:
-                return 2
-        prev = sign
-    return changes
+    smallest = abs(b[0])
+    negative = b[0] < 0.0
+    for k in range(1, deg + 1):
+        next_negative = b[k] < 0.0
+        changes += 1 if next_negative != negative else 0
+        negative = next_negative
+        smallest = min(smallest, abs(b[k]))
+    if smallest <= zero_level:
+        return 2
+    return min(changes, 2)
 
 
 @kernel(refcounted=False)
@@ -431,6 +432,21 @@ def _control_polygon_crossing(b, deg):
     return 0.5
 
 
+@kernel(inline="always")
+def _split_between_crossings(b, deg):
+    """Where in (0, 1) to split a Bernstein piece: halfway between the first two zero crossings of
+    its control polygon, kept within [SPLIT_LOW, 1 - SPLIT_LOW]; 0.5 with fewer crossings."""
+    first = -1.0
+    for k in range(deg):
+        if (b[k] < 0.0) != (b[k + 1] < 0.0):
+            crossing = (k + b[k] / (b[k] - b[k + 1])) / deg
+            if first < 0.0:
+                first = crossing
+            else:
+                return min(max(0.5 * (first + crossing), SPLIT_LOW), 1.0 - SPLIT_LOW)
+    return 0.5
+
+
 @kernel(refcounted=False)
 def _second_differences_one_sign(b, deg, margin):
     """True when the second differences of the Bernstein coefficients b[0..deg] all exceed
@@ -480,9 +496,42 @@ def bernstein_value_and_derivative(w, dw, deg, x):
 
 
 @kernel(refcounted=False)
-def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_start, x_tolerance):
-    """:func:`_solve_monotone_from` for a polynomial in Bernstein form on [0, 1] (weights as
-    in :func:`bernstein_weights`)."""
+def bernstein_second_weights(b, deg, ddw):
+    """ddw[k] = deg (deg - 1) C(deg - 2, k) (b[k+2] - 2 b[k+1] + b[k]): the weights of the second
+    derivative, a degree deg - 2 Bernstein form, for :func:`bernstein_value_and_two_derivatives`."""
+    for k in range(deg - 1):
+        ddw[k] = (deg * (deg - 1) * BINOMIAL[deg - 2, k]) * (b[k + 2] - 2.0 * b[k + 1] + b[k])
+
+
+@kernel(inline="always")
+def bernstein_value_and_two_derivatives(w, dw, ddw, deg, x):
+    """Value, first and second derivative at x in [0, 1] of the Bernstein form of
+    :func:`bernstein_value_and_derivative` (``ddw`` from :func:`bernstein_second_weights`,
+    deg >= 2): three Horner chains in one loop, none waiting on another."""
+    s = 1.0 - x
+    f = w[deg]
+    df = dw[deg - 1]
+    ddf = ddw[deg - 2]
+    s_power = 1.0  # s^(deg - k) at step k
+    for k in range(deg - 1, 1, -1):
+        s_power *= s
+        f = f * x + w[k] * s_power
+        df = df * x + dw[k - 1] * s_power
+        ddf = ddf * x + ddw[k - 2] * s_power
+    s_power *= s
+    f = f * x + w[1] * s_power
+    df = df * x + dw[0] * s_power
+    s_power *= s
+    return f * x + w[0] * s_power, df, ddf
+
+
+@kernel(refcounted=False)
+def _solve_monotone_bernstein(w, dw, ddw, deg, a, c, fa, fc, x_start, x_tolerance):
+    """:func:`_solve_monotone_from` for a polynomial in Bernstein form on [0, 1] (weights as in
+    :func:`bernstein_weights` and :func:`bernstein_second_weights`), with Halley's step
+    x - 2 f f' / (2 f'² - f f'') where |f f''| < f'² (else Newton's): cubic convergence, so
+    from the control polygon's crossing two evaluations usually settle the root.  Settled
+    (``_halley_settled``) when the step ratio r to the step before gives r³ step <= tolerance."""
     x = x_start
     if not (x > a and x < c):
         x = a - fa * (c - a) / (fc - fa)
@@ -491,7 +540,7 @@ def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_start, x_tolerance):
     negative_at_a = fa < 0.0
     previous_step = math.inf
     for _ in range(NEWTON_ITERATIONS):
-        f, df = bernstein_value_and_derivative(w, dw, deg, x)
+        f, df, ddf = bernstein_value_and_two_derivatives(w, dw, ddw, deg, x)
         if f == 0.0:
             return x
         if (f < 0.0) == negative_at_a:
@@ -499,21 +548,40 @@ def _solve_monotone_bernstein(w, dw, deg, a, c, fa, fc, x_start, x_tolerance):
         else:
             c = x
         if df != 0.0:
-            x_next = x - f / df
+            curvature = f * ddf
+            if abs(curvature) < df * df:
+                x_next = x - 2.0 * f * df / (2.0 * df * df - curvature)
+            else:
+                x_next = x - f / df
             step = abs(x_next - x)
-            if _newton_settled(step, previous_step, x_tolerance) and x_next >= a and x_next <= c:
-                return x_next  # converged (see _solve_monotone_from)
+            if _halley_settled(step, previous_step, x_tolerance) and x_next >= a and x_next <= c:
+                return x_next
             previous_step = step
         else:
             x_next = 0.5 * (a + c)
             previous_step = math.inf
         if not (x_next > a and x_next < c):
             x_next = 0.5 * (a + c)
-            previous_step = math.inf  # the next iterate is no Newton step's
+            previous_step = math.inf  # the next iterate is no Halley step's
         if abs(x_next - x) <= x_tolerance or c - a <= x_tolerance:
             return x_next
         x = x_next
     return x
+
+
+@kernel(inline="always")
+def _halley_settled(step, previous_step, x_tolerance):
+    """Whether the Halley iterate x_next = x - step is within ``x_tolerance`` of the root: the
+    step is that small, or the iteration converges cubically (e_{k+1} ≈ K e_k³, so with the
+    ratio r = step / previous_step <= NEWTON_QUADRATIC_RATIO, x_next's error ≈ r³ step; a first
+    step, without a ratio, is held to _newton_settled's bound)."""
+    if step <= x_tolerance:
+        return True
+    if previous_step == math.inf:
+        # no ratio yet: the first step's bound, as for Newton's (_newton_settled)
+        return step * NEWTON_QUADRATIC_RATIO * NEWTON_QUADRATIC_RATIO <= x_tolerance
+    r = step / previous_step
+    return r <= NEWTON_QUADRATIC_RATIO and r * r * r * step <= x_tolerance
 
 
 @kernel(inline="always")
@@ -553,11 +621,13 @@ def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, ch
     ascending; returns their count.
 
     The isolation of :func:`roots_in_unit_interval` (Descartes' rule on Bernstein pieces,
-    de Casteljau halving), started from the Bernstein form itself, which is the better
+    de Casteljau subdivision), started from the Bernstein form itself, which is the better
     conditioned input when the coefficients come from values (interpolation at nodes):
-    Newton evaluates the Bernstein form.  Pieces still ambiguous after ``SUBDIVISION_DEPTH``
-    halvings go to the derivative isolation of :func:`roots_in_interval` on the power form
-    (written to ``power``, a row of at least deg + 1).
+    Halley's iteration evaluates the Bernstein form.  A piece is split between its control
+    polygon's first two crossings (``_split_between_crossings``), not at its midpoint, so that
+    one split usually separates two roots.  Pieces still ambiguous after ``SUBDIVISION_DEPTH``
+    splits go to the derivative isolation of :func:`roots_in_interval` on the power form
+    (written to ``power``, a row of at least deg + 1).  Tested in tests/solver/test_solver_roots.py.
     """
     scale = 0.0
     for k in range(deg + 1):
@@ -572,8 +642,10 @@ def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, ch
     for k in range(deg + 1):
         src[k] = top_row[k]
     have_weights = False
+    have_second = False
     src_w = stack[STACK_ROWS - 2]
     src_dw = stack[STACK_ROWS - 3]
+    src_ddw = stack[STACK_ROWS - 4]
     have_power = False
     zero_level = touch_tolerance
     work = stack[STACK_ROWS]
@@ -606,11 +678,14 @@ def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, ch
                 if not have_weights:
                     bernstein_weights(src, deg, src_w, src_dw)
                     have_weights = True
-                # Newton starts where the piece's control polygon crosses zero: it follows the
+                if not have_second:
+                    bernstein_second_weights(src, deg, src_ddw)
+                    have_second = True
+                # Halley starts where the piece's control polygon crosses zero: it follows the
                 # polynomial far more closely than the chord through the piece's end values
-                # (regula falsi), so Newton needs fewer steps.
+                # (regula falsi), so fewer steps are needed.
                 x_start = lo + (hi - lo) * _control_polygon_crossing(row, deg)
-                x = _solve_monotone_bernstein(src_w, src_dw, deg, lo, hi, fa, fb, x_start, x_tolerance)
+                x = _solve_monotone_bernstein(src_w, src_dw, src_ddw, deg, lo, hi, fa, fb, x_start, x_tolerance)
                 if n_out == 0 or x - out[n_out - 1] > x_tolerance:
                     out[n_out] = x
                     n_out += 1
@@ -643,6 +718,9 @@ def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, ch
                     out[n_out] = x
                     n_out += 1
             continue
+        # split between the control polygon's first two crossings, where the piece most likely
+        # separates its first root from the next (the midpoint without two crossings)
+        t = _split_between_crossings(row, deg)
         for i in range(deg + 1):
             work[i] = row[i]
         left = stack[top + 1]
@@ -650,10 +728,10 @@ def roots_in_unit_interval_bernstein(bern, deg, x_tolerance, touch_tolerance, ch
         row[deg] = work[deg]
         for r in range(1, deg + 1):
             for i in range(deg - r + 1):
-                work[i] = 0.5 * (work[i] + work[i + 1])
+                work[i] = work[i] + t * (work[i + 1] - work[i])
             left[r] = work[0]
             row[deg - r] = work[deg - r]
-        mid = 0.5 * (lo + hi)
+        mid = lo + t * (hi - lo)
         left[meta] = lo
         left[meta + 1] = mid
         left[meta + 2] = depth + 1.0

@@ -43,6 +43,7 @@ from ..paths.one_vertex import (FAR_START, endpoint_sides, line_crossing_barycen
                                 polish_validate_normal_matrix)
 from ..polynomials.roots import (MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval,
                                  roots_in_unit_interval_bernstein)
+from ..polynomials.small_products import mul_quadratic_quartic, mul_quadratics
 from ..geometry.vec3 import cross, dot, madd, norm, row, scale, sub
 
 MAX_PATHS_ONE_BOUNCE = 8  # per tuple; a one-bounce tuple seldom has more than 2
@@ -116,23 +117,6 @@ def _lin_dot(out, a0, au, av, b0, bu, bv):
     out[2, 0] = dot(au, bu)
     out[1, 1] = dot(au, bv) + dot(av, bu)
     out[0, 2] = dot(av, bv)
-
-
-@kernel(inline="always")
-def _bmul(p, dp, q, dq, out):
-    """out = p q for bivariate polynomials of total degree dp and dq."""
-    d = dp + dq
-    for i in range(d + 1):
-        for j in range(d + 1 - i):
-            out[i, j] = 0.0
-    for i1 in range(dp + 1):
-        for j1 in range(dp + 1 - i1):
-            c = p[i1, j1]
-            if c == 0.0:
-                continue
-            for i2 in range(dq + 1):
-                for j2 in range(dq + 1 - i2):
-                    out[i1 + i2, j1 + j2] += c * q[i2, j2]
 
 
 @kernel(inline="always")
@@ -578,9 +562,9 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, sides_known, n
     count = 0
     if not refract:
         # Product form, eq (13): (d0·n)(d1·t) + (d0·t)(d1·n) = f1 g + f3 h - 2 f1 f3.
-        _bmul(f1, 2, g, 2, t1)
-        _bmul(f3, 2, h, 2, t2)
-        _bmul(f1, 2, f3, 2, t3)
+        mul_quadratics(f1, g, t1)
+        mul_quadratics(f3, h, t2)
+        mul_quadratics(f1, f3, t3)
         for i in range(5):
             for j in range(5 - i):
                 b_poly[i, j] = t1[i, j] + t2[i, j] - 2.0 * t3[i, j]
@@ -596,11 +580,11 @@ def _solve_labelled(refract, x0, x2, q0, q1, q2, k0, k1, k2, eta, sides_known, n
     minus_e2 = scale(E2, -1.0)
     _lin_dot(t1, minus_a, E1, E2, minus_a, E1, E2)  # |d0|²
     _lin_dot(t2, B, minus_e1, minus_e2, B, minus_e1, minus_e2)  # |d1|², d1 = B - u E1 - v E2
-    _bmul(f3, 2, f3, 2, t3)  # (d0·t)²
+    mul_quadratics(f3, f3, t3)  # (d0·t)²
     _bcombine(t4, 2, 1.0, g, -1.0, f3)  # d1·t
-    _bmul(t4, 2, t4, 2, t5)  # (d1·t)²
-    _bmul(t2, 2, t3, 4, t6)  # |d1|² (d0·t)²
-    _bmul(t1, 2, t5, 4, t7)  # |d0|² (d1·t)²
+    mul_quadratics(t4, t4, t5)  # (d1·t)²
+    mul_quadratic_quartic(t2, t3, t6)  # |d1|² (d0·t)²
+    mul_quadratic_quartic(t1, t5, t7)  # |d0|² (d1·t)²
     # Which side holds the medium follows the shading normal at the solution (CONTRACT.md).
     # ng·n is linear in (u, v), so its signs at the vertices tell whether the normal field
     # turns over the face; then both IOR assignments are solved.

@@ -175,6 +175,13 @@ def test_bad_input_raises_clear_value_errors():
     badN[0, 0, 1, 0] = np.inf
     with pytest.raises(ValueError, match="N contains NaN or Inf"):
         solve_tuples("T", x0, x2, P, badN, 1.5)
+    # a NaN in a later chunk of a large batch (the one-bounce kernel flags it per tuple)
+    many = 1000
+    bigP = np.repeat(P[:1], many, axis=0)
+    bigP[700, 0, 2, 1] = np.nan
+    with pytest.raises(ValueError, match=r"P contains NaN or Inf \(first at tuple 700\)"):
+        solve_tuples("R", np.repeat(x0[:1], many, axis=0), np.repeat(x2[:1], many, axis=0), bigP,
+                     np.repeat(N[:1], many, axis=0), 1.5)
     with pytest.raises(ValueError, match="eta"):
         solve_tuples("T", x0, x2, P, N, -1.0)
     with pytest.raises(ValueError, match="eta"):

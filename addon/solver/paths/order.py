@@ -23,7 +23,7 @@ def _row_less(uv, a, b):
 
 
 @kernel
-def _sort_run(uv, lo, hi, row):
+def sort_rows(uv, lo, hi, row):
     """Stable insertion sort of rows lo..hi-1 of uv (row: scratch of one row)."""
     w = uv.shape[1]
     for i in range(lo + 1, hi):
@@ -51,7 +51,7 @@ def gather_sorted(out_uv, out_count, tuple_index, uv):
             for k in range(w):
                 uv[r + s, k] = out_uv[t, s, k]
         if c > 1:
-            _sort_run(uv, r, r + c, row)
+            sort_rows(uv, r, r + c, row)
         r += c
 
 
@@ -78,7 +78,23 @@ def order_by_tuple(tuple_index, uv, n, out_index, out_uv):
     row = np.empty(w)
     for t in range(n):
         if start[t + 1] - start[t] > 1:
-            _sort_run(out_uv, start[t], start[t + 1], row)
+            sort_rows(out_uv, start[t], start[t + 1], row)
+
+
+@kernel
+def gather_chunks(chunk_index, chunk_uv, chunk_paths, stride, tuple_index, uv):
+    """Paths written densely per chunk (chunk c's chunk_paths[c] rows from row c * stride of
+    chunk_index (rows,) and chunk_uv (rows, w), each already in canonical order, the chunks in
+    tuple order) -> tuple_index (m,), uv (m, w) one after the other."""
+    w = chunk_uv.shape[1]
+    r = 0
+    for c in range(chunk_paths.shape[0]):
+        start = c * stride
+        for s in range(chunk_paths[c]):
+            tuple_index[r] = chunk_index[start + s]
+            for k in range(w):
+                uv[r, k] = chunk_uv[start + s, k]
+            r += 1
 
 
 @kernel

@@ -45,32 +45,47 @@ class SolveResult:
     report: SolveReport
 
 
-def _as_float_array(name, value, shape_tail):
+def _as_float_array(name, value, shape_tail, check_finite=True):
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim != 1 + len(shape_tail) or tuple(arr.shape[1:]) != shape_tail:
         raise ValueError(f"{name} must have shape (n, {', '.join(map(str, shape_tail))}), got {arr.shape}")
+    if check_finite:
+        _check_finite(name, arr)
+    return np.ascontiguousarray(arr)
+
+
+def _check_finite(name, arr):
+    """ValueError naming the first tuple of ``arr`` with a NaN or Inf."""
     # one pass over the values first: a NaN or Inf makes the sum non-finite (so does an
     # overflow of finite values, which the full test then lets through)
     if arr.size and not np.isfinite(arr.sum()) and not np.all(np.isfinite(arr)):
         bad = int(np.argwhere(~np.isfinite(arr))[0][0])
         raise ValueError(f"{name} contains NaN or Inf (first at tuple {bad})")
-    return np.ascontiguousarray(arr)
 
 
-def validate_inputs(chain, x_start, x_end, P, N, eta):
-    """Check and convert solver inputs; raise ValueError with a clear reason."""
+def validate_inputs(chain, x_start, x_end, P, N, eta, check_finite=True):
+    """Check and convert solver inputs; raise ValueError with a clear reason.  With
+    ``check_finite`` False the positions and normals are not scanned for NaN or Inf (the caller
+    does that where it reads them anyway: the one-bounce kernel flags such tuples)."""
     if chain not in CHAIN_LENGTH:
         raise ValueError(f"unknown chain {chain!r}; expected one of {', '.join(CHAIN_LENGTH)}")
     k = CHAIN_LENGTH[chain]
-    x_start = _as_float_array("x_start", x_start, (3,))
+    x_start = _as_float_array("x_start", x_start, (3,), check_finite)
     n = x_start.shape[0]
-    x_end = _as_float_array("x_end", x_end, (3,))
-    P = _as_float_array("P", P, (k, 3, 3))
-    N = _as_float_array("N", N, (k, 3, 3))
+    x_end = _as_float_array("x_end", x_end, (3,), check_finite)
+    P = _as_float_array("P", P, (k, 3, 3), check_finite)
+    N = _as_float_array("N", N, (k, 3, 3), check_finite)
     for name, arr in (("x_end", x_end), ("P", P), ("N", N)):
         if arr.shape[0] != n:
             raise ValueError(f"{name} has {arr.shape[0]} tuples but x_start has {n}")
     return x_start, x_end, P, N, _as_eta(eta, n)
+
+
+def check_finite_inputs(x_start, x_end, P, N):
+    """ValueError naming the first input array and tuple with a NaN or Inf (the check that
+    ``validate_inputs(..., check_finite=False)`` left out)."""
+    for name, arr in (("x_start", x_start), ("x_end", x_end), ("P", P), ("N", N)):
+        _check_finite(name, arr)
 
 
 def _as_eta(eta, n):
@@ -96,14 +111,18 @@ class SpecularPolynomialSolver:
         ``pieces`` (two bounces only) the number of pieces of the resultant's sign scan;
         ``device``: "numba" (default), "opencl" or "opencl:N" (see :func:`solve_tuples`)."""
         t0 = time.perf_counter()
-        x_start, x_end, P, N, eta = validate_inputs(chain, x_start, x_end, P, N, eta)
+        # the one-bounce kernel scans its tuples for NaN and Inf itself (below)
+        x_start, x_end, P, N, eta = validate_inputs(chain, x_start, x_end, P, N, eta, check_finite=False)
         report = SolveReport(solver=self.name, chain=chain, tuples=x_start.shape[0])
         device_index = self._opencl_device(device, chain, report)
+        if chain not in ONE_BOUNCE_CHAINS or (device_index is not None and not stop_after):
+            check_finite_inputs(x_start, x_end, P, N)
         if chain in TWO_BOUNCE_CHAINS:
             return self._solve_two_bounce(chain, x_start, x_end, P, N, eta, stop_after, pieces, report, t0, device_index)
         if chain not in ONE_BOUNCE_CHAINS:
             raise ValueError(f"chain {chain!r} is not supported yet by the {self.name} solver")
-        from .one_bounce import MAX_PATHS_ONE_BOUNCE, N_STATS, STAT_PATHS, solve_one_bounce_batch
+        from .one_bounce import (CHUNK, CHUNK_COLUMNS, CHUNK_NONFINITE, CHUNK_OVERFLOW, MAX_PATHS_ONE_BOUNCE,
+                                 solve_one_bounce_batch)
 
         n = x_start.shape[0]
         t1 = time.perf_counter()
@@ -117,14 +136,22 @@ class SpecularPolynomialSolver:
                 tuple_index, uv = canonical_order(tuple_index, uv, n)
             report.overflow = int(totals[4])
         else:
-            out_uv = np.empty((n, MAX_PATHS_ONE_BOUNCE, 2))
-            out_count = np.zeros(n, dtype=np.int64)
-            stats = np.zeros((n, N_STATS), dtype=np.int64)
+            # each chunk of tuples writes its paths densely from its own first row: only the rows
+            # written are touched, and only the paths are gathered
+            chunks = -(-n // CHUNK)
+            chunk_index = np.empty(n * MAX_PATHS_ONE_BOUNCE, dtype=np.int64)
+            chunk_uv = np.empty((n * MAX_PATHS_ONE_BOUNCE, 2))
+            chunk_paths = np.zeros(chunks, dtype=np.int64)
+            chunk_stats = np.zeros((chunks, CHUNK_COLUMNS), dtype=np.int64)
             if n:
-                solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), out_uv, out_count, stats)
+                solve_one_bounce_batch(chain == "T", x_start, x_end, P, N, eta, int(stop_after), chunk_index, chunk_uv,
+                                       chunk_paths, chunk_stats)
+            totals = chunk_stats.sum(axis=0)
+            if totals[CHUNK_NONFINITE]:
+                check_finite_inputs(x_start, x_end, P, N)  # raises, naming the first such tuple
             t2 = time.perf_counter()
-            tuple_index, uv = compact_paths(out_uv, out_count)
-            totals, report.overflow = _stat_totals(stats, STAT_PATHS, MAX_PATHS_ONE_BOUNCE)
+            tuple_index, uv = gather_chunk_paths(chunk_index, chunk_uv, chunk_paths, CHUNK * MAX_PATHS_ONE_BOUNCE)
+            report.overflow = int(totals[CHUNK_OVERFLOW])
         t3 = time.perf_counter()
         report.roots, report.candidates, report.paths, report.skipped = (int(v) for v in totals[:4])
         report.seconds = {"prepare": t1 - t0, "solve": t2 - t1, "compact": t3 - t2}
@@ -276,6 +303,19 @@ def compact_paths(out_uv, out_count):
     uv = np.empty((m, out_uv.shape[2]))
     if m:
         gather_sorted(np.ascontiguousarray(out_uv), np.ascontiguousarray(out_count, dtype=np.int64), tuple_index, uv)
+    return tuple_index, uv
+
+
+def gather_chunk_paths(chunk_index, chunk_uv, chunk_paths, stride):
+    """Paths written densely per chunk (chunk c's chunk_paths[c] rows from row c * stride, in
+    canonical order) -> (tuple_index (m,), uv (m, w)), the chunks one after the other."""
+    from ..paths.order import gather_chunks
+
+    m = int(chunk_paths.sum())
+    tuple_index = np.empty(m, dtype=np.int64)
+    uv = np.empty((m, chunk_uv.shape[1]))
+    if m:
+        gather_chunks(chunk_index, chunk_uv, chunk_paths, stride, tuple_index, uv)
     return tuple_index, uv
 
 

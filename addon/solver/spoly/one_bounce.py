@@ -39,6 +39,7 @@ import math
 import numpy as np
 
 from ..runtime.jit import kernel, parallel_range
+from ..paths.order import sort_rows
 from ..paths.one_vertex import (FAR_START, endpoint_sides, line_crossing_barycentrics, polish_and_validate,
                                 polish_validate_normal_matrix)
 from ..polynomials.roots import (MAX_DEGREE, STACK_ROWS, roots_in_interval, roots_in_unit_interval,
@@ -100,6 +101,10 @@ STAT_CANDIDATES = 1  # (u, v) candidates polished and validated
 STAT_PATHS = 2  # accepted paths
 STAT_SKIPPED = 3  # 1 when the tuple was rejected before solving (sides, degeneracy)
 N_STATS = 4
+# Columns of a chunk's statistics (solve_one_bounce_batch): the STAT_ columns summed, then
+CHUNK_OVERFLOW = N_STATS  # tuples that found more paths than MAX_PATHS_ONE_BOUNCE (the rest are dropped)
+CHUNK_NONFINITE = N_STATS + 1  # tuples with a NaN or Inf in their input (not solved)
+CHUNK_COLUMNS = N_STATS + 2
 
 
 # --- bivariate polynomials: p[i, j] multiplies u^i v^j -------------------------------------
@@ -1025,34 +1030,80 @@ def _on_axis_candidate(x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, root_bu
 
 
 @parallel_range("x_start", CHUNK)
-def solve_one_bounce_batch(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_count, stats, first, last):
-    """Solve every tuple of a batch in parallel (chunks of ``CHUNK`` tuples per worker)."""
+def solve_one_bounce_batch(refract, x_start, x_end, P, N, eta, stop_after, chunk_index, chunk_uv, chunk_paths,
+                           chunk_stats, first, last):
+    """Solve every tuple of a batch in parallel (chunks of ``CHUNK`` tuples per worker).
+
+    Chunk c writes its paths densely, in canonical order (by tuple, then u, then v), from row
+    c * CHUNK * MAX_PATHS_ONE_BOUNCE of chunk_index (the tuple) and chunk_uv (rows, 2), their
+    count to chunk_paths[c], and its statistics summed to chunk_stats[c] (CHUNK_COLUMNS: the
+    STAT_ columns, the tuples that found more than MAX_PATHS_ONE_BOUNCE paths, the tuples with a
+    NaN or Inf in their input, which are not solved).  So the caller gathers only the paths, not
+    a slot table of every tuple.
+    """
     n = x_start.shape[0]
     for c in range(first, last):
-        biv, uni, chain, lists, stack, roots = make_scratch()
-        _solve_chunk(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_count, stats, c * CHUNK,
-                     min(n, (c + 1) * CHUNK), biv, uni, chain, lists, stack, roots)
+        biv, uni, chain, lists, stack, roots, slots, swap, stats = make_scratch()
+        chunk_paths[c] = _solve_chunk(refract, x_start, x_end, P, N, eta, stop_after, c * CHUNK, min(n, (c + 1) * CHUNK),
+                                      c * CHUNK * MAX_PATHS_ONE_BOUNCE, chunk_index, chunk_uv, chunk_stats[c],
+                                      biv, uni, chain, lists, stack, roots, slots, swap, stats)
 
 
 @kernel(refcounted=False)
-def _solve_chunk(refract, x_start, x_end, P, N, eta, stop_after, out_uv, out_count, stats, begin, end,
-                 biv, uni, chain, lists, stack, roots):
-    """Tuples [begin, end) of a batch with one set of scratch.  Apart from the batch kernel
-    (which allocates the scratch, so it counts references), the per-tuple row views cost
-    no atomic reference counting."""
+def _solve_chunk(refract, x_start, x_end, P, N, eta, stop_after, begin, end, first_row, chunk_index, chunk_uv, totals,
+                 biv, uni, chain, lists, stack, roots, slots, swap, stats):
+    """Tuples [begin, end) of a batch with one set of scratch; their paths from row first_row on
+    (see ``solve_one_bounce_batch``); returns how many.  Apart from the batch kernel (which
+    allocates the scratch, so it counts references), the per-tuple row views cost no atomic
+    reference counting."""
+    for k in range(CHUNK_COLUMNS):
+        totals[k] = 0
+    r = first_row
     for t in range(begin, end):
-        out_count[t] = solve_one_bounce_tuple(
+        if not _finite_tuple(x_start, x_end, P, N, eta, t):
+            totals[CHUNK_NONFINITE] += 1
+            continue
+        count = solve_one_bounce_tuple(
             refract, row(x_start, t), row(x_end, t), P[t, 0], N[t, 0], eta[t], stop_after,
-            biv, uni, chain, lists, stack, roots, out_uv[t], stats[t])
+            biv, uni, chain, lists, stack, roots, slots, stats)
+        for k in range(N_STATS):
+            totals[k] += stats[k]
+        kept = min(count, MAX_PATHS_ONE_BOUNCE)
+        if count > kept:
+            totals[CHUNK_OVERFLOW] += 1
+        if kept > 1:
+            sort_rows(slots, 0, kept, swap)
+        for s in range(kept):
+            chunk_index[r] = t
+            chunk_uv[r, 0] = slots[s, 0]
+            chunk_uv[r, 1] = slots[s, 1]
+            r += 1
+    return r - first_row
+
+
+@kernel(inline="always")
+def _finite_tuple(x_start, x_end, P, N, eta, t):
+    """Whether every input value of tuple t is finite (x * 0 is 0 for finite x, NaN otherwise:
+    no branch per value)."""
+    acc = eta[t] * 0.0
+    for k in range(3):
+        acc += x_start[t, k] * 0.0 + x_end[t, k] * 0.0
+        for j in range(3):
+            acc += P[t, 0, k, j] * 0.0 + N[t, 0, k, j] * 0.0
+    return acc == 0.0
 
 
 @kernel
 def make_scratch():
-    """Per-worker scratch: bivariate terms, univariate polynomials, root lists."""
+    """Per-worker scratch: bivariate terms, univariate polynomials, root lists, one tuple's path
+    slots, a swap row and statistics."""
     biv = np.zeros((13, 7, 7))
     uni = np.zeros((NODE_SCRATCH + NODE_ROWS, 2 * MAX_DEGREE + 2))
     chain = np.zeros((MAX_DEGREE + 1, MAX_DEGREE + 1))
     lists = np.zeros((2, MAX_DEGREE + 1))
     stack = np.zeros((STACK_ROWS + 1, MAX_DEGREE + 4))
     roots = np.zeros((5, MAX_DEGREE + 1))
-    return biv, uni, chain, lists, stack, roots
+    slots = np.zeros((MAX_PATHS_ONE_BOUNCE, 2))
+    swap = np.zeros(2)  # the row sort_rows swaps through
+    stats = np.zeros(N_STATS, dtype=np.int64)
+    return biv, uni, chain, lists, stack, roots, slots, swap, stats

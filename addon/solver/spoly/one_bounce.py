@@ -66,6 +66,8 @@ DYNAMIC_RANGE = 1e-6  # node values spanning more than this: interpolate the res
 SPLIT = 4  # pieces per level of that refinement
 SPLIT_DEPTH = 2  # levels at most (16 pieces)
 NODE_SCRATCH = 16  # first row of the univariate scratch that resultant_at_nodes works in
+ROW_B_VALUE = 7  # rows of the univariate scratch holding b(·, v*) by powers of u (_rows_at_v) ...
+ROW_B_SIZE = 8  # ... and the sizes of its terms
 SPURIOUS_B = 1e-3  # |b| / Σ|b_ij u^i v^j| at a u-root of a(·, v*) above which b clearly does not vanish there
 SINGULAR_MARGIN = 0.01  # barycentric slack of the test for a path at normal incidence
 SWITCH_RATIO = 0.1  # relabel the corners when the default elimination's |Q| is below this share of the best
@@ -666,8 +668,11 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
         return count
     u_roots = root_buf[1]
     b_at_v = root_buf[2]
+    row_value = scratch_uni[ROW_B_VALUE]
+    row_size = scratch_uni[ROW_B_SIZE]
     for iv in range(n_v):
         vr = v_roots[iv]
+        rows_at_vr = False  # row_value / row_size hold b(·, vr) (_rows_at_v), computed when first needed
         a2 = a_poly[2, 0]
         a1 = a_poly[1, 0] + a_poly[1, 1] * vr
         a0 = a_poly[0, 0] + (a_poly[0, 1] + a_poly[0, 2] * vr) * vr
@@ -680,8 +685,12 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
             for k in range(n_all):
                 if not (all_u[k] >= -V_MARGIN and all_u[k] <= u_hi):
                     continue
-                if n_all == 2 and _spurious_u_root(b_poly, total_b, all_u[k], all_u[1 - k], vr):
-                    continue
+                if n_all == 2:
+                    if not rows_at_vr:
+                        _rows_at_v(b_poly, total_b, vr, row_value, row_size)
+                        rows_at_vr = True
+                    if _spurious_u_root(row_value, row_size, total_b, all_u[k], all_u[1 - k]):
+                        continue
                 u_roots[n_u] = all_u[k]
                 n_u += 1
         else:
@@ -697,7 +706,11 @@ def _solve_system(a_poly, max_a, b_poly, total_b, v_double, refract, x0, x2, p0,
             ok, uu, vv, err, sig, j11, j12, j22 = polish_validate_normal_matrix(
                 u_roots[iu], vr, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL,
                 CANDIDATE_REACH)
-            if not ok and (err != FAR_START or _relative_size(b_poly, total_b, u_roots[iu], vr) > INEXACT_ROOT):
+            if not ok and err == FAR_START and not rows_at_vr:
+                _rows_at_v(b_poly, total_b, vr, row_value, row_size)
+                rows_at_vr = True
+            if not ok and (err != FAR_START or _relative_size_from_rows(row_value, row_size, total_b, u_roots[iu])
+                           > INEXACT_ROOT):
                 # Fallback: Newton on the exact polynomial system, which stays smooth where
                 # the path-space residual is undefined (a resultant root a hair past the
                 # critical angle of a grazing refraction), then polish again.  Not first:
@@ -847,14 +860,15 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
 
 
 @kernel(inline="always")
-def _spurious_u_root(b_poly, total_b, u, u_other, v):
+def _spurious_u_root(row_value, row_size, total_b, u, u_other):
     """Whether the u-root u of a(·, v) is no root of the system although v is a root of the
     resultant: Res = a2^n b(ρ1) b(ρ2) vanishes where b does at one u-root of a(·, v), so u is
     skipped when b is clearly nonzero there (SPURIOUS_B) and the other u-root, in the triangle
     or not, accounts for the resultant's root (its polish would only wander off, or to a path
-    found anyway).  The other root's size is evaluated only when the test needs it."""
-    return (_relative_size(b_poly, total_b, u, v) > SPURIOUS_B
-            and _relative_size(b_poly, total_b, u_other, v) <= SPURIOUS_B)
+    found anyway).  b(·, v) is given by its rows at v (``_rows_at_v``); the other root's size is
+    evaluated only when the test needs it."""
+    return (_relative_size_from_rows(row_value, row_size, total_b, u) > SPURIOUS_B
+            and _relative_size_from_rows(row_value, row_size, total_b, u_other) <= SPURIOUS_B)
 
 
 @kernel(inline="always")
@@ -872,6 +886,34 @@ def _relative_size(p, d, u, v):
             row_size = row_size * abs(v) + abs(p[i, j])
         value += row_value * u_power
         size += row_size * abs(u_power)
+        u_power *= u
+    return abs(value) / size if size > 0.0 else 0.0
+
+
+@kernel(inline="always")
+def _rows_at_v(p, d, v, row_value, row_size):
+    """The inner sums of ``_relative_size`` at v, for several u at one v: row_value[i] =
+    Σ_j p_ij v^j and row_size[i] = Σ_j |p_ij| |v|^j, i = 0..d."""
+    for i in range(d + 1):
+        value = 0.0
+        size = 0.0
+        for j in range(d - i, -1, -1):
+            value = value * v + p[i, j]
+            size = size * abs(v) + abs(p[i, j])
+        row_value[i] = value
+        row_size[i] = size
+
+
+@kernel(inline="always")
+def _relative_size_from_rows(row_value, row_size, d, u):
+    """``_relative_size`` at (u, v) from the rows of ``_rows_at_v`` at v (the same sums, the same
+    bits)."""
+    value = 0.0
+    size = 0.0
+    u_power = 1.0
+    for i in range(d + 1):
+        value += row_value[i] * u_power
+        size += row_size[i] * abs(u_power)
         u_power *= u
     return abs(value) / size if size > 0.0 else 0.0
 

@@ -74,3 +74,32 @@ def test_grazing_recall_against_bruteforce():
     assert chk.valid.all()
     assert len(miss) <= int(np.floor((1 - RECALL_MIN) * len(truth_t))), (
         f"{len(miss)} missed: " + "; ".join(f"tuple {truth_t[k]} uv {truth_uv[k].tolist()}" for k in miss[:5]))
+
+
+def test_fold_probe_is_abandoned_on_its_way_back():
+    """The fold probe's polish (one_vertex.polish_validate_normal_matrix with a known path) stops
+    once an iterate comes back within return_radius of the known path, reporting RETURNED; polished
+    without one from the same start, it converges onto that path.  The grazing tuples' near-critical
+    partner paths, which only the probes find, are still found (test above, and the brute-force
+    recall test)."""
+    from addon.solver.paths.one_vertex import RETURNED, polish_validate_normal_matrix, triangle_frame, geometric_normal
+
+    d = make_grazing(2_000)
+    checked = 0
+    for t in range(len(d["x0"])):
+        p0, e1, e2, n0, m1, m2 = triangle_frame(d["P"][t, 0], d["N"][t, 0])
+        ng, _ = geometric_normal(e1, e2)
+        u, v = d["uv"][t]
+        if min(u, v, 1.0 - u - v) < 0.01:
+            continue
+        args = (tuple(d["x0"][t]), tuple(d["x2"][t]), p0, e1, e2, n0, m1, m2, ng, True, float(d["eta"][t]), 40, 1e-12)
+        ok, pu, pv, err, _, _, _, _ = polish_validate_normal_matrix(u, v, *args, np.inf)
+        if not ok:
+            continue
+        start = (pu + 1e-4, pv - 1e-4)
+        full = polish_validate_normal_matrix(*start, *args, np.inf)
+        probe = polish_validate_normal_matrix(*start, *args, np.inf, pu, pv, 0.25e-4)
+        if full[0] and max(abs(full[1] - pu), abs(full[2] - pv)) < 1e-9:
+            assert not probe[0] and probe[3] == RETURNED, (t, probe)
+            checked += 1
+    assert checked > 500

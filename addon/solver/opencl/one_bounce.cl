@@ -27,6 +27,8 @@
 #define NEWTON_QUADRATIC_RATIO 1e-3
 #define POLISH_STEPS 40
 #define FAR_START -1.0       // the error polish_and_validate reports for a start rejected by max_first_step
+#define RETURNED -2.0        // ... and for a fold probe abandoned on its way back to the known path
+#define PROBE_RETURN 0.25    // that probe: its iterate within this share of its distance of the path
 #define INEXACT_ROOT 1e-9      // |b| / sum |b_ij u^i v^j| above which a candidate is no exact root of the system
 #define CANDIDATE_REACH 0.1  // a resultant candidate whose first Gauss-Newton step is longer is no path's root
 #define V_MARGIN 1e-6
@@ -816,9 +818,10 @@ static int scatter_residual(const Tuple *T, double u, double v, vec *res, vec *j
 }
 
 // polish_and_validate: returns accepted; writes u, v, err, sigma_min.
-// (max_first_step: paths/one_vertex.py polish_validate_normal_matrix's, INFINITY outside the
-// candidate polish)
-static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *perr, double *psig, double max_first_step) {
+// (max_first_step, known_u, known_v, return_radius: paths/one_vertex.py
+// polish_validate_normal_matrix's; INFINITY and 0 outside the candidate polish and the probes)
+static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *perr, double *psig, double max_first_step,
+                               double known_u, double known_v, double return_radius) {
     double u = *pu, v = *pv;
     vec res, ju, jv;
     if (!scatter_residual(T, u, v, &res, &ju, &jv)) { *perr = INFINITY; *psig = 0.0; return 0; }
@@ -840,6 +843,9 @@ static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *p
         double err2 = vlength(res2);
         if (!(err2 < err)) break;
         u += du; v += dv; res = res2; ju = ju2; jv = jv2; err = err2;
+        if (fmax(fabs(u - known_u), fabs(v - known_v)) < return_radius) {
+            *pu = u; *pv = v; *perr = RETURNED; *psig = 0.0; return 0;
+        }
     }
     int inside = u >= -INSIDE_EPSILON && v >= -INSIDE_EPSILON && u + v <= 1.0 + INSIDE_EPSILON;
     int settled = last_step <= SETTLED_STEP;
@@ -884,7 +890,8 @@ static void probe_fold(const Tuple *T, double u, double v, Paths *out) {
     for (int k = 0; k < 6; ++k) {
         double step = steps[k / 2] * ((k % 2 == 0) ? 1.0 : -1.0);
         double uu = u + step * su, vv = v + step * sv, err, sig;
-        if (polish_and_validate(T, &uu, &vv, &err, &sig, INFINITY)) store_path(out, uu, vv, err, sig);
+        if (polish_and_validate(T, &uu, &vv, &err, &sig, INFINITY, u, v, PROBE_RETURN * steps[k / 2]))
+            store_path(out, uu, vv, err, sig);
     }
 }
 
@@ -915,7 +922,7 @@ static void on_axis_candidate(const Tuple *T, Paths *out, int *candidates) {
     if (!(ln > 0.0 && lw > 0.0) || vlength(vcross(n, w)) > 1e-2 * ln * lw) return;
     (*candidates)++;
     double err, sig;
-    if (polish_and_validate(T, &u, &v, &err, &sig, INFINITY)) store_path(out, u, v, err, sig);
+    if (polish_and_validate(T, &u, &v, &err, &sig, INFINITY, 0.0, 0.0, 0.0)) store_path(out, u, v, err, sig);
 }
 
 // one_bounce.py _relative_size: |p(u, v)| / sum |p_ij u^i v^j| (p of total degree d)
@@ -1047,13 +1054,13 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
         for (int iu = 0; iu < n_u; ++iu) {
             (*n_candidates)++;
             double uu = u_roots[iu], vv = vr, err, sig;
-            int ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH);
+            int ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH, 0.0, 0.0, 0.0);
             // the polynomial fallback, for a candidate rejected as far from any path only when it
             // is an inexact root of the system (one_bounce.py _solve_system)
             if (!ok && (err != FAR_START || relative_size(b_poly, total_b, u_roots[iu], vr) > INEXACT_ROOT)) {
                 double2 r = refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr);
                 uu = r.x; vv = r.y;
-                ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH);
+                ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH, 0.0, 0.0, 0.0);
             }
             if (!ok) continue;
             int before = out->count;

@@ -18,6 +18,7 @@ DIRECTION_TOLERANCE = 1e-7  # |wo - expected| for an accepted path (unit vectors
 INSIDE_EPSILON = 1e-9  # barycentric slack at triangle edges
 SETTLED_STEP = 1e-9  # a Newton step this small in (u, v) means the iterate has converged
 FAR_START = -1.0  # the |residual| polish_validate_normal_matrix reports for a start rejected as far from any path
+RETURNED = -2.0  # ... and for a probe abandoned on its way back to the known path
 FLOOR_RESIDUAL = 1e-13  # a residual this small, with a step under FLOOR_STEP, is at rounding level:
 FLOOR_STEP = 1e-12  # the last step is taken unevaluated
 
@@ -106,7 +107,7 @@ def polish_and_validate(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, e
 
 @kernel
 def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, refract, eta, max_steps, tolerance,
-                                  max_first_step):
+                                  max_first_step, known_u=0.0, known_v=0.0, return_radius=0.0):
     """Gauss-Newton on the path-space residual from (u, v), then the acceptance test.
 
     The polynomial roots are already close (the system is exact for one bounce), so one
@@ -119,6 +120,9 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
     A start whose first step would move it farther than ``max_first_step`` (in u or v) is no
     path's root and is rejected unpolished (|residual| reported as FAR_START): a polish from
     there is a search that at best finds a path some other candidate finds.
+    A probe for a second path next to a known one at (known_u, known_v) (``one_bounce._probe_fold``)
+    is abandoned once an iterate comes within ``return_radius`` (in u and v) of the known path:
+    it is converging back to it (|residual| reported as RETURNED).
     Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian, and the
     entries a11, a12, a22 of J^T J at the returned (u, v), so that a caller testing for a fold
     need not evaluate the residual there again).
@@ -161,6 +165,8 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
         u += du
         v += dv
         res, ju, jv, err = res2, ju2, jv2, err2
+        if max(abs(u - known_u), abs(v - known_v)) < return_radius:
+            return False, u, v, RETURNED, 0.0, 0.0, 0.0, 0.0
     inside = u >= -INSIDE_EPSILON and v >= -INSIDE_EPSILON and u + v <= 1.0 + INSIDE_EPSILON
     # Converged in position: the step Newton still wants is negligible, so the residual is
     # at its rounding floor (near total internal reflection that floor is ~1e-8).  A point

@@ -62,6 +62,7 @@ ACCEPT_RESIDUAL = 1e-12  # residual accepted outright; above it (up to 1e-7) New
 NEGLIGIBLE = 1e-13  # relative size below which a coefficient is treated as exactly zero
 FOLD_RATIO = 1e-4  # lam_min / lam_max of J^T J under which a path counts as near a fold
 FOLD_STEPS = (1e-5, 1e-4, 1e-3)  # barycentric probe distances along the null direction
+PROBE_RETURN = 0.25  # a probe whose iterate comes this share of its distance back to the path is abandoned
 DYNAMIC_RANGE = 1e-6  # node values spanning more than this: interpolate the resultant piecewise
 SPLIT = 4  # pieces per level of that refinement
 SPLIT_DEPTH = 2  # levels at most (16 pieces)
@@ -833,7 +834,10 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
     ways) and keep any new path.  The probes are polished, not predicted from the residual
     along that line: near the critical angle of a refraction the partner can lie off the line
     in a curved valley of the residual (tests/solver/test_solver_grazing.py, light leaving
-    just under the critical angle)."""
+    just under the critical angle).  A probe whose iterate comes back within PROBE_RETURN of
+    its distance to the path is abandoned (most probes: there is no partner, and Gauss-Newton
+    falls back onto the path in a step or two; polishing it to the end would only find it
+    again)."""
     tr = a11 + a22
     disc = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))
     lam_min = 0.5 * tr - disc
@@ -852,7 +856,9 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
     sv /= ls
     for k in range(6):
         step = FOLD_STEPS[k // 2] * (1.0 if k % 2 == 0 else -1.0)
-        ok2, uu, vv, err, sig = polish_and_validate(u + step * su, v + step * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL)
+        ok2, uu, vv, err, sig, _a11, _a12, _a22 = polish_validate_normal_matrix(
+            u + step * su, v + step * sv, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract, eta, POLISH_STEPS, ACCEPT_RESIDUAL,
+            math.inf, u, v, PROBE_RETURN * FOLD_STEPS[k // 2])
         if not ok2:
             continue
         count = store_path(uu, vv, err, sig, root_buf, out_uv, count)

@@ -78,7 +78,7 @@ def test_grazing_recall_against_bruteforce():
 
 def test_fold_probe_is_abandoned_on_its_way_back():
     """The fold probe's polish (one_vertex.polish_validate_normal_matrix with a known path) stops
-    once an iterate comes back within return_radius of the known path, reporting RETURNED; polished
+    once a step would take it back within return_radius of the known path, reporting RETURNED; polished
     without one from the same start, it converges onto that path.  The grazing tuples' near-critical
     partner paths, which only the probes find, are still found (test above, and the brute-force
     recall test)."""

@@ -837,6 +837,9 @@ static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *p
             *perr = FAR_START; *psig = 0.0; return 0;
         }
         last_step = fmax(fabs(du), fabs(dv));
+        if (fmax(fabs(u + du - known_u), fabs(v + dv - known_v)) < return_radius) {  // heading back to the known path
+            *pu = u + du; *pv = v + dv; *perr = RETURNED; *psig = 0.0; return 0;
+        }
         if (err <= FLOOR_RESIDUAL && last_step <= FLOOR_STEP) { u += du; v += dv; break; }  // at the rounding floor
         vec res2, ju2, jv2;
         if (!scatter_residual(T, u + du, v + dv, &res2, &ju2, &jv2)) break;

@@ -121,8 +121,8 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
     path's root and is rejected unpolished (|residual| reported as FAR_START): a polish from
     there is a search that at best finds a path some other candidate finds.
     A probe for a second path next to a known one at (known_u, known_v) (``one_bounce._probe_fold``)
-    is abandoned once an iterate comes within ``return_radius`` (in u and v) of the known path:
-    it is converging back to it (|residual| reported as RETURNED).
+    is abandoned once a Gauss-Newton step would take it, or has taken it, within ``return_radius``
+    (in u and v) of the known path: it is converging back to it (|residual| reported as RETURNED).
     Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian, and the
     entries a11, a12, a22 of J^T J at the returned (u, v), so that a caller testing for a fold
     need not evaluate the residual there again).
@@ -150,6 +150,8 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
         if last_step == math.inf and not max(abs(du), abs(dv)) <= max_first_step:
             return False, u, v, FAR_START, 0.0, 0.0, 0.0, 0.0
         last_step = max(abs(du), abs(dv))
+        if max(abs(u + du - known_u), abs(v + dv - known_v)) < return_radius:
+            return False, u + du, v + dv, RETURNED, 0.0, 0.0, 0.0, 0.0  # heading back: not evaluated there
         if err <= FLOOR_RESIDUAL and last_step <= FLOOR_STEP:
             # At the rounding floor: Newton's step from here lands within rounding of the root,
             # so it is taken without the evaluation that would only confirm it.

@@ -834,9 +834,9 @@ def _probe_fold(u, v, a11, a12, a22, x0, x2, p0, e1, e2, n0, m1, m2, ng, refract
     ways) and keep any new path.  The probes are polished, not predicted from the residual
     along that line: near the critical angle of a refraction the partner can lie off the line
     in a curved valley of the residual (tests/solver/test_solver_grazing.py, light leaving
-    just under the critical angle).  A probe whose iterate comes back within PROBE_RETURN of
-    its distance to the path is abandoned (most probes: there is no partner, and Gauss-Newton
-    falls back onto the path in a step or two; polishing it to the end would only find it
+    just under the critical angle).  A probe whose Gauss-Newton step would take it back within
+    PROBE_RETURN of its distance to the path is abandoned (most probes: there is no partner, and
+    the first step already falls back onto the path; polishing it to the end would only find it
     again)."""
     tr = a11 + a22
     disc = math.sqrt(max(0.0, 0.25 * (a11 - a22) ** 2 + a12 * a12))

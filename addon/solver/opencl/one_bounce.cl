@@ -944,6 +944,31 @@ static double relative_size(const double *p, int d, double u, double v) {
     return size > 0.0 ? fabs(value) / size : 0.0;
 }
 
+// one_bounce.py _rows_at_v: the inner sums of relative_size at v (row_value[i] = sum_j p_ij v^j,
+// row_size[i] = sum_j |p_ij| |v|^j), for several u at one v
+static void rows_at_v(const double *p, int d, double v, double *row_value, double *row_size) {
+    for (int i = 0; i <= d; ++i) {
+        double value = 0.0, size = 0.0;
+        for (int j = d - i; j >= 0; --j) {
+            value = value * v + BI(p, d, i, j);
+            size = size * fabs(v) + fabs(BI(p, d, i, j));
+        }
+        row_value[i] = value;
+        row_size[i] = size;
+    }
+}
+
+// one_bounce.py _relative_size_from_rows: relative_size at (u, v) from rows_at_v's rows at v
+static double relative_size_from_rows(const double *row_value, const double *row_size, int d, double u) {
+    double value = 0.0, size = 0.0, u_power = 1.0;
+    for (int i = 0; i <= d; ++i) {
+        value += row_value[i] * u_power;
+        size += row_size[i] * fabs(u_power);
+        u_power *= u;
+    }
+    return size > 0.0 ? fabs(value) / size : 0.0;
+}
+
 // one_bounce.py double_point_v: v of the point where the line g = 0 meets the conic a = 0 and
 // d0.t = d1.t = 0 (the resultant's spurious double root for T, simple root for R), or NaN.
 static double double_point_v(const double *a, const double *f3, const double *g) {
@@ -1009,9 +1034,10 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
                                 v_roots);
     }
     *n_roots += n_v;
-    double u_roots[MAXD + 1], b_at_v[MAXD + 1];
+    double u_roots[MAXD + 1], b_at_v[MAXD + 1], row_value[7], row_size[7];
     for (int iv = 0; iv < n_v; ++iv) {
         double vr = v_roots[iv];
+        int rows_at_vr = 0;  // row_value / row_size hold b(., vr) (rows_at_v), computed when first needed
         double a2 = BI(a_poly, 2, 2, 0), a1 = BI(a_poly, 2, 1, 0) + BI(a_poly, 2, 1, 1) * vr;
         double a0 = BI(a_poly, 2, 0, 0) + (BI(a_poly, 2, 0, 1) + BI(a_poly, 2, 0, 2) * vr) * vr;
         double u_hi = 1.0 - vr + V_MARGIN;
@@ -1040,8 +1066,11 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
                     // for the resultant's root is no root of the system, skipped
                     for (int k = 0; k < n_all; ++k) {
                         if (!(all_u[k] >= -V_MARGIN && all_u[k] <= u_hi)) continue;
-                        if (n_all == 2 && relative_size(b_poly, total_b, all_u[k], vr) > SPURIOUS_B &&
-                            relative_size(b_poly, total_b, all_u[1 - k], vr) <= SPURIOUS_B) continue;
+                        if (n_all == 2) {
+                            if (!rows_at_vr) { rows_at_v(b_poly, total_b, vr, row_value, row_size); rows_at_vr = 1; }
+                            if (relative_size_from_rows(row_value, row_size, total_b, all_u[k]) > SPURIOUS_B &&
+                                relative_size_from_rows(row_value, row_size, total_b, all_u[1 - k]) <= SPURIOUS_B) continue;
+                        }
                         u_roots[n_u++] = all_u[k];
                     }
                 }
@@ -1060,7 +1089,8 @@ static void solve_system(const Tuple *T, const double *a_poly, double max_a, dou
             int ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH, 0.0, 0.0, 0.0);
             // the polynomial fallback, for a candidate rejected as far from any path only when it
             // is an inexact root of the system (one_bounce.py _solve_system)
-            if (!ok && (err != FAR_START || relative_size(b_poly, total_b, u_roots[iu], vr) > INEXACT_ROOT)) {
+            if (!ok && err == FAR_START && !rows_at_vr) { rows_at_v(b_poly, total_b, vr, row_value, row_size); rows_at_vr = 1; }
+            if (!ok && (err != FAR_START || relative_size_from_rows(row_value, row_size, total_b, u_roots[iu]) > INEXACT_ROOT)) {
                 double2 r = refine_on_polynomials(a_poly, b_poly, total_b, u_roots[iu], vr);
                 uu = r.x; vv = r.y;
                 ok = polish_and_validate(T, &uu, &vv, &err, &sig, CANDIDATE_REACH, 0.0, 0.0, 0.0);

@@ -74,8 +74,9 @@ def hash_uniform(seed, a, b):
 
 
 @parallel_range(lambda a: a["row1"] - a["row0"])
-def _raster_rows(uv, tri_list, W, H, row0, row1, s, seed, jitter, owner, bary, suv, first, last):
-    """owner[r, i, k] = index into tri_list of the triangle holding sample k of texel (i, row0 + r)."""
+def _raster_rows(uv, tri_list, W, H, row0, row1, s, seed, jitter, geometry, owner, bary, suv, first, last):
+    """owner[r, i, k] = index into tri_list of the triangle holding sample k of texel (i, row0 + r);
+    with ``geometry``, the sample's barycentrics and UV in bary and suv too."""
     S = s * s
     for r in range(first, last):
         j = row0 + r
@@ -126,21 +127,22 @@ def _raster_rows(uv, tri_list, W, H, row0, row1, s, seed, jitter, owner, bary, s
                         l1 = min(max(l1, 0.0), 1.0)
                         l2 = min(max(l2, 0.0), 1.0 - l1)
                         owner[r, i, k] = q
-                        bary[r, i, k, 0] = l1
-                        bary[r, i, k, 1] = l2
-                        suv[r, i, k, 0] = pu
-                        suv[r, i, k, 1] = pv
+                        if geometry:
+                            bary[r, i, k, 0] = l1
+                            bary[r, i, k, 1] = l2
+                            suv[r, i, k, 0] = pu
+                            suv[r, i, k, 1] = pv
 
 
 def raster_texels(receiver, samples=1, seed=0, jitter=False, rows=None):
     """(texel (m,), global triangle (m,)) of the covered supersamples of a receiver: the
     first two fields of :func:`rasterise`'s band, without the samples' geometry (what texel
     areas and supersample counts need)."""
-    texel, tri, _keep, _bary, _suv, _rows = _raster(receiver, samples, seed, jitter, rows)
+    texel, tri, _keep, _bary, _suv, _rows = _raster(receiver, samples, seed, jitter, rows, geometry=False)
     return texel, tri
 
 
-def _raster(receiver, samples, seed, jitter, rows):
+def _raster(receiver, samples, seed, jitter, rows, geometry=True):
     W, H = receiver.resolution
     row0, row1 = (0, H) if rows is None else (max(0, int(rows[0])), min(H, int(rows[1])))
     s = grid_side(samples)
@@ -152,10 +154,13 @@ def _raster(receiver, samples, seed, jitter, rows):
     tri_list = np.flatnonzero((vmax >= row0 / H) & (vmin <= row1 / H)).astype(np.int64)
     nr = max(0, row1 - row0)
     owner = np.empty((nr, W, S), dtype=np.int64)
-    bary = np.zeros((nr, W, S, 2))
-    suv = np.zeros((nr, W, S, 2))
+    # without the samples' geometry (raster_texels) no band-sized barycentric / UV tables
+    shape = (nr, W, S, 2) if geometry else (0, 0, 0, 2)
+    bary = np.zeros(shape)
+    suv = np.zeros(shape)
     if nr and tri_list.size:
-        _raster_rows(uv, tri_list, W, H, row0, row1, s, int(seed) & 0x7FFFFFFFFFFFFFFF, bool(jitter), owner, bary, suv)
+        _raster_rows(uv, tri_list, W, H, row0, row1, s, int(seed) & 0x7FFFFFFFFFFFFFFF, bool(jitter), bool(geometry), owner,
+                     bary, suv)
     else:
         owner.fill(-1)
     own = owner.reshape(-1)

@@ -582,11 +582,14 @@ def solve_staged(det_device, refract1, refract2, x_start, x_end, P, N, eta, piec
 def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, stride, b_offset, sys_cap, out_uv, out_count,
                  stats):
     nb = x_start.shape[0]
-    coef = np.zeros((nb, sys_cap, stride))
+    # coef is not cleared: of a system's row only its packed a and b are ever read (_unpack, the
+    # device's coeffs_at), and stage A writes them; the live mask is 0 / 1 (int8: an eighth of
+    # the bytes to clear)
+    coef = np.empty((nb, sys_cap, stride))
     sysint = np.zeros((nb, sys_cap, 7), dtype=np.int64)
     nsys = np.zeros(nb, dtype=np.int64)
     state = np.zeros(nb, dtype=np.int64)
-    live_mask = np.zeros((nb, sys_cap, max(pieces, 1)), dtype=np.int64)
+    live_mask = np.zeros((nb, sys_cap, max(pieces, 1)), dtype=np.int8)
     stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, pieces, live_mask)
     # compact: the systems of staged tuples, tuple by tuple in stage A's order
     m = np.where(state == 1, nsys, 0)

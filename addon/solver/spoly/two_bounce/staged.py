@@ -661,12 +661,16 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
         # the ghost samples a piece outside either end of the range (where that end's piece is live)
         ghost = np.zeros((S, 2))
         refined = live & ((sysint[:, 0] & 2) == 0)  # the TIR fallback's system is not refined
-        for end, piece, v_end, sgn in ((0, 0, 0, -1.0), (1, pieces - 1, pieces, 1.0)):
-            ls = np.flatnonzero(refined & (live_mask[:, piece] != 0))
-            hh = vs[ls, 1] - vs[ls, 0]
-            sign, log, dets = dev.dets(ls.astype(np.int32), np.ascontiguousarray(vs[ls, v_end] + sgn * hh))
-            ghost[ls, end] = log
-            np.add.at(dets_per_sys, ls, dets)
+        # both ends' samples in one batch (one device round trip)
+        lo_sys = np.flatnonzero(refined & (live_mask[:, 0] != 0))
+        hi_sys = np.flatnonzero(refined & (live_mask[:, pieces - 1] != 0))
+        ghost_v = np.concatenate([vs[lo_sys, 0] - (vs[lo_sys, 1] - vs[lo_sys, 0]),
+                                  vs[hi_sys, pieces] + (vs[hi_sys, 1] - vs[hi_sys, 0])])
+        ghost_sys = np.concatenate([lo_sys, hi_sys])
+        sign, log, dets = dev.dets(ghost_sys.astype(np.int32), np.ascontiguousarray(ghost_v))
+        ghost[lo_sys, 0] = log[:lo_sys.size]
+        ghost[hi_sys, 1] = log[lo_sys.size:]
+        np.add.at(dets_per_sys, ghost_sys, dets)
         refine_flags(vs, lg, ghost, roots, nv, piece_of, productive, pieces, live_mask, flags)
         flags[~refined] = 0
     fs, fk = np.nonzero(flags)

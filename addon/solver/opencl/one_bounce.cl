@@ -846,9 +846,6 @@ static int polish_and_validate(const Tuple *T, double *pu, double *pv, double *p
         double err2 = vlength(res2);
         if (!(err2 < err)) break;
         u += du; v += dv; res = res2; ju = ju2; jv = jv2; err = err2;
-        if (fmax(fabs(u - known_u), fabs(v - known_v)) < return_radius) {
-            *pu = u; *pv = v; *perr = RETURNED; *psig = 0.0; return 0;
-        }
     }
     int inside = u >= -INSIDE_EPSILON && v >= -INSIDE_EPSILON && u + v <= 1.0 + INSIDE_EPSILON;
     int settled = last_step <= SETTLED_STEP;
@@ -928,33 +925,34 @@ static void on_axis_candidate(const Tuple *T, Paths *out, int *candidates) {
     if (polish_and_validate(T, &u, &v, &err, &sig, INFINITY, 0.0, 0.0, 0.0)) store_path(out, u, v, err, sig);
 }
 
+// one_bounce.py _row_sums: (sum_j p_ij v^j, sum_j |p_ij| |v|^j), row i of p at v and its terms' size
+static double2 row_sums(const double *p, int d, int i, double v) {
+    double value = 0.0, size = 0.0;
+    for (int j = d - i; j >= 0; --j) {
+        value = value * v + BI(p, d, i, j);
+        size = size * fabs(v) + fabs(BI(p, d, i, j));
+    }
+    return (double2)(value, size);
+}
+
 // one_bounce.py _relative_size: |p(u, v)| / sum |p_ij u^i v^j| (p of total degree d)
 static double relative_size(const double *p, int d, double u, double v) {
     double value = 0.0, size = 0.0, u_power = 1.0;
     for (int i = 0; i <= d; ++i) {
-        double row_value = 0.0, row_size = 0.0;
-        for (int j = d - i; j >= 0; --j) {
-            row_value = row_value * v + BI(p, d, i, j);
-            row_size = row_size * fabs(v) + fabs(BI(p, d, i, j));
-        }
-        value += row_value * u_power;
-        size += row_size * fabs(u_power);
+        double2 r = row_sums(p, d, i, v);
+        value += r.x * u_power;
+        size += r.y * fabs(u_power);
         u_power *= u;
     }
     return size > 0.0 ? fabs(value) / size : 0.0;
 }
 
-// one_bounce.py _rows_at_v: the inner sums of relative_size at v (row_value[i] = sum_j p_ij v^j,
-// row_size[i] = sum_j |p_ij| |v|^j), for several u at one v
+// one_bounce.py _rows_at_v: row_sums of every row at v, for several u at one v
 static void rows_at_v(const double *p, int d, double v, double *row_value, double *row_size) {
     for (int i = 0; i <= d; ++i) {
-        double value = 0.0, size = 0.0;
-        for (int j = d - i; j >= 0; --j) {
-            value = value * v + BI(p, d, i, j);
-            size = size * fabs(v) + fabs(BI(p, d, i, j));
-        }
-        row_value[i] = value;
-        row_size[i] = size;
+        double2 r = row_sums(p, d, i, v);
+        row_value[i] = r.x;
+        row_size[i] = r.y;
     }
 }
 

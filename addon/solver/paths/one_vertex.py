@@ -121,8 +121,9 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
     path's root and is rejected unpolished (|residual| reported as FAR_START): a polish from
     there is a search that at best finds a path some other candidate finds.
     A probe for a second path next to a known one at (known_u, known_v) (``one_bounce._probe_fold``)
-    is abandoned once a Gauss-Newton step would take it, or has taken it, within ``return_radius``
-    (in u and v) of the known path: it is converging back to it (|residual| reported as RETURNED).
+    is abandoned once a Gauss-Newton step would take it within ``return_radius`` (in u and v) of
+    the known path, before the residual is evaluated there: it is converging back to it
+    (|residual| reported as RETURNED).
     Returns (accepted, u, v, |residual|, smallest singular value of the Jacobian, and the
     entries a11, a12, a22 of J^T J at the returned (u, v), so that a caller testing for a fold
     need not evaluate the residual there again).
@@ -167,8 +168,6 @@ def polish_validate_normal_matrix(u, v, x0, x2, p0, e1, e2, n0, m1, m2, ng_raw, 
         u += du
         v += dv
         res, ju, jv, err = res2, ju2, jv2, err2
-        if max(abs(u - known_u), abs(v - known_v)) < return_radius:
-            return False, u, v, RETURNED, 0.0, 0.0, 0.0, 0.0
     inside = u >= -INSIDE_EPSILON and v >= -INSIDE_EPSILON and u + v <= 1.0 + INSIDE_EPSILON
     # Converged in position: the step Newton still wants is negligible, so the residual is
     # at its rounding floor (near total internal reflection that floor is ~1e-8).  A point

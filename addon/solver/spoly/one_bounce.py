@@ -887,11 +887,7 @@ def _relative_size(p, d, u, v):
     size = 0.0
     u_power = 1.0
     for i in range(d + 1):
-        row_value = 0.0
-        row_size = 0.0
-        for j in range(d - i, -1, -1):
-            row_value = row_value * v + p[i, j]
-            row_size = row_size * abs(v) + abs(p[i, j])
+        row_value, row_size = _row_sums(p, d, i, v)
         value += row_value * u_power
         size += row_size * abs(u_power)
         u_power *= u
@@ -899,17 +895,22 @@ def _relative_size(p, d, u, v):
 
 
 @kernel(inline="always")
+def _row_sums(p, d, i, v):
+    """(Σ_j p_ij v^j, Σ_j |p_ij| |v|^j): row i of p at v and the size of its terms."""
+    value = 0.0
+    size = 0.0
+    for j in range(d - i, -1, -1):
+        value = value * v + p[i, j]
+        size = size * abs(v) + abs(p[i, j])
+    return value, size
+
+
+@kernel(inline="always")
 def _rows_at_v(p, d, v, row_value, row_size):
-    """The inner sums of ``_relative_size`` at v, for several u at one v: row_value[i] =
-    Σ_j p_ij v^j and row_size[i] = Σ_j |p_ij| |v|^j, i = 0..d."""
+    """The inner sums of ``_relative_size`` at v (``_row_sums`` of every row), for several u at
+    one v."""
     for i in range(d + 1):
-        value = 0.0
-        size = 0.0
-        for j in range(d - i, -1, -1):
-            value = value * v + p[i, j]
-            size = size * abs(v) + abs(p[i, j])
-        row_value[i] = value
-        row_size[i] = size
+        row_value[i], row_size[i] = _row_sums(p, d, i, v)
 
 
 @kernel(inline="always")

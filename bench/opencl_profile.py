@@ -8,8 +8,8 @@ One bounce (R, T; random and planted workloads of bench/workloads.py, the tuples
 bench/solver.py): host checks and packing, host→device writes, the accumulator fill, the
 kernel, device→host read-back (OpenCL profiling events), the host sort into canonical order,
 and the rest of the wall time.  Two bounces (RR, RT, TR, TT): the Numba stages of
-``two_bounce.staged`` (A, C, the refinement's flags / brackets / assembly, E), the numpy glue
-between them, and inside the device calls the writes, each kernel and the read-back, with the
+``two_bounce.staged`` (A, C, E), the numpy glue between them, and inside the device calls
+(the resultant scan and its refinement) the writes, each kernel and the read-back, with the
 number of launches and of host waits.  Every row gives the OpenCL wall time (best of
 --repeats, profiling off), the Numba wall time on the same tuples (all threads) and their
 ratio, and whether the paths are the same.
@@ -102,11 +102,10 @@ def profiled_run(index, solve, chain):
         timer.wrap(api, "canonical_order", "sort")
     else:
         timer.wrap(api, "compact_paths", "compact")
-        for name, label in (("stage_a", "A"), ("stage_c", "C"), ("refine_flags", "refine"), ("refine_brackets", "refine"),
-                            ("refine_assemble", "refine"), ("stage_e", "E"), ("_solve_batch", "batch")):
+        for name, label in (("stage_a", "A"), ("stage_c", "C"), ("stage_e", "E"), ("_solve_batch", "batch")):
             timer.wrap(two_bounce_staged, name, label)
-        for name in ("load", "dets", "illinois"):
-            timer.wrap(opencl_backend.OpenCLDeterminants, name, "device calls")
+        for name in ("load", "scan", "refine"):
+            timer.wrap(opencl_backend.OpenCLResultantScan, name, "device calls")
     opencl_backend.set_profiling(index, prof)
     try:
         t0 = time.perf_counter()
@@ -195,10 +194,12 @@ ONE_COLUMNS = (("validate", "check inputs"), ("pack", "pack"), ("host->device", 
                ("kernel one_bounce filter", "filter kernel"), ("kernel one_bounce solve", "solve kernel"),
                ("kernel compaction", "prefix sums, scatter"), ("kernel gather", "gather kernel"), ("device->host", "device→host"), ("unpack", "unpack"),
                ("sort", "sort paths"))
-TWO_COLUMNS = (("validate", "check inputs"), ("A", "stage A (Numba)"), ("host->device", "host→device"),
-               ("kernel det_batch", "det kernel"), ("kernel illinois_batch", "Illinois kernel"),
-               ("device->host", "device→host"), ("C", "stage C (Numba)"), ("refine", "refine (Numba)"),
-               ("E", "stage E (Numba)"), ("compact", "compact"))
+TWO_DEVICE = (("kernel scan_samples", "scan samples kernel"), ("kernel scan_degenerate", "degenerate kernel"),
+              ("kernel scan_pins", "Illinois pins kernel"), ("kernel scan_roots", "root lists kernel"),
+              ("kernel refine_systems", "refine kernel"))
+TWO_COLUMNS = ((("validate", "check inputs"), ("A", "stage A (Numba)"), ("host->device", "host→device"))
+               + TWO_DEVICE + (("device->host", "device→host"), ("C", "stage C (Numba)"), ("E", "stage E (Numba)"),
+                               ("compact", "compact")))
 
 
 def ms(seconds):
@@ -218,9 +219,9 @@ def one_bounce_line(r):
 
 def two_bounce_line(r):
     st = r["stages"]
-    glue = st.get("batch", 0.0) - sum(st.get(k, 0.0) for k in ("A", "C", "refine", "E", "device calls"))
-    calls_other = st.get("device calls", 0.0) - sum(st.get(k, 0.0) for k in ("host->device", "kernel det_batch",
-                                                                             "kernel illinois_batch", "device->host"))
+    glue = st.get("batch", 0.0) - sum(st.get(k, 0.0) for k in ("A", "C", "E", "device calls"))
+    device = ("host->device", "device->host") + tuple(k for k, _ in TWO_DEVICE)
+    calls_other = st.get("device calls", 0.0) - sum(st.get(k, 0.0) for k in device)
     n = r["tuples"]
     return (f"| {r['chain']} | {r['workload']} | {n:,} | {r['paths']:,} | "
             + " | ".join(ms(st.get(k, 0.0)) for k, _ in TWO_COLUMNS)
@@ -286,8 +287,8 @@ def main():
         lines += [one_bounce_line(r) for r in one]
         lines.append("")
     if two:
-        lines.append("Two bounces (staged: systems, candidates and polish on Numba between device batches; "
-                     "`two_bounce/staged.py`): times in ms for the batch. \"device calls, rest\" = host time inside "
+        lines.append("Two bounces (staged: systems, candidates and polish on Numba; the resultant scan and its "
+                     "refinement on the device, two waits a batch; `two_bounce/staged.py`): times in ms for the batch. \"device calls, rest\" = host time inside "
                      "the device calls beyond their commands' device time (Python, waits); \"numpy glue\" = the "
                      "staging's array work between stages.")
         lines.append("")

@@ -1,8 +1,8 @@
 """The two-bounce OpenCL path (RR, RT, TR, TT) returns the Numba back end's paths.
 
 device="opencl" runs the staged pipeline of addon/solver/spoly/two_bounce/staged.py: systems built
-and paths polished on Numba, the Bézout determinants (Fan et al. 2024, eq 29), the sign scan's
-Illinois brackets and the refinement's sub-samples (§4.2) on the device
+and paths polished on Numba, the resultant scan over the Bézout determinants (Fan et al. 2024,
+eq 29: samples, Illinois pins, root lists) and its refinement (§4.2) on the device
 (addon/solver/opencl/two_bounce.cl).  PoCL on the CPU in CI; tests that need a device skip
 without one.  Tuples: bench/workloads.py (planted_two_bounce, random_two_bounce) and
 tests/reference/two_bounce_data.py (the sets of test_solver_two_bounce.py, fewer of them).
@@ -80,31 +80,61 @@ def test_opencl_two_bounce_returns_the_numba_paths(chain):
           f"Numba {numba.report.determinants:,}")
 
 
+def _solve_staged(device, chain, x0, x3, P, N, eta, **kwargs):
+    from addon.solver.spoly.two_bounce.params import MAX_PATHS_TWO_BOUNCE, N_STATS
+    from addon.solver.spoly.two_bounce.staged import solve_staged
+
+    n = x0.shape[0]
+    out_uv = np.zeros((n, MAX_PATHS_TWO_BOUNCE, 4))
+    count = np.zeros(n, dtype=np.int64)
+    stats = np.zeros((n, N_STATS), dtype=np.int64)
+    solve_staged(device, chain[0] == "T", chain[1] == "T", x0, x3, P, N, eta, 100, out_uv, count, stats, **kwargs)
+    ti, uv = compact_paths(out_uv, count)
+    return ti, uv, stats.sum(0)
+
+
 @pytest.mark.slow  # compiles the staged pipeline, which no other everyday test uses: ~45 s on a fresh cache
 @pytest.mark.parametrize("chain", ["RR", "TT"])
-def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
-    """Stages A-E with the determinants on Numba (no OpenCL needed): the staging itself
-    changes nothing — same paths, and here the same counts — also with small batches and
-    with tuples pushed to the one-kernel path (sys_cap=1)."""
-    from addon.solver.spoly.two_bounce.params import MAX_PATHS_TWO_BOUNCE, N_STATS
-    from addon.solver.spoly.two_bounce.staged import NumbaDeterminants, solve_staged
+def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain, monkeypatch):
+    """Stages A-E with the resultant scan on Numba (no OpenCL needed): the staging itself
+    changes nothing — same paths, and the same counts, determinants included — also with
+    small batches, with tuples pushed to the one-kernel path (sys_cap=1), and with the
+    refinement's capacity so small that most refined systems overflow it and are refined
+    again on the host."""
+    from addon.solver.spoly.two_bounce import staged
 
     x0, x3, P, N, eta = _tuples(chain, 8)
     expected = SpecularPolynomialSolver().solve(chain, x0, x3, P, N, eta)
-    n = x0.shape[0]
-    for kwargs in ({}, {"batch": 5, "sys_cap": 1}):
-        out_uv = np.zeros((n, MAX_PATHS_TWO_BOUNCE, 4))
-        count = np.zeros(n, dtype=np.int64)
-        stats = np.zeros((n, N_STATS), dtype=np.int64)
-        solve_staged(NumbaDeterminants(), chain[0] == "T", chain[1] == "T", x0, x3, P, N, eta, 100, out_uv, count, stats,
-                     **kwargs)
-        ti, uv = compact_paths(out_uv, count)
+    rep = expected.report
+    for kwargs, cap in (({}, staged.REFINE_CAP), ({"batch": 5, "sys_cap": 1}, staged.REFINE_CAP), ({}, 2)):
+        monkeypatch.setattr(staged, "REFINE_CAP", cap)
+        ti, uv, totals = _solve_staged(staged.NumbaResultantScan(), chain, x0, x3, P, N, eta, **kwargs)
         np.testing.assert_array_equal(ti, expected.tuple_index)
         np.testing.assert_allclose(uv, expected.uv, rtol=0, atol=1e-9)
-        totals = stats.sum(0)
-        rep = expected.report
-        assert (totals[2], totals[3]) == (rep.paths, rep.skipped)
-        assert abs(int(totals[4]) - rep.determinants) <= 0.02 * rep.determinants + 5, kwargs
+        assert (totals[0], totals[2], totals[3], totals[4]) == (rep.roots, rep.paths, rep.skipped, rep.determinants), \
+            (kwargs, cap)
+
+
+@pytest.mark.opencl
+@pytest.mark.slow  # builds the two-bounce OpenCL kernels
+def test_opencl_refinement_overflow_is_refined_on_the_host(monkeypatch):
+    """A system whose refined roots exceed the device's capacity (here 2 a system) comes back
+    flagged and is refined again on the host: the paths stay the one-kernel solver's."""
+    index = opencl_device_or_skip()
+    from addon.solver.opencl.backend import OpenCLResultantScan
+    from addon.solver.spoly.two_bounce import staged
+
+    x0, x3, P, N, eta = _tuples("RT", 8)
+    expected = SpecularPolynomialSolver().solve("RT", x0, x3, P, N, eta)
+    calls = []
+    refine = staged.NumbaResultantScan.refine
+    monkeypatch.setattr(staged.NumbaResultantScan, "refine", lambda self, *a, **k: calls.append(1) or refine(self, *a, **k))
+    monkeypatch.setattr(staged, "REFINE_CAP", 2)
+    ti, uv, totals = _solve_staged(OpenCLResultantScan(index), "RT", x0, x3, P, N, eta)
+    assert calls, "no system overflowed a capacity of 2"
+    np.testing.assert_array_equal(ti, expected.tuple_index)
+    np.testing.assert_allclose(uv, expected.uv, rtol=0, atol=1e-9)
+    assert totals[2] == expected.report.paths
 
 
 @pytest.mark.opencl
@@ -112,7 +142,7 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain):
 def test_opencl_determinant_equals_det_bezout():
     """sign and log|det R(v1)| (eq 29) of real TT systems: OpenCL against Numba's det_bezout."""
     index = opencl_device_or_skip()
-    from addon.solver.opencl.backend import OpenCLDeterminants
+    from addon.solver.opencl.backend import OpenCLResultantScan
     from addon.solver.spoly.two_bounce.params import MAXD, N_STATS
     from addon.solver.spoly.two_bounce.resultant import det_bezout
     from addon.solver.spoly.two_bounce.staged import SYS_CAP, _unpack_v_major, layout, stage_a
@@ -130,8 +160,9 @@ def test_opencl_determinant_equals_det_bezout():
     assert t.size >= 20
     coef, sysint = np.ascontiguousarray(coef[t, k]), sysint[t, k]
     assert sysint[:, 6].max() > 30  # TT: Bézout matrices up to 46 x 46
-    dev = OpenCLDeterminants(index)
-    dev.load(coef, np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32), b_offset)
+    dev = OpenCLResultantScan(index)
+    dev.load(coef, np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32), b_offset, np.ones((t.size, 100), np.int8),
+             np.full(t.size, 0.02), 100)
     rng = np.random.default_rng(7)
     job_sys = np.repeat(np.arange(t.size), 40).astype(np.int32)
     job_v = rng.uniform(-0.02, 1.02, job_sys.size)

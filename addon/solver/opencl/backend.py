@@ -3,9 +3,10 @@
 One bounce: the kernel (``opencl/one_bounce.cl``) is the Numba pipeline of ``one_bounce.py``
 written in OpenCL C, step for step, so both return the same paths.  Two bounces: the
 pipeline of ``spoly/two_bounce`` runs in stages over a batch (``two_bounce/staged.py``); the
-Bézout determinants (Fan et al. 2024, eq 29) of the sign scan, the Illinois brackets and the
-refinement's sub-samples run on the device (``opencl/two_bounce.cl``), the systems'
-construction and the path-space polish on Numba.
+resultant scan over the Bézout determinants (Fan et al. 2024, eq 29: samples, degeneracy,
+Illinois pins, root lists) and its refinement run on the device (``opencl/two_bounce.cl``),
+the scan's state kept there between them; the systems' construction and the path-space
+polish run on Numba.
 
 Host side: each device keeps its context, queue, programs and device buffers (grow-only, by
 role) between calls; inputs are written without waiting.  One-bounce tuples come as rows
@@ -13,8 +14,8 @@ role) between calls; inputs are written without waiting.  One-bounce tuples come
 once (:func:`one_bounce_table`, :func:`solve_one_bounce_pairs`).  Its output is compacted on
 the device: on CPUs one kernel appends path records by an atomic counter (the host sorts
 them); on GPUs a filter stage, prefix sums (``scan.cl``), a solve over the surviving tuples
-only (full warps) and a gather write them in canonical order.  Each two-bounce batch waits
-once.  Work-groups are small on CPUs and several warps on GPUs (:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
+only (full warps) and a gather write them in canonical order.  A two-bounce batch waits
+twice (scan roots, refined roots).  Work-groups are small on CPUs and several warps on GPUs (:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
 records the device time of every command and the host steps (``bench/opencl_profile.py``).
 
 Double precision is required: a
@@ -55,7 +56,8 @@ PATH_RECORDS_MIN = 1024
 # Statistic slots of the one-bounce kernel (acc[1:], 5 counters each): spreads its atomics.
 N_SLOTS = 1024
 _cache = {}  # device index -> _Device
-_cache2 = {}  # device index -> its two-bounce kernels (det_batch, illinois_batch, local size)
+_cache2 = {}  # device index -> its two-bounce kernels ({name: kernel}, local size)
+TWO_BOUNCE_KERNELS = ("det_batch", "scan_samples", "scan_degenerate", "scan_pins", "scan_roots", "refine_systems")
 
 
 class OpenCLUnavailable(RuntimeError):
@@ -150,7 +152,8 @@ class _Device:
         self.buffers = {}
         self.path_capacity = 0
 
-    def _build(self, path):
+    def _build(self, path, defines=()):
+        """The program of path, built with ``-D name=value`` for each (name, value) of defines."""
         with open(path) as f:
             source = f.read()
         if "// @NODE_TABLES@" in source:
@@ -158,7 +161,8 @@ class _Device:
             at = next(i for i, line in enumerate(lines) if line.startswith("// @NODE_TABLES@"))
             lines[at] = _node_tables()
             source = "\n".join(lines)
-        return self.cl.Program(self.ctx, source).build(options=["-cl-std=CL1.2"])
+        options = ["-cl-std=CL1.2"] + [f"-D{name}={value}" for name, value in defines]
+        return self.cl.Program(self.ctx, source).build(options=options)
 
     def work_group(self, kernel):
         """The work-group size for kernel here: CPU_WORK_GROUP on CPUs; on other devices
@@ -303,8 +307,8 @@ def device_info(index):
     limit, private = d.kernel_info(d.kernel_one)
     info["kernels"]["solve_one_bounce"] = dict(local=d.local_one, max_local=limit, private_bytes=private)
     if d.kernels_two is not None:
-        k_det, k_ill, local = d.kernels_two
-        for name, k in (("det_batch", k_det), ("illinois_batch", k_ill)):
+        kernels, local = d.kernels_two
+        for name, k in kernels.items():
             limit, private = d.kernel_info(k)
             info["kernels"][name] = dict(local=local, max_local=limit, private_bytes=private)
     return info
@@ -540,16 +544,29 @@ def _read_paths(d, m, tuple_buf, uv_buf):
 # --- two bounces --------------------------------------------------------------------------------
 
 
+def _two_bounce_defines():
+    """two_bounce/params.py's constants that two_bounce.cl uses, as build options (exact:
+    doubles as hexadecimal literals)."""
+    from ..spoly.two_bounce import params
+
+    out = []
+    for name in ("ROOT_TOL", "KINK", "DIP_FLAT"):
+        out.append((name, float(getattr(params, name)).hex()))
+    for name in ("SUB_SAMPLES", "NOISY_CHANGES", "DIP_STEPS"):
+        out.append((name, int(getattr(params, name))))
+    return out
+
+
 def _two_bounce_program(index):
-    """The _Device of index with its two-bounce kernels (det_batch, illinois_batch, local
-    size) built once."""
+    """The _Device of index with its two-bounce kernels (TWO_BOUNCE_KERNELS, local size)
+    built once."""
     d = _context(index)  # OpenCLUnavailable / OpenCLNoDoublePrecision as for one bounce
     if d.kernels_two is None:
-        program = d._build(_KERNEL_FILE_2)
-        k_det, k_ill = d.cl.Kernel(program, "det_batch"), d.cl.Kernel(program, "illinois_batch")
+        program = d._build(_KERNEL_FILE_2, _two_bounce_defines())
+        kernels = {name: d.cl.Kernel(program, name) for name in TWO_BOUNCE_KERNELS}
         # ~18 KB of private scratch per work-item (the Bézout matrix): small groups on CPUs
         # (see CPU_WORK_GROUP); on a GPU it lives in per-thread local memory.
-        d.kernels_two = (k_det, k_ill, min(d.work_group(k_det), d.work_group(k_ill)))
+        d.kernels_two = (kernels, min(d.work_group(k) for k in kernels.values()))
     _cache2[index] = d.kernels_two
     return d
 
@@ -561,61 +578,122 @@ def two_bounce_device_name(index):
     return device_name(index)
 
 
-class OpenCLDeterminants:
-    """Stages B and D of ``two_bounce.staged`` on an OpenCL device: batches of sign and
-    log|det| of Bézout matrices at given v1 (eq 29) and of Illinois brackets, over the
-    packed systems given to :meth:`load`.  One work-item per job; the device buffers are
-    the device's kept ones (by role), written without waiting, and each batch waits once,
-    for its results."""
+class OpenCLResultantScan:
+    """Stages B and D of ``two_bounce.staged`` on an OpenCL device (``two_bounce.cl``): the
+    systems and their scan state stay on the device from :meth:`load` to :meth:`refine`;
+    :meth:`scan` (``find_v_roots``: samples, degeneracy, Illinois pins, root lists) and
+    :meth:`refine` (``refine_v_roots``) each enqueue their kernels without waiting and wait
+    once, for their read-backs.  The interface of ``staged.NumbaResultantScan``."""
 
     def __init__(self, index):
         self.device = _two_bounce_program(index)
-        self.k_det, self.k_ill, self.local = self.device.kernels_two
+        self.k, self.local = self.device.kernels_two
         self.name = self.device.label
 
-    def load(self, coef, sysint3, b_offset):
-        """coef (S, stride) packed systems, sysint3 (S, 3) int32 (da, db, n)."""
+    def load(self, coef, sysint3, b_offset, live_mask, margin, pieces):
+        """coef (S, stride) packed systems, sysint3 (S, 3) int32 (da, db, n), live_mask (S, pieces)
+        int8, margin (S,): the scan of system s runs over [-margin[s], 1 + margin[s]]."""
+        d = self.device
+        self.S = coef.shape[0]
+        self.pieces = int(pieces)
         self.stride = np.int32(coef.shape[1])
         self.b_offset = np.int32(b_offset)
-        self.coef_buf = self.device.write("coef", np.ascontiguousarray(coef, dtype=np.float64))
-        self.sys_buf = self.device.write("sysint3", np.ascontiguousarray(sysint3, dtype=np.int32))
+        self.coef_buf = d.write("coef", np.ascontiguousarray(coef, dtype=np.float64))
+        self.sys_buf = d.write("sysint3", np.ascontiguousarray(sysint3, dtype=np.int32))
+        self.live_buf = d.write("live", np.ascontiguousarray(live_mask, dtype=np.int8))
+        self.margin_buf = d.write("margin", np.ascontiguousarray(margin, dtype=np.float64))
 
-    def _run(self, kernel, stage, n, inputs, outputs):
+    def _system_args(self):
+        return self.coef_buf, self.sys_buf, self.stride, self.b_offset, self.live_buf, self.margin_buf
+
+    def _wait(self):
         d = self.device
-        bufs = [d.write(f"in{i}", a) for i, a in enumerate(inputs)]
-        out_bufs = [d.buffer(f"out{i}", o.nbytes) for i, o in enumerate(outputs)]
-        d.launch(kernel, stage, n, self.local, self.coef_buf, self.sys_buf, self.stride, self.b_offset, *bufs,
-                 np.int32(n), *out_bufs)
-        for o, b in zip(outputs, out_bufs):
-            d.read(o, b, wait=False)
         d.queue.finish()
         if d.profiler is not None:
             d.profiler.syncs += 1
 
+    def scan(self, solve):
+        """``find_v_roots`` of the systems with solve (S,) bool: (nv (S,) int32, -1 for a
+        degenerate system; roots (S, pieces), nv[s] of them in row s; determinants per system)."""
+        d, S, P = self.device, self.S, self.pieces
+        nv = np.zeros(S, dtype=np.int32)
+        roots = np.zeros((S, max(P, 1)))
+        dets = np.zeros(S, dtype=np.int32)
+        if not S:
+            return nv, roots, dets
+        ps, pieces = np.int32(S), np.int32(P)
+        solve_buf = d.write("solve", np.ascontiguousarray(solve, dtype=np.int8))
+        sg = d.buffer("scan_sign", S * (P + 1) * 4)
+        lg = d.buffer("scan_log", S * (P + 1) * 8)
+        sample_dets = d.buffer("scan_sample_dets", S * (P + 1) * 4)
+        degenerate = d.buffer("scan_degenerate", S)
+        pin = d.buffer("scan_pin", S * P * 8)
+        pin_dets = d.buffer("scan_pin_dets", S * P * 4)
+        nv_buf = d.buffer("scan_nv", S * 4)
+        roots_buf = d.buffer("scan_roots", S * P * 8)
+        piece_buf = d.buffer("scan_piece_of", S * P * 4)
+        dets_buf = d.buffer("scan_dets", S * 4)
+        args = self._system_args()
+        d.launch(self.k["scan_samples"], "kernel scan_samples", S * (P + 1), self.local, *args, solve_buf, pieces, ps,
+                 sg, lg, sample_dets)
+        d.launch(self.k["scan_degenerate"], "kernel scan_degenerate", S, self.local, solve_buf, pieces, ps, sg, degenerate)
+        d.launch(self.k["scan_pins"], "kernel scan_pins", S * P, self.local, *args, solve_buf, degenerate, pieces, ps, sg,
+                 lg, pin, pin_dets)
+        d.launch(self.k["scan_roots"], "kernel scan_roots", S, self.local, self.live_buf, self.margin_buf, solve_buf,
+                 degenerate, pieces, ps, sg, sample_dets, pin, pin_dets, nv_buf, roots_buf, piece_buf, dets_buf)
+        d.read(nv, nv_buf, wait=False)
+        d.read(roots, roots_buf, wait=False)
+        d.read(dets, dets_buf, wait=False)
+        self._wait()
+        self.scan_state = (sg, lg, nv_buf, roots_buf, piece_buf)
+        return nv, roots, dets
+
+    def refine(self, productive, refined, cap=None):
+        """``refine_v_roots`` of the systems with refined (S,) bool on the scan's samples, the
+        productive scan roots (S, pieces) from stage C: (ref_count (S,), -1 where cut short by
+        cap; ref_roots (S, cap); determinants per system)."""
+        from ..spoly.two_bounce.staged import REFINE_CAP
+
+        d, S, P = self.device, self.S, self.pieces
+        cap = REFINE_CAP if cap is None else int(cap)
+        count = np.zeros(S, dtype=np.int32)
+        found = np.zeros((S, cap))
+        dets = np.zeros(S, dtype=np.int32)
+        if not S:
+            return count, found, dets
+        sg, lg, nv_buf, roots_buf, piece_buf = self.scan_state
+        refined_buf = d.write("refined", np.ascontiguousarray(refined, dtype=np.int8))
+        productive_buf = d.write("productive", np.ascontiguousarray(np.asarray(productive) != 0, dtype=np.int8))
+        found_buf = d.buffer("refine_found", S * cap * 8)
+        count_buf = d.buffer("refine_count", S * 4)
+        dets_buf = d.buffer("refine_dets", S * 4)
+        d.launch(self.k["refine_systems"], "kernel refine_systems", S, self.local, *self._system_args(), refined_buf,
+                 np.int32(P), np.int32(S), sg, lg, nv_buf, roots_buf, piece_buf, productive_buf, np.int32(cap), found_buf,
+                 count_buf, dets_buf)
+        d.read(count, count_buf, wait=False)
+        d.read(found, found_buf, wait=False)
+        d.read(dets, dets_buf, wait=False)
+        self._wait()
+        return count, found, dets
+
     def dets(self, job_sys, job_v):
-        """(sign (J,) int32, log|det| (J,), determinant evaluations (J,)) of system job_sys
-        at v1 = job_v (``resultant.det_checked``: an exact zero is re-checked a hair away)."""
+        """(sign (J,) int32, log|det| (J,), determinant evaluations (J,)) of the loaded system
+        job_sys at v1 = job_v (``resultant.det_checked``): the determinant alone, for tests."""
+        d = self.device
         n = job_sys.shape[0]
         sign = np.zeros(n, dtype=np.int32)
         log = np.zeros(n)
         dets = np.zeros(n, dtype=np.int32)
         if n:
-            self._run(self.k_det, "kernel det_batch", n,
-                      [np.ascontiguousarray(job_sys, dtype=np.int32), np.ascontiguousarray(job_v, dtype=np.float64)],
-                      [sign, log, dets])
+            bufs = [d.write("job_sys", np.ascontiguousarray(job_sys, dtype=np.int32)),
+                    d.write("job_v", np.ascontiguousarray(job_v, dtype=np.float64))]
+            outs = [d.buffer(f"job_out{i}", o.nbytes) for i, o in enumerate((sign, log, dets))]
+            d.launch(self.k["det_batch"], "kernel det_batch", n, self.local, self.coef_buf, self.sys_buf, self.stride,
+                     self.b_offset, *bufs, np.int32(n), *outs)
+            for o, b in zip((sign, log, dets), outs):
+                d.read(o, b, wait=False)
+            self._wait()
         return sign, log, dets
-
-    def illinois(self, job_sys, job_f, job_s):
-        """Roots pinned to ROOT_TOL (``resultant.illinois``) in brackets job_f (J, 4) = (lo, hi,
-        log|det(lo)|, log|det(hi)|) with signs job_s (J, 2); returns (root, evaluations)."""
-        n = job_sys.shape[0]
-        root = np.zeros(n)
-        dets = np.zeros(n, dtype=np.int32)
-        if n:
-            self._run(self.k_ill, "kernel illinois_batch", n,
-                      [np.ascontiguousarray(job_sys, dtype=np.int32), np.ascontiguousarray(job_f, dtype=np.float64),
-                       np.ascontiguousarray(job_s, dtype=np.int32)], [root, dets])
-        return root, dets
 
 
 def solve_two_bounce_opencl(index, refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats):
@@ -623,4 +701,4 @@ def solve_two_bounce_opencl(index, refract1, refract2, x_start, x_end, P, N, eta
     arrays as ``two_bounce.solve_two_bounce_batch`` does."""
     from ..spoly.two_bounce.staged import solve_staged
 
-    solve_staged(OpenCLDeterminants(index), refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats)
+    solve_staged(OpenCLResultantScan(index), refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats)

@@ -9,18 +9,26 @@
 // system is `stride` doubles: a at offset 0, b at offset `b_offset`.  sysint holds, per
 // system, (da, db, n) with n the u-degree of the Bézout matrix (eq 29).
 //
-// Two kernels, each one work-item per job, jobs of one system next to each other:
-//   det_batch      sign and log|det R(v)| at given v (the piecewise sign scan of
-//                  find_v_roots and the sub-samples of _refine_interval);
-//   illinois_batch a sign change [lo, hi] pinned to ROOT_TOL by the Illinois variant of
-//                  regula falsi on the signed log-magnitude (bisection safeguard).
-// The bookkeeping between them (which pieces change sign, the kink rule, deflation) is
-// cheap and stays on the host.  Double precision (cl_khr_fp64) is required.
+// The resultant scan of a batch of systems, on the device from the sign scan to the refined
+// roots (the host uploads the systems once and reads back twice: the scan roots for stage C's
+// candidates, then the refined roots for stage E's):
+//   scan_samples     det R(v) at each needed sample of each system (one work-item per sample);
+//   scan_degenerate  find_v_roots' test: the determinant vanishes at most samples;
+//   scan_pins        each sign change of a live piece pinned to ROOT_TOL by Illinois;
+//   scan_roots       each system's roots in piece order (find_v_roots' list);
+//   refine_systems   refine_v_roots (REFINE_LEVELS = 1) per system, the productive roots from
+//                    the host: ghost samples, kink flags, sub-samples, pins, one-signed dips;
+//   det_batch        sign and log|det| at given (system, v) jobs (the tests' probe).
+// Double precision (cl_khr_fp64) is required.
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
 
 #define MAXN 46            // u-degree of b at most (TT: 46); n < MAXD = 47 in two_bounce/params.py
-#define ROOT_TOL 1e-4   // = two_bounce.params.ROOT_TOL
+// ROOT_TOL, KINK, SUB_SAMPLES, NOISY_CHANGES, DIP_STEPS, DIP_FLAT: two_bounce/params.py's, given as
+// build options by opencl/backend.py (one definition for both back ends)
+#if !defined(ROOT_TOL) || !defined(KINK) || !defined(SUB_SAMPLES) || !defined(NOISY_CHANGES) || !defined(DIP_STEPS) || !defined(DIP_FLAT)
+#error "build with the two-bounce parameters (-D ROOT_TOL=... etc., opencl/backend.py)"
+#endif
 #define LN2 0.6931471805599453
 
 // p_i(v) for i <= n (row i of the packed polynomial p of total degree d), scaled to unit
@@ -173,20 +181,12 @@ __kernel void det_batch(__global const double *coef, __global const int *sysint,
     out_dets[t] = dets;
 }
 
-// Root of det in [lo, hi] (opposite signs slo, shi at the ends) pinned to ROOT_TOL: the
+// Root of det in [lo, hi] (opposite signs at the ends, slo at lo) pinned to ROOT_TOL: the
 // Illinois variant of regula falsi on the signed log-magnitude, a bisection step every
 // fourth iteration unless the bracket shrank well (as illinois).
-__kernel void illinois_batch(__global const double *coef, __global const int *sysint, const int stride, const int b_offset,
-                             __global const int *job_sys, __global const double *job_f, __global const int *job_s,
-                             const int n_jobs, __global double *out_root, __global int *out_dets) {
-    int t = get_global_id(0);
-    if (t >= n_jobs) return;
-    System S = load_system(coef, sysint, stride, b_offset, job_sys[t]);
-    double lo = job_f[4 * t], hi = job_f[4 * t + 1], llo = job_f[4 * t + 2], lhi = job_f[4 * t + 3];
-    int slo = job_s[2 * t];
-    int side = 0, dets = 0;
+static double illinois(const System *S, double lo, double hi, int slo, double llo, double lhi, int *dets) {
+    int side = 0;
     double width_before = hi - lo;
-    double root = NAN;
     for (int it = 0; it < 200; ++it) {
         double w = hi - lo;
         if (w <= ROOT_TOL) break;
@@ -204,8 +204,8 @@ __kernel void illinois_batch(__global const double *coef, __global const int *sy
             if (!(x > lo && x < hi)) break;
         }
         double lg;
-        int s = det_checked(&S, x, &lg, &dets);
-        if (s == 0) { root = x; break; }
+        int s = det_checked(S, x, &lg, dets);
+        if (s == 0) return x;
         if (s == slo) {
             lo = x;
             llo = lg;
@@ -218,6 +218,331 @@ __kernel void illinois_batch(__global const double *coef, __global const int *sy
             side = 1;
         }
     }
-    out_root[t] = isnan(root) ? 0.5 * (lo + hi) : root;
-    out_dets[t] = dets;
+    return 0.5 * (lo + hi);
+}
+
+// ---- the resultant scan of a batch of systems (find_v_roots, refine_v_roots) -------------------
+// System s is scanned over [-margin[s], 1 + margin[s]] in `pieces` pieces, only its live pieces
+// (live[s * pieces + k], the pre-pass's) and the samples they need.  Per sample the sign (2: not
+// sampled) and the raw log|det| stay on the device for the refinement.
+
+// Sample k of the scan of system s, as find_v_roots computes it.
+static double scan_v(double margin, int pieces, int k) {
+    double lo = -margin, hi = 1.0 + margin;
+    double h = (hi - lo) / (double)pieces;
+    return lo + (double)k * h;
+}
+
+// find_v_roots' samples: one work-item per (system, sample); sample k is needed by the live
+// pieces k - 2 .. k + 1 (sign changes and the kink test one sample beyond).
+__kernel void scan_samples(__global const double *coef, __global const int *sysint, const int stride, const int b_offset,
+                           __global const char *live, __global const double *margin, __global const char *solve,
+                           const int pieces, const int n_sys, __global int *sg, __global double *lg, __global int *dets) {
+    long t = get_global_id(0);
+    if (t >= (long)n_sys * (pieces + 1)) return;
+    int s = (int)(t / (pieces + 1)), k = (int)(t % (pieces + 1));
+    sg[t] = 2;
+    lg[t] = 0.0;
+    dets[t] = 0;
+    if (!solve[s]) return;
+    bool need = false;
+    for (int q = max(0, k - 2); q <= min(pieces - 1, k + 1); ++q)
+        if (live[(long)s * pieces + q]) need = true;
+    if (!need) return;
+    System S = load_system(coef, sysint, stride, b_offset, s);
+    double l;
+    int d = 0;
+    sg[t] = det_checked(&S, scan_v(margin[s], pieces, k), &l, &d);
+    lg[t] = l;
+    dets[t] = d;
+}
+
+// find_v_roots' degeneracy test: the determinant vanishes at more than half the samples
+// (those systems are polished from seeds instead, not scanned).
+__kernel void scan_degenerate(__global const char *solve, const int pieces, const int n_sys, __global const int *sg,
+                              __global char *degenerate) {
+    int s = get_global_id(0);
+    if (s >= n_sys) return;
+    int zeros = 0, sampled = 0;
+    if (solve[s])
+        for (int k = 0; k <= pieces; ++k) {
+            int g = sg[(long)s * (pieces + 1) + k];
+            if (g != 2) sampled += 1;
+            if (g == 0) zeros += 1;
+        }
+    degenerate[s] = zeros * 2 > sampled;
+}
+
+// find_v_roots' Illinois pins: one work-item per (system, piece) with a sign change.
+__kernel void scan_pins(__global const double *coef, __global const int *sysint, const int stride, const int b_offset,
+                        __global const char *live, __global const double *margin, __global const char *solve,
+                        __global const char *degenerate, const int pieces, const int n_sys, __global const int *sg,
+                        __global const double *lg, __global double *pin, __global int *pin_dets) {
+    long t = get_global_id(0);
+    if (t >= (long)n_sys * pieces) return;
+    int s = (int)(t / pieces), k = (int)(t % pieces);
+    pin_dets[t] = 0;
+    if (!solve[s] || degenerate[s] || !live[t]) return;
+    long j = (long)s * (pieces + 1) + k;
+    int g0 = sg[j], g1 = sg[j + 1];
+    if (g0 != g1 && g0 != 0 && g1 != 0) {
+        System S = load_system(coef, sysint, stride, b_offset, s);
+        int d = 0;
+        pin[t] = illinois(&S, scan_v(margin[s], pieces, k), scan_v(margin[s], pieces, k + 1), g0, lg[j], lg[j + 1], &d);
+        pin_dets[t] = d;
+    }
+}
+
+// find_v_roots' root list per system: pinned sign changes and exact-zero samples of the live
+// pieces in piece order, each root's piece; nv = -1 for a degenerate system.
+__kernel void scan_roots(__global const char *live, __global const double *margin, __global const char *solve,
+                         __global const char *degenerate, const int pieces, const int n_sys, __global const int *sg,
+                         __global const int *sample_dets, __global const double *pin, __global const int *pin_dets,
+                         __global int *nv, __global double *roots, __global int *piece_of, __global int *dets) {
+    int s = get_global_id(0);
+    if (s >= n_sys) return;
+    long p0 = (long)s * pieces, q0 = (long)s * (pieces + 1);
+    int d = 0;
+    for (int k = 0; k <= pieces; ++k) d += sample_dets[q0 + k];
+    if (!solve[s] || degenerate[s]) {
+        nv[s] = solve[s] ? -1 : 0;
+        dets[s] = d;
+        return;
+    }
+    int count = 0;
+    for (int k = 0; k < pieces; ++k) {
+        d += pin_dets[p0 + k];
+        if (!live[p0 + k]) continue;
+        int g0 = sg[q0 + k], g1 = sg[q0 + k + 1];
+        if (g0 != g1 && g0 != 0 && g1 != 0) {
+            roots[p0 + count] = pin[p0 + k];
+            piece_of[p0 + count] = k;
+            count += 1;
+        } else if (g0 == 0) {
+            roots[p0 + count] = scan_v(margin[s], pieces, k);
+            piece_of[p0 + count] = k;
+            count += 1;
+        }
+    }
+    nv[s] = count;
+    dets[s] = d;
+}
+
+// The roots of one system during its refinement: the nv scan roots, then the new ones.
+typedef struct {
+    __global const double *scan;
+    __global double *found;
+    int nv;
+} Roots;
+
+static double root_at(const Roots *R, int i) { return i < R->nv ? R->scan[i] : R->found[i - R->nv]; }
+
+// log|det(v)| minus the sum of log|v - r| over the first n roots (as deflate).
+static double deflate(double v, double lg, const Roots *R, int n) {
+    for (int i = 0; i < n; ++i) {
+        double d = fabs(v - root_at(R, i));
+        if (d > 0.0) lg -= log(d);
+    }
+    return lg;
+}
+
+// Append a root (the caller checked the capacity).
+static void push_root(const Roots *R, int *count, double v) {
+    R->found[*count - R->nv] = v;
+    *count += 1;
+}
+
+// A one-signed dip of the deflated log|det| at xm (as resolve_dip): the vertex of the
+// quadratic through the three samples (golden-section safeguard); a point of the other sign
+// splits it into two pinned sign changes, a model minimum above DIP_FLAT stops (complex
+// pair), else the deepest point is a (near-)double root candidate.
+static void resolve_dip(const System *S, double xl, double xm, double xr, int sgn, double fl, double fm, double fr,
+                        const Roots *R, int cap, int *count, int *dets) {
+    for (int it = 0; it < DIP_STEPS; ++it) {
+        double w = xr - xl;
+        if (w <= ROOT_TOL) break;
+        double ql = exp(fmin(fl - fm, 700.0));
+        double qr = exp(fmin(fr - fm, 700.0));
+        double d1 = (1.0 - ql) / (xm - xl);
+        double d2 = (qr - 1.0) / (xr - xm);
+        double A = (d2 - d1) / w;
+        double x = xm, qmin = 1.0;
+        if (A > 0.0) {
+            x = 0.5 * (xl + xm) - d1 / (2.0 * A);
+            qmin = ql + d1 * (x - xl) + A * (x - xl) * (x - xm);
+        }
+        if (qmin >= DIP_FLAT) break;
+        if (!(x > xl + 0.01 * w && x < xr - 0.01 * w) || fabs(x - xm) < 0.01 * w) {
+            if (xr - xm > xm - xl) x = xm + 0.3819660112501051 * (xr - xm);
+            else x = xm - 0.3819660112501051 * (xm - xl);
+        }
+        double lg;
+        int s = det_checked(S, x, &lg, dets);
+        if (s == 0) break;
+        if (s != sgn) {
+            double p = x > xm ? xm : xl;
+            double q = x > xm ? xr : xm;
+            double lp, lq;
+            int sp = det_checked(S, p, &lp, dets);
+            int sq = det_checked(S, q, &lq, dets);
+            if (*count + 2 <= cap && sp == sgn && sq == sgn) {
+                double r0 = illinois(S, p, x, sp, lp, lg, dets);
+                double r1 = illinois(S, x, q, s, lg, lq, dets);
+                push_root(R, count, r0);
+                push_root(R, count, r1);
+                return;
+            }
+            break;
+        }
+        double f = deflate(x, lg, R, *count);
+        if (f < fm) {
+            if (x > xm) { xl = xm; fl = fm; }
+            else { xr = xm; fr = fm; }
+            xm = x;
+            fm = f;
+        } else if (x > xm) {
+            xr = x;
+            fr = f;
+        } else {
+            xl = x;
+            fl = f;
+        }
+    }
+    if (*count < cap) push_root(R, count, xm);
+}
+
+// Deflated log|det| of scan sample k (sampled ones only: the kink test reads no other).
+static double deflated_sample(const Roots *R, __global const int *sg, __global const double *lg, double margin,
+                              int pieces, int k) {
+    return sg[k] != 2 ? deflate(scan_v(margin, pieces, k), lg[k], R, R->nv) : lg[k];
+}
+
+// refine_flags_one for piece k: next to a convex kink of the deflated log|det| (ghost samples
+// g_lo, g_hi beyond the ends) or within one piece of a productive scan root.
+static bool piece_flagged(const Roots *R, __global const int *sg, __global const double *lg, __global const char *live,
+                          __global const char *productive, __global const int *piece_of, double margin, int pieces,
+                          double g_lo, double g_hi, int k) {
+    if (!live[k]) return false;
+    double l0 = deflated_sample(R, sg, lg, margin, pieces, k), l1 = deflated_sample(R, sg, lg, margin, pieces, k + 1);
+    double left = k == 0 ? g_lo : deflated_sample(R, sg, lg, margin, pieces, k - 1);
+    double right = k + 2 > pieces ? g_hi : deflated_sample(R, sg, lg, margin, pieces, k + 2);
+    if (left + l1 - 2.0 * l0 > KINK || l0 + right - 2.0 * l1 > KINK) return true;
+    for (int i = 0; i < R->nv; ++i)
+        if (productive[i] && abs(piece_of[i] - k) <= 1) return true;
+    return false;
+}
+
+// refine_v_roots at REFINE_LEVELS = 1, one work-item per system (most systems have no flagged
+// piece): the ghost samples, the flags, and per flagged piece (runs of them share their end
+// samples) the SUB_SAMPLES sub-pieces, new sign changes pinned, one-signed dips resolved.
+// The new roots go to found[s * cap ..], count[s] of them; -1 when within 2 of cap (a dip adds
+// two at once): the host refines that system again with the full capacity.
+__kernel void refine_systems(__global const double *coef, __global const int *sysint, const int stride, const int b_offset,
+                             __global const char *live_all, __global const double *margins, __global const char *refined,
+                             const int pieces, const int n_sys, __global const int *sg_all, __global const double *lg_all,
+                             __global const int *nv_all, __global const double *roots_all,
+                             __global const int *piece_of_all, __global const char *productive_all, const int cap_new,
+                             __global double *found_all, __global int *found_count, __global int *dets_out) {
+    int s = get_global_id(0);
+    if (s >= n_sys) return;
+    found_count[s] = 0;
+    dets_out[s] = 0;
+    if (!refined[s]) return;
+    System S = load_system(coef, sysint, stride, b_offset, s);
+    long p0 = (long)s * pieces, q0 = (long)s * (pieces + 1);
+    __global const char *live = live_all + p0;
+    __global const char *productive = productive_all + p0;
+    __global const int *piece_of = piece_of_all + p0;
+    __global const int *sg = sg_all + q0;
+    __global const double *lg = lg_all + q0;
+    double margin = margins[s];
+    Roots R;
+    R.scan = roots_all + p0;
+    R.found = found_all + (long)s * cap_new;
+    R.nv = nv_all[s];
+    int cap = R.nv + cap_new;
+    int dets = 0;
+    double v0 = scan_v(margin, pieces, 0), vP = scan_v(margin, pieces, pieces);
+    double h = scan_v(margin, pieces, 1) - v0;
+    double g_lo = 0.0, g_hi = 0.0;
+    if (live[0]) det_checked(&S, v0 - h, &g_lo, &dets);
+    if (live[pieces - 1]) det_checked(&S, vP + h, &g_hi, &dets);
+    g_lo = deflate(v0 - h, g_lo, &R, R.nv);
+    g_hi = deflate(vP + h, g_hi, &R, R.nv);
+
+    const int M = SUB_SAMPLES;
+    double sv[SUB_SAMPLES + 3], sl[SUB_SAMPLES + 3];
+    int ss[SUB_SAMPLES + 3];
+    int count = R.nv;
+    bool carry = false;
+    double cv = 0.0, cl = 0.0;
+    int cs = 0;
+    bool flag_next = piece_flagged(&R, sg, lg, live, productive, piece_of, margin, pieces, g_lo, g_hi, 0);
+    for (int k = 0; k < pieces; ++k) {
+        bool flag = flag_next;
+        flag_next = k + 1 < pieces && piece_flagged(&R, sg, lg, live, productive, piece_of, margin, pieces, g_lo, g_hi, k + 1);
+        if (!flag) {
+            carry = false;
+            continue;
+        }
+        bool has_right = !flag_next;  // the last piece of its run
+        // _refine_interval at its only level: samples 1 .. M + 1, the one before at 0, after at M + 2
+        double lo = scan_v(margin, pieces, k), hi = scan_v(margin, pieces, k + 1);
+        double hh = (hi - lo) / M;
+        for (int j = 0; j <= M; ++j) {
+            double v = j == M ? hi : lo + j * hh;
+            int g;
+            double l;
+            if (j == 0 && sg[k] != 2) { g = sg[k]; l = lg[k]; }
+            else if (j == M && sg[k + 1] != 2) { g = sg[k + 1]; l = lg[k + 1]; }
+            else g = det_checked(&S, v, &l, &dets);
+            sv[j + 1] = v;
+            ss[j + 1] = g;
+            sl[j + 1] = l;
+        }
+        if (carry) {
+            sv[0] = cv;
+            ss[0] = cs;
+            sl[0] = cl;
+        } else {
+            sv[0] = lo - hh;
+            ss[0] = det_checked(&S, lo - hh, &sl[0], &dets);
+        }
+        if (has_right) {
+            sv[M + 2] = hi + hh;
+            ss[M + 2] = det_checked(&S, hi + hh, &sl[M + 2], &dets);
+        }
+        carry = true;
+        cv = sv[M];
+        cs = ss[M];
+        cl = sl[M];
+        int changes = 0;
+        for (int j = 1; j <= M; ++j)
+            if (ss[j] != ss[j + 1]) changes += 1;
+        if (changes > NOISY_CHANGES) continue;
+        for (int j = 1; j <= M; ++j) {
+            if (ss[j] != ss[j + 1] && ss[j] != 0 && ss[j + 1] != 0 && count < cap) {
+                bool known = false;
+                for (int i = 0; i < R.nv; ++i)
+                    if (R.scan[i] >= sv[j] && R.scan[i] <= sv[j + 1]) known = true;
+                if (!known) {
+                    double r = illinois(&S, sv[j], sv[j + 1], ss[j], sl[j], sl[j + 1], &dets);
+                    push_root(&R, &count, r);
+                }
+            }
+        }
+        int j_hi = has_right ? M + 2 : M + 1;
+        for (int j = 0; j <= j_hi; ++j) sl[j] = deflate(sv[j], sl[j], &R, count);
+        for (int j = 1; j <= (has_right ? M + 1 : M); ++j) {
+            if (count < cap && sl[j - 1] + sl[j + 1] - 2.0 * sl[j] > KINK && ss[j] == ss[j - 1] && ss[j] == ss[j + 1] &&
+                ss[j] != 0 && sl[j] < sl[j - 1] && sl[j] < sl[j + 1]) {
+                if ((j - 2 < 0 || sl[j - 2] >= sl[j - 1]) && (j + 2 > j_hi || sl[j + 2] >= sl[j + 1]))
+                    resolve_dip(&S, sv[j - 1], sv[j], sv[j + 1], ss[j], sl[j - 1], sl[j], sl[j + 1], &R, cap, &count, &dets);
+                else
+                    push_root(&R, &count, sv[j]);  // log|det| at its rounding floor: the deepest sample as it is
+            }
+        }
+    }
+    found_count[s] = count + 2 > cap ? -1 : count - R.nv;
+    dets_out[s] = dets;
 }

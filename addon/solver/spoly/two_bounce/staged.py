@@ -4,39 +4,41 @@
 algorithm (Fan et al. 2024, §4.2-4.3: the Bézout resultant of eq 28-29 scanned in v1, its
 sign changes pinned, the candidates back-substituted and polished in path space) runs in
 stages over a whole batch of tuples, so that the expensive part — the determinant of the
-Bézout matrix R(v1) (eq 29), evaluated some 10³-10⁵ times per tuple — can run on an OpenCL
-device (``opencl/two_bounce.cl``), many systems at once:
+Bézout matrix R(v1) (eq 29), evaluated some 10³-10⁵ times per tuple — runs on an OpenCL
+device (``opencl/two_bounce.cl``), many systems at once, with the scan's state kept there:
 
 A (Numba)   per tuple and orientation (forward, reversed): the side tests, then every
             bivariate system {a = 0, b = 0} (eq 6 with 10 or 13; the Heron-step √ of
             ``heron_sqrt_fit`` where it fits and the √ pieces of eq 23 below its cut, or all
             the pieces; the refraction's two normal orientations) built by ``build_system``, normalised
             and rejected early (Bernstein test) exactly as ``_solve_system`` does, and
-            packed (row i of a total-degree-d polynomial: the coefficients of u^i v^j).
-B (device)  the piecewise sign scan of ``find_v_roots``: det R(v) at the pieces' ends,
-            then every sign change pinned to ROOT_TOL by the Illinois iteration.
+            packed (row i of a total-degree-d polynomial: the coefficients of u^i v^j),
+            with the pieces the (u1, v1) pre-pass keeps live.
+B (device)  ``find_v_roots`` per system: det R(v) at the samples the live pieces need, the
+            degeneracy test, every sign change pinned to ROOT_TOL by Illinois, the root lists.
 C (Numba)   ``candidates_at`` at each scan root (u1 from a(·, v1), exact map to triangle
             2, Gauss-Newton polish in path space): the paths, and which roots were
             productive.
-D (device)  ``refine_v_roots``: the ghost samples outside the range, the sub-samples
-            (``SUB_SAMPLES``) of the pieces around productive roots and next to convex
-            kinks of the deflated log|det| (with the extra samples at the ends of each run of
-            flagged pieces) on the device, new sign changes pinned on the device; the
-            bookkeeping (kink rule, deflation, noisy pieces, one-signed dips) runs here, in
-            the same order as there, and so do the few determinants that resolve a dip
-            (``resolve_dip``: Numba on the host, 3-8 per dip).
+D (device)  ``refine_v_roots`` per system on B's samples (still on the device) and C's
+            productive flags: ghost samples, kink flags, sub-samples, new sign changes
+            pinned, one-signed dips resolved.  At most a capacity of new roots per system
+            (REFINE_CAP, within REFINE_BYTES) come back; a system with more is refined again
+            on the host with the one-kernel path's capacity.
 E (Numba)   candidates at the refined roots, the seeded polish of degenerate systems,
             the straight-line candidate, the statistics.
 
-Every stage reuses the inner functions of the package's modules; only the order in which
-candidates of different systems of one tuple are tried differs (all scan roots of a tuple
-before its refined roots), which can change which of two copies of one path is kept
-(both polished to ~1e-15) but not the set of paths.  A stage-B/D "device" written in Numba
-(:class:`NumbaDeterminants`) runs the same staging without OpenCL, for the tests.
+A device is an object with ``load``, ``scan`` (B) and ``refine`` (D):
+``opencl.backend.OpenCLResultantScan``, or :class:`NumbaResultantScan`, which runs B and D
+with the one-kernel path's own ``find_v_roots`` and ``refine_v_roots`` (the tests, and the
+host's re-run of an overflowing system).  Only the order in which candidates of different
+systems of one tuple are tried differs from the one-kernel path (all scan roots of a tuple
+before its refined roots), which can change which of two copies of one path is kept (both
+polished to ~1e-15) but not the set of paths.
 
 Stage A shares ``_solve_oriented``'s set-up (``frame``); tests/solver/test_opencl_two_bounce.py
-compares the staging on Numba with the one-kernel solver.  Limits: ``REFINE_LEVELS`` ≤ 1;
-a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel path in stage E.
+compares the staging on Numba and on OpenCL with the one-kernel solver.  Limits:
+``REFINE_LEVELS`` ≤ 1; a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel
+path in stage E.
 """
 
 
@@ -44,19 +46,21 @@ import numpy as np
 
 from ...runtime.jit import kernel, parallel_range
 from ...paths.two_vertex import pack_geometry
-from .params import (BOTH_DIRECTIONS, CHUNK, KINK, LIVE_PREPASS, LIVE_STACK, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD,
-                     N_SLOTS, N_STATS, NOISY_CHANGES, REFINE_LEVELS, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS,
-                     STAT_ROOTS, STAT_SKIPPED, SUB_SAMPLES, V_MARGIN_APPROX, V_MARGIN_EXACT)
+from .params import (BOTH_DIRECTIONS, CHUNK, LIVE_PREPASS, LIVE_STACK, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD, N_SLOTS,
+                     N_STATS, REFINE_LEVELS, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED,
+                     V_MARGIN_APPROX, V_MARGIN_EXACT)
 from ...polynomials.bivariate import bernstein_has_zero, bmax, u_degree
 from .prepass import live_pieces_band
 from .sqrt import sqrt_band
 from .frame import sqrt_pieces_to_solve, tuple_frame
 from .system import build_system
-from .resultant import deflate, det_checked, illinois, refine_flags_one, resolve_dip, v_major
+from .resultant import find_v_roots, refine_v_roots, v_major
 from .solve import candidates_at, make_scratch2, seeded, solve_two_bounce_tuple, straight_candidate
 
 SYS_CAP = 24  # systems per tuple held by stage A; a tuple with more is solved by the one-kernel path
 MAX_ROOTS = 4096  # roots per system (the capacity of the one-kernel path's root list)
+REFINE_BYTES = 32 << 20  # the refinement's dense output: new roots per system within this (32-256 a system) ...
+REFINE_CAP = 256  # ... a system with more (planted TT: ~2 % have over 64) is refined again with MAX_ROOTS
 DEGREES = {(False, False): (8, 15), (False, True): (8, 22), (True, False): (16, 31), (True, True): (16, 46)}
 
 
@@ -367,191 +371,137 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
     out_count[t] = count
 
 
-# --- stage D bookkeeping (the determinants themselves run on the device) -----------------------
+# --- stages B and D on Numba: the resultant scan device for the tests ---------------------------
 
 
-@parallel_range("vs")
-def refine_flags(vs, lgs, ghost, roots, nv, piece_of, productive, pieces, live, flags, first, last):
-    """``refine_v_roots``'s choice of pieces: lgs (S, pieces + 1) and the ghost samples
-    (S, 2: raw log|det| a piece below and above the range) are deflated by the scan roots;
-    flags[s, k] = 1 for a piece next to a convex kink or around a productive root
-    (``refine_flags_one``)."""
+@kernel
+def _scan_scratch():
+    a = np.zeros((MAXD + 1, MAXD + 1))
+    scratch = np.zeros((MAXD + 1, MAXD + 1))
+    b = np.zeros((MAXD + 1, MAXD + 1))
+    cf = np.zeros((2, MAXD + 2))
+    mat = np.zeros((MAXD + 1, MAXD + 1))
+    scan = np.zeros((9, MAX_PIECES + 1))
+    out = np.zeros((1, MAX_ROOTS))
+    st = np.zeros(N_STATS, dtype=np.int64)
+    return a, scratch, b, cf, mat, scan, out, st
+
+
+@kernel
+def _load_system(coef, sysint3, b_offset, live_mask, s, pieces, scratch, a, b, scan):
+    """System s v-major into a, b; its live pieces into scan[7] (``find_v_roots``'s live)."""
+    _unpack_v_major(coef[s], 0, sysint3[s, 0], scratch, a)
+    _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
+    for k in range(pieces):
+        scan[7, k] = live_mask[s, k]
+
+
+@parallel_range("margin")
+def numba_scan(coef, sysint3, b_offset, live_mask, margin, solve, pieces, sg, lg, piece_of, nv, roots, dets, first, last):
+    """``find_v_roots`` (the one-kernel path's own function) for every system s with solve[s]:
+    nv[s] roots in roots[s] (-1: degenerate), the samples' signs and raw log|det| in sg, lg
+    (S, pieces + 1) and each root's piece in piece_of (S, pieces), for :func:`numba_refine`."""
+    a, scratch, b, cf, mat, scan, out, st = _scan_scratch()
     for s in range(first, last):
-        h = vs[s, 1] - vs[s, 0]
-        g_lo = deflate(vs[s, 0] - h, ghost[s, 0], roots[s], nv[s])
-        g_hi = deflate(vs[s, pieces] + h, ghost[s, 1], roots[s], nv[s])
-        for k in range(pieces + 1):
-            lgs[s, k] = deflate(vs[s, k], lgs[s, k], roots[s], nv[s])
-        refine_flags_one(lgs[s], g_lo, g_hi, roots[s], nv[s], piece_of[s], productive[s], pieces, live[s], flags[s])
-
-
-@parallel_range("ss")
-def refine_brackets(job_sys, sv, ss, roots, nv, bracket, first, last):
-    """Per flagged piece f (sub-samples sv[f], their signs ss[f]): bracket[f, k] = 1 for a
-    new sign change in sub-piece k to pin (``_refine_interval``: none in a noisy piece, none
-    in a sub-piece holding a scan root)."""
-    M = ss.shape[1] - 1
-    for f in range(first, last):
-        s = job_sys[f]
-        changes = 0
-        for k in range(M):
-            bracket[f, k] = 0
-            if ss[f, k] != ss[f, k + 1]:
-                changes += 1
-        if changes > NOISY_CHANGES:
+        nv[s] = 0
+        dets[s] = 0
+        if not solve[s]:
             continue
-        for k in range(M):
-            if ss[f, k] != ss[f, k + 1] and ss[f, k] != 0 and ss[f, k + 1] != 0:
-                known = False
-                for i in range(nv[s]):
-                    if roots[s, i] >= sv[f, k] and roots[s, i] <= sv[f, k + 1]:
-                        known = True
-                if not known:
-                    bracket[f, k] = 1
+        _load_system(coef, sysint3, b_offset, live_mask, s, pieces, scratch, a, b, scan)
+        st[STAT_DETS] = 0
+        nv[s] = find_v_roots(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], -margin[s], 1.0 + margin[s], pieces,
+                             scan[7], cf, mat, scan, roots[s], st)
+        dets[s] = st[STAT_DETS]
+        for k in range(pieces + 1):
+            sg[s, k] = scan[1, k]
+            lg[s, k] = scan[2, k]
+        for k in range(pieces):
+            piece_of[s, k] = scan[4, k]
 
 
-@parallel_range("nv")
-def refine_assemble(flag_first, svx, ssx, slx, has_right, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots,
-                    coef, sysint3, b_offset, dip_dets, first, last):
-    """The refined roots of each system in ``_refine_interval``'s order (pieces ascending;
-    per piece its pinned sign changes, then its one-signed dips of the log|det| deflated by
-    every root found so far), into ref_roots[ref_first[s]:] (ref_count[s] of them).
-
-    svx, ssx, slx (F, M + 3): per flagged piece its M + 1 sub-samples at 1 .. M + 1, the
-    sample before it at 0 (the previous piece's of the run, or the extra one of a run's
-    first piece) and, for the last piece of a run (``has_right``), the extra one after it at
-    M + 2.  A dip is resolved (``resolve_dip``) with Numba's determinants on the host, the
-    one-kernel path's own function: 3-8 determinants per dip, a few per cent of the work
-    (dip_dets[s] counts them)."""
-    M = svx.shape[1] - 3
+@parallel_range("margin")
+def numba_refine(coef, sysint3, b_offset, live_mask, margin, refined, pieces, sg, lg, piece_of, nv, roots, productive, cap,
+                 ref_roots, ref_count, dets, first, last):
+    """``refine_v_roots`` (the one-kernel path's own function) for every system s with
+    refined[s], on :func:`numba_scan`'s samples: its new roots in ref_roots[s, :ref_count[s]],
+    at most cap of them; ref_count[s] = -1 where the cap may have cut them short (count within
+    2 of it: a dip pins two at once)."""
+    a, scratch, b, cf, mat, scan, out, st = _scan_scratch()
     for s in range(first, last):
-        nf = flag_first[s + 1] - flag_first[s]
-        buf = np.empty(nv[s] + (2 * M - 1) * nf)
-        cap = min(buf.shape[0], MAX_ROOTS)
-        out = buf[:cap]
-        lg = np.empty(M + 3)
-        a = np.empty((MAXD + 1, MAXD + 1))
-        scratch = np.empty((MAXD + 1, MAXD + 1))
-        b = np.empty((MAXD + 1, MAXD + 1))
-        cf = np.empty((2, MAXD + 2))
-        mat = np.empty((MAXD + 1, MAXD + 1))
-        st = np.zeros(N_STATS, dtype=np.int64)
-        loaded = False
-        for i in range(nv[s]):
-            buf[i] = roots[s, i]
-        count = nv[s]
-        for f in range(flag_first[s], flag_first[s + 1]):
-            changes = 0
-            for k in range(1, M + 1):
-                if ssx[f, k] != ssx[f, k + 1]:
-                    changes += 1
-            if changes > NOISY_CHANGES:
-                continue
-            for k in range(M):
-                if bracket[f, k] and count < cap:
-                    buf[count] = pinned[f, k]
-                    count += 1
-            k_hi = M + 2 if has_right[f] else M + 1
-            for k in range(k_hi + 1):
-                lg[k] = deflate(svx[f, k], slx[f, k], buf, count)
-            for k in range(1, (M + 1 if has_right[f] else M) + 1):
-                if count < cap and lg[k - 1] + lg[k + 1] - 2.0 * lg[k] > KINK and ssx[f, k] == ssx[f, k - 1] \
-                        and ssx[f, k] == ssx[f, k + 1] and ssx[f, k] != 0 and lg[k] < lg[k - 1] and lg[k] < lg[k + 1]:
-                    if (k - 2 < 0 or lg[k - 2] >= lg[k - 1]) and (k + 2 > k_hi or lg[k + 2] >= lg[k + 1]):
-                        if not loaded:
-                            _unpack_v_major(coef[s], 0, sysint3[s, 0], scratch, a)
-                            _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
-                            loaded = True
-                        count = resolve_dip(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], svx[f, k - 1], svx[f, k],
-                                             svx[f, k + 1], ssx[f, k], lg[k - 1], lg[k], lg[k + 1], cf, mat, out, count, st)
-                    else:
-                        buf[count] = svx[f, k]  # noise dip: its deepest sample is a candidate
-                        count += 1
-        dip_dets[s] = st[STAT_DETS]
-        ref_count[s] = count - nv[s]
-        for i in range(nv[s], count):
-            ref_roots[ref_first[s] + i - nv[s]] = buf[i]
+        ref_count[s] = 0
+        dets[s] = 0
+        if not refined[s]:
+            continue
+        _load_system(coef, sysint3, b_offset, live_mask, s, pieces, scratch, a, b, scan)
+        lo = -margin[s]
+        h = (1.0 + margin[s] - lo) / pieces  # find_v_roots's samples, the same doubles
+        for k in range(pieces + 1):
+            scan[0, k] = lo + k * h
+            scan[1, k] = sg[s, k]
+            scan[2, k] = lg[s, k]
+        m = nv[s]
+        for k in range(pieces):
+            scan[4, k] = piece_of[s, k]
+            scan[5, k] = productive[s, k]
+        for i in range(m):
+            out[0, i] = roots[s, i]
+        st[STAT_DETS] = 0
+        end = min(m + cap, MAX_ROOTS)  # MAX_ROOTS: the one-kernel path's own capacity
+        count = refine_v_roots(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], pieces, scan[7], cf, mat, scan,
+                               out[0, :end], m, scan[5], st)
+        dets[s] = st[STAT_DETS]
+        if end < MAX_ROOTS and count + 2 > end:
+            ref_count[s] = -1
+            continue
+        ref_count[s] = count - m
+        for i in range(m, count):
+            ref_roots[s, i - m] = out[0, i]
 
 
-# --- a Numba "device" for stages B and D (reference and tests) ---------------------------------
-
-
-@parallel_range("job_sys", 32)
-def numba_det_batch(coef, sysint3, b_offset, job_sys, job_v, out_sign, out_log, out_dets, first, last):
-    """det jobs with ``det_checked`` (the one-kernel path's own function)."""
-    n_jobs = job_sys.shape[0]
-    chunk = 32
-    for c in range(first, last):
-        a = np.zeros((MAXD + 1, MAXD + 1))
-        scratch = np.empty((MAXD + 1, MAXD + 1))
-        b = np.zeros((MAXD + 1, MAXD + 1))
-        cf = np.zeros((2, MAXD + 2))
-        mat = np.zeros((MAXD + 1, MAXD + 1))
-        st = np.zeros(N_STATS, dtype=np.int64)
-        loaded = -1
-        for t in range(c * chunk, min(n_jobs, (c + 1) * chunk)):
-            s = job_sys[t]
-            if s != loaded:
-                _unpack_v_major(coef[s], 0, sysint3[s, 0], scratch, a)
-                _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
-                loaded = s
-            before = st[STAT_DETS]
-            sg, lg = det_checked(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_v[t], cf, mat, st)
-            out_sign[t] = sg
-            out_log[t] = lg
-            out_dets[t] = st[STAT_DETS] - before
-
-
-@parallel_range("job_sys", 8)
-def numba_illinois_batch(coef, sysint3, b_offset, job_sys, job_f, job_s, out_root, out_dets, first, last):
-    """Illinois jobs (lo, hi, log lo, log hi; sign lo, sign hi) with ``illinois``."""
-    n_jobs = job_sys.shape[0]
-    chunk = 8
-    for c in range(first, last):
-        a = np.zeros((MAXD + 1, MAXD + 1))
-        scratch = np.empty((MAXD + 1, MAXD + 1))
-        b = np.zeros((MAXD + 1, MAXD + 1))
-        cf = np.zeros((2, MAXD + 2))
-        mat = np.zeros((MAXD + 1, MAXD + 1))
-        st = np.zeros(N_STATS, dtype=np.int64)
-        loaded = -1
-        for t in range(c * chunk, min(n_jobs, (c + 1) * chunk)):
-            s = job_sys[t]
-            if s != loaded:
-                _unpack_v_major(coef[s], 0, sysint3[s, 0], scratch, a)
-                _unpack_v_major(coef[s], b_offset, sysint3[s, 1], scratch, b)
-                loaded = s
-            before = st[STAT_DETS]
-            out_root[t] = illinois(a, sysint3[s, 0], b, sysint3[s, 1], sysint3[s, 2], job_f[t, 0], job_f[t, 1],
-                                    job_s[t, 0], job_f[t, 2], job_s[t, 1], job_f[t, 3], cf, mat, st)
-            out_dets[t] = st[STAT_DETS] - before
-
-
-class NumbaDeterminants:
-    """Stages B and D on Numba (the same functions as the one-kernel path): the staged
-    pipeline without OpenCL, to test the staging itself."""
+class NumbaResultantScan:
+    """Stages B and D on Numba, system by system with the one-kernel path's own
+    ``find_v_roots`` and ``refine_v_roots``: the staged pipeline without OpenCL (the tests),
+    and the host's re-run of a system whose refined roots overflow a device's capacity.
+    The interface of ``opencl.backend.OpenCLResultantScan``: load, scan, refine."""
 
     name = "numba"
 
-    def load(self, coef, sysint3, b_offset):
-        self.coef, self.sysint3, self.b_offset = coef, sysint3, b_offset
+    def load(self, coef, sysint3, b_offset, live_mask, margin, pieces):
+        """The packed systems coef (S, stride), sysint3 (S, 3) int32 = (da, db, n), their live
+        scan pieces (S, pieces) int8 and v margins (S,): the scan runs over [-margin, 1 + margin]."""
+        self.args = (coef, sysint3, b_offset, live_mask, margin)
+        self.pieces = pieces
 
-    def dets(self, job_sys, job_v):
-        n = job_sys.shape[0]
-        sign = np.zeros(n, dtype=np.int32)
-        log = np.zeros(n)
-        dets = np.zeros(n, dtype=np.int32)
-        if n:
-            numba_det_batch(self.coef, self.sysint3, self.b_offset, job_sys, job_v, sign, log, dets)
-        return sign, log, dets
+    def scan(self, solve):
+        """``find_v_roots`` of the systems with solve (S,) bool: (nv (S,), -1 for a degenerate
+        system; roots (S, pieces) with nv[s] of them in row s; determinants per system)."""
+        S = solve.shape[0]
+        p = max(self.pieces, 1)
+        self.sg = np.zeros((S, self.pieces + 1))
+        self.lg = np.zeros((S, self.pieces + 1))
+        self.piece_of = np.zeros((S, p))
+        self.nv = np.zeros(S, dtype=np.int64)
+        self.roots = np.zeros((S, p))
+        dets = np.zeros(S, dtype=np.int64)
+        if S:
+            numba_scan(*self.args, solve.astype(np.bool_), self.pieces, self.sg, self.lg, self.piece_of, self.nv,
+                       self.roots, dets)
+        return self.nv.copy(), self.roots, dets
 
-    def illinois(self, job_sys, job_f, job_s):
-        n = job_sys.shape[0]
-        root = np.zeros(n)
-        dets = np.zeros(n, dtype=np.int32)
-        if n:
-            numba_illinois_batch(self.coef, self.sysint3, self.b_offset, job_sys, job_f, job_s, root, dets)
-        return root, dets
+    def refine(self, productive, refined, cap=None):
+        """``refine_v_roots`` of the systems with refined (S,) bool, the productive scan roots
+        (S, pieces) from stage C: (ref_count (S,), -1 where cut short by cap; ref_roots (S, cap);
+        determinants per system)."""
+        S = refined.shape[0]
+        cap = REFINE_CAP if cap is None else cap
+        ref_roots = np.zeros((S, cap))
+        ref_count = np.zeros(S, dtype=np.int64)
+        dets = np.zeros(S, dtype=np.int64)
+        if S:
+            numba_refine(*self.args, refined.astype(np.bool_), self.pieces, self.sg, self.lg, self.piece_of,
+                         np.maximum(self.nv, 0), self.roots, np.ascontiguousarray(productive, dtype=np.float64),
+                         cap, ref_roots, ref_count, dets)
+        return ref_count, ref_roots, dets
 
 
 # --- the driver ---------------------------------------------------------------------------------
@@ -559,12 +509,12 @@ class NumbaDeterminants:
 BATCH_BYTES = 64 << 20  # stage A's per-batch system store
 
 
-def solve_staged(det_device, refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats,
+def solve_staged(scan_device, refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats,
                  batch=None, sys_cap=SYS_CAP):
     """All paths of a batch of two-bounce tuples, stages A-E (module docstring); fills
     out_uv (n, MAX_PATHS_TWO_BOUNCE, 4), out_count (n,), stats (n, N_STATS) like
-    ``solve_two_bounce_batch``.  ``det_device``: an object with load / dets / illinois
-    (:class:`NumbaDeterminants`, ``opencl.backend.OpenCLDeterminants``).  ``batch``: tuples
+    ``solve_two_bounce_batch``.  ``scan_device``: an object with load / scan / refine
+    (:class:`NumbaResultantScan`, ``opencl.backend.OpenCLResultantScan``).  ``batch``: tuples
     per pass (default: stage A's store within BATCH_BYTES); ``sys_cap``: systems per tuple
     held by stage A (a tuple with more is solved by the one-kernel path)."""
     if REFINE_LEVELS not in (0, 1):
@@ -575,7 +525,7 @@ def solve_staged(det_device, refract1, refract2, x_start, x_end, P, N, eta, piec
         batch = max(16, BATCH_BYTES // (sys_cap * stride * 8))
     for t0 in range(0, n, batch):
         t1 = min(n, t0 + batch)
-        _solve_batch(det_device, refract1, refract2, x_start[t0:t1], x_end[t0:t1], P[t0:t1], N[t0:t1], eta[t0:t1], pieces,
+        _solve_batch(scan_device, refract1, refract2, x_start[t0:t1], x_end[t0:t1], P[t0:t1], N[t0:t1], eta[t0:t1], pieces,
                      stride, b_offset, sys_cap, out_uv[t0:t1], out_count[t0:t1], stats[t0:t1])
 
 
@@ -601,51 +551,13 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     sysint = np.ascontiguousarray(sysint[owner, slot])
     live_mask = np.ascontiguousarray(live_mask[owner, slot])
     sysint3 = np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32)
-    dets_per_sys = np.zeros(S, dtype=np.int64)
-    dev.load(coef, sysint3, b_offset)
-
-    # stage B: the sign scan (find_v_roots) ...
+    # stage B: the sign scan and its roots (find_v_roots), on the device
     r1_oriented = np.where((sysint[:, 0] & 1) == 1, refract2, refract1) if S else np.zeros(0, dtype=bool)
     margin = np.where(r1_oriented, V_MARGIN_APPROX, V_MARGIN_EXACT)
-    lo = -margin
-    hi = 1.0 + margin
-    h = (hi - lo) / pieces
-    vs = lo[:, None] + np.arange(pieces + 1)[None, :] * h[:, None]
-    solve = np.flatnonzero(sysint[:, 1] == 1) if S else np.zeros(0, dtype=np.int64)
-    # the samples find_v_roots takes: those of the live pieces and the neighbours their kink
-    # test needs (sample k for the pieces k - 2 .. k + 1); the others hold sign 2
-    padded = np.pad(live_mask != 0, ((0, 0), (2, 2)))
-    need = padded[:, 0:pieces + 1] | padded[:, 1:pieces + 2] | padded[:, 2:pieces + 3] | padded[:, 3:pieces + 4]
-    need[sysint[:, 1] != 1] = False
-    sg = np.full((S, pieces + 1), 2, dtype=np.int32)
-    lg = np.zeros((S, pieces + 1))
-    ns, nk = np.nonzero(need)
-    sign, log, dets = dev.dets(ns.astype(np.int32), np.ascontiguousarray(vs[ns, nk]))
-    sg[ns, nk] = sign
-    lg[ns, nk] = log
-    np.add.at(dets_per_sys, ns, dets)
-    degenerate = np.zeros(S, dtype=bool)
-    degenerate[solve] = 2 * np.count_nonzero((sg[solve] == 0) & need[solve], axis=1) > np.count_nonzero(need[solve], axis=1)
-    sysint[degenerate, 1] = -1
-    live = sysint[:, 1] == 1
-    in_live = (live_mask != 0) & live[:, None]
-    change = (sg[:, :-1] != sg[:, 1:]) & (sg[:, :-1] != 0) & (sg[:, 1:] != 0) & in_live
-    zero = (sg[:, :-1] == 0) & in_live
-    picked = change | zero
-    nv = np.count_nonzero(picked, axis=1).astype(np.int64)
-    rank = np.cumsum(picked, axis=1) - 1
-    roots = np.zeros((S, max(pieces, 1)))
-    piece_of = np.zeros((S, max(pieces, 1)), dtype=np.int64)
-    ps, pk = np.nonzero(picked)
-    piece_of[ps, rank[ps, pk]] = pk
-    zs, zk = np.nonzero(zero)
-    roots[zs, rank[zs, zk]] = vs[zs, zk]
-    # ... and its sign changes pinned (Illinois)
-    cs, ck = np.nonzero(change)
-    root, dets = dev.illinois(cs.astype(np.int32), np.ascontiguousarray(np.column_stack([vs[cs, ck], vs[cs, ck + 1], lg[cs, ck], lg[cs, ck + 1]])),
-                              np.ascontiguousarray(np.column_stack([sg[cs, ck], sg[cs, ck + 1]]), dtype=np.int32))
-    roots[cs, rank[cs, ck]] = root
-    np.add.at(dets_per_sys, cs, dets)
+    dev.load(coef, sysint3, b_offset, live_mask, margin, pieces)
+    nv, roots, dets_per_sys = dev.scan(sysint[:, 1] == 1)
+    sysint[nv < 0, 1] = -1  # degenerate: the seeded polish in stage E
+    nv = np.maximum(nv, 0).astype(np.int64)
 
     # stage C: candidates at the scan roots
     productive = np.zeros((S, max(pieces, 1)))
@@ -653,93 +565,33 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     stage_c(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state, roots, nv,
             productive, out_uv, meta, out_count, stats)
 
-    # stage D: refinement (refine_v_roots / _refine_interval at REFINE_LEVELS = 1)
-    M = SUB_SAMPLES
-    flags = np.zeros((S, max(pieces, 1)), dtype=np.int64)
-    lg_raw = lg.copy()  # the scan's log|det| before refine_flags deflates it: a refined piece's ends
+    # stage D: the refinement (refine_v_roots), on the device; a system whose new roots
+    # overflow the device's capacity is refined again on the host
+    refined = (sysint[:, 1] == 1) & ((sysint[:, 0] & 2) == 0)  # the TIR fallback's system is not refined
     if REFINE_LEVELS and S:
-        # the ghost samples a piece outside either end of the range (where that end's piece is live)
-        ghost = np.zeros((S, 2))
-        refined = live & ((sysint[:, 0] & 2) == 0)  # the TIR fallback's system is not refined
-        # both ends' samples in one batch (one device round trip)
-        lo_sys = np.flatnonzero(refined & (live_mask[:, 0] != 0))
-        hi_sys = np.flatnonzero(refined & (live_mask[:, pieces - 1] != 0))
-        ghost_v = np.concatenate([vs[lo_sys, 0] - (vs[lo_sys, 1] - vs[lo_sys, 0]),
-                                  vs[hi_sys, pieces] + (vs[hi_sys, 1] - vs[hi_sys, 0])])
-        ghost_sys = np.concatenate([lo_sys, hi_sys])
-        sign, log, dets = dev.dets(ghost_sys.astype(np.int32), np.ascontiguousarray(ghost_v))
-        ghost[lo_sys, 0] = log[:lo_sys.size]
-        ghost[hi_sys, 1] = log[lo_sys.size:]
-        np.add.at(dets_per_sys, ghost_sys, dets)
-        refine_flags(vs, lg, ghost, roots, nv, piece_of, productive, pieces, live_mask, flags)
-        flags[~refined] = 0
-    fs, fk = np.nonzero(flags)
-    F = fs.shape[0]
-    flag_first = np.concatenate([[0], np.cumsum(np.count_nonzero(flags, axis=1))]).astype(np.int64)
-    # runs of consecutive flagged pieces: the previous piece of a run gives the sample before a
-    # piece; a run's first piece takes an extra one below it, its last one an extra one above
-    prev_flag = (fk > 0) & (flags[fs, np.maximum(fk - 1, 0)] != 0)
-    next_flag = (fk + 1 < pieces) & (flags[fs, np.minimum(fk + 1, max(pieces - 1, 0))] != 0)
-    a_ = vs[fs, fk]
-    b_ = vs[fs, fk + 1]
-    hsub = (b_ - a_) / M
-    sv = a_[:, None] + np.arange(M + 1)[None, :] * hsub[:, None]
-    sv[:, M] = b_
-    first = np.flatnonzero(~prev_flag)
-    last = np.flatnonzero(~next_flag)
-    # the sub-samples inside each piece; its two ends are scan samples, taken as they are
-    # (``_refine_interval``: the same v, so the same values)
-    job_sys = np.concatenate([np.repeat(fs, M - 1), fs[first], fs[last]]).astype(np.int32)
-    job_v = np.concatenate([sv[:, 1:M].ravel(), a_[first] - hsub[first], b_[last] + hsub[last]])
-    sign, log, dets = dev.dets(job_sys, np.ascontiguousarray(job_v))
-    np.add.at(dets_per_sys, job_sys, dets)
-    ss = np.zeros((F, M + 1), dtype=np.int64)
-    sl = np.zeros((F, M + 1))
-    ss[:, 1:M] = sign[:F * (M - 1)].reshape(-1, M - 1)
-    sl[:, 1:M] = log[:F * (M - 1)].reshape(-1, M - 1)
-    ss[:, 0] = sg[fs, fk]
-    sl[:, 0] = lg_raw[fs, fk]
-    ss[:, M] = sg[fs, fk + 1]
-    sl[:, M] = lg_raw[fs, fk + 1]
-    svx = np.zeros((F, M + 3))
-    ssx = np.zeros((F, M + 3), dtype=np.int64)
-    slx = np.zeros((F, M + 3))
-    svx[:, 1:M + 2] = sv
-    ssx[:, 1:M + 2] = ss
-    slx[:, 1:M + 2] = sl
-    inner = np.flatnonzero(prev_flag)
-    svx[inner, 0] = sv[inner - 1, M - 1]
-    ssx[inner, 0] = ss[inner - 1, M - 1]
-    slx[inner, 0] = sl[inner - 1, M - 1]
-    o = F * (M - 1)
-    svx[first, 0] = job_v[o:o + first.size]
-    ssx[first, 0] = sign[o:o + first.size]
-    slx[first, 0] = log[o:o + first.size]
-    o += first.size
-    svx[last, M + 2] = job_v[o:o + last.size]
-    ssx[last, M + 2] = sign[o:o + last.size]
-    slx[last, M + 2] = log[o:o + last.size]
-    bracket = np.zeros((F, M), dtype=np.int64)
-    if F:
-        refine_brackets(fs.astype(np.int64), sv, ss, roots, nv, bracket)
-    bf, bk = np.nonzero(bracket)
-    pinned = np.zeros((F, M))
-    root, dets = dev.illinois(fs[bf].astype(np.int32), np.ascontiguousarray(np.column_stack([sv[bf, bk], sv[bf, bk + 1], sl[bf, bk], sl[bf, bk + 1]])),
-                              np.ascontiguousarray(np.column_stack([ss[bf, bk], ss[bf, bk + 1]]), dtype=np.int32))
-    pinned[bf, bk] = root
-    np.add.at(dets_per_sys, fs[bf], dets)
-    ref_first = (flag_first * (2 * M - 1)).astype(np.int64)
-    ref_roots = np.zeros(max(int(ref_first[-1]), 1))
-    ref_count = np.zeros(S, dtype=np.int64)
-    dip_dets = np.zeros(S, dtype=np.int64)
-    if S:
-        refine_assemble(flag_first, svx, ssx, slx, ~next_flag, bracket, pinned, roots, nv, ref_first, ref_count, ref_roots,
-                        coef, sysint3, b_offset, dip_dets)
-        dets_per_sys += dip_dets
+        cap = min(REFINE_CAP, max(32, REFINE_BYTES // (8 * S)))
+        ref_count, ref_dense, dets = dev.refine(productive, refined, cap)
+        over = np.flatnonzero(ref_count < 0)
+        if over.size:
+            host = NumbaResultantScan()
+            host.load(coef[over], sysint3[over], b_offset, live_mask[over], margin[over], pieces)
+            host.scan(np.ones(over.size, dtype=bool))  # the samples refine_v_roots starts from
+            ref_count_h, ref_h, dets[over] = host.refine(productive[over], np.ones(over.size, dtype=bool), cap=MAX_ROOTS)
+        dets_per_sys += dets
+        ref_first = np.arange(S, dtype=np.int64) * cap
+        ref_roots = ref_dense.ravel()
+        if over.size:
+            ref_count[over] = ref_count_h
+            ref_first[over] = ref_roots.size + np.arange(over.size) * ref_h.shape[1]
+            ref_roots = np.concatenate([ref_roots, ref_h.ravel()])
+    else:
+        ref_count = np.zeros(S, dtype=np.int64)
+        ref_first = np.zeros(S, dtype=np.int64)
+        ref_roots = np.zeros(1)
 
     # stage E: candidates at the refined roots, seeded polish, straight line, statistics
     stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
             ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats)
     per_tuple = np.zeros(nb, dtype=np.int64)
-    np.add.at(per_tuple, owner, dets_per_sys)
+    np.add.at(per_tuple, owner, dets_per_sys.astype(np.int64))
     stats[:, STAT_DETS] += np.where(state == 1, per_tuple, 0)

@@ -8,8 +8,8 @@ One bounce (R, T; random and planted workloads of bench/workloads.py, the tuples
 bench/solver.py): host checks and packing, host→device writes, the accumulator fill, the
 kernel, device→host read-back (OpenCL profiling events), the host sort into canonical order,
 and the rest of the wall time.  Two bounces (RR, RT, TR, TT): the Numba stages of
-``two_bounce.staged`` (A, C, E), the numpy glue between them, and inside the device calls
-(the resultant scan and its refinement) the writes, each kernel and the read-back, with the
+``two_bounce.staged`` (A; the one-kernel path for the tuples left to the host), the numpy glue,
+and inside the device call (stages B-E) the writes, each kernel and the read-back, with the
 number of launches and of host waits.  Every row gives the OpenCL wall time (best of
 --repeats, profiling off), the Numba wall time on the same tuples (all threads) and their
 ratio, and whether the paths are the same.
@@ -102,10 +102,9 @@ def profiled_run(index, solve, chain):
         timer.wrap(api, "canonical_order", "sort")
     else:
         timer.wrap(api, "compact_paths", "compact")
-        for name, label in (("stage_a", "A"), ("stage_c", "C"), ("stage_e", "E"), ("_solve_batch", "batch")):
+        for name, label in (("stage_a", "A"), ("solve_on_host", "host"), ("_solve_batch", "batch")):
             timer.wrap(two_bounce_staged, name, label)
-        for name in ("load", "scan", "refine"):
-            timer.wrap(opencl_backend.OpenCLResultantScan, name, "device calls")
+        timer.wrap(opencl_backend.OpenCLSystemSolver, "solve_systems", "device calls")
     opencl_backend.set_profiling(index, prof)
     try:
         t0 = time.perf_counter()
@@ -196,9 +195,10 @@ ONE_COLUMNS = (("validate", "check inputs"), ("pack", "pack"), ("host->device", 
                ("sort", "sort paths"))
 TWO_DEVICE = (("kernel scan_samples", "scan samples kernel"), ("kernel scan_degenerate", "degenerate kernel"),
               ("kernel scan_pins", "Illinois pins kernel"), ("kernel scan_roots", "root lists kernel"),
-              ("kernel refine_systems", "refine kernel"))
+              ("kernel candidates_scan", "candidates kernel (C)"), ("kernel refine_systems", "refine kernel"),
+              ("kernel candidates_refined", "candidates kernel (E)"))
 TWO_COLUMNS = ((("validate", "check inputs"), ("A", "stage A (Numba)"), ("host->device", "host→device"))
-               + TWO_DEVICE + (("device->host", "device→host"), ("C", "stage C (Numba)"), ("E", "stage E (Numba)"),
+               + TWO_DEVICE + (("device->host", "device→host"), ("host", "one-kernel tuples (Numba)"),
                                ("compact", "compact")))
 
 
@@ -219,7 +219,7 @@ def one_bounce_line(r):
 
 def two_bounce_line(r):
     st = r["stages"]
-    glue = st.get("batch", 0.0) - sum(st.get(k, 0.0) for k in ("A", "C", "E", "device calls"))
+    glue = st.get("batch", 0.0) - sum(st.get(k, 0.0) for k in ("A", "host", "device calls"))
     device = ("host->device", "device->host") + tuple(k for k, _ in TWO_DEVICE)
     calls_other = st.get("device calls", 0.0) - sum(st.get(k, 0.0) for k in device)
     n = r["tuples"]
@@ -287,8 +287,8 @@ def main():
         lines += [one_bounce_line(r) for r in one]
         lines.append("")
     if two:
-        lines.append("Two bounces (staged: systems, candidates and polish on Numba; the resultant scan and its "
-                     "refinement on the device, two waits a batch; `two_bounce/staged.py`): times in ms for the batch. \"device calls, rest\" = host time inside "
+        lines.append("Two bounces (staged: systems built on Numba; the resultant scan, candidates, polish and "
+                     "refinement on the device, one wait a batch; `two_bounce/staged.py`): times in ms for the batch. \"device calls, rest\" = host time inside "
                      "the device calls beyond their commands' device time (Python, waits); \"numpy glue\" = the "
                      "staging's array work between stages.")
         lines.append("")

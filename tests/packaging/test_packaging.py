@@ -91,7 +91,8 @@ def test_zip_contents(zips):
                          "addon/ui/__init__.py", "addon/ui/operators.py", "addon/ui/panels.py",
                          "addon/ui/properties.py", "addon/ui/state.py", "addon/solver/runtime/jit.py",
                          "addon/solver/opencl/one_bounce.cl", "addon/solver/opencl/two_bounce.cl",
-                         "addon/solver/opencl/scan.cl", "addon/solver/opencl/trace.cl"):
+                         "addon/solver/opencl/scan.cl", "addon/solver/opencl/trace.cl", "addon/solver/opencl/roots.cl",
+                         "addon/solver/opencl/two_vertex.cl"):
             assert required in names, (platform, required)
         # Nothing from development.
         for name in names:

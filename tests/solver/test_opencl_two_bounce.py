@@ -1,10 +1,10 @@
 """The two-bounce OpenCL path (RR, RT, TR, TT) returns the Numba back end's paths.
 
 device="opencl" runs the staged pipeline of addon/solver/spoly/two_bounce/staged.py: systems built
-and paths polished on Numba, the resultant scan over the Bézout determinants (Fan et al. 2024,
-eq 29: samples, Illinois pins, root lists) and its refinement (§4.2) on the device
-(addon/solver/opencl/two_bounce.cl).  PoCL on the CPU in CI; tests that need a device skip
-without one.  Tuples: bench/workloads.py (planted_two_bounce, random_two_bounce) and
+on Numba (stage A); the resultant scan over the Bézout determinants (Fan et al. 2024, eq 29:
+samples, Illinois pins, root lists), its refinement (§4.2) and the candidates' back-substitution
+and path-space polish (§4.3) on the device (addon/solver/opencl/two_bounce.cl).  PoCL on the CPU
+in CI; tests that need a device skip without one.  Tuples: bench/workloads.py (planted_two_bounce, random_two_bounce) and
 tests/reference/two_bounce_data.py (the sets of test_solver_two_bounce.py, fewer of them).
 """
 
@@ -108,7 +108,7 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain, monkeypatch):
     rep = expected.report
     for kwargs, cap in (({}, staged.REFINE_CAP), ({"batch": 5, "sys_cap": 1}, staged.REFINE_CAP), ({}, 2)):
         monkeypatch.setattr(staged, "REFINE_CAP", cap)
-        ti, uv, totals = _solve_staged(staged.NumbaResultantScan(), chain, x0, x3, P, N, eta, **kwargs)
+        ti, uv, totals = _solve_staged(staged.NumbaSystemSolver(), chain, x0, x3, P, N, eta, **kwargs)
         np.testing.assert_array_equal(ti, expected.tuple_index)
         np.testing.assert_allclose(uv, expected.uv, rtol=0, atol=1e-9)
         assert (totals[0], totals[2], totals[3], totals[4]) == (rep.roots, rep.paths, rep.skipped, rep.determinants), \
@@ -118,23 +118,26 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain, monkeypatch):
 @pytest.mark.opencl
 @pytest.mark.slow  # builds the two-bounce OpenCL kernels
 def test_opencl_refinement_overflow_is_refined_on_the_host(monkeypatch):
-    """A system whose refined roots exceed the device's capacity (here 2 a system) comes back
-    flagged and is refined again on the host: the paths stay the one-kernel solver's."""
+    """A tuple with a system whose refined roots exceed the device's capacity (here 2 a
+    system) is left to the host's one-kernel path: the paths and counts stay the one-kernel
+    solver's."""
     index = opencl_device_or_skip()
-    from addon.solver.opencl.backend import OpenCLResultantScan
+    from addon.solver.opencl.backend import OpenCLSystemSolver
     from addon.solver.spoly.two_bounce import staged
 
     x0, x3, P, N, eta = _tuples("RT", 8)
     expected = SpecularPolynomialSolver().solve("RT", x0, x3, P, N, eta)
-    calls = []
-    refine = staged.NumbaResultantScan.refine
-    monkeypatch.setattr(staged.NumbaResultantScan, "refine", lambda self, *a, **k: calls.append(1) or refine(self, *a, **k))
+    on_host = []
+    solve_on_host = staged.solve_on_host
+    monkeypatch.setattr(staged, "solve_on_host", lambda *a: on_host.extend(a[8]) or solve_on_host(*a))
     monkeypatch.setattr(staged, "REFINE_CAP", 2)
-    ti, uv, totals = _solve_staged(OpenCLResultantScan(index), "RT", x0, x3, P, N, eta)
-    assert calls, "no system overflowed a capacity of 2"
+    ti, uv, totals = _solve_staged(OpenCLSystemSolver(index), "RT", x0, x3, P, N, eta)
+    assert 0 < len(on_host) < x0.shape[0], "a capacity of 2 should overflow some tuples' refinement, not all"
     np.testing.assert_array_equal(ti, expected.tuple_index)
     np.testing.assert_allclose(uv, expected.uv, rtol=0, atol=1e-9)
-    assert totals[2] == expected.report.paths
+    rep = expected.report
+    assert (totals[2], totals[3]) == (rep.paths, rep.skipped)
+    assert abs(int(totals[4]) - rep.determinants) <= 0.02 * rep.determinants + 5
 
 
 @pytest.mark.opencl
@@ -142,7 +145,7 @@ def test_opencl_refinement_overflow_is_refined_on_the_host(monkeypatch):
 def test_opencl_determinant_equals_det_bezout():
     """sign and log|det R(v1)| (eq 29) of real TT systems: OpenCL against Numba's det_bezout."""
     index = opencl_device_or_skip()
-    from addon.solver.opencl.backend import OpenCLResultantScan
+    from addon.solver.opencl.backend import OpenCLSystemSolver
     from addon.solver.spoly.two_bounce.params import MAXD, N_STATS
     from addon.solver.spoly.two_bounce.resultant import det_bezout
     from addon.solver.spoly.two_bounce.staged import SYS_CAP, _unpack_v_major, layout, stage_a
@@ -160,7 +163,7 @@ def test_opencl_determinant_equals_det_bezout():
     assert t.size >= 20
     coef, sysint = np.ascontiguousarray(coef[t, k]), sysint[t, k]
     assert sysint[:, 6].max() > 30  # TT: Bézout matrices up to 46 x 46
-    dev = OpenCLResultantScan(index)
+    dev = OpenCLSystemSolver(index)
     dev.load(coef, np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32), b_offset, np.ones((t.size, 100), np.int8),
              np.full(t.size, 0.02), 100)
     rng = np.random.default_rng(7)

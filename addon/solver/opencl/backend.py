@@ -2,11 +2,11 @@
 
 One bounce: the kernel (``opencl/one_bounce.cl``) is the Numba pipeline of ``one_bounce.py``
 written in OpenCL C, step for step, so both return the same paths.  Two bounces: the
-pipeline of ``spoly/two_bounce`` runs in stages over a batch (``two_bounce/staged.py``); the
-resultant scan over the Bézout determinants (Fan et al. 2024, eq 29: samples, degeneracy,
-Illinois pins, root lists) and its refinement run on the device (``opencl/two_bounce.cl``),
-the scan's state kept there between them; the systems' construction and the path-space
-polish run on Numba.
+pipeline of ``spoly/two_bounce`` runs in stages over a batch (``two_bounce/staged.py``): the
+systems are built on Numba; the resultant scan over the Bézout determinants (Fan et al. 2024,
+eq 29: samples, degeneracy, Illinois pins, root lists), the candidates' back-substitution and
+path-space polish, the refinement and the candidates at the refined roots run on the device
+(``opencl/two_bounce.cl``, with ``roots.cl`` and ``two_vertex.cl``), the host waiting once.
 
 Host side: each device keeps its context, queue, programs and device buffers (grow-only, by
 role) between calls; inputs are written without waiting.  One-bounce tuples come as rows
@@ -15,7 +15,7 @@ once (:func:`one_bounce_table`, :func:`solve_one_bounce_pairs`).  Its output is 
 the device: on CPUs one kernel appends path records by an atomic counter (the host sorts
 them); on GPUs a filter stage, prefix sums (``scan.cl``), a solve over the surviving tuples
 only (full warps) and a gather write them in canonical order.  A two-bounce batch waits
-twice (scan roots, refined roots).  Work-groups are small on CPUs and several warps on GPUs (:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
+once, for its paths.  Work-groups are small on CPUs and several warps on GPUs (:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
 records the device time of every command and the host steps (``bench/opencl_profile.py``).
 
 Double precision is required: a
@@ -57,7 +57,8 @@ PATH_RECORDS_MIN = 1024
 N_SLOTS = 1024
 _cache = {}  # device index -> _Device
 _cache2 = {}  # device index -> its two-bounce kernels ({name: kernel}, local size)
-TWO_BOUNCE_KERNELS = ("det_batch", "scan_samples", "scan_degenerate", "scan_pins", "scan_roots", "refine_systems")
+TWO_BOUNCE_KERNELS = ("det_batch", "scan_samples", "scan_degenerate", "scan_pins", "scan_roots", "refine_systems",
+                      "candidates_scan", "candidates_refined")
 
 
 class OpenCLUnavailable(RuntimeError):
@@ -156,6 +157,7 @@ class _Device:
         """The program of path, built with ``-D name=value`` for each (name, value) of defines."""
         with open(path) as f:
             source = f.read()
+        source = _with_includes(source, os.path.dirname(path))
         if "// @NODE_TABLES@" in source:
             lines = source.split("\n")
             at = next(i for i, line in enumerate(lines) if line.startswith("// @NODE_TABLES@"))
@@ -238,6 +240,8 @@ class _Device:
                     self.profiler.syncs += 1
 
     def launch(self, kernel, stage, n, local, *args):
+        if n <= 0:
+            return  # nothing to run (an empty range is no valid NDRange)
         padded = (n + local - 1) // local * local
         evt = kernel(self.queue, (padded,), (local,), *args)
         if self.profiler is not None:
@@ -247,6 +251,23 @@ class _Device:
     def host(self, stage, seconds):
         if self.profiler is not None:
             self.profiler.host_time(stage, seconds)
+
+
+def _with_includes(source, folder):
+    """source with each line ``// @INCLUDE name@ ...`` replaced by the file name of folder (the
+    OpenCL sources shared between programs: roots.cl, two_vertex.cl), once each."""
+    out = []
+    done = set()
+    for line in source.split("\n"):
+        if line.startswith("// @INCLUDE "):
+            name = line[len("// @INCLUDE "):].split("@", 1)[0]
+            if name not in done:
+                with open(os.path.join(folder, name)) as f:
+                    out.append(f.read())
+                done.add(name)
+            continue
+        out.append(line)
+    return "\n".join(out)
 
 
 def _node_tables():
@@ -547,13 +568,18 @@ def _read_paths(d, m, tuple_buf, uv_buf):
 def _two_bounce_defines():
     """two_bounce/params.py's constants that two_bounce.cl uses, as build options (exact:
     doubles as hexadecimal literals)."""
+    from ..polynomials.roots import MAX_DEGREE
     from ..spoly.two_bounce import params
 
     out = []
-    for name in ("ROOT_TOL", "KINK", "DIP_FLAT"):
+    for name in ("ROOT_TOL", "KINK", "DIP_FLAT", "PRODUCTIVE_RADIUS", "B_RELATIVE", "ACCEPT_RESIDUAL", "SAME_PATH",
+                 "NEAR_PATH", "V_MARGIN_APPROX", "V_MARGIN_EXACT"):
         out.append((name, float(getattr(params, name)).hex()))
-    for name in ("SUB_SAMPLES", "NOISY_CHANGES", "DIP_STEPS"):
+    for name in ("SUB_SAMPLES", "NOISY_CHANGES", "DIP_STEPS", "POLISH_STEPS", "N_SEEDS", "MAX_PATHS_TWO_BOUNCE",
+                 "BOTH_DIRECTIONS", "N_STATS", "STAT_ROOTS", "STAT_CANDIDATES", "STAT_PATHS", "STAT_SKIPPED", "STAT_DETS",
+                 "STAT_ACCEPTED", "STAT_NEAR"):
         out.append((name, int(getattr(params, name))))
+    out.append(("MAX_DEGREE", int(MAX_DEGREE)))
     return out
 
 
@@ -578,12 +604,14 @@ def two_bounce_device_name(index):
     return device_name(index)
 
 
-class OpenCLResultantScan:
-    """Stages B and D of ``two_bounce.staged`` on an OpenCL device (``two_bounce.cl``): the
-    systems and their scan state stay on the device from :meth:`load` to :meth:`refine`;
-    :meth:`scan` (``find_v_roots``: samples, degeneracy, Illinois pins, root lists) and
-    :meth:`refine` (``refine_v_roots``) each enqueue their kernels without waiting and wait
-    once, for their read-backs.  The interface of ``staged.NumbaResultantScan``."""
+class OpenCLSystemSolver:
+    """Stages B-E of ``two_bounce.staged`` on an OpenCL device (``two_bounce.cl``): per batch
+    the systems (stage A's, from the host) and the tuples' geometry go up once; the resultant
+    scan (``find_v_roots``: samples, degeneracy, Illinois pins, root lists), the candidates at
+    the scan roots (stage C), the refinement (``refine_v_roots``) and the candidates at the
+    refined roots, seeded polish and straight line (stage E) run one after the other on the
+    device, and the host waits once, for the paths and statistics.  A tuple with a system
+    whose refined roots overflow the device's capacity is left to the host."""
 
     def __init__(self, index):
         self.device = _two_bounce_program(index)
@@ -612,17 +640,36 @@ class OpenCLResultantScan:
         if d.profiler is not None:
             d.profiler.syncs += 1
 
-    def scan(self, solve):
-        """``find_v_roots`` of the systems with solve (S,) bool: (nv (S,) int32, -1 for a
-        degenerate system; roots (S, pieces), nv[s] of them in row s; determinants per system)."""
-        d, S, P = self.device, self.S, self.pieces
-        nv = np.zeros(S, dtype=np.int32)
-        roots = np.zeros((S, max(P, 1)))
-        dets = np.zeros(S, dtype=np.int32)
-        if not S:
-            return nv, roots, dets
-        ps, pieces = np.int32(S), np.int32(P)
-        solve_buf = d.write("solve", np.ascontiguousarray(solve, dtype=np.int8))
+    def solve_systems(self, b, out_uv, out_count, stats):
+        """Stages B-E of a ``staged.Systems`` batch on the device; fills the staged tuples'
+        out_uv, out_count, stats and returns the tuples left to the host (bool, (n,))."""
+        from ..spoly.two_bounce.params import REFINE_LEVELS
+        from ..spoly.two_bounce.staged import REFINE_BYTES, REFINE_CAP
+
+        d, S, P, n = self.device, b.S, int(b.pieces), b.x_start.shape[0]
+        left = np.zeros(n, dtype=bool)
+        if not n:
+            return left
+        self.load(b.coef, b.sysint3, b.b_offset, b.live_mask, b.margin, P)
+        ps, pieces, pn = np.int32(S), np.int32(P), np.int32(n)
+        r1, r2 = np.int32(bool(b.refract1)), np.int32(bool(b.refract2))
+        sysint = b.sysint
+        solve = sysint[:, 1] == 1
+        refinable = solve & ((sysint[:, 0] & 2) == 0)  # the TIR fallback's system is not refined
+        cap = min(REFINE_CAP, max(32, REFINE_BYTES // (8 * max(S, 1))))
+        f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+        w = d.write
+        solve_buf = w("solve", solve.astype(np.int8))
+        refinable_buf = w("refined", (refinable if REFINE_LEVELS else np.zeros(S, dtype=bool)).astype(np.int8))
+        sysint7_buf = w("sysint7", np.ascontiguousarray(sysint, dtype=np.int32))
+        first_buf = w("sys_first", np.ascontiguousarray(b.sys_first, dtype=np.int32))
+        state_buf = w("state", np.ascontiguousarray(b.state, dtype=np.int8))
+        tuple_bufs = [w("x_start", f64(b.x_start)), w("x_end", f64(b.x_end)), w("P", f64(b.P)), w("N", f64(b.N)),
+                      w("eta", f64(b.eta))]
+        stats_buf = w("stats", np.ascontiguousarray(stats, dtype=np.int64))
+        uv_buf = d.buffer("out_uv", out_uv.nbytes)
+        meta_buf = d.buffer("meta", n * (out_uv.shape[1] + 1) * 2 * 8)
+        count_buf = d.buffer("out_count", n * 4)
         sg = d.buffer("scan_sign", S * (P + 1) * 4)
         lg = d.buffer("scan_log", S * (P + 1) * 8)
         sample_dets = d.buffer("scan_sample_dets", S * (P + 1) * 4)
@@ -632,49 +679,46 @@ class OpenCLResultantScan:
         nv_buf = d.buffer("scan_nv", S * 4)
         roots_buf = d.buffer("scan_roots", S * P * 8)
         piece_buf = d.buffer("scan_piece_of", S * P * 4)
-        dets_buf = d.buffer("scan_dets", S * 4)
+        scan_dets = d.buffer("scan_dets", S * 4)
+        productive = d.buffer("productive", S * P)
+        found = d.buffer("refine_found", S * cap * 8)
+        found_count = d.buffer("refine_count", S * 4)
+        refine_dets = d.buffer("refine_dets", S * 4)
         args = self._system_args()
+        tuples = (first_buf, state_buf, *tuple_bufs, r1, r2)
         d.launch(self.k["scan_samples"], "kernel scan_samples", S * (P + 1), self.local, *args, solve_buf, pieces, ps,
                  sg, lg, sample_dets)
         d.launch(self.k["scan_degenerate"], "kernel scan_degenerate", S, self.local, solve_buf, pieces, ps, sg, degenerate)
         d.launch(self.k["scan_pins"], "kernel scan_pins", S * P, self.local, *args, solve_buf, degenerate, pieces, ps, sg,
                  lg, pin, pin_dets)
         d.launch(self.k["scan_roots"], "kernel scan_roots", S, self.local, self.live_buf, self.margin_buf, solve_buf,
-                 degenerate, pieces, ps, sg, sample_dets, pin, pin_dets, nv_buf, roots_buf, piece_buf, dets_buf)
-        d.read(nv, nv_buf, wait=False)
-        d.read(roots, roots_buf, wait=False)
-        d.read(dets, dets_buf, wait=False)
+                 degenerate, pieces, ps, sg, sample_dets, pin, pin_dets, nv_buf, roots_buf, piece_buf, scan_dets)
+        d.launch(self.k["candidates_scan"], "kernel candidates_scan", n, self.local, self.coef_buf, sysint7_buf,
+                 self.stride, self.b_offset, *tuples, pieces, nv_buf, roots_buf, productive, uv_buf, meta_buf, count_buf,
+                 stats_buf, pn)
+        d.launch(self.k["refine_systems"], "kernel refine_systems", S, self.local, *args, refinable_buf, pieces, ps, sg,
+                 lg, nv_buf, roots_buf, piece_buf, productive, np.int32(cap), found, found_count, refine_dets)
+        d.launch(self.k["candidates_refined"], "kernel candidates_refined", n, self.local, self.coef_buf, sysint7_buf,
+                 self.stride, self.b_offset, *tuples, nv_buf, scan_dets, np.int32(cap), found, found_count, refine_dets,
+                 uv_buf, meta_buf, count_buf, stats_buf, pn)
+        counts = np.zeros(n, dtype=np.int32)
+        sys_over = np.zeros(S, dtype=np.int32)
+        staged_stats = np.zeros_like(stats, dtype=np.int64)
+        staged_uv = np.zeros(out_uv.shape)
+        d.read(counts, count_buf, wait=False)
+        d.read(staged_stats, stats_buf, wait=False)
+        d.read(staged_uv, uv_buf, wait=False)
+        d.read(sys_over, found_count, wait=False)
         self._wait()
-        self.scan_state = (sg, lg, nv_buf, roots_buf, piece_buf)
-        return nv, roots, dets
-
-    def refine(self, productive, refined, cap=None):
-        """``refine_v_roots`` of the systems with refined (S,) bool on the scan's samples, the
-        productive scan roots (S, pieces) from stage C: (ref_count (S,), -1 where cut short by
-        cap; ref_roots (S, cap); determinants per system)."""
-        from ..spoly.two_bounce.staged import REFINE_CAP
-
-        d, S, P = self.device, self.S, self.pieces
-        cap = REFINE_CAP if cap is None else int(cap)
-        count = np.zeros(S, dtype=np.int32)
-        found = np.zeros((S, cap))
-        dets = np.zeros(S, dtype=np.int32)
-        if not S:
-            return count, found, dets
-        sg, lg, nv_buf, roots_buf, piece_buf = self.scan_state
-        refined_buf = d.write("refined", np.ascontiguousarray(refined, dtype=np.int8))
-        productive_buf = d.write("productive", np.ascontiguousarray(np.asarray(productive) != 0, dtype=np.int8))
-        found_buf = d.buffer("refine_found", S * cap * 8)
-        count_buf = d.buffer("refine_count", S * 4)
-        dets_buf = d.buffer("refine_dets", S * 4)
-        d.launch(self.k["refine_systems"], "kernel refine_systems", S, self.local, *self._system_args(), refined_buf,
-                 np.int32(P), np.int32(S), sg, lg, nv_buf, roots_buf, piece_buf, productive_buf, np.int32(cap), found_buf,
-                 count_buf, dets_buf)
-        d.read(count, count_buf, wait=False)
-        d.read(found, found_buf, wait=False)
-        d.read(dets, dets_buf, wait=False)
-        self._wait()
-        return count, found, dets
+        mine = np.asarray(b.state) == 1
+        over = np.zeros(n, dtype=bool)
+        over[b.owner[sys_over < 0]] = True
+        done = mine & ~over
+        out_count[done] = counts[done]
+        stats[done] = staged_stats[done]
+        out_uv[done] = staged_uv[done]
+        left[mine & over] = True
+        return left
 
     def dets(self, job_sys, job_v):
         """(sign (J,) int32, log|det| (J,), determinant evaluations (J,)) of the loaded system
@@ -701,4 +745,4 @@ def solve_two_bounce_opencl(index, refract1, refract2, x_start, x_end, P, N, eta
     arrays as ``two_bounce.solve_two_bounce_batch`` does."""
     from ..spoly.two_bounce.staged import solve_staged
 
-    solve_staged(OpenCLResultantScan(index), refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats)
+    solve_staged(OpenCLSystemSolver(index), refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats)

@@ -1,35 +1,40 @@
-// Two-bounce Specular Polynomials (RR, RT, TR, TT) in OpenCL C: the determinant work of
-// addon/solver/spoly/two_bounce/resultant.py (Fan et al. 2024, §4.2, eq 28-31), written
-// step for step as det_bezout, det_checked and illinois there, so that both back ends see
-// the same signs and pin the same roots.
+// Two-bounce Specular Polynomials (RR, RT, TR, TT) in OpenCL C: stages B-E of
+// addon/solver/spoly/two_bounce/staged.py (Fan et al. 2024, §4.2-4.3, eq 28-31), written step
+// for step as resultant.py (det_bezout, det_checked, illinois, find_v_roots, refine_v_roots,
+// resolve_dip) and solve.py (candidates_at, seeded, straight_candidate), so that both back ends
+// see the same signs, pin the same roots and keep the same paths.
 //
 // The bivariate systems {a(u1, v1) = 0, b(u1, v1) = 0} are built and normalised by Numba
-// (addon/solver/spoly/two_bounce/staged.py, stage A) and packed row by row: row i of a
-// polynomial of total degree d holds the coefficients of u^i v^j, j = 0 .. d - i.  One
-// system is `stride` doubles: a at offset 0, b at offset `b_offset`.  sysint holds, per
-// system, (da, db, n) with n the u-degree of the Bézout matrix (eq 29).
-//
-// The resultant scan of a batch of systems, on the device from the sign scan to the refined
-// roots (the host uploads the systems once and reads back twice: the scan roots for stage C's
-// candidates, then the refined roots for stage E's):
-//   scan_samples     det R(v) at each needed sample of each system (one work-item per sample);
-//   scan_degenerate  find_v_roots' test: the determinant vanishes at most samples;
-//   scan_pins        each sign change of a live piece pinned to ROOT_TOL by Illinois;
-//   scan_roots       each system's roots in piece order (find_v_roots' list);
-//   refine_systems   refine_v_roots (REFINE_LEVELS = 1) per system, the productive roots from
-//                    the host: ghost samples, kink flags, sub-samples, pins, one-signed dips;
-//   det_batch        sign and log|det| at given (system, v) jobs (the tests' probe).
-// Double precision (cl_khr_fp64) is required.
+// (stage A) and packed row by row: row i of a polynomial of total degree d holds the
+// coefficients of u^i v^j, j = 0 .. d - i.  One system is `stride` doubles: a at offset 0, b at
+// offset `b_offset`.  sysint holds, per system, (da, db, n) with n the u-degree of the Bézout
+// matrix (eq 29).  A batch runs, without the host between them:
+//   scan_samples       det R(v) at each needed sample of each system (one work-item per sample);
+//   scan_degenerate    find_v_roots' test: the determinant vanishes at most samples;
+//   scan_pins          each sign change of a live piece pinned to ROOT_TOL by Illinois;
+//   scan_roots         each system's roots in piece order (find_v_roots' list);
+//   candidates_scan    per tuple, the candidates at its systems' scan roots (stage C);
+//   refine_systems     refine_v_roots (REFINE_LEVELS = 1) per system: ghost samples, kink
+//                      flags, sub-samples, pins, one-signed dips;
+//   candidates_refined per tuple, the candidates at the refined roots, the seeded polish, the
+//                      straight line and the statistics (stage E);
+//   det_batch          sign and log|det| at given (system, v) jobs (the tests' probe).
+// The univariate root finder (roots.cl) and the two-vertex polish (two_vertex.cl) are pasted in
+// by the host.  Double precision (cl_khr_fp64) is required.
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
 
 #define MAXN 46            // u-degree of b at most (TT: 46); n < MAXD = 47 in two_bounce/params.py
-// ROOT_TOL, KINK, SUB_SAMPLES, NOISY_CHANGES, DIP_STEPS, DIP_FLAT: two_bounce/params.py's, given as
-// build options by opencl/backend.py (one definition for both back ends)
-#if !defined(ROOT_TOL) || !defined(KINK) || !defined(SUB_SAMPLES) || !defined(NOISY_CHANGES) || !defined(DIP_STEPS) || !defined(DIP_FLAT)
+// ROOT_TOL, KINK, SUB_SAMPLES, NOISY_CHANGES, DIP_STEPS, DIP_FLAT, the candidates' constants and
+// the STAT_* slots: two_bounce/params.py's (MAX_DEGREE: polynomials/roots.py's), given as build
+// options by opencl/backend.py (_two_bounce_defines: one definition for both back ends)
+#if !defined(ROOT_TOL) || !defined(SUB_SAMPLES) || !defined(MAX_PATHS_TWO_BOUNCE) || !defined(STAT_NEAR) || !defined(MAX_DEGREE)
 #error "build with the two-bounce parameters (-D ROOT_TOL=... etc., opencl/backend.py)"
 #endif
 #define LN2 0.6931471805599453
+
+// @INCLUDE roots.cl@ (the univariate root finder: candidates_at's u-roots)
+// @INCLUDE two_vertex.cl@ (the two-vertex residual, polish and exact map: tv_*)
 
 // p_i(v) for i <= n (row i of the packed polynomial p of total degree d), scaled to unit
 // max-norm (as _coeffs_at); returns the scale.
@@ -545,4 +550,271 @@ __kernel void refine_systems(__global const double *coef, __global const int *sy
     }
     found_count[s] = count + 2 > cap ? -1 : count - R.nv;
     dets_out[s] = dets;
+}
+
+// ---- candidates and path-space polish (stages C and E of staged.py; solve.py's candidates_at) ----
+// One work-item per tuple, its systems in stage A's order, as stage_c / stage_e: every scan root's
+// candidates first (and which roots were productive, for the refinement), then per system its
+// refined roots' candidates, the seeded polish of degenerate systems and the straight line.
+// Per tuple: geo (15 x 3) of the forward chain and of the reversed one (two_vertex.cl), the paths
+// found (out_uv, MAX_PATHS_TWO_BOUNCE x 4, and their (error, sigma) in meta) and its statistics.
+
+#define ROOTS_CHAIN ((MAX_DEGREE + 1) * (MAX_DEGREE + 2) / 2)
+
+typedef struct {
+    __global double *uv;    // MAX_PATHS_TWO_BOUNCE x 4: the tuple's paths, forward order
+    __global double *meta;  // (MAX_PATHS_TWO_BOUNCE + 1) x 2: their (error, sigma)
+    __global long *stats;   // N_STATS
+    int count;
+} Paths;
+
+// solve.py _store_path2: a new path, or a better copy of one within its merge radius.
+static void store_path(Paths *out, const double *th, double err, double sigma) {
+    for (int q = 0; q < min(out->count, MAX_PATHS_TWO_BOUNCE); ++q) {
+        double dist = 0.0;
+        for (int i = 0; i < 4; ++i) dist = fmax(dist, fabs(out->uv[4 * q + i] - th[i]));
+        double sig = fmin(sigma, out->meta[2 * q + 1]);
+        double radius = SAME_PATH;
+        if (sig > 0.0) radius = fmax(radius, 4.0 * (err + out->meta[2 * q] + 1e-12) / sig);
+        else radius = NEAR_PATH;
+        if (dist < fmin(radius, NEAR_PATH)) {
+            if (err < out->meta[2 * q]) {
+                for (int i = 0; i < 4; ++i) out->uv[4 * q + i] = th[i];
+                out->meta[2 * q] = err;
+                out->meta[2 * q + 1] = sigma;
+            }
+            return;
+        }
+    }
+    if (out->count < MAX_PATHS_TWO_BOUNCE) {
+        for (int i = 0; i < 4; ++i) out->uv[4 * out->count + i] = th[i];
+        out->meta[2 * out->count] = err;
+        out->meta[2 * out->count + 1] = sigma;
+    }
+    out->count += 1;
+}
+
+// solve.py _try_candidate: (u1, v1) on the oriented chain's first triangle -> exact map to the
+// second -> polish and validate in forward path space; th holds the polished path after.
+static void try_candidate(Paths *out, double u1, double v1, const double *geo, bool refract1, bool refract2, double eta,
+                          bool rev, const double *geo_fwd, double *th) {
+    out->stats[STAT_CANDIDATES] += 1;
+    double u2, v2;
+    if (!tv_trace_to_second(u1, v1, geo, refract1, eta, &u2, &v2)) return;
+    double err, sigma;
+    bool accepted;
+    if (rev) {
+        th[0] = u2; th[1] = v2; th[2] = u1; th[3] = v1;
+        accepted = tv_polish_and_validate(th, geo_fwd, refract2, refract1, eta, POLISH_STEPS, ACCEPT_RESIDUAL, &err, &sigma);
+    } else {
+        th[0] = u1; th[1] = v1; th[2] = u2; th[3] = v2;
+        accepted = tv_polish_and_validate(th, geo_fwd, refract1, refract2, eta, POLISH_STEPS, ACCEPT_RESIDUAL, &err, &sigma);
+    }
+    if (!accepted) return;
+    out->stats[STAT_ACCEPTED] += 1;
+    store_path(out, th, err, sigma);
+}
+
+// solve.py _already_stored
+static bool already_stored(const Paths *out, double u1, double v1, int off) {
+    for (int q = 0; q < min(out->count, MAX_PATHS_TWO_BOUNCE); ++q)
+        if (fabs(out->uv[4 * q + off] - u1) < 1e-9 && fabs(out->uv[4 * q + off + 1] - v1) < 1e-9) return true;
+    return false;
+}
+
+// Row i of the packed polynomial p (total degree d) at v, by Horner from its top coefficient.
+static double packed_row_at(__global const double *p, int d, int i, double v) {
+    int off = i * (d + 1) - i * (i - 1) / 2;
+    double acc = 0.0;
+    for (int j = d - i; j >= 0; --j) acc = acc * v + p[off + j];
+    return acc;
+}
+
+// solve.py candidates_at: back-substitution at a resultant root v (§4.3): the roots u of
+// a(., v) (or of b(., v) where a(., v) vanishes) in the widened triangle whose relative
+// |b(u, v)| is small (the smallest always) are polished as paths.
+static void candidates_at(Paths *out, double v, __global const double *a, int da, __global const double *b, int db, int na,
+                          int nb, bool refract1, bool refract2, double margin, const double *geo, double eta, bool rev,
+                          const double *geo_fwd) {
+    double coeffs[MAX_DEGREE + 1], chain[ROOTS_CHAIN], critical[MAX_DEGREE + 1], found[MAX_DEGREE + 1];
+    double u_roots[MAX_DEGREE + 1], rel[MAX_DEGREE + 1], th[4];
+    int deg_u = na;
+    double big = 0.0;
+    for (int i = 0; i <= na; ++i) {
+        double c = packed_row_at(a, da, i, v);
+        if (i <= MAX_DEGREE) coeffs[i] = c;
+        big = fmax(big, fabs(c));
+    }
+    if (!(big > 1e-12) || na == 0) {
+        if (nb > MAX_DEGREE) return;
+        deg_u = nb;
+        for (int i = 0; i <= nb; ++i) coeffs[i] = packed_row_at(b, db, i, v);
+    }
+    if (deg_u > MAX_DEGREE || deg_u == 0) return;
+    int n_u = roots_in_interval(coeffs, deg_u, -margin, 1.0 - v + margin, 1e-14, 1e-10, chain, critical, found, u_roots);
+    int best = -1;
+    double best_rel = INFINITY;
+    for (int iu = 0; iu < n_u; ++iu) {
+        double u = u_roots[iu], val = 0.0, mag = 0.0, up = 1.0;
+        for (int i = 0; i <= nb; ++i) {
+            double acc = packed_row_at(b, db, i, v);
+            val += acc * up;
+            mag += fabs(acc * up);
+            up *= u;
+        }
+        rel[iu] = mag > 0.0 ? fabs(val) / mag : 0.0;
+        if (rel[iu] < best_rel) {
+            best_rel = rel[iu];
+            best = iu;
+        }
+    }
+    for (int iu = 0; iu < n_u; ++iu) {
+        if (iu != best && !(rel[iu] < B_RELATIVE)) continue;
+        double u1 = fmin(fmax(u_roots[iu], 0.0), 1.0), v1 = fmin(fmax(v, 0.0), 1.0);
+        if (u1 + v1 > 1.0) {
+            double excess = 0.5 * (u1 + v1 - 1.0);
+            u1 -= excess;
+            v1 -= excess;
+        }
+        if (already_stored(out, u1, v1, rev ? 2 : 0)) {
+            out->stats[STAT_ACCEPTED] += 1;
+            if (fabs(v1 - v) <= PRODUCTIVE_RADIUS) out->stats[STAT_NEAR] += 1;
+            continue;
+        }
+        long accepted = out->stats[STAT_ACCEPTED];
+        try_candidate(out, u1, v1, geo, refract1, refract2, eta, rev, geo_fwd, th);
+        if (out->stats[STAT_ACCEPTED] > accepted && fabs(th[(rev ? 2 : 0) + 1] - v) <= PRODUCTIVE_RADIUS)
+            out->stats[STAT_NEAR] += 1;
+    }
+}
+
+// solve.py seeded: the fallback for a degenerate system (determinant identically zero):
+// polish from a grid on the oriented chain's first triangle.
+static void seeded(Paths *out, const double *geo, bool refract1, bool refract2, double eta, bool rev, const double *geo_fwd) {
+    double th[4];
+    for (int i = 0; i <= N_SEEDS; ++i)
+        for (int j = 0; j <= N_SEEDS - i; ++j) {
+            double u = (i + 1.0 / 3.0) / (N_SEEDS + 1.0), v = (j + 1.0 / 3.0) / (N_SEEDS + 1.0);
+            try_candidate(out, u, v, geo, refract1, refract2, eta, rev, geo_fwd, th);
+        }
+}
+
+// solve.py straight_candidate: the line x0 -> x3 through triangle 1's plane (normal incidence
+// through parallel faces, where the coplanarity polynomial vanishes identically).
+static void straight_candidate(Paths *out, const double *geo, bool refract1, bool refract2, double eta) {
+    const double origin[3] = {0.0, 0.0, 0.0};
+    double u, v, th[4];
+    if (!tv_line_crossing_barycentrics(geo + 0, geo + 3, origin, geo + 6, geo + 9, geo + 39, &u, &v)) return;
+    if (u < -1e-6 || v < -1e-6 || u + v > 1.0 + 1e-6) return;
+    try_candidate(out, u, v, geo, refract1, refract2, eta, false, geo, th);
+}
+
+typedef struct {
+    double fwd[45], rev[45];
+} TupleGeometry;
+
+// A staged tuple's two packed geometries (forward, reversed), as stage C / E pack them.
+static void tuple_geometry(TupleGeometry *G, __global const double *x_start, __global const double *x_end,
+                           __global const double *P, __global const double *N, int t) {
+    __global const double *x0 = x_start + 3 * t, *x3 = x_end + 3 * t, *p = P + 18 * t, *n = N + 18 * t;
+    tv_pack_geometry(x0, x3, p, n, p + 9, n + 9, G->fwd);
+    tv_pack_geometry(x3, x0, p + 9, n + 9, p, n, G->rev);
+}
+
+static Paths tuple_paths(__global double *out_uv, __global double *meta, __global long *stats, int t, int count) {
+    Paths out;
+    out.uv = out_uv + (long)t * MAX_PATHS_TWO_BOUNCE * 4;
+    out.meta = meta + (long)t * (MAX_PATHS_TWO_BOUNCE + 1) * 2;
+    out.stats = stats + (long)t * N_STATS;
+    out.count = count;
+    return out;
+}
+
+// sysint: per system (rev + 2 * not refined, status, da, db, na, nb, n) from stage A; status
+// 1: solved, -1: degenerate (seeded polish); nv[s] = -1: found degenerate by the scan.
+
+// Stage C: the candidates at every scan root of the tuple's systems; productive[s, i] = 1 when
+// root i polished into a path within PRODUCTIVE_RADIUS of it (the refinement's rule).
+__kernel void candidates_scan(__global const double *coef, __global const int *sysint7, const int stride,
+                              const int b_offset, __global const int *sys_first, __global const char *state,
+                              __global const double *x_start, __global const double *x_end, __global const double *P,
+                              __global const double *N, __global const double *eta_all, const int refract1,
+                              const int refract2, const int pieces, __global const int *nv_all,
+                              __global const double *roots_all, __global char *productive, __global double *out_uv,
+                              __global double *meta, __global int *out_count, __global long *stats, const int n) {
+    int t = get_global_id(0);
+    if (t >= n) return;
+    if (state[t] != 1) return;
+    TupleGeometry G;
+    tuple_geometry(&G, x_start, x_end, P, N, t);
+    Paths out = tuple_paths(out_uv, meta, stats, t, 0);
+    double eta = eta_all[t];
+    for (int s = sys_first[t]; s < sys_first[t + 1]; ++s) {
+        __global const int *si = sysint7 + 7 * s;
+        if (si[1] != 1 || nv_all[s] <= 0) continue;
+        bool rev = (si[0] & 1) == 1;
+        bool r1 = rev ? refract2 : refract1, r2 = rev ? refract1 : refract2;
+        __global const double *a = coef + (long)s * stride;
+        double margin = r1 ? V_MARGIN_APPROX : V_MARGIN_EXACT;
+        for (int iv = 0; iv < nv_all[s]; ++iv) {
+            long near = out.stats[STAT_NEAR];
+            candidates_at(&out, roots_all[(long)s * pieces + iv], a, si[2], a + b_offset, si[3], si[4], si[5], r1, r2,
+                          margin, rev ? G.rev : G.fwd, eta, rev, G.fwd);
+            productive[(long)s * pieces + iv] = out.stats[STAT_NEAR] > near;
+        }
+    }
+    out_count[t] = out.count;
+}
+
+// Stage E: per system the candidates at its refined roots (or the seeded polish of a
+// degenerate one), the straight line after the forward systems, the statistics (determinants
+// of the scan and the refinement summed per tuple).  A tuple with a system whose refinement
+// overflowed (found_count -1) is left to the host (the one-kernel path).
+__kernel void candidates_refined(__global const double *coef, __global const int *sysint7, const int stride,
+                                 const int b_offset, __global const int *sys_first, __global const char *state,
+                                 __global const double *x_start, __global const double *x_end, __global const double *P,
+                                 __global const double *N, __global const double *eta_all, const int refract1,
+                                 const int refract2, __global const int *nv_all, __global const int *scan_dets,
+                                 const int cap_new, __global const double *found_all, __global const int *found_count,
+                                 __global const int *refine_dets, __global double *out_uv, __global double *meta,
+                                 __global int *out_count, __global long *stats, const int n) {
+    int t = get_global_id(0);
+    if (t >= n) return;
+    if (state[t] != 1) return;
+    for (int s = sys_first[t]; s < sys_first[t + 1]; ++s)
+        if (found_count[s] < 0) return;  // redone on the host
+    TupleGeometry G;
+    tuple_geometry(&G, x_start, x_end, P, N, t);
+    Paths out = tuple_paths(out_uv, meta, stats, t, out_count[t]);
+    double eta = eta_all[t];
+    bool straight = false;
+    long dets = 0;
+    for (int s = sys_first[t]; s < sys_first[t + 1]; ++s) {
+        __global const int *si = sysint7 + 7 * s;
+        bool rev = (si[0] & 1) == 1;
+        dets += scan_dets[s] + refine_dets[s];
+        if (rev && !straight) {
+            straight_candidate(&out, G.fwd, refract1, refract2, eta);
+            straight = true;
+        }
+        bool r1 = rev ? refract2 : refract1, r2 = rev ? refract1 : refract2;
+        if (si[1] == -1 || nv_all[s] < 0) {
+            seeded(&out, rev ? G.rev : G.fwd, r1, r2, eta, rev, G.fwd);
+            continue;
+        }
+        int m = found_count[s];
+        if (m > 0) {
+            __global const double *a = coef + (long)s * stride;
+            double margin = r1 ? V_MARGIN_APPROX : V_MARGIN_EXACT;
+            for (int iv = 0; iv < m; ++iv)
+                candidates_at(&out, found_all[(long)s * cap_new + iv], a, si[2], a + b_offset, si[3], si[4], si[5], r1, r2,
+                              margin, rev ? G.rev : G.fwd, eta, rev, G.fwd);
+        }
+        out.stats[STAT_ROOTS] += nv_all[s] + m;
+    }
+    if (!straight) straight_candidate(&out, G.fwd, refract1, refract2, eta);
+    out.stats[STAT_SKIPPED] = out.stats[STAT_SKIPPED] >= (BOTH_DIRECTIONS ? 2 : 1) ? 1 : 0;
+    out.stats[STAT_PATHS] = out.count;
+    out.stats[STAT_DETS] += dets;
+    out_count[t] = out.count;
 }

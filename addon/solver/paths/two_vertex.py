@@ -233,7 +233,7 @@ def _max_vertex_error(res):
 @kernel
 def polish_and_validate2(th, geo, refract1, refract2, eta, max_steps, tolerance, work):
     """Gauss-Newton on the two-vertex residual from th (4,), in place, then the acceptance
-    test.  ``work``: (24, 6) scratch.  Returns (accepted, error, sigma_estimate) where error is
+    test.  ``work``: (25, 6) scratch.  Returns (accepted, error, sigma_estimate) where error is
     the larger per-vertex residual norm and sigma_estimate a lower bound of σ_min(J)."""
     res = work[0]
     res2 = work[1]

@@ -3,9 +3,8 @@
 ``solve_two_bounce_batch`` runs every tuple start to end in one Numba kernel.  Here the same
 algorithm (Fan et al. 2024, §4.2-4.3: the Bézout resultant of eq 28-29 scanned in v1, its
 sign changes pinned, the candidates back-substituted and polished in path space) runs in
-stages over a whole batch of tuples, so that the expensive part — the determinant of the
-Bézout matrix R(v1) (eq 29), evaluated some 10³-10⁵ times per tuple — runs on an OpenCL
-device (``opencl/two_bounce.cl``), many systems at once, with the scan's state kept there:
+stages over a whole batch of tuples, so that all but the systems' construction can run on an
+OpenCL device (``opencl/two_bounce.cl``), many systems and tuples at once:
 
 A (Numba)   per tuple and orientation (forward, reversed): the side tests, then every
             bivariate system {a = 0, b = 0} (eq 6 with 10 or 13; the Heron-step √ of
@@ -14,31 +13,32 @@ A (Numba)   per tuple and orientation (forward, reversed): the side tests, then 
             and rejected early (Bernstein test) exactly as ``_solve_system`` does, and
             packed (row i of a total-degree-d polynomial: the coefficients of u^i v^j),
             with the pieces the (u1, v1) pre-pass keeps live.
-B (device)  ``find_v_roots`` per system: det R(v) at the samples the live pieces need, the
+B           ``find_v_roots`` per system: det R(v) at the samples the live pieces need, the
             degeneracy test, every sign change pinned to ROOT_TOL by Illinois, the root lists.
-C (Numba)   ``candidates_at`` at each scan root (u1 from a(·, v1), exact map to triangle
+C           ``candidates_at`` at each scan root (u1 from a(·, v1), exact map to triangle
             2, Gauss-Newton polish in path space): the paths, and which roots were
             productive.
-D (device)  ``refine_v_roots`` per system on B's samples (still on the device) and C's
-            productive flags: ghost samples, kink flags, sub-samples, new sign changes
-            pinned, one-signed dips resolved.  At most a capacity of new roots per system
-            (REFINE_CAP, within REFINE_BYTES) come back; a system with more is refined again
-            on the host with the one-kernel path's capacity.
-E (Numba)   candidates at the refined roots, the seeded polish of degenerate systems,
+D           ``refine_v_roots`` per system on B's samples and C's productive flags: ghost
+            samples, kink flags, sub-samples, new sign changes pinned, one-signed dips
+            resolved; at most a capacity of new roots per system (REFINE_CAP, within
+            REFINE_BYTES).
+E           candidates at the refined roots, the seeded polish of degenerate systems,
             the straight-line candidate, the statistics.
 
-A device is an object with ``load``, ``scan`` (B) and ``refine`` (D):
-``opencl.backend.OpenCLResultantScan``, or :class:`NumbaResultantScan`, which runs B and D
-with the one-kernel path's own ``find_v_roots`` and ``refine_v_roots`` (the tests, and the
-host's re-run of an overflowing system).  Only the order in which candidates of different
-systems of one tuple are tried differs from the one-kernel path (all scan roots of a tuple
-before its refined roots), which can change which of two copies of one path is kept (both
-polished to ~1e-15) but not the set of paths.
+Stages B-E run on a device object's ``solve_systems`` (a :class:`Systems` batch):
+``opencl.backend.OpenCLSystemSolver`` runs all four on the device with one wait a batch;
+:class:`NumbaSystemSolver` runs B and D with the one-kernel path's own ``find_v_roots`` and
+``refine_v_roots`` and C and E with ``stage_c`` / ``stage_e`` (:func:`solve_systems_on_host`:
+the tests, and the same flow for any device with only load / scan / refine).  Tuples with
+more than ``SYS_CAP`` systems, and on OpenCL those with a system whose refined roots overflow
+the capacity, are solved by the one-kernel path on the host (:func:`solve_on_host`).  Only the
+order in which candidates of different systems of one tuple are tried differs from the
+one-kernel path (all scan roots of a tuple before its refined roots), which can change which
+of two copies of one path is kept (both polished to ~1e-15) but not the set of paths.
 
 Stage A shares ``_solve_oriented``'s set-up (``frame``); tests/solver/test_opencl_two_bounce.py
 compares the staging on Numba and on OpenCL with the one-kernel solver.  Limits:
-``REFINE_LEVELS`` ≤ 1; a tuple with more than ``SYS_CAP`` systems is solved by the one-kernel
-path in stage E.
+``REFINE_LEVELS`` ≤ 1.
 """
 
 
@@ -311,8 +311,7 @@ def _stage_c_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef
 def stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
             ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats, first, last):
     """Candidates at the refined roots, the seeded polish of degenerate systems (sysint
-    status -1), the straight-line candidate after the forward systems, the statistics;
-    tuples with more than SYS_CAP systems are solved here by the one-kernel path."""
+    status -1), the straight-line candidate after the forward systems, the statistics."""
     n = x_start.shape[0]
     for ch in range(first, last):
         biv, cf, mat, scan, geo, work, sroots, chain, lists = make_scratch2()
@@ -326,15 +325,10 @@ def stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coe
 def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
                    ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats, t, biv, cf, mat, scan, geo, work, sroots,
                    chain, lists):
-    if state[t] == 0:
-        out_count[t] = 0
+    if state[t] != 1:
         return
     x0 = (x_start[t, 0], x_start[t, 1], x_start[t, 2])
     x3 = (x_end[t, 0], x_end[t, 1], x_end[t, 2])
-    if state[t] == 2:
-        out_count[t] = solve_two_bounce_tuple(refract1, refract2, x0, x3, P[t], N[t], eta[t], pieces, 0, biv, cf,
-                                              mat, scan, geo, work, sroots, chain, lists, out_uv[t], stats[t])
-        return
     pack_geometry(x0, x3, P[t, 0], N[t, 0], P[t, 1], N[t, 1], geo[0])
     pack_geometry(x3, x0, P[t, 1], N[t, 1], P[t, 0], N[t, 0], geo[2])
     th = sroots[0, 0:4]
@@ -369,6 +363,19 @@ def _stage_e_tuple(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offs
     stats[t, STAT_SKIPPED] = 1 if stats[t, STAT_SKIPPED] >= (2 if BOTH_DIRECTIONS else 1) else 0
     stats[t, STAT_PATHS] = count
     out_count[t] = count
+
+
+@parallel_range("tuples")
+def solve_on_host(refract1, refract2, x_start, x_end, P, N, eta, pieces, tuples, out_uv, out_count, stats, first, last):
+    """The one-kernel path (``solve_two_bounce_tuple``) for the tuples listed: those with more
+    than SYS_CAP systems, and those a device left to the host."""
+    biv, cf, mat, scan, geo, work, sroots, chain, lists = make_scratch2()
+    for i in range(first, last):
+        t = tuples[i]
+        x0 = (x_start[t, 0], x_start[t, 1], x_start[t, 2])
+        x3 = (x_end[t, 0], x_end[t, 1], x_end[t, 2])
+        out_count[t] = solve_two_bounce_tuple(refract1, refract2, x0, x3, P[t], N[t], eta[t], pieces, 0, biv, cf, mat,
+                                              scan, geo, work, sroots, chain, lists, out_uv[t], stats[t])
 
 
 # --- stages B and D on Numba: the resultant scan device for the tests ---------------------------
@@ -458,13 +465,17 @@ def numba_refine(coef, sysint3, b_offset, live_mask, margin, refined, pieces, sg
             ref_roots[s, i - m] = out[0, i]
 
 
-class NumbaResultantScan:
-    """Stages B and D on Numba, system by system with the one-kernel path's own
-    ``find_v_roots`` and ``refine_v_roots``: the staged pipeline without OpenCL (the tests),
-    and the host's re-run of a system whose refined roots overflow a device's capacity.
-    The interface of ``opencl.backend.OpenCLResultantScan``: load, scan, refine."""
+class NumbaSystemSolver:
+    """Stages B-E on Numba (:meth:`solve_systems`): B and D system by system with the
+    one-kernel path's own ``find_v_roots`` and ``refine_v_roots`` (:meth:`scan`,
+    :meth:`refine`), C and E by ``stage_c`` / ``stage_e``: the staged pipeline without OpenCL
+    (the tests), and the re-run of a system whose refined roots overflow the capacity."""
 
     name = "numba"
+
+    def solve_systems(self, batch, out_uv, out_count, stats):
+        """Stages B-E of a :class:`Systems` batch (:func:`solve_systems_on_host`)."""
+        return solve_systems_on_host(self, batch, out_uv, out_count, stats)
 
     def load(self, coef, sysint3, b_offset, live_mask, margin, pieces):
         """The packed systems coef (S, stride), sysint3 (S, 3) int32 = (da, db, n), their live
@@ -504,17 +515,85 @@ class NumbaResultantScan:
         return ref_count, ref_roots, dets
 
 
+class Systems:
+    """One batch's staged systems (stage A's output, compacted) and its tuples' inputs."""
+
+    def __init__(self, refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sysint3, sys_first,
+                 state, live_mask, margin, owner):
+        self.refract1, self.refract2 = refract1, refract2
+        self.x_start, self.x_end, self.P, self.N, self.eta = x_start, x_end, P, N, eta
+        self.pieces, self.b_offset = pieces, b_offset
+        self.coef, self.sysint, self.sysint3, self.sys_first, self.state = coef, sysint, sysint3, sys_first, state
+        self.live_mask, self.margin, self.owner = live_mask, margin, owner
+        self.S = coef.shape[0]
+
+
+def solve_systems_on_host(dev, b, out_uv, out_count, stats):
+    """Stages B-E of a batch with stages C and E on Numba: the resultant scan and its
+    refinement by ``dev`` (load / scan / refine); a system whose refined roots overflow the
+    device's capacity is refined again here with the one-kernel path's capacity.  Fills the
+    staged tuples' out_uv, out_count, stats; returns the tuples left to the one-kernel path
+    (none)."""
+    refract1, refract2, x_start, x_end, P, N, eta = b.refract1, b.refract2, b.x_start, b.x_end, b.P, b.N, b.eta
+    pieces, b_offset, coef, sysint3, sys_first, state = b.pieces, b.b_offset, b.coef, b.sysint3, b.sys_first, b.state
+    live_mask, margin, S, nb = b.live_mask, b.margin, b.S, x_start.shape[0]
+    sysint = b.sysint.copy()
+    # stage B: the sign scan and its roots (find_v_roots), on the device
+    dev.load(coef, sysint3, b_offset, live_mask, margin, pieces)
+    nv, roots, dets_per_sys = dev.scan(sysint[:, 1] == 1)
+    sysint[nv < 0, 1] = -1  # degenerate: the seeded polish in stage E
+    nv = np.maximum(nv, 0).astype(np.int64)
+
+    # stage C: candidates at the scan roots
+    productive = np.zeros((S, max(pieces, 1)))
+    meta = np.zeros((nb, MAX_PATHS_TWO_BOUNCE + 1, 2))
+    stage_c(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state, roots, nv,
+            productive, out_uv, meta, out_count, stats)
+
+    # stage D: the refinement (refine_v_roots), on the device; a system whose new roots
+    # overflow the device's capacity is refined again on the host
+    refined = (sysint[:, 1] == 1) & ((sysint[:, 0] & 2) == 0)  # the TIR fallback's system is not refined
+    if REFINE_LEVELS and S:
+        cap = min(REFINE_CAP, max(32, REFINE_BYTES // (8 * S)))
+        ref_count, ref_dense, dets = dev.refine(productive, refined, cap)
+        over = np.flatnonzero(ref_count < 0)
+        if over.size:
+            host = NumbaSystemSolver()
+            host.load(coef[over], sysint3[over], b_offset, live_mask[over], margin[over], pieces)
+            host.scan(np.ones(over.size, dtype=bool))  # the samples refine_v_roots starts from
+            ref_count_h, ref_h, dets[over] = host.refine(productive[over], np.ones(over.size, dtype=bool), cap=MAX_ROOTS)
+        dets_per_sys += dets
+        ref_first = np.arange(S, dtype=np.int64) * cap
+        ref_roots = ref_dense.ravel()
+        if over.size:
+            ref_count[over] = ref_count_h
+            ref_first[over] = ref_roots.size + np.arange(over.size) * ref_h.shape[1]
+            ref_roots = np.concatenate([ref_roots, ref_h.ravel()])
+    else:
+        ref_count = np.zeros(S, dtype=np.int64)
+        ref_first = np.zeros(S, dtype=np.int64)
+        ref_roots = np.zeros(1)
+
+    # stage E: candidates at the refined roots, seeded polish, straight line, statistics
+    stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
+            ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats)
+    per_tuple = np.zeros(nb, dtype=np.int64)
+    np.add.at(per_tuple, b.owner, dets_per_sys.astype(np.int64))
+    stats[:, STAT_DETS] += np.where(state == 1, per_tuple, 0)
+    return np.zeros(nb, dtype=bool)
+
+
 # --- the driver ---------------------------------------------------------------------------------
 
 BATCH_BYTES = 64 << 20  # stage A's per-batch system store
 
 
-def solve_staged(scan_device, refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats,
+def solve_staged(device, refract1, refract2, x_start, x_end, P, N, eta, pieces, out_uv, out_count, stats,
                  batch=None, sys_cap=SYS_CAP):
     """All paths of a batch of two-bounce tuples, stages A-E (module docstring); fills
     out_uv (n, MAX_PATHS_TWO_BOUNCE, 4), out_count (n,), stats (n, N_STATS) like
-    ``solve_two_bounce_batch``.  ``scan_device``: an object with load / scan / refine
-    (:class:`NumbaResultantScan`, ``opencl.backend.OpenCLResultantScan``).  ``batch``: tuples
+    ``solve_two_bounce_batch``.  ``device``: an object whose ``solve_systems`` runs stages
+    B-E (:class:`NumbaSystemSolver`, ``opencl.backend.OpenCLSystemSolver``).  ``batch``: tuples
     per pass (default: stage A's store within BATCH_BYTES); ``sys_cap``: systems per tuple
     held by stage A (a tuple with more is solved by the one-kernel path)."""
     if REFINE_LEVELS not in (0, 1):
@@ -525,7 +604,7 @@ def solve_staged(scan_device, refract1, refract2, x_start, x_end, P, N, eta, pie
         batch = max(16, BATCH_BYTES // (sys_cap * stride * 8))
     for t0 in range(0, n, batch):
         t1 = min(n, t0 + batch)
-        _solve_batch(scan_device, refract1, refract2, x_start[t0:t1], x_end[t0:t1], P[t0:t1], N[t0:t1], eta[t0:t1], pieces,
+        _solve_batch(device, refract1, refract2, x_start[t0:t1], x_end[t0:t1], P[t0:t1], N[t0:t1], eta[t0:t1], pieces,
                      stride, b_offset, sys_cap, out_uv[t0:t1], out_count[t0:t1], stats[t0:t1])
 
 
@@ -551,47 +630,13 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     sysint = np.ascontiguousarray(sysint[owner, slot])
     live_mask = np.ascontiguousarray(live_mask[owner, slot])
     sysint3 = np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32)
-    # stage B: the sign scan and its roots (find_v_roots), on the device
     r1_oriented = np.where((sysint[:, 0] & 1) == 1, refract2, refract1) if S else np.zeros(0, dtype=bool)
     margin = np.where(r1_oriented, V_MARGIN_APPROX, V_MARGIN_EXACT)
-    dev.load(coef, sysint3, b_offset, live_mask, margin, pieces)
-    nv, roots, dets_per_sys = dev.scan(sysint[:, 1] == 1)
-    sysint[nv < 0, 1] = -1  # degenerate: the seeded polish in stage E
-    nv = np.maximum(nv, 0).astype(np.int64)
-
-    # stage C: candidates at the scan roots
-    productive = np.zeros((S, max(pieces, 1)))
-    meta = np.zeros((nb, MAX_PATHS_TWO_BOUNCE + 1, 2))
-    stage_c(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, sys_first, state, roots, nv,
-            productive, out_uv, meta, out_count, stats)
-
-    # stage D: the refinement (refine_v_roots), on the device; a system whose new roots
-    # overflow the device's capacity is refined again on the host
-    refined = (sysint[:, 1] == 1) & ((sysint[:, 0] & 2) == 0)  # the TIR fallback's system is not refined
-    if REFINE_LEVELS and S:
-        cap = min(REFINE_CAP, max(32, REFINE_BYTES // (8 * S)))
-        ref_count, ref_dense, dets = dev.refine(productive, refined, cap)
-        over = np.flatnonzero(ref_count < 0)
-        if over.size:
-            host = NumbaResultantScan()
-            host.load(coef[over], sysint3[over], b_offset, live_mask[over], margin[over], pieces)
-            host.scan(np.ones(over.size, dtype=bool))  # the samples refine_v_roots starts from
-            ref_count_h, ref_h, dets[over] = host.refine(productive[over], np.ones(over.size, dtype=bool), cap=MAX_ROOTS)
-        dets_per_sys += dets
-        ref_first = np.arange(S, dtype=np.int64) * cap
-        ref_roots = ref_dense.ravel()
-        if over.size:
-            ref_count[over] = ref_count_h
-            ref_first[over] = ref_roots.size + np.arange(over.size) * ref_h.shape[1]
-            ref_roots = np.concatenate([ref_roots, ref_h.ravel()])
-    else:
-        ref_count = np.zeros(S, dtype=np.int64)
-        ref_first = np.zeros(S, dtype=np.int64)
-        ref_roots = np.zeros(1)
-
-    # stage E: candidates at the refined roots, seeded polish, straight line, statistics
-    stage_e(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sys_first, state, nv,
-            ref_first, ref_count, ref_roots, out_uv, meta, out_count, stats)
-    per_tuple = np.zeros(nb, dtype=np.int64)
-    np.add.at(per_tuple, owner, dets_per_sys.astype(np.int64))
-    stats[:, STAT_DETS] += np.where(state == 1, per_tuple, 0)
+    out_count[state != 1] = 0
+    staged = Systems(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sysint3, sys_first, state,
+                     live_mask, margin, owner)
+    left = dev.solve_systems(staged, out_uv, out_count, stats)
+    # the one-kernel path for tuples with more than sys_cap systems, and those the device left
+    host = np.flatnonzero((state == 2) | left).astype(np.int64)
+    if host.size:
+        solve_on_host(refract1, refract2, x_start, x_end, P, N, eta, pieces, host, out_uv, out_count, stats)

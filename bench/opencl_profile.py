@@ -195,7 +195,8 @@ ONE_COLUMNS = (("validate", "check inputs"), ("pack", "pack"), ("host->device", 
                ("sort", "sort paths"))
 TWO_DEVICE = (("kernel scan_samples", "scan samples kernel"), ("kernel scan_degenerate", "degenerate kernel"),
               ("kernel scan_pins", "Illinois pins kernel"), ("kernel scan_roots", "root lists kernel"),
-              ("kernel candidates_scan", "candidates kernel (C)"), ("kernel refine_systems", "refine kernel"),
+              ("kernel candidates_scan", "candidates kernel (C)"), ("kernel refine_flags", "refine flags kernel"),
+              ("kernel refine_samples", "refine sub-samples kernel"), ("kernel refine_assemble", "refine assembly kernel"),
               ("kernel candidates_refined", "candidates kernel (E)"))
 TWO_COLUMNS = ((("validate", "check inputs"), ("A", "stage A (Numba)"), ("host->device", "host→device"))
                + TWO_DEVICE + (("device->host", "device→host"), ("host", "one-kernel tuples (Numba)"),

@@ -117,10 +117,11 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain, monkeypatch):
 
 @pytest.mark.opencl
 @pytest.mark.slow  # builds the two-bounce OpenCL kernels
-def test_opencl_refinement_overflow_is_refined_on_the_host(monkeypatch):
-    """A tuple with a system whose refined roots exceed the device's capacity (here 2 a
-    system) is left to the host's one-kernel path: the paths and counts stay the one-kernel
-    solver's."""
+def test_opencl_refinement_in_cuts_and_overflow_on_the_host(monkeypatch):
+    """The refinement run over the batch's systems in cuts of 3 (its sub-sample storage made
+    that small), and a tuple with a system whose refined roots exceed the device's capacity
+    (here 2 a system) left to the host's one-kernel path: the paths and counts stay the
+    one-kernel solver's."""
     index = opencl_device_or_skip()
     from addon.solver.opencl.backend import OpenCLSystemSolver
     from addon.solver.spoly.two_bounce import staged
@@ -131,6 +132,9 @@ def test_opencl_refinement_overflow_is_refined_on_the_host(monkeypatch):
     solve_on_host = staged.solve_on_host
     monkeypatch.setattr(staged, "solve_on_host", lambda *a: on_host.extend(a[8]) or solve_on_host(*a))
     monkeypatch.setattr(staged, "REFINE_CAP", 2)
+    from addon.solver.spoly.two_bounce.params import SUB_SAMPLES
+
+    monkeypatch.setattr(opencl_backend, "REFINE_SUB_BYTES", 3 * 100 * ((SUB_SAMPLES + 3) * 20 + SUB_SAMPLES * 8 + 4))
     ti, uv, totals = _solve_staged(OpenCLSystemSolver(index), "RT", x0, x3, P, N, eta)
     assert 0 < len(on_host) < x0.shape[0], "a capacity of 2 should overflow some tuples' refinement, not all"
     np.testing.assert_array_equal(ti, expected.tuple_index)

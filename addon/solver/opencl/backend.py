@@ -57,8 +57,11 @@ PATH_RECORDS_MIN = 1024
 N_SLOTS = 1024
 _cache = {}  # device index -> _Device
 _cache2 = {}  # device index -> its two-bounce kernels ({name: kernel}, local size)
-TWO_BOUNCE_KERNELS = ("det_batch", "scan_samples", "scan_degenerate", "scan_pins", "scan_roots", "refine_systems",
-                      "candidates_scan", "candidates_refined")
+TWO_BOUNCE_KERNELS = ("det_batch", "scan_samples", "scan_degenerate", "scan_pins", "scan_roots", "refine_flags",
+                      "refine_samples", "refine_assemble", "candidates_scan", "candidates_refined")
+# The refinement's per-piece sub-samples and pins held on the device at once (two_bounce.cl
+# refine_samples): the systems of a batch are refined in cuts whose storage fits this.
+REFINE_SUB_BYTES = 64 << 20
 
 
 class OpenCLUnavailable(RuntimeError):
@@ -696,8 +699,25 @@ class OpenCLSystemSolver:
         d.launch(self.k["candidates_scan"], "kernel candidates_scan", n, self.local, self.coef_buf, sysint7_buf,
                  self.stride, self.b_offset, *tuples, pieces, nv_buf, roots_buf, productive, uv_buf, meta_buf, count_buf,
                  stats_buf, pn)
-        d.launch(self.k["refine_systems"], "kernel refine_systems", S, self.local, *args, refinable_buf, pieces, ps, sg,
-                 lg, nv_buf, roots_buf, piece_buf, productive, np.int32(cap), found, found_count, refine_dets)
+        # the refinement, in cuts of the systems whose sub-samples fit REFINE_SUB_BYTES
+        from ..spoly.two_bounce.params import SUB_SAMPLES
+
+        row = SUB_SAMPLES + 3
+        per_system = P * (row * 20 + SUB_SAMPLES * 8 + 4)
+        cut = max(1, min(S, REFINE_SUB_BYTES // per_system))
+        flags = d.buffer("refine_flags", S * P)
+        sub = [d.buffer("refine_sub_v", cut * P * row * 8), d.buffer("refine_sub_s", cut * P * row * 4),
+               d.buffer("refine_sub_l", cut * P * row * 8), d.buffer("refine_sub_pin", cut * P * SUB_SAMPLES * 8)]
+        sub_dets = d.buffer("refine_sub_dets", cut * P * 4)
+        for s0 in range(0, S, cut):
+            m = min(cut, S - s0)
+            system_args = (*args, refinable_buf, pieces, np.int32(s0), np.int32(m), sg, lg, nv_buf, roots_buf, piece_buf,
+                           productive, np.int32(cap), found)
+            d.launch(self.k["refine_flags"], "kernel refine_flags", m, self.local, *system_args, flags, refine_dets)
+            d.launch(self.k["refine_samples"], "kernel refine_samples", m * P, self.local, *system_args, flags, *sub,
+                     sub_dets)
+            d.launch(self.k["refine_assemble"], "kernel refine_assemble", m, self.local, *system_args, flags, *sub,
+                     sub_dets, found_count, refine_dets)
         d.launch(self.k["candidates_refined"], "kernel candidates_refined", n, self.local, self.coef_buf, sysint7_buf,
                  self.stride, self.b_offset, *tuples, nv_buf, scan_dets, np.int32(cap), found, found_count, refine_dets,
                  uv_buf, meta_buf, count_buf, stats_buf, pn)

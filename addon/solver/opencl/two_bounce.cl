@@ -14,8 +14,9 @@
 //   scan_pins          each sign change of a live piece pinned to ROOT_TOL by Illinois;
 //   scan_roots         each system's roots in piece order (find_v_roots' list);
 //   candidates_scan    per tuple, the candidates at its systems' scan roots (stage C);
-//   refine_systems     refine_v_roots (REFINE_LEVELS = 1) per system: ghost samples, kink
-//                      flags, sub-samples, pins, one-signed dips;
+//   refine_flags       refine_v_roots (REFINE_LEVELS = 1) per system: ghost samples, kink flags;
+//   refine_samples     per flagged piece: its sub-samples, Illinois pins of new sign changes;
+//   refine_assemble    per system: pins, deflation, one-signed dips (resolve_dip), in piece order;
 //   candidates_refined per tuple, the candidates at the refined roots, the seeded polish, the
 //                      straight line and the statistics (stage E);
 //   det_batch          sign and log|det| at given (system, v) jobs (the tests' probe).
@@ -437,119 +438,201 @@ static bool piece_flagged(const Roots *R, __global const int *sg, __global const
     return false;
 }
 
-// refine_v_roots at REFINE_LEVELS = 1, one work-item per system (most systems have no flagged
-// piece): the ghost samples, the flags, and per flagged piece (runs of them share their end
-// samples) the SUB_SAMPLES sub-pieces, new sign changes pinned, one-signed dips resolved.
-// The new roots go to found[s * cap ..], count[s] of them; -1 when within 2 of cap (a dip adds
-// two at once): the host refines that system again with the full capacity.
-__kernel void refine_systems(__global const double *coef, __global const int *sysint, const int stride, const int b_offset,
-                             __global const char *live_all, __global const double *margins, __global const char *refined,
-                             const int pieces, const int n_sys, __global const int *sg_all, __global const double *lg_all,
-                             __global const int *nv_all, __global const double *roots_all,
-                             __global const int *piece_of_all, __global const char *productive_all, const int cap_new,
-                             __global double *found_all, __global int *found_count, __global int *dets_out) {
-    int s = get_global_id(0);
-    if (s >= n_sys) return;
-    found_count[s] = 0;
-    dets_out[s] = 0;
-    if (!refined[s]) return;
-    System S = load_system(coef, sysint, stride, b_offset, s);
-    long p0 = (long)s * pieces, q0 = (long)s * (pieces + 1);
-    __global const char *live = live_all + p0;
-    __global const char *productive = productive_all + p0;
-    __global const int *piece_of = piece_of_all + p0;
-    __global const int *sg = sg_all + q0;
-    __global const double *lg = lg_all + q0;
-    double margin = margins[s];
-    Roots R;
-    R.scan = roots_all + p0;
-    R.found = found_all + (long)s * cap_new;
-    R.nv = nv_all[s];
-    int cap = R.nv + cap_new;
-    int dets = 0;
-    double v0 = scan_v(margin, pieces, 0), vP = scan_v(margin, pieces, pieces);
-    double h = scan_v(margin, pieces, 1) - v0;
-    double g_lo = 0.0, g_hi = 0.0;
-    if (live[0]) det_checked(&S, v0 - h, &g_lo, &dets);
-    if (live[pieces - 1]) det_checked(&S, vP + h, &g_hi, &dets);
-    g_lo = deflate(v0 - h, g_lo, &R, R.nv);
-    g_hi = deflate(vP + h, g_hi, &R, R.nv);
+// refine_v_roots at REFINE_LEVELS = 1 in three kernels, so that the determinants of the
+// sub-samples run one work-item per flagged piece: refine_flags (per system: the ghost samples,
+// the flags), refine_samples (per flagged piece: its sub-samples and the Illinois pins of their
+// new sign changes), refine_assemble (per system, in piece order: the pins taken, log|det|
+// deflated by every root so far, one-signed dips resolved), as _refine_interval does them.  The
+// kernels run over the systems [s0, s0 + n_sys) of the batch (the host cuts the batch so that
+// the sub-samples of a cut fit its buffers); sub-sample storage is per piece of the cut:
+// SUB_ROW = SUB_SAMPLES + 3 samples (0: the one before the piece, 1 .. M + 1 the piece's,
+// M + 2: the one after it), SUB_SAMPLES pins.
+#define SUB_ROW (SUB_SAMPLES + 3)
 
+typedef struct {
+    System S;
+    Roots R;
+    __global const char *live, *productive;
+    __global const int *piece_of, *sg;
+    __global const double *lg;
+    double margin;
+} RefineSystem;
+
+static RefineSystem refine_system(__global const double *coef, __global const int *sysint, int stride, int b_offset,
+                                  __global const char *live_all, __global const double *margins, int pieces,
+                                  __global const int *sg_all, __global const double *lg_all, __global const int *nv_all,
+                                  __global const double *roots_all, __global const int *piece_of_all,
+                                  __global const char *productive_all, int cap_new, __global double *found_all, int s) {
+    RefineSystem F;
+    long p0 = (long)s * pieces, q0 = (long)s * (pieces + 1);
+    F.S = load_system(coef, sysint, stride, b_offset, s);
+    F.live = live_all + p0;
+    F.productive = productive_all + p0;
+    F.piece_of = piece_of_all + p0;
+    F.sg = sg_all + q0;
+    F.lg = lg_all + q0;
+    F.margin = margins[s];
+    F.R.scan = roots_all + p0;
+    F.R.found = found_all + (long)s * cap_new;
+    F.R.nv = nv_all[s];
+    return F;
+}
+
+#define REFINE_SYSTEM_ARGS __global const double *coef, __global const int *sysint, const int stride, \
+    const int b_offset, __global const char *live_all, __global const double *margins, \
+    __global const char *refined, const int pieces, const int s0, const int n_sys, __global const int *sg_all, \
+    __global const double *lg_all, __global const int *nv_all, __global const double *roots_all, \
+    __global const int *piece_of_all, __global const char *productive_all, const int cap_new, \
+    __global double *found_all
+#define REFINE_SYSTEM(s) refine_system(coef, sysint, stride, b_offset, live_all, margins, pieces, sg_all, lg_all, \
+    nv_all, roots_all, piece_of_all, productive_all, cap_new, found_all, s)
+
+// refine_v_roots up to refine_flags_one: the ghost samples a piece outside either end (where
+// that end's piece is live), the kink / productive flags of the pieces; dets_out[s] = the
+// ghosts' determinants.
+__kernel void refine_flags(REFINE_SYSTEM_ARGS, __global char *flags, __global int *dets_out) {
+    int i = get_global_id(0);
+    if (i >= n_sys) return;
+    int s = s0 + i;
+    dets_out[s] = 0;
+    for (int k = 0; k < pieces; ++k) flags[(long)s * pieces + k] = 0;
+    if (!refined[s] || nv_all[s] < 0) return;
+    RefineSystem F = REFINE_SYSTEM(s);
+    int dets = 0;
+    double v0 = scan_v(F.margin, pieces, 0), vP = scan_v(F.margin, pieces, pieces);
+    double h = scan_v(F.margin, pieces, 1) - v0;
+    double g_lo = 0.0, g_hi = 0.0;
+    if (F.live[0]) det_checked(&F.S, v0 - h, &g_lo, &dets);
+    if (F.live[pieces - 1]) det_checked(&F.S, vP + h, &g_hi, &dets);
+    g_lo = deflate(v0 - h, g_lo, &F.R, F.R.nv);
+    g_hi = deflate(vP + h, g_hi, &F.R, F.R.nv);
+    for (int k = 0; k < pieces; ++k)
+        flags[(long)s * pieces + k] = piece_flagged(&F.R, F.sg, F.lg, F.live, F.productive, F.piece_of, F.margin, pieces,
+                                                    g_lo, g_hi, k);
+    dets_out[s] = dets;
+}
+
+// _refine_interval's samples of one flagged piece k (the ends are scan samples, taken as they
+// are; the one before it only for the first piece of a run, the one after it for the last) and
+// the Illinois pins of its new sign changes (none in a noisy piece, none around a scan root);
+// NAN where a sub-piece has no pin.
+__kernel void refine_samples(REFINE_SYSTEM_ARGS, __global const char *flags, __global double *sub_v,
+                             __global int *sub_s, __global double *sub_l, __global double *sub_pin,
+                             __global int *sub_dets) {
+    long i = get_global_id(0);
+    if (i >= (long)n_sys * pieces) return;
+    int s = s0 + (int)(i / pieces), k = (int)(i % pieces);
+    sub_dets[i] = 0;
+    __global const char *fl = flags + (long)s * pieces;
+    if (!fl[k]) return;
+    RefineSystem F = REFINE_SYSTEM(s);
     const int M = SUB_SAMPLES;
-    double sv[SUB_SAMPLES + 3], sl[SUB_SAMPLES + 3];
-    int ss[SUB_SAMPLES + 3];
-    int count = R.nv;
-    bool carry = false;
-    double cv = 0.0, cl = 0.0;
-    int cs = 0;
-    bool flag_next = piece_flagged(&R, sg, lg, live, productive, piece_of, margin, pieces, g_lo, g_hi, 0);
+    __global double *sv = sub_v + i * SUB_ROW, *sl = sub_l + i * SUB_ROW;
+    __global int *ss = sub_s + i * SUB_ROW;
+    int dets = 0;
+    double lo = scan_v(F.margin, pieces, k), hi = scan_v(F.margin, pieces, k + 1);
+    double hh = (hi - lo) / M;
+    for (int j = 0; j <= M; ++j) {
+        double v = j == M ? hi : lo + j * hh, l;
+        int g;
+        if (j == 0 && F.sg[k] != 2) { g = F.sg[k]; l = F.lg[k]; }
+        else if (j == M && F.sg[k + 1] != 2) { g = F.sg[k + 1]; l = F.lg[k + 1]; }
+        else g = det_checked(&F.S, v, &l, &dets);
+        sv[j + 1] = v;
+        ss[j + 1] = g;
+        sl[j + 1] = l;
+    }
+    double l;
+    if (k == 0 || !fl[k - 1]) {
+        sv[0] = lo - hh;
+        ss[0] = det_checked(&F.S, lo - hh, &l, &dets);
+        sl[0] = l;
+    }
+    if (k + 1 == pieces || !fl[k + 1]) {
+        sv[M + 2] = hi + hh;
+        ss[M + 2] = det_checked(&F.S, hi + hh, &l, &dets);
+        sl[M + 2] = l;
+    }
+    __global double *pins = sub_pin + i * SUB_SAMPLES;
+    int changes = 0;
+    for (int j = 1; j <= M; ++j) {
+        pins[j - 1] = NAN;
+        if (ss[j] != ss[j + 1]) changes += 1;
+    }
+    if (changes <= NOISY_CHANGES)
+        for (int j = 1; j <= M; ++j) {
+            if (ss[j] != ss[j + 1] && ss[j] != 0 && ss[j + 1] != 0) {
+                bool known = false;
+                for (int q = 0; q < F.R.nv; ++q)
+                    if (F.R.scan[q] >= sv[j] && F.R.scan[q] <= sv[j + 1]) known = true;
+                if (!known) pins[j - 1] = illinois(&F.S, sv[j], sv[j + 1], ss[j], sl[j], sl[j + 1], &dets);
+            }
+        }
+    sub_dets[i] = dets;
+}
+
+// _refine_interval's bookkeeping per system, pieces ascending: a run's inner piece takes the
+// previous piece's last sub-sample as its left neighbour; the pins are appended; the samples'
+// log|det| deflated by every root so far; a one-signed dip resolved (resolve_dip) or, at the
+// rounding floor, its deepest sample taken.  The new roots go to found[s * cap ..],
+// found_count[s] of them; -1 when within 2 of cap (a dip adds two at once): the tuple is solved
+// on the host.  dets_out[s] += the sub-samples', pins' and dips' determinants.
+__kernel void refine_assemble(REFINE_SYSTEM_ARGS, __global const char *flags, __global const double *sub_v,
+                              __global const int *sub_s, __global const double *sub_l, __global const double *sub_pin,
+                              __global const int *sub_dets, __global int *found_count, __global int *dets_out) {
+    int i = get_global_id(0);
+    if (i >= n_sys) return;
+    int s = s0 + i;
+    found_count[s] = 0;
+    if (!refined[s] || nv_all[s] < 0) return;
+    RefineSystem F = REFINE_SYSTEM(s);
+    const int M = SUB_SAMPLES;
+    __global const char *fl = flags + (long)s * pieces;
+    double sv[SUB_ROW], sl[SUB_ROW];
+    int ss[SUB_ROW];
+    int count = F.R.nv, cap = F.R.nv + cap_new, dets = 0;
     for (int k = 0; k < pieces; ++k) {
-        bool flag = flag_next;
-        flag_next = k + 1 < pieces && piece_flagged(&R, sg, lg, live, productive, piece_of, margin, pieces, g_lo, g_hi, k + 1);
-        if (!flag) {
-            carry = false;
-            continue;
+        if (!fl[k]) continue;
+        long row = (long)i * pieces + k;
+        bool has_right = k + 1 == pieces || !fl[k + 1];
+        for (int j = 1; j <= M + 1; ++j) {
+            sv[j] = sub_v[row * SUB_ROW + j];
+            ss[j] = sub_s[row * SUB_ROW + j];
+            sl[j] = sub_l[row * SUB_ROW + j];
         }
-        bool has_right = !flag_next;  // the last piece of its run
-        // _refine_interval at its only level: samples 1 .. M + 1, the one before at 0, after at M + 2
-        double lo = scan_v(margin, pieces, k), hi = scan_v(margin, pieces, k + 1);
-        double hh = (hi - lo) / M;
-        for (int j = 0; j <= M; ++j) {
-            double v = j == M ? hi : lo + j * hh;
-            int g;
-            double l;
-            if (j == 0 && sg[k] != 2) { g = sg[k]; l = lg[k]; }
-            else if (j == M && sg[k + 1] != 2) { g = sg[k + 1]; l = lg[k + 1]; }
-            else g = det_checked(&S, v, &l, &dets);
-            sv[j + 1] = v;
-            ss[j + 1] = g;
-            sl[j + 1] = l;
-        }
-        if (carry) {
-            sv[0] = cv;
-            ss[0] = cs;
-            sl[0] = cl;
-        } else {
-            sv[0] = lo - hh;
-            ss[0] = det_checked(&S, lo - hh, &sl[0], &dets);
-        }
+        long left = k > 0 && fl[k - 1] ? (row - 1) * SUB_ROW + M : row * SUB_ROW;  // carry, or its own
+        sv[0] = sub_v[left];
+        ss[0] = sub_s[left];
+        sl[0] = sub_l[left];
         if (has_right) {
-            sv[M + 2] = hi + hh;
-            ss[M + 2] = det_checked(&S, hi + hh, &sl[M + 2], &dets);
+            sv[M + 2] = sub_v[row * SUB_ROW + M + 2];
+            ss[M + 2] = sub_s[row * SUB_ROW + M + 2];
+            sl[M + 2] = sub_l[row * SUB_ROW + M + 2];
         }
-        carry = true;
-        cv = sv[M];
-        cs = ss[M];
-        cl = sl[M];
+        dets += sub_dets[row];
         int changes = 0;
         for (int j = 1; j <= M; ++j)
             if (ss[j] != ss[j + 1]) changes += 1;
         if (changes > NOISY_CHANGES) continue;
         for (int j = 1; j <= M; ++j) {
-            if (ss[j] != ss[j + 1] && ss[j] != 0 && ss[j + 1] != 0 && count < cap) {
-                bool known = false;
-                for (int i = 0; i < R.nv; ++i)
-                    if (R.scan[i] >= sv[j] && R.scan[i] <= sv[j + 1]) known = true;
-                if (!known) {
-                    double r = illinois(&S, sv[j], sv[j + 1], ss[j], sl[j], sl[j + 1], &dets);
-                    push_root(&R, &count, r);
-                }
-            }
+            double pin = sub_pin[row * SUB_SAMPLES + j - 1];
+            if (!isnan(pin) && count < cap) push_root(&F.R, &count, pin);
         }
         int j_hi = has_right ? M + 2 : M + 1;
-        for (int j = 0; j <= j_hi; ++j) sl[j] = deflate(sv[j], sl[j], &R, count);
+        for (int j = 0; j <= j_hi; ++j) sl[j] = deflate(sv[j], sl[j], &F.R, count);
         for (int j = 1; j <= (has_right ? M + 1 : M); ++j) {
             if (count < cap && sl[j - 1] + sl[j + 1] - 2.0 * sl[j] > KINK && ss[j] == ss[j - 1] && ss[j] == ss[j + 1] &&
                 ss[j] != 0 && sl[j] < sl[j - 1] && sl[j] < sl[j + 1]) {
                 if ((j - 2 < 0 || sl[j - 2] >= sl[j - 1]) && (j + 2 > j_hi || sl[j + 2] >= sl[j + 1]))
-                    resolve_dip(&S, sv[j - 1], sv[j], sv[j + 1], ss[j], sl[j - 1], sl[j], sl[j + 1], &R, cap, &count, &dets);
+                    resolve_dip(&F.S, sv[j - 1], sv[j], sv[j + 1], ss[j], sl[j - 1], sl[j], sl[j + 1], &F.R, cap, &count,
+                                &dets);
                 else
-                    push_root(&R, &count, sv[j]);  // log|det| at its rounding floor: the deepest sample as it is
+                    push_root(&F.R, &count, sv[j]);  // log|det| at its rounding floor: the deepest sample as it is
             }
         }
     }
-    found_count[s] = count + 2 > cap ? -1 : count - R.nv;
-    dets_out[s] = dets;
+    found_count[s] = count + 2 > cap ? -1 : count - F.R.nv;
+    dets_out[s] += dets;
 }
 
 // ---- candidates and path-space polish (stages C and E of staged.py; solve.py's candidates_at) ----

@@ -7,9 +7,9 @@
 One bounce (R, T; random and planted workloads of bench/workloads.py, the tuples of
 bench/solver.py): host checks and packing, host→device writes, the accumulator fill, the
 kernel, device→host read-back (OpenCL profiling events), the host sort into canonical order,
-and the rest of the wall time.  Two bounces (RR, RT, TR, TT): the Numba stages of
-``two_bounce.staged`` (A; the one-kernel path for the tuples left to the host), the numpy glue,
-and inside the device call (stages B-E) the writes, each kernel and the read-back, with the
+and the rest of the wall time.  Two bounces (RR, RT, TR, TT): inside the device call (stages
+A-E of ``two_bounce.staged``) the writes, each kernel and the read-backs, the one-kernel path
+on Numba for the tuples left to the host, the numpy glue, with the
 number of launches and of host waits.  Every row gives the OpenCL wall time (best of
 --repeats, profiling off), the Numba wall time on the same tuples (all threads) and their
 ratio, and whether the paths are the same.
@@ -104,7 +104,7 @@ def profiled_run(index, solve, chain):
         timer.wrap(api, "compact_paths", "compact")
         for name, label in (("stage_a", "A"), ("solve_on_host", "host"), ("_solve_batch", "batch")):
             timer.wrap(two_bounce_staged, name, label)
-        timer.wrap(opencl_backend.OpenCLSystemSolver, "solve_systems", "device calls")
+        timer.wrap(opencl_backend.OpenCLSystemSolver, "solve_batch", "device calls")
     opencl_backend.set_profiling(index, prof)
     try:
         t0 = time.perf_counter()
@@ -193,12 +193,13 @@ ONE_COLUMNS = (("validate", "check inputs"), ("pack", "pack"), ("host->device", 
                ("kernel one_bounce filter", "filter kernel"), ("kernel one_bounce solve", "solve kernel"),
                ("kernel compaction", "prefix sums, scatter"), ("kernel gather", "gather kernel"), ("device->host", "device→host"), ("unpack", "unpack"),
                ("sort", "sort paths"))
-TWO_DEVICE = (("kernel scan_samples", "scan samples kernel"), ("kernel scan_degenerate", "degenerate kernel"),
+TWO_DEVICE = (("kernel stage_a", "stage A kernel"), ("kernel gather_systems", "gather kernel"),
+              ("kernel scan_samples", "scan samples kernel"), ("kernel scan_degenerate", "degenerate kernel"),
               ("kernel scan_pins", "Illinois pins kernel"), ("kernel scan_roots", "root lists kernel"),
               ("kernel candidates_scan", "candidates kernel (C)"), ("kernel refine_flags", "refine flags kernel"),
               ("kernel refine_samples", "refine sub-samples kernel"), ("kernel refine_assemble", "refine assembly kernel"),
               ("kernel candidates_refined", "candidates kernel (E)"))
-TWO_COLUMNS = ((("validate", "check inputs"), ("A", "stage A (Numba)"), ("host->device", "host→device"))
+TWO_COLUMNS = ((("validate", "check inputs"), ("A", "stage A on Numba (CPU devices)"), ("host->device", "host→device"))
                + TWO_DEVICE + (("device->host", "device→host"), ("host", "one-kernel tuples (Numba)"),
                                ("compact", "compact")))
 
@@ -220,9 +221,9 @@ def one_bounce_line(r):
 
 def two_bounce_line(r):
     st = r["stages"]
-    glue = st.get("batch", 0.0) - sum(st.get(k, 0.0) for k in ("A", "host", "device calls"))
+    glue = st.get("batch", 0.0) - sum(st.get(k, 0.0) for k in ("host", "device calls"))
     device = ("host->device", "device->host") + tuple(k for k, _ in TWO_DEVICE)
-    calls_other = st.get("device calls", 0.0) - sum(st.get(k, 0.0) for k in device)
+    calls_other = st.get("device calls", 0.0) - sum(st.get(k, 0.0) for k in device + ("A",))
     n = r["tuples"]
     return (f"| {r['chain']} | {r['workload']} | {n:,} | {r['paths']:,} | "
             + " | ".join(ms(st.get(k, 0.0)) for k, _ in TWO_COLUMNS)
@@ -288,8 +289,9 @@ def main():
         lines += [one_bounce_line(r) for r in one]
         lines.append("")
     if two:
-        lines.append("Two bounces (staged: systems built on Numba; the resultant scan, candidates, polish and "
-                     "refinement on the device, one wait a batch; `two_bounce/staged.py`): times in ms for the batch. \"device calls, rest\" = host time inside "
+        lines.append("Two bounces (staged, `two_bounce/staged.py`: the systems (stage A: on Numba beside a CPU "
+                     "device, on the device otherwise), the resultant scan, the candidates' polish and the refinement "
+                     "on the device): times in ms for the batch. \"device calls, rest\" = host time inside "
                      "the device calls beyond their commands' device time (Python, waits); \"numpy glue\" = the "
                      "staging's array work between stages.")
         lines.append("")
@@ -310,7 +312,7 @@ def main():
 def profile_index():
     """The BENCHMARKS.md section: where the stage-by-stage pages are, one line each."""
     lines = ["Where the time of an OpenCL solve goes (host checks, transfers, each kernel by profiling events, "
-             "the Numba stages between two-bounce kernels), next to Numba on the same tuples; one page per kind of "
+             "the two-bounce kernels stage by stage), next to Numba on the same tuples; one page per kind of "
              "device, each written by the last run on it:", ""]
     for kind, label in (("cpu", "CPU (PoCL)"), ("gpu", "GPU")):
         page = os.path.join(ROOT, "bench", "results", f"opencl_profile_{kind}.md")

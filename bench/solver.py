@@ -205,8 +205,8 @@ def opencl_lines(opencl_rows, threads_all, args):
                  "runs as a filter stage, prefix sums, a solve over the surviving tuples and a gather in canonical order "
                  "(`bench/opencl_shapes.py` compares the launch shapes: bench/results/opencl_shapes_{cpu,gpu}.md).")
     lines.append("")
-    lines.append("Two bounces on OpenCL: systems built on Numba; the resultant scan over the Bézout determinants, "
-                 "the candidates' polish in path space and the refinement on the device, one wait a batch "
+    lines.append("Two bounces on OpenCL: the systems (on a CPU device built on Numba beside it), the resultant scan "
+                 "over the Bézout determinants, the candidates' polish in path space and the refinement on the device "
                  "(`addon/solver/spoly/two_bounce/staged.py`, `addon/solver/opencl/two_bounce.cl`); "
                  "the determinant counts differ by under 1 % (log/exp of two compilers: an Illinois step now and then), "
                  "the paths do not. "

@@ -92,7 +92,9 @@ def test_zip_contents(zips):
                          "addon/ui/properties.py", "addon/ui/state.py", "addon/solver/runtime/jit.py",
                          "addon/solver/opencl/one_bounce.cl", "addon/solver/opencl/two_bounce.cl",
                          "addon/solver/opencl/scan.cl", "addon/solver/opencl/trace.cl", "addon/solver/opencl/roots.cl",
-                         "addon/solver/opencl/two_vertex.cl"):
+                         "addon/solver/opencl/two_vertex.cl", "addon/solver/opencl/biv.cl", "addon/solver/opencl/frame.cl",
+                         "addon/solver/opencl/system.cl", "addon/solver/opencl/prepass.cl",
+                         "addon/solver/opencl/stage_a.cl"):
             assert required in names, (platform, required)
         # Nothing from development.
         for name in names:

@@ -1,7 +1,7 @@
 """The two-bounce OpenCL path (RR, RT, TR, TT) returns the Numba back end's paths.
 
-device="opencl" runs the staged pipeline of addon/solver/spoly/two_bounce/staged.py: systems built
-on Numba (stage A); the resultant scan over the Bézout determinants (Fan et al. 2024, eq 29:
+device="opencl" runs the staged pipeline of addon/solver/spoly/two_bounce/staged.py: the systems
+(stage A: on the device on GPUs, on Numba beside CPU devices, both tested here); the resultant scan over the Bézout determinants (Fan et al. 2024, eq 29:
 samples, Illinois pins, root lists), its refinement (§4.2) and the candidates' back-substitution
 and path-space polish (§4.3) on the device (addon/solver/opencl/two_bounce.cl).  PoCL on the CPU
 in CI; tests that need a device skip without one.  Tuples: bench/workloads.py (planted_two_bounce, random_two_bounce) and
@@ -117,11 +117,35 @@ def test_staged_pipeline_on_numba_is_the_one_kernel_solver(chain, monkeypatch):
 
 @pytest.mark.opencl
 @pytest.mark.slow  # builds the two-bounce OpenCL kernels
+@pytest.mark.parametrize("chain", CHAINS)
+def test_opencl_stage_a_on_the_device_returns_the_numba_paths(chain, monkeypatch):
+    """The whole pipeline on the device, the systems too (stage_a.cl: frame.cl, system.cl,
+    prepass.cl; what GPUs run, CPUs build the systems on Numba by default): the one-kernel
+    solver's paths and counts, also with small batches and tuples pushed to the host's
+    one-kernel path (sys_cap=1)."""
+    index = opencl_device_or_skip()
+    from addon.solver.opencl.backend import OpenCLSystemSolver
+
+    monkeypatch.setenv("CAUSTIC_OPENCL_STAGE_A", "device")
+    x0, x3, P, N, eta = _tuples(chain, 12)
+    expected = SpecularPolynomialSolver().solve(chain, x0, x3, P, N, eta)
+    rep = expected.report
+    assert rep.paths >= 12
+    for kwargs in ({}, {"batch": 7, "sys_cap": 1}):
+        ti, uv, totals = _solve_staged(OpenCLSystemSolver(index), chain, x0, x3, P, N, eta, **kwargs)
+        np.testing.assert_array_equal(ti, expected.tuple_index)
+        np.testing.assert_allclose(uv, expected.uv, rtol=0, atol=1e-9)
+        assert (totals[2], totals[3]) == (rep.paths, rep.skipped), kwargs
+        assert abs(int(totals[4]) - rep.determinants) <= 0.02 * rep.determinants + 5, kwargs
+
+
+@pytest.mark.opencl
+@pytest.mark.slow  # builds the two-bounce OpenCL kernels
 def test_opencl_refinement_in_cuts_and_overflow_on_the_host(monkeypatch):
-    """The refinement run over the batch's systems in cuts of 3 (its sub-sample storage made
-    that small), and a tuple with a system whose refined roots exceed the device's capacity
-    (here 2 a system) left to the host's one-kernel path: the paths and counts stay the
-    one-kernel solver's."""
+    """Stage A in launches of 5 tuples and the refinement over the batch's systems in cuts of
+    3 (their scratch made that small), and a tuple with a system whose refined roots exceed
+    the device's capacity (here 2 a system) left to the host's one-kernel path: the paths and
+    counts stay the one-kernel solver's."""
     index = opencl_device_or_skip()
     from addon.solver.opencl.backend import OpenCLSystemSolver
     from addon.solver.spoly.two_bounce import staged
@@ -135,6 +159,8 @@ def test_opencl_refinement_in_cuts_and_overflow_on_the_host(monkeypatch):
     from addon.solver.spoly.two_bounce.params import SUB_SAMPLES
 
     monkeypatch.setattr(opencl_backend, "REFINE_SUB_BYTES", 3 * 100 * ((SUB_SAMPLES + 3) * 20 + SUB_SAMPLES * 8 + 4))
+    monkeypatch.setattr(opencl_backend, "STAGE_A_SCRATCH_BYTES", 5 << 20)  # stage A in launches of 5 tuples
+    monkeypatch.setenv("CAUSTIC_OPENCL_STAGE_A", "device")
     ti, uv, totals = _solve_staged(OpenCLSystemSolver(index), "RT", x0, x3, P, N, eta)
     assert 0 < len(on_host) < x0.shape[0], "a capacity of 2 should overflow some tuples' refinement, not all"
     np.testing.assert_array_equal(ti, expected.tuple_index)

@@ -3,10 +3,11 @@
 One bounce: the kernel (``opencl/one_bounce.cl``) is the Numba pipeline of ``one_bounce.py``
 written in OpenCL C, step for step, so both return the same paths.  Two bounces: the
 pipeline of ``spoly/two_bounce`` runs in stages over a batch (``two_bounce/staged.py``): the
-systems are built on Numba; the resultant scan over the Bézout determinants (Fan et al. 2024,
-eq 29: samples, degeneracy, Illinois pins, root lists), the candidates' back-substitution and
-path-space polish, the refinement and the candidates at the refined roots run on the device
-(``opencl/two_bounce.cl``, with ``roots.cl`` and ``two_vertex.cl``), the host waiting once.
+systems' construction and (u1, v1) pre-pass (``stage_a.cl`` with ``frame.cl``, ``system.cl``,
+``prepass.cl``; on CPU devices Numba beside it), the resultant scan over the Bézout
+determinants (Fan et al. 2024, eq 29: samples, degeneracy, Illinois pins, root lists), the
+candidates' back-substitution and path-space polish, the refinement and the candidates at the
+refined roots (``two_bounce.cl`` with ``roots.cl`` and ``two_vertex.cl``) on the device.
 
 Host side: each device keeps its context, queue, programs and device buffers (grow-only, by
 role) between calls; inputs are written without waiting.  One-bounce tuples come as rows
@@ -15,7 +16,7 @@ once (:func:`one_bounce_table`, :func:`solve_one_bounce_pairs`).  Its output is 
 the device: on CPUs one kernel appends path records by an atomic counter (the host sorts
 them); on GPUs a filter stage, prefix sums (``scan.cl``), a solve over the surviving tuples
 only (full warps) and a gather write them in canonical order.  A two-bounce batch waits
-once, for its paths.  Work-groups are small on CPUs and several warps on GPUs (:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
+twice: for its systems' counts, for its paths.  Work-groups are small on CPUs and several warps on GPUs (:meth:`_Device.work_group`).  A :class:`Profiler` attached with :func:`set_profiling`
 records the device time of every command and the host steps (``bench/opencl_profile.py``).
 
 Double precision is required: a
@@ -57,8 +58,12 @@ PATH_RECORDS_MIN = 1024
 N_SLOTS = 1024
 _cache = {}  # device index -> _Device
 _cache2 = {}  # device index -> its two-bounce kernels ({name: kernel}, local size)
-TWO_BOUNCE_KERNELS = ("det_batch", "scan_samples", "scan_degenerate", "scan_pins", "scan_roots", "refine_flags",
-                      "refine_samples", "refine_assemble", "candidates_scan", "candidates_refined")
+TWO_BOUNCE_KERNELS = ("det_batch", "stage_a", "gather_systems", "scan_samples", "scan_degenerate", "scan_pins",
+                      "scan_roots", "refine_flags", "refine_samples", "refine_assemble", "candidates_scan",
+                      "candidates_refined")
+# Stage A's bivariate scratch on the device (N_SLOTS x 48 x 48 doubles, ~1 MB a work-item): a
+# batch's tuples run in launches of as many work-items as this holds.
+STAGE_A_SCRATCH_BYTES = 256 << 20
 # The refinement's per-piece sub-samples and pins held on the device at once (two_bounce.cl
 # refine_samples): the systems of a batch are refined in cuts whose storage fits this.
 REFINE_SUB_BYTES = 64 << 20
@@ -161,6 +166,11 @@ class _Device:
         with open(path) as f:
             source = f.read()
         source = _with_includes(source, os.path.dirname(path))
+        if "// @TWO_BOUNCE_TABLES@" in source:
+            lines = source.split("\n")
+            at = next(i for i, line in enumerate(lines) if line.startswith("// @TWO_BOUNCE_TABLES@"))
+            lines[at] = two_bounce_tables()
+            source = "\n".join(lines)
         if "// @NODE_TABLES@" in source:
             lines = source.split("\n")
             at = next(i for i, line in enumerate(lines) if line.startswith("// @NODE_TABLES@"))
@@ -568,6 +578,16 @@ def _read_paths(d, m, tuple_buf, uv_buf):
 # --- two bounces --------------------------------------------------------------------------------
 
 
+def _stage_a_on_device(d):
+    """Whether the two-bounce systems (stage A) are built on the device d (GPUs) or on Numba
+    beside it (CPUs: the same cores, and Numba's vector kernels are ~2x faster than the
+    device's scalar code there).  CAUSTIC_OPENCL_STAGE_A=device or host overrides."""
+    forced = os.environ.get("CAUSTIC_OPENCL_STAGE_A")
+    if forced in ("device", "host"):
+        return forced == "device"
+    return not d.is_cpu
+
+
 def _two_bounce_defines():
     """two_bounce/params.py's constants that two_bounce.cl uses, as build options (exact:
     doubles as hexadecimal literals)."""
@@ -576,14 +596,39 @@ def _two_bounce_defines():
 
     out = []
     for name in ("ROOT_TOL", "KINK", "DIP_FLAT", "PRODUCTIVE_RADIUS", "B_RELATIVE", "ACCEPT_RESIDUAL", "SAME_PATH",
-                 "NEAR_PATH", "V_MARGIN_APPROX", "V_MARGIN_EXACT"):
+                 "NEAR_PATH", "V_MARGIN_APPROX", "V_MARGIN_EXACT", "LIVE_TOL", "HIT_MARGIN_EXACT", "HIT_MARGIN_APPROX",
+                 "HERON_TOL", "HERON_CUT"):
         out.append((name, float(getattr(params, name)).hex()))
     for name in ("SUB_SAMPLES", "NOISY_CHANGES", "DIP_STEPS", "POLISH_STEPS", "N_SEEDS", "MAX_PATHS_TWO_BOUNCE",
                  "BOTH_DIRECTIONS", "N_STATS", "STAT_ROOTS", "STAT_CANDIDATES", "STAT_PATHS", "STAT_SKIPPED", "STAT_DETS",
-                 "STAT_ACCEPTED", "STAT_NEAR"):
+                 "STAT_ACCEPTED", "STAT_NEAR", "MAXD", "N_SLOTS", "MAX_PIECES", "LIVE_DEPTH", "LIVE_DEPTH_LOW",
+                 "LIVE_LOW_DEGREE", "LIVE_PREPASS", "LIVE_SLOT0", "LIVE_STACK", "V_MAJOR_SLOT", "HIT_TEST", "HIT_SLOT",
+                 "BETA_SLOT", "BETA_GRID", "BETA_MASK_FROM", "SQRT_BANDS", "SQRT_BAND_REACH", "HERON_SQRT",
+                 "HERON_FIT_GRID", "HERON_CHECK_GRID"):
         out.append((name, int(getattr(params, name))))
     out.append(("MAX_DEGREE", int(MAX_DEGREE)))
+    out.append(("N_SQRT_PIECES", int(params.SQRT_PIECES.shape[0])))
+    out.append(("N_HERON_CUTS", int(params.HERON_CUTS.shape[0])))
     return out
+
+
+def two_bounce_tables():
+    """two_bounce/params.py's tables as OpenCL constants (hexadecimal doubles: exact):
+    SQRT_PIECES_T[N_SQRT_PIECES][5] (lo, hi, c0, c1, d1 of eq 23's pieces) and
+    HERON_CUTS_T[N_HERON_CUTS]; the two-bounce program says `// @TWO_BOUNCE_TABLES@` where
+    they go."""
+    from ..spoly.two_bounce import params
+
+    rows = ",\n".join("    {" + ", ".join(float(x).hex() for x in row) + "}" for row in params.SQRT_PIECES)
+    cuts = ", ".join(float(x).hex() for x in params.HERON_CUTS)
+    return (f"__constant double SQRT_PIECES_T[{params.SQRT_PIECES.shape[0]}][5] = {{\n{rows}\n}};\n"
+            f"__constant double HERON_CUTS_T[{params.HERON_CUTS.shape[0]}] = {{{cuts}}};\n")
+
+
+def two_bounce_defines():
+    """The build options two_bounce.cl needs (``-DNAME=value``), for test programs built from
+    its parts."""
+    return ["-cl-std=CL1.2"] + [f"-D{name}={value}" for name, value in _two_bounce_defines()]
 
 
 def _two_bounce_program(index):
@@ -608,13 +653,14 @@ def two_bounce_device_name(index):
 
 
 class OpenCLSystemSolver:
-    """Stages B-E of ``two_bounce.staged`` on an OpenCL device (``two_bounce.cl``): per batch
-    the systems (stage A's, from the host) and the tuples' geometry go up once; the resultant
-    scan (``find_v_roots``: samples, degeneracy, Illinois pins, root lists), the candidates at
-    the scan roots (stage C), the refinement (``refine_v_roots``) and the candidates at the
-    refined roots, seeded polish and straight line (stage E) run one after the other on the
-    device, and the host waits once, for the paths and statistics.  A tuple with a system
-    whose refined roots overflow the device's capacity is left to the host."""
+    """Stages A-E of ``two_bounce.staged`` on an OpenCL device: per batch the tuples go up once;
+    stage A builds the systems (``stage_a.cl``; on CPU devices Numba does, :func:`_stage_a_on_device`),
+    the resultant scan (``find_v_roots``: samples, degeneracy, Illinois pins, root lists), the
+    candidates at the scan roots (stage C), the refinement (``refine_v_roots``) and the
+    candidates at the refined roots, seeded polish and straight line (stage E) run one after
+    the other on the device (``two_bounce.cl``), and the host reads the paths and statistics.
+    A tuple with a system whose refined roots overflow the device's capacity is left to the
+    host."""
 
     def __init__(self, index):
         self.device = _two_bounce_program(index)
@@ -643,33 +689,114 @@ class OpenCLSystemSolver:
         if d.profiler is not None:
             d.profiler.syncs += 1
 
-    def solve_systems(self, b, out_uv, out_count, stats):
-        """Stages B-E of a ``staged.Systems`` batch on the device; fills the staged tuples'
-        out_uv, out_count, stats and returns the tuples left to the host (bool, (n,))."""
-        from ..spoly.two_bounce.params import REFINE_LEVELS
-        from ..spoly.two_bounce.staged import REFINE_BYTES, REFINE_CAP
+    def solve_batch(self, refract1, refract2, x_start, x_end, P, N, eta, pieces, stride, b_offset, sys_cap, out_uv,
+                    out_count, stats):
+        """Stages A-E of one batch of tuples (``staged._solve_batch``) on the device: stage A's
+        systems (stage_a.cl), one wait for the systems' counts, the staged systems gathered
+        tuple by tuple, then the scan, the candidates, the refinement and the candidates at the
+        refined roots (two_bounce.cl), one wait for the paths.  Fills out_uv, out_count, stats;
+        returns (state (n,): 0 nothing to solve, 1 solved here, 2 more than sys_cap systems;
+        left (n,) bool: tuples with a system whose refined roots overflowed the capacity),
+        the tuples of state 2 or left to be solved on the host."""
+        from ..spoly.two_bounce.params import MAX_PIECES, N_SLOTS, MAXD
 
-        d, S, P, n = self.device, b.S, int(b.pieces), b.x_start.shape[0]
+        d, n, pc = self.device, x_start.shape[0], int(pieces)
+        state = np.zeros(n, dtype=np.int8)
         left = np.zeros(n, dtype=bool)
         if not n:
-            return left
-        self.load(b.coef, b.sysint3, b.b_offset, b.live_mask, b.margin, P)
-        ps, pieces, pn = np.int32(S), np.int32(P), np.int32(n)
-        r1, r2 = np.int32(bool(b.refract1)), np.int32(bool(b.refract2))
-        sysint = b.sysint
-        solve = sysint[:, 1] == 1
-        refinable = solve & ((sysint[:, 0] & 2) == 0)  # the TIR fallback's system is not refined
-        cap = min(REFINE_CAP, max(32, REFINE_BYTES // (8 * max(S, 1))))
+            return state, left
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
         w = d.write
-        solve_buf = w("solve", solve.astype(np.int8))
-        refinable_buf = w("refined", (refinable if REFINE_LEVELS else np.zeros(S, dtype=bool)).astype(np.int8))
-        sysint7_buf = w("sysint7", np.ascontiguousarray(sysint, dtype=np.int32))
-        first_buf = w("sys_first", np.ascontiguousarray(b.sys_first, dtype=np.int32))
-        state_buf = w("state", np.ascontiguousarray(b.state, dtype=np.int8))
-        tuple_bufs = [w("x_start", f64(b.x_start)), w("x_end", f64(b.x_end)), w("P", f64(b.P)), w("N", f64(b.N)),
-                      w("eta", f64(b.eta))]
-        stats_buf = w("stats", np.ascontiguousarray(stats, dtype=np.int64))
+        self.tuple_bufs = [w("x_start", f64(x_start)), w("x_end", f64(x_end)), w("P", f64(P)), w("N", f64(N)),
+                           w("eta", f64(eta))]
+        if not _stage_a_on_device(d):
+            return self._stage_a_on_host(refract1, refract2, x_start, x_end, P, N, eta, pc, stride, b_offset, sys_cap,
+                                         out_uv, out_count, stats)
+        coef_all = d.buffer("stage_a_coef", n * sys_cap * stride * 8)
+        sysint_all = d.buffer("stage_a_sysint", n * sys_cap * 7 * 4)
+        live_all = d.buffer("stage_a_live", n * sys_cap * max(pc, 1))
+        nsys_buf = d.buffer("stage_a_nsys", n * 4)
+        state_buf = d.buffer("state", n)
+        self.stats_buf = d.buffer("stats", n * stats.shape[1] * 8)
+        per_item = N_SLOTS * (MAXD + 1) ** 2 * 8
+        items = max(1, min(n, STAGE_A_SCRATCH_BYTES // per_item))
+        scratch = d.buffer("stage_a_scratch", items * per_item)
+        live_scratch = d.buffer("stage_a_live_scratch", items * MAX_PIECES)
+        for t0 in range(0, n, items):
+            d.launch(self.k["stage_a"], "kernel stage_a", min(items, n - t0), self.local, np.int32(bool(refract1)),
+                     np.int32(bool(refract2)), *self.tuple_bufs, np.int32(b_offset), np.int32(stride), np.int32(sys_cap),
+                     np.int32(pc), np.int32(t0), np.int32(min(items, n - t0)), coef_all, sysint_all, nsys_buf, state_buf,
+                     self.stats_buf, live_all, scratch, live_scratch)
+        nsys = np.zeros(n, dtype=np.int32)
+        d.read(nsys, nsys_buf, wait=False)
+        d.read(state, state_buf, wait=False)
+        self._wait()
+        # the staged tuples' systems, tuple by tuple in stage A's order
+        m = np.where(state == 1, nsys, 0)
+        sys_first = np.concatenate([[0], np.cumsum(m)]).astype(np.int32)
+        S = int(sys_first[-1])
+        owner = np.repeat(np.arange(n, dtype=np.int32), m)
+        slot = (np.arange(S) - np.repeat(sys_first[:-1], m)).astype(np.int32)
+        self.S, self.pieces, self.stride, self.b_offset = S, pc, np.int32(stride), np.int32(b_offset)
+        self.coef_buf = d.buffer("coef", S * stride * 8)
+        self.sys7_buf = d.buffer("sysint7", S * 7 * 4)
+        self.sys_buf = d.buffer("sysint3", S * 3 * 4)
+        self.live_buf = d.buffer("live", S * max(pc, 1))
+        self.margin_buf = d.buffer("margin", S * 8)
+        solve_buf = d.buffer("solve", S)
+        refinable_buf = d.buffer("refined", S)
+        d.launch(self.k["gather_systems"], "kernel gather_systems", S, self.local, w("owner", owner), w("slot", slot),
+                 np.int32(S), np.int32(bool(refract1)), np.int32(bool(refract2)), np.int32(stride), np.int32(sys_cap),
+                 np.int32(pc), coef_all, sysint_all, live_all, self.coef_buf, self.sys7_buf, self.sys_buf, self.live_buf,
+                 self.margin_buf, solve_buf, refinable_buf)
+        over = self._solve_systems(refract1, refract2, n, w("sys_first", sys_first), state_buf, solve_buf, refinable_buf,
+                                   out_uv, out_count, stats)
+        mine = state == 1
+        if S:
+            left[owner[over < 0]] = True
+        out_count[state == 0] = 0
+        return state, mine & left
+
+    def _stage_a_on_host(self, refract1, refract2, x_start, x_end, P, N, eta, pc, stride, b_offset, sys_cap, out_uv,
+                         out_count, stats):
+        """:meth:`solve_batch` with stage A on Numba (``staged.stage_a_on_host``), its systems
+        uploaded, then stages B-E on the device: for CPU devices, where the host's vector
+        kernels build the systems ~2x faster than the device's scalar code."""
+        from ..spoly.two_bounce.staged import stage_a_on_host
+
+        d, n = self.device, x_start.shape[0]
+        state, b = stage_a_on_host(refract1, refract2, x_start, x_end, P, N, eta, pc, stride, b_offset, sys_cap, stats)
+        self.load(b.coef, b.sysint3, b_offset, b.live_mask, b.margin, pc)
+        S = b.S
+        sysint = b.sysint
+        w = d.write
+        self.sys7_buf = w("sysint7", np.ascontiguousarray(sysint, dtype=np.int32))
+        self.stats_buf = w("stats", np.ascontiguousarray(stats, dtype=np.int64))
+        solve_buf = w("solve", (sysint[:, 1] == 1).astype(np.int8))
+        refinable_buf = w("refined", ((sysint[:, 1] == 1) & ((sysint[:, 0] & 2) == 0)).astype(np.int8))
+        state_buf = w("state", state.astype(np.int8))
+        over = self._solve_systems(refract1, refract2, n, w("sys_first", b.sys_first.astype(np.int32)), state_buf,
+                                   solve_buf, refinable_buf, out_uv, out_count, stats)
+        left = np.zeros(n, dtype=bool)
+        if S:
+            left[b.owner[over < 0]] = True
+        out_count[state != 1] = 0
+        return state, left & (state == 1)
+
+    def _solve_systems(self, refract1, refract2, n, first_buf, state_buf, solve_buf, refinable_buf, out_uv, out_count,
+                       stats):
+        """Stages B-E of the gathered systems (kernels of two_bounce.cl, one wait); fills
+        out_uv, out_count (state-1 tuples), stats (all); returns the refinement's per-system
+        counts (-1: overflow)."""
+        from ..spoly.two_bounce.params import REFINE_LEVELS, SUB_SAMPLES
+        from ..spoly.two_bounce.staged import REFINE_BYTES, REFINE_CAP
+
+        d, S, P = self.device, self.S, self.pieces
+        ps, pieces, pn = np.int32(S), np.int32(P), np.int32(n)
+        r1, r2 = np.int32(bool(refract1)), np.int32(bool(refract2))
+        cap = min(REFINE_CAP, max(32, REFINE_BYTES // (8 * max(S, 1))))
+        if not REFINE_LEVELS:
+            refinable_buf = d.write("refined", np.zeros(S, dtype=np.int8))
         uv_buf = d.buffer("out_uv", out_uv.nbytes)
         meta_buf = d.buffer("meta", n * (out_uv.shape[1] + 1) * 2 * 8)
         count_buf = d.buffer("out_count", n * 4)
@@ -688,7 +815,7 @@ class OpenCLSystemSolver:
         found_count = d.buffer("refine_count", S * 4)
         refine_dets = d.buffer("refine_dets", S * 4)
         args = self._system_args()
-        tuples = (first_buf, state_buf, *tuple_bufs, r1, r2)
+        tuples = (first_buf, state_buf, *self.tuple_bufs, r1, r2)
         d.launch(self.k["scan_samples"], "kernel scan_samples", S * (P + 1), self.local, *args, solve_buf, pieces, ps,
                  sg, lg, sample_dets)
         d.launch(self.k["scan_degenerate"], "kernel scan_degenerate", S, self.local, solve_buf, pieces, ps, sg, degenerate)
@@ -696,15 +823,13 @@ class OpenCLSystemSolver:
                  lg, pin, pin_dets)
         d.launch(self.k["scan_roots"], "kernel scan_roots", S, self.local, self.live_buf, self.margin_buf, solve_buf,
                  degenerate, pieces, ps, sg, sample_dets, pin, pin_dets, nv_buf, roots_buf, piece_buf, scan_dets)
-        d.launch(self.k["candidates_scan"], "kernel candidates_scan", n, self.local, self.coef_buf, sysint7_buf,
+        d.launch(self.k["candidates_scan"], "kernel candidates_scan", n, self.local, self.coef_buf, self.sys7_buf,
                  self.stride, self.b_offset, *tuples, pieces, nv_buf, roots_buf, productive, uv_buf, meta_buf, count_buf,
-                 stats_buf, pn)
+                 self.stats_buf, pn)
         # the refinement, in cuts of the systems whose sub-samples fit REFINE_SUB_BYTES
-        from ..spoly.two_bounce.params import SUB_SAMPLES
-
         row = SUB_SAMPLES + 3
         per_system = P * (row * 20 + SUB_SAMPLES * 8 + 4)
-        cut = max(1, min(S, REFINE_SUB_BYTES // per_system))
+        cut = max(1, min(max(S, 1), REFINE_SUB_BYTES // per_system))
         flags = d.buffer("refine_flags", S * P)
         sub = [d.buffer("refine_sub_v", cut * P * row * 8), d.buffer("refine_sub_s", cut * P * row * 4),
                d.buffer("refine_sub_l", cut * P * row * 8), d.buffer("refine_sub_pin", cut * P * SUB_SAMPLES * 8)]
@@ -718,27 +843,22 @@ class OpenCLSystemSolver:
                      sub_dets)
             d.launch(self.k["refine_assemble"], "kernel refine_assemble", m, self.local, *system_args, flags, *sub,
                      sub_dets, found_count, refine_dets)
-        d.launch(self.k["candidates_refined"], "kernel candidates_refined", n, self.local, self.coef_buf, sysint7_buf,
+        d.launch(self.k["candidates_refined"], "kernel candidates_refined", n, self.local, self.coef_buf, self.sys7_buf,
                  self.stride, self.b_offset, *tuples, nv_buf, scan_dets, np.int32(cap), found, found_count, refine_dets,
-                 uv_buf, meta_buf, count_buf, stats_buf, pn)
+                 uv_buf, meta_buf, count_buf, self.stats_buf, pn)
         counts = np.zeros(n, dtype=np.int32)
-        sys_over = np.zeros(S, dtype=np.int32)
-        staged_stats = np.zeros_like(stats, dtype=np.int64)
+        over = np.zeros(S, dtype=np.int32)
+        staged_stats = np.zeros(stats.shape, dtype=np.int64)
         staged_uv = np.zeros(out_uv.shape)
         d.read(counts, count_buf, wait=False)
-        d.read(staged_stats, stats_buf, wait=False)
+        d.read(staged_stats, self.stats_buf, wait=False)
         d.read(staged_uv, uv_buf, wait=False)
-        d.read(sys_over, found_count, wait=False)
+        d.read(over, found_count, wait=False)
         self._wait()
-        mine = np.asarray(b.state) == 1
-        over = np.zeros(n, dtype=bool)
-        over[b.owner[sys_over < 0]] = True
-        done = mine & ~over
-        out_count[done] = counts[done]
-        stats[done] = staged_stats[done]
-        out_uv[done] = staged_uv[done]
-        left[mine & over] = True
-        return left
+        stats[...] = staged_stats
+        out_count[...] = counts
+        out_uv[...] = staged_uv
+        return over
 
     def dets(self, job_sys, job_v):
         """(sign (J,) int32, log|det| (J,), determinant evaluations (J,)) of the loaded system

@@ -4,11 +4,11 @@
 // resolve_dip) and solve.py (candidates_at, seeded, straight_candidate), so that both back ends
 // see the same signs, pin the same roots and keep the same paths.
 //
-// The bivariate systems {a(u1, v1) = 0, b(u1, v1) = 0} are built and normalised by Numba
-// (stage A) and packed row by row: row i of a polynomial of total degree d holds the
-// coefficients of u^i v^j, j = 0 .. d - i.  One system is `stride` doubles: a at offset 0, b at
-// offset `b_offset`.  sysint holds, per system, (da, db, n) with n the u-degree of the Bézout
-// matrix (eq 29).  A batch runs, without the host between them:
+// The bivariate systems {a(u1, v1) = 0, b(u1, v1) = 0} are built and normalised by stage A
+// (stage_a.cl on GPUs, Numba beside CPU devices) and packed row by row: row i of a polynomial of
+// total degree d holds the coefficients of u^i v^j, j = 0 .. d - i.  One system is `stride`
+// doubles: a at offset 0, b at offset `b_offset`.  sysint holds, per system, (da, db, n) with n
+// the u-degree of the Bézout matrix (eq 29).  After stage A, a batch runs without the host:
 //   scan_samples       det R(v) at each needed sample of each system (one work-item per sample);
 //   scan_degenerate    find_v_roots' test: the determinant vanishes at most samples;
 //   scan_pins          each sign change of a live piece pinned to ROOT_TOL by Illinois;
@@ -20,8 +20,10 @@
 //   candidates_refined per tuple, the candidates at the refined roots, the seeded polish, the
 //                      straight line and the statistics (stage E);
 //   det_batch          sign and log|det| at given (system, v) jobs (the tests' probe).
-// The univariate root finder (roots.cl) and the two-vertex polish (two_vertex.cl) are pasted in
-// by the host.  Double precision (cl_khr_fp64) is required.
+// The host pastes in the tables of params.py, the univariate root finder (roots.cl), the
+// two-vertex polish (two_vertex.cl) and stage A (biv.cl, frame.cl, system.cl, prepass.cl,
+// stage_a.cl: the kernels stage_a and gather_systems).  Double precision (cl_khr_fp64) is
+// required.
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
 
@@ -34,8 +36,14 @@
 #endif
 #define LN2 0.6931471805599453
 
+// @TWO_BOUNCE_TABLES@ (the host's: SQRT_PIECES_T, HERON_CUTS_T)
 // @INCLUDE roots.cl@ (the univariate root finder: candidates_at's u-roots)
 // @INCLUDE two_vertex.cl@ (the two-vertex residual, polish and exact map: tv_*)
+// @INCLUDE biv.cl@ (stage A's bivariate scratch)
+// @INCLUDE frame.cl@ (stage A: side tests, local frame, √ set-up: fr_*)
+// @INCLUDE system.cl@ (stage A: the bivariate algebra and the systems: bv_*)
+// @INCLUDE prepass.cl@ (stage A: the live (u1, v1) pre-pass: pp_*)
+// @INCLUDE stage_a.cl@ (stage A's kernels: stage_a, gather_systems)
 
 // p_i(v) for i <= n (row i of the packed polynomial p of total degree d), scaled to unit
 // max-norm (as _coeffs_at); returns the scale.

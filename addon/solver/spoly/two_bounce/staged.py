@@ -3,10 +3,10 @@
 ``solve_two_bounce_batch`` runs every tuple start to end in one Numba kernel.  Here the same
 algorithm (Fan et al. 2024, §4.2-4.3: the Bézout resultant of eq 28-29 scanned in v1, its
 sign changes pinned, the candidates back-substituted and polished in path space) runs in
-stages over a whole batch of tuples, so that all but the systems' construction can run on an
-OpenCL device (``opencl/two_bounce.cl``), many systems and tuples at once:
+stages over a whole batch of tuples, so that they can run on an OpenCL device, many systems
+and tuples at once:
 
-A (Numba)   per tuple and orientation (forward, reversed): the side tests, then every
+A           per tuple and orientation (forward, reversed): the side tests, then every
             bivariate system {a = 0, b = 0} (eq 6 with 10 or 13; the Heron-step √ of
             ``heron_sqrt_fit`` where it fits and the √ pieces of eq 23 below its cut, or all
             the pieces; the refraction's two normal orientations) built by ``build_system``, normalised
@@ -25,13 +25,14 @@ D           ``refine_v_roots`` per system on B's samples and C's productive flag
 E           candidates at the refined roots, the seeded polish of degenerate systems,
             the straight-line candidate, the statistics.
 
-Stages B-E run on a device object's ``solve_systems`` (a :class:`Systems` batch):
-``opencl.backend.OpenCLSystemSolver`` runs all four on the device with one wait a batch;
-:class:`NumbaSystemSolver` runs B and D with the one-kernel path's own ``find_v_roots`` and
-``refine_v_roots`` and C and E with ``stage_c`` / ``stage_e`` (:func:`solve_systems_on_host`:
-the tests, and the same flow for any device with only load / scan / refine).  Tuples with
-more than ``SYS_CAP`` systems, and on OpenCL those with a system whose refined roots overflow
-the capacity, are solved by the one-kernel path on the host (:func:`solve_on_host`).  Only the
+A batch runs on a device object's ``solve_batch``: ``opencl.backend.OpenCLSystemSolver`` runs
+stages A-E on the device (opencl/stage_a.cl, two_bounce.cl; two waits a batch: the systems'
+counts, the paths), or on CPU devices stage A on Numba (:func:`stage_a_on_host`) and B-E on
+the device; :class:`NumbaSystemSolver` runs stage A on Numba, B and D with the one-kernel
+path's own ``find_v_roots`` and ``refine_v_roots`` and C and E with ``stage_c`` / ``stage_e``
+(:func:`solve_systems_on_host`: the tests).  Tuples with more than ``SYS_CAP`` systems, and on
+OpenCL those with a system whose refined roots overflow the capacity, are solved by the
+one-kernel path on the host (:func:`solve_on_host`).  Only the
 order in which candidates of different systems of one tuple are tried differs from the
 one-kernel path (all scan roots of a tuple before its refined roots), which can change which
 of two copies of one path is kept (both polished to ~1e-15) but not the set of paths.
@@ -466,16 +467,22 @@ def numba_refine(coef, sysint3, b_offset, live_mask, margin, refined, pieces, sg
 
 
 class NumbaSystemSolver:
-    """Stages B-E on Numba (:meth:`solve_systems`): B and D system by system with the
-    one-kernel path's own ``find_v_roots`` and ``refine_v_roots`` (:meth:`scan`,
+    """Stages A-E on Numba (:meth:`solve_batch`): A by ``stage_a``, B and D system by system
+    with the one-kernel path's own ``find_v_roots`` and ``refine_v_roots`` (:meth:`scan`,
     :meth:`refine`), C and E by ``stage_c`` / ``stage_e``: the staged pipeline without OpenCL
     (the tests), and the re-run of a system whose refined roots overflow the capacity."""
 
     name = "numba"
 
-    def solve_systems(self, batch, out_uv, out_count, stats):
-        """Stages B-E of a :class:`Systems` batch (:func:`solve_systems_on_host`)."""
-        return solve_systems_on_host(self, batch, out_uv, out_count, stats)
+    def solve_batch(self, refract1, refract2, x_start, x_end, P, N, eta, pieces, stride, b_offset, sys_cap, out_uv,
+                    out_count, stats):
+        """Stages A-E of one batch (``_solve_batch``): :func:`stage_a_on_host`, then
+        :func:`solve_systems_on_host`.  Returns (state, left) as
+        ``opencl.backend.OpenCLSystemSolver.solve_batch``."""
+        state, batch = stage_a_on_host(refract1, refract2, x_start, x_end, P, N, eta, pieces, stride, b_offset, sys_cap,
+                                       stats)
+        out_count[state != 1] = 0
+        return state, solve_systems_on_host(self, batch, out_uv, out_count, stats)
 
     def load(self, coef, sysint3, b_offset, live_mask, margin, pieces):
         """The packed systems coef (S, stride), sysint3 (S, 3) int32 = (da, db, n), their live
@@ -592,8 +599,8 @@ def solve_staged(device, refract1, refract2, x_start, x_end, P, N, eta, pieces, 
                  batch=None, sys_cap=SYS_CAP):
     """All paths of a batch of two-bounce tuples, stages A-E (module docstring); fills
     out_uv (n, MAX_PATHS_TWO_BOUNCE, 4), out_count (n,), stats (n, N_STATS) like
-    ``solve_two_bounce_batch``.  ``device``: an object whose ``solve_systems`` runs stages
-    B-E (:class:`NumbaSystemSolver`, ``opencl.backend.OpenCLSystemSolver``).  ``batch``: tuples
+    ``solve_two_bounce_batch``.  ``device``: an object whose ``solve_batch`` runs stages A-E
+    of a batch (:class:`NumbaSystemSolver`, ``opencl.backend.OpenCLSystemSolver``).  ``batch``: tuples
     per pass (default: stage A's store within BATCH_BYTES); ``sys_cap``: systems per tuple
     held by stage A (a tuple with more is solved by the one-kernel path)."""
     if REFINE_LEVELS not in (0, 1):
@@ -610,6 +617,17 @@ def solve_staged(device, refract1, refract2, x_start, x_end, P, N, eta, pieces, 
 
 def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, stride, b_offset, sys_cap, out_uv, out_count,
                  stats):
+    state, left = dev.solve_batch(refract1, refract2, x_start, x_end, P, N, eta, pieces, stride, b_offset, sys_cap, out_uv,
+                                  out_count, stats)
+    # the one-kernel path for tuples with more than sys_cap systems, and those the device left
+    host = np.flatnonzero((state == 2) | left).astype(np.int64)
+    if host.size:
+        solve_on_host(refract1, refract2, x_start, x_end, P, N, eta, pieces, host, out_uv, out_count, stats)
+
+
+def stage_a_on_host(refract1, refract2, x_start, x_end, P, N, eta, pieces, stride, b_offset, sys_cap, stats):
+    """Stage A on Numba over a batch, its systems compacted tuple by tuple: (state (n,),
+    :class:`Systems`)."""
     nb = x_start.shape[0]
     # coef is not cleared: of a system's row only its packed a and b are ever read (_unpack, the
     # device's coeffs_at), and stage A writes them; the live mask is 0 / 1 (int8: an eighth of
@@ -632,11 +650,5 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
     sysint3 = np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32)
     r1_oriented = np.where((sysint[:, 0] & 1) == 1, refract2, refract1) if S else np.zeros(0, dtype=bool)
     margin = np.where(r1_oriented, V_MARGIN_APPROX, V_MARGIN_EXACT)
-    out_count[state != 1] = 0
-    staged = Systems(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sysint3, sys_first, state,
-                     live_mask, margin, owner)
-    left = dev.solve_systems(staged, out_uv, out_count, stats)
-    # the one-kernel path for tuples with more than sys_cap systems, and those the device left
-    host = np.flatnonzero((state == 2) | left).astype(np.int64)
-    if host.size:
-        solve_on_host(refract1, refract2, x_start, x_end, P, N, eta, pieces, host, out_uv, out_count, stats)
+    return state, Systems(refract1, refract2, x_start, x_end, P, N, eta, pieces, b_offset, coef, sysint, sysint3, sys_first,
+                          state, live_mask, margin, owner)

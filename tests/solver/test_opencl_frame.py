@@ -18,7 +18,6 @@ import math
 import os
 import sys
 
-import numba
 import numpy as np
 import pytest
 
@@ -252,7 +251,7 @@ def _run_numba(x0, x3, P, N, flags):
                 full_mask[g, t] = mask
                 full_heron[g, t] = (h_ok, h_cut, *h)
                 if r1:
-                    dout[g, D_R + 9 * t:D_R + 9 * t + 2] = _sample_range(geo[0], inv, S, r)
+                    dout[g, D_R + 9 * t:D_R + 9 * t + 2] = frame.sqrt_sampling(True, geo[0], inv, S, cx, r)[3:5]
                 else:
                     dout[g, D_R + 9 * t:D_R + 9 * t + 2] = (math.inf, -math.inf)
                 if ok_s and r1 and params.SQRT_BANDS:
@@ -266,31 +265,6 @@ def _run_numba(x0, x3, P, N, flags):
                 j = D_BAND + 2 * ((len(PIECES)) * rf + piece + 1)
                 dout[g, j:j + 2] = sqrt.sqrt_band(piece, S * S, bool(rf))
     return dout, iout, stats, full_mask, beta_bits, full_heron
-
-
-@numba.njit
-def _sample_range(geo, inv, S, r1):
-    """Reference for the sampled range (xlo, xhi) of beta / S^2 over triangle 1, which
-    sqrt_pieces_to_solve does not return: its sampling loop copied verbatim from frame.py (keep
-    in step with it)."""
-    e11 = (geo[2, 0], geo[2, 1], geo[2, 2])
-    e12 = (geo[3, 0], geo[3, 1], geo[3, 2])
-    xlo = math.inf
-    xhi = -math.inf
-    for iu in range(4):
-        for iv in range(4 - iu):
-            uu = iu / 3.0
-            vv = iv / 3.0
-            nn = (geo[4, 0] + uu * geo[5, 0] + vv * geo[6, 0], geo[4, 1] + uu * geo[5, 1] + vv * geo[6, 1], geo[4, 2] + uu * geo[5, 2] + vv * geo[6, 2])
-            dv = ((uu * e11[0] + vv * e12[0] - geo[0, 0]) * inv, (uu * e11[1] + vv * e12[1] - geo[0, 1]) * inv, (uu * e11[2] + vv * e12[2] - geo[0, 2]) * inv)
-            n2_ = nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2
-            d2_ = dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2
-            dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2]
-            beta = n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn
-            x = beta / (S * S)
-            xlo = min(xlo, x)
-            xhi = max(xhi, x)
-    return xlo, xhi
 
 
 def _bits(a):

@@ -28,8 +28,9 @@ if os.path.join(ROOT, "bench") not in sys.path:
 
 from addon.solver.opencl import backend as opencl_backend  # noqa: E402
 from addon.solver.polynomials.bivariate import bmax  # noqa: E402
-from addon.solver.spoly.two_bounce import frame, params, prepass, sqrt, staged, system  # noqa: E402
+from addon.solver.spoly.two_bounce import params, prepass, sqrt, staged, system  # noqa: E402
 from fixtures.opencl import opencl_device_or_skip  # noqa: E402
+from fixtures.stage_a_replay import oriented_systems  # noqa: E402
 from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
 
 CL_DIR = os.path.join(ROOT, "addon", "solver", "opencl")
@@ -104,45 +105,14 @@ def _oriented_systems(refract1, refract2, x0, x3, PA, NA, PB, NB_, eta, rng):
     stats = np.zeros(params.N_STATS, np.int64)
     x0 = (float(x0[0]), float(x0[1]), float(x0[2]))
     x3 = (float(x3[0]), float(x3[1]), float(x3[2]))
-    ok, side0, side3, inv, S, any_front1, any_back1, any_front2, any_back2, flat2, cx, c2 = frame.tuple_frame(
-        refract1, refract2, x0, x3, PA, NA, PB, NB_, geo, geo_l, stats)
-    if not ok:
-        return
-    n_pieces_sqrt = params.SQRT_PIECES.shape[0] if refract1 else 1
-    for o1 in range(2 if refract1 else 1):
-        sigma1 = 1.0 if o1 == 0 else -1.0
-        if refract1 and ((sigma1 > 0.0 and not any_front1) or (sigma1 < 0.0 and not any_back1)):
+    for q in oriented_systems(refract1, refract2, x0, x3, PA, NA, PB, NB_, eta, biv, geo, geo_l, stats):
+        da, db = system.build_system(refract1, refract2, q.s_in1, q.r1, q.piece, q.S, q.heron, q.eta_in2, q.eta_out2,
+                                     q.flat2, q.c2, geo_l, biv)
+        status, na, nb, n = staged._prepare_system(biv, da, db, refract1, stats)
+        if status != 1:
             continue
-        s_in1 = sigma1 * (1.0 if side0 > 0.0 else -1.0)
-        r1 = (1.0 / eta) if s_in1 > 0.0 else eta
-        ok, mask, fallback_piece, heron_ok, heron_cut, heron = frame.sqrt_pieces_to_solve(
-            refract1, geo, geo_l, inv, S, cx, r1, params.V_MARGIN_APPROX, biv)
-        if not ok:
-            continue
-        for piece in range(-1, n_pieces_sqrt):
-            if piece < 0 and not heron_ok:
-                continue
-            if piece >= 0 and heron_ok and params.SQRT_PIECES[piece, 0] >= heron_cut:
-                continue
-            if piece >= 0 and refract1 and not (mask >> piece) & 1:
-                continue
-            for o2 in range(2 if refract2 else 1):
-                eta_in2 = 1.0
-                eta_out2 = 1.0
-                if refract2:
-                    sigma2 = 1.0 if o2 == 0 else -1.0
-                    if (sigma2 > 0.0 and not any_front2) or (sigma2 < 0.0 and not any_back2):
-                        continue
-                    s_in2 = -sigma2 * (1.0 if side3 > 0.0 else -1.0)
-                    eta_in2 = 1.0 if s_in2 > 0.0 else eta
-                    eta_out2 = eta if s_in2 > 0.0 else 1.0
-                da, db = system.build_system(refract1, refract2, s_in1, r1, piece, S, heron, eta_in2, eta_out2, flat2,
-                                             c2, geo_l, biv)
-                status, na, nb, n = staged._prepare_system(biv, da, db, refract1, stats)
-                if status != 1:
-                    continue
-                blo, bhi = sqrt.sqrt_band(piece, S * S, refract1)
-                yield _record(biv, int(da), int(db), bool(refract1), float(blo), float(bhi), float(S * S), rng)
+        blo, bhi = sqrt.sqrt_band(q.piece, q.S * q.S, refract1)
+        yield _record(biv, int(da), int(db), bool(refract1), float(blo), float(bhi), float(q.S * q.S), rng)
 
 
 def _record(biv, da, db, refract1, blo, bhi, S2, rng):

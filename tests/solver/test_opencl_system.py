@@ -8,7 +8,7 @@ bivariate operations of polynomials/bivariate.py.
 system.cl is a library of static functions (no kernel); this test builds it with biv.cl and the
 two-bounce tables and defines into a test-only program with kernels of its own (one work-item per
 system).  The systems are real ones: the loop of staged._stage_a_oriented is replayed in Python
-on the Numba kernels (frame.tuple_frame, frame.sqrt_pieces_to_solve) for tuples of
+on the Numba kernels (fixtures/stage_a_replay.py) for tuples of
 bench/workloads.py (planted and random, all four chains, both orientations; a few with flat
 shading normals), and every build_system call's inputs are recorded.  Each system is then built
 on the host (Numba) and on the device from the same starting scratch (random finite values: what
@@ -31,10 +31,10 @@ if os.path.join(ROOT, "bench") not in sys.path:
 
 from addon.solver.opencl import backend as opencl_backend  # noqa: E402
 from addon.solver.polynomials import bivariate  # noqa: E402
-from addon.solver.spoly.two_bounce import frame, sqrt, staged, system  # noqa: E402
-from addon.solver.spoly.two_bounce.params import (BETA_SLOT, HIT_SLOT, MAXD, N_SLOTS, N_STATS,  # noqa: E402
-                                                  SQRT_PIECES, STAT_SKIPPED, V_MARGIN_APPROX)
+from addon.solver.spoly.two_bounce import sqrt, staged, system  # noqa: E402
+from addon.solver.spoly.two_bounce.params import BETA_SLOT, HIT_SLOT, MAXD, N_SLOTS, N_STATS, STAT_SKIPPED  # noqa: E402
 from fixtures.opencl import opencl_device_or_skip  # noqa: E402
+from fixtures.stage_a_replay import oriented_systems  # noqa: E402
 from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
 
 CL_DIR = os.path.join(ROOT, "addon", "solver", "opencl")
@@ -121,43 +121,12 @@ def _program(index):
 
 
 def _replay(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, biv, geo_o, geo_l, stats, kind, out):
-    """Record the inputs of every build_system call of ``_stage_a_oriented`` (its loop without
-    the storing and the pre-pass, which do not change which systems are built)."""
-    ok, side0, side3, inv, S, any_front1, any_back1, any_front2, any_back2, flat2, cx, c2 = frame.tuple_frame(
-        refract1, refract2, x0, x3, PA, NA, PB, NB, geo_o, geo_l, stats)
-    if not ok:
-        return
-    n_pieces_sqrt = SQRT_PIECES.shape[0] if refract1 else 1
-    for o1 in range(2 if refract1 else 1):
-        sigma1 = 1.0 if o1 == 0 else -1.0
-        if refract1 and ((sigma1 > 0.0 and not any_front1) or (sigma1 < 0.0 and not any_back1)):
-            continue
-        s_in1 = sigma1 * (1.0 if side0 > 0.0 else -1.0)
-        r1 = (1.0 / eta) if s_in1 > 0.0 else eta
-        ok, mask, _, heron_ok, heron_cut, heron = frame.sqrt_pieces_to_solve(refract1, geo_o, geo_l, inv, S, cx, r1,
-                                                                             V_MARGIN_APPROX, biv)
-        if not ok:
-            continue
-        for piece in range(-1, n_pieces_sqrt):
-            if piece < 0 and not heron_ok:
-                continue
-            if piece >= 0 and heron_ok and SQRT_PIECES[piece, 0] >= heron_cut:
-                continue
-            if piece >= 0 and refract1 and not (mask >> piece) & 1:
-                continue
-            for o2 in range(2 if refract2 else 1):
-                eta_in2 = 1.0
-                eta_out2 = 1.0
-                if refract2:
-                    sigma2 = 1.0 if o2 == 0 else -1.0
-                    if (sigma2 > 0.0 and not any_front2) or (sigma2 < 0.0 and not any_back2):
-                        continue
-                    s_in2 = -sigma2 * (1.0 if side3 > 0.0 else -1.0)
-                    eta_in2 = 1.0 if s_in2 > 0.0 else eta
-                    eta_out2 = eta if s_in2 > 0.0 else 1.0
-                ints = (int(refract1), int(refract2), piece, int(flat2))
-                doubles = np.concatenate([[s_in1, r1, S, eta_in2, eta_out2], heron, c2, geo_l.ravel()])
-                out.append((kind, ints, doubles))
+    """Record the inputs of every build_system call of ``_stage_a_oriented``
+    (fixtures.stage_a_replay)."""
+    for q in oriented_systems(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, biv, geo_o, geo_l, stats):
+        ints = (int(q.refract1), int(q.refract2), q.piece, int(q.flat2))
+        doubles = np.concatenate([[q.s_in1, q.r1, q.S, q.eta_in2, q.eta_out2], q.heron, q.c2, q.geo_l.ravel()])
+        out.append((kind, ints, doubles))
 
 
 def _flat(x0, x3, P, N):

@@ -147,11 +147,12 @@ def tuple_frame(refract1, refract2, x0, x3, PA, NA, PB, NB, geo, geo_l, stats):
 
 
 @kernel
-def sqrt_pieces_to_solve(refract1, geo, geo_l, inv, S, cx, r1, margin, biv):
-    """The √ pieces to solve for the IOR ratio r1 at vertex 1 (module doc).  Returns (ok, mask,
-    fallback_piece, heron_ok, heron_cut, heron): ok False where β < 0 on the whole triangle
-    (total internal reflection everywhere); mask bit k: eq 23's piece k holds β/S² somewhere;
-    fallback_piece: the piece solved only as the TIR fallback (piece -1 is the Heron √)."""
+def sqrt_sampling(refract1, geo, inv, S, cx, r1):
+    """The β/S² samples of :func:`sqrt_pieces_to_solve` over triangle 1 (corners, edge thirds,
+    centroid) for the IOR ratio r1 at vertex 1: (ok, mask, fallback_piece, xlo, xhi); ok False
+    where β < 0 at every sample (total internal reflection everywhere); mask bit k: eq 23's
+    piece k holds a sample; fallback_piece: the piece solved only as the TIR fallback (or -2);
+    xlo, xhi the samples' range.  Without a refraction at vertex 1: (True, 0, -2, inf, -inf)."""
     e11 = (geo[2, 0], geo[2, 1], geo[2, 2])
     e12 = (geo[3, 0], geo[3, 1], geo[3, 2])
     # x = β/S² range: sample the triangle
@@ -182,11 +183,24 @@ def sqrt_pieces_to_solve(refract1, geo, geo_l, inv, S, cx, r1, margin, biv):
         dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2]
         xc = min(1.0, max(0.0, (n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn) / (S * S)))
         if xhi <= 0.0:  # TIR everywhere on the triangle
-            return False, 0, -2, False, HERON_CUT, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            return False, 0, -2, xlo, xhi
         # the pieces holding x at the corners, edge thirds and centroid (the
         # Gauss-Newton polish in path space removes the error of a piece used
         # a little outside its interval)
         mask, fallback_piece = centroid_piece(xc, mask)
+    return True, mask, fallback_piece, xlo, xhi
+
+
+@kernel
+def sqrt_pieces_to_solve(refract1, geo, geo_l, inv, S, cx, r1, margin, biv):
+    """The √ pieces to solve for the IOR ratio r1 at vertex 1 (module doc).  Returns (ok, mask,
+    fallback_piece, heron_ok, heron_cut, heron): ok False where β < 0 on the whole triangle
+    (total internal reflection everywhere); mask bit k: eq 23's piece k holds β/S² somewhere
+    (:func:`sqrt_sampling`, and the β bounds of ``beta_mask``); fallback_piece: the piece solved
+    only as the TIR fallback (piece -1 is the Heron √)."""
+    ok, mask, fallback_piece, xlo, xhi = sqrt_sampling(refract1, geo, inv, S, cx, r1)
+    if not ok:
+        return False, 0, -2, False, HERON_CUT, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     if refract1 and SQRT_BANDS:
         beta_poly(geo_l, r1, biv)
         if xlo > 0.0:

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# The two-bounce OpenCL check, for one call of the device tool on a lent NVIDIA machine
+# (see ../shared/GPU.md): the environment of bench/gpu_env.sh, the Numba two-bounce kernels
+# compiled (the one-kernel solver: the baseline, and the host's path for the tuples a device
+# leaves), then bench/opencl_profile.py for RR, RT, TR, TT, random and planted tuples: every
+# stage of the staged pipeline on the GPU (stage A included: the default on GPUs), with its
+# kernels' device times, against Numba on every core.  Tables, logs and the results page go to
+# $OUT.  About 6 minutes: give the call timeout_s=560.
+#
+#   bash bench/gpu_two_bounce.sh        (from the repository root; carry .whl)
+# N2 (two-bounce tuples a row, default 2000); CHAINS (default RR,RT,TR,TT).
+set -u
+N2=${N2:-2000}
+CHAINS=${CHAINS:-RR,RT,TR,TT}
+OUT=${OUT:-/tmp/out}
+mkdir -p "$OUT"
+cd "$(dirname "$0")/.."
+T0=$(date +%s)
+log() { echo "[$(( $(date +%s) - T0 )) s] $*" | tee -a "$OUT/steps.txt"; }
+
+log "environment (bench/gpu_env.sh)"
+GPU_LOG="$OUT/steps.txt" . bench/gpu_env.sh
+DEV=$OPENCL_DEVICE
+nvidia-smi -L 2>&1 | tee -a "$OUT/steps.txt"
+log "OpenCL device $DEV"
+
+log "Numba two-bounce compile (warm_up(2))"
+timeout 240 python3 -c "import sys; sys.path.insert(0, '.'); from addon.solver import warm_up; print('warm-up s', warm_up(2))" \
+  > "$OUT/warm.txt" 2>&1
+log "warm-up exit $?: $(tail -1 "$OUT/warm.txt")"
+
+log "opencl_profile $CHAINS, $N2 tuples"
+timeout 280 python3 bench/opencl_profile.py --device "$DEV" --chains "$CHAINS" --two-bounce-tuples "$N2" \
+  --repeats 2 > "$OUT/opencl_profile_two.txt" 2>&1
+log "opencl_profile exit $?"
+cp bench/results/opencl_profile_gpu.md "$OUT/" 2>/dev/null
+cp BENCHMARKS.md "$OUT/BENCHMARKS.md"
+log "done"

@@ -62,11 +62,18 @@ TWO_BOUNCE_KERNELS = ("det_batch", "stage_a", "gather_systems", "scan_samples", 
                       "scan_roots", "refine_flags", "refine_samples", "refine_assemble", "candidates_scan",
                       "candidates_refined")
 # Stage A's bivariate scratch on the device (N_SLOTS x 48 x 48 doubles, ~1 MB a work-item): a
-# batch's tuples run in launches of as many work-items as this holds.
+# batch's tuples run in launches of as many work-items as this holds (on GPUs GPU_STAGE_A_SCRATCH_BYTES,
+# within an eighth of the device's memory: thousands of work-items a launch).
 STAGE_A_SCRATCH_BYTES = 256 << 20
+GPU_STAGE_A_SCRATCH_BYTES = 4 << 30
+# A two-bounce batch's system store on GPUs (staged.BATCH_BYTES on CPUs): batches of thousands of
+# tuples keep a GPU busy between the host's two waits.
+GPU_BATCH_BYTES = 1 << 30
 # The refinement's per-piece sub-samples and pins held on the device at once (two_bounce.cl
-# refine_samples): the systems of a batch are refined in cuts whose storage fits this.
+# refine_samples): the systems of a batch are refined in cuts whose storage fits this (GPUs:
+# GPU_REFINE_SUB_BYTES).
 REFINE_SUB_BYTES = 64 << 20
+GPU_REFINE_SUB_BYTES = 1 << 30
 
 
 class OpenCLUnavailable(RuntimeError):
@@ -666,6 +673,8 @@ class OpenCLSystemSolver:
         self.device = _two_bounce_program(index)
         self.k, self.local = self.device.kernels_two
         self.name = self.device.label
+        # staged.solve_staged's batch store: the default on CPUs, larger on GPUs
+        self.batch_bytes = None if self.device.is_cpu else GPU_BATCH_BYTES
 
     def load(self, coef, sysint3, b_offset, live_mask, margin, pieces):
         """coef (S, stride) packed systems, sysint3 (S, 3) int32 (da, db, n), live_mask (S, pieces)
@@ -719,7 +728,9 @@ class OpenCLSystemSolver:
         state_buf = d.buffer("state", n)
         self.stats_buf = d.buffer("stats", n * stats.shape[1] * 8)
         per_item = N_SLOTS * (MAXD + 1) ** 2 * 8
-        items = max(1, min(n, STAGE_A_SCRATCH_BYTES // per_item))
+        budget = STAGE_A_SCRATCH_BYTES if d.is_cpu else min(GPU_STAGE_A_SCRATCH_BYTES, d.dev.global_mem_size // 8,
+                                                               d.dev.max_mem_alloc_size)
+        items = max(1, min(n, budget // per_item))
         scratch = d.buffer("stage_a_scratch", items * per_item)
         live_scratch = d.buffer("stage_a_live_scratch", items * MAX_PIECES)
         for t0 in range(0, n, items):
@@ -829,7 +840,8 @@ class OpenCLSystemSolver:
         # the refinement, in cuts of the systems whose sub-samples fit REFINE_SUB_BYTES
         row = SUB_SAMPLES + 3
         per_system = P * (row * 20 + SUB_SAMPLES * 8 + 4)
-        cut = max(1, min(max(S, 1), REFINE_SUB_BYTES // per_system))
+        budget = REFINE_SUB_BYTES if d.is_cpu else min(GPU_REFINE_SUB_BYTES, d.dev.max_mem_alloc_size)
+        cut = max(1, min(max(S, 1), budget // per_system))
         flags = d.buffer("refine_flags", S * P)
         sub = [d.buffer("refine_sub_v", cut * P * row * 8), d.buffer("refine_sub_s", cut * P * row * 4),
                d.buffer("refine_sub_l", cut * P * row * 8), d.buffer("refine_sub_pin", cut * P * SUB_SAMPLES * 8)]

@@ -601,14 +601,16 @@ def solve_staged(device, refract1, refract2, x_start, x_end, P, N, eta, pieces, 
     out_uv (n, MAX_PATHS_TWO_BOUNCE, 4), out_count (n,), stats (n, N_STATS) like
     ``solve_two_bounce_batch``.  ``device``: an object whose ``solve_batch`` runs stages A-E
     of a batch (:class:`NumbaSystemSolver`, ``opencl.backend.OpenCLSystemSolver``).  ``batch``: tuples
-    per pass (default: stage A's store within BATCH_BYTES); ``sys_cap``: systems per tuple
-    held by stage A (a tuple with more is solved by the one-kernel path)."""
+    per pass (default: stage A's store within the device's ``batch_bytes`` or BATCH_BYTES);
+    ``sys_cap``: systems per tuple held by stage A (a tuple with more is solved by the
+    one-kernel path)."""
     if REFINE_LEVELS not in (0, 1):
         raise NotImplementedError("the staged two-bounce path implements REFINE_LEVELS <= 1")
     stride, b_offset = layout(refract1, refract2)
     n = x_start.shape[0]
     if batch is None:
-        batch = max(16, BATCH_BYTES // (sys_cap * stride * 8))
+        store = getattr(device, "batch_bytes", None) or BATCH_BYTES  # a device may want larger batches (GPUs)
+        batch = max(16, store // (sys_cap * stride * 8))
     for t0 in range(0, n, batch):
         t1 = min(n, t0 + batch)
         _solve_batch(device, refract1, refract2, x_start[t0:t1], x_end[t0:t1], P[t0:t1], N[t0:t1], eta[t0:t1], pieces,

@@ -268,3 +268,22 @@ def test_two_bounce_device_without_double_precision_is_refused(monkeypatch):
     x0, x3, P, N, _ = planted_two_bounce(6, "TT", seed=35)
     with pytest.raises(opencl_backend.OpenCLNoDoublePrecision, match="fp32-only GPU.*cl_khr_fp64"):
         solve_tuples("TT", x0, x3, P, N, 1.5, device="opencl")
+
+
+@pytest.mark.opencl
+def test_two_bounce_program_that_does_not_build_warns_and_uses_numba(monkeypatch, tmp_path):
+    """A driver that rejects the two-bounce program (here a source with a syntax error) is no
+    crash: the solve warns with the build log and runs on Numba (the same paths)."""
+    index = opencl_device_or_skip()
+    device = opencl_backend._context(index)
+    broken = tmp_path / "two_bounce.cl"
+    broken.write_text("__kernel void det_batch(__global double *x) { x[0] = ; }\n")
+    monkeypatch.setattr(opencl_backend, "_KERNEL_FILE_2", str(broken))
+    monkeypatch.setattr(device, "kernels_two", None)
+    monkeypatch.setattr(opencl_backend, "_cache2", {})
+    x0, x3, P, N, _ = planted_two_bounce(8, "RR", seed=36)
+    expected = solve_tuples("RR", x0, x3, P, N, 1.5)
+    with pytest.warns(RuntimeWarning, match="OpenCL unavailable.*does not build"):
+        got = solve_tuples("RR", x0, x3, P, N, 1.5, device=f"opencl:{index}")
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])

@@ -643,7 +643,11 @@ def _two_bounce_program(index):
     built once."""
     d = _context(index)  # OpenCLUnavailable / OpenCLNoDoublePrecision as for one bounce
     if d.kernels_two is None:
-        program = d._build(_KERNEL_FILE_2, _two_bounce_defines())
+        try:
+            program = d._build(_KERNEL_FILE_2, _two_bounce_defines())
+        except d.cl.Error as ex:  # a driver that rejects the program: the caller falls back to Numba
+            raise OpenCLUnavailable(f"the two-bounce OpenCL program does not build on {d.label}: "
+                                    f"{str(ex).strip()[:2000]}") from ex
         kernels = {name: d.cl.Kernel(program, name) for name in TWO_BOUNCE_KERNELS}
         # ~18 KB of private scratch per work-item (the Bézout matrix): small groups on CPUs
         # (see CPU_WORK_GROUP); on a GPU it lives in per-thread local memory.

@@ -1,7 +1,8 @@
 """Forward-flux with its points traced on OpenCL (``addon/solver/opencl/trace.cl``, PoCL on the
 CPU in CI): the kernel is trace_chain_points step for step, so the traced points and the baked
 textures are Numba's bit for bit, for one-vertex (R, T) and two-vertex (TT) chains, rays that miss
-a flat receiver extended onto its plane included."""
+a flat receiver extended onto its plane included; and the two-bounce path-points bake with its
+solve on the device equals the Numba bake to the paths' polish."""
 
 import numpy as np
 import pytest
@@ -97,3 +98,22 @@ def test_the_scene_goes_to_the_device_once_per_bvh():
     del other
     gc.collect()
     assert len(tracing._kept) == held - 1
+
+
+@pytest.mark.opencl
+@pytest.mark.slow  # two TT path-points bakes (the first compiles the two-bounce solver): ~1 min
+def test_two_bounce_path_points_bake_on_opencl_equals_numba():
+    """The exact two-bounce estimator (path-points, TT through a glass sphere) with
+    device="opencl": the staged two-bounce solve on the device (systems, scan, polish) finds the
+    same paths as Numba, so the texture equals the CPU bake to the paths' polish (~1e-15), and
+    the report says where the paths were solved."""
+    opencl_device_or_skip()
+    sc = glass_sphere_scene(resolution=32, segments=16, rings=8)
+    base = dict(samples=1, bounces=2, chains=("TT",), margin=0, seed=1, resolution=32, two_bounce="exact")
+    cpu = bake(sc, BakeSettings(**base))
+    ocl = bake(sc, BakeSettings(**base, device="opencl"))
+    assert ocl.report["devices"]["path-points"].startswith("opencl: ")
+    assert cpu.report["counts"]["paths_visible"] == ocl.report["counts"]["paths_visible"] > 100
+    a, b = cpu.raw["floor"], ocl.raw["floor"]
+    assert a.max() > 0
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * a.max())

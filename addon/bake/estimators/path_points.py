@@ -112,8 +112,8 @@ class PathPoints(Estimator):
         super().__init__(ctx, items)
         self.solve = make_solver(ctx.settings)[0]
         self.emitter_cache = {}  # (item id, light sample) -> emitters, shared by every band and receiver
-        if ctx.settings.device != "numba":
-            self.device = ctx.settings.device
+        if ctx.settings.device != "numba" and ctx.settings.solver == "spoly":
+            self.device = _device_label(ctx.settings.device)
 
     def accumulate(self, rec_index, band, sums):
         ctx = self.ctx
@@ -134,6 +134,18 @@ class PathPoints(Estimator):
 
     def report(self):
         return {"solver": self.ctx.settings.solver, "cull": _cull_name(self.ctx.settings.cull)}
+
+
+def _device_label(device):
+    """Where the Specular Polynomials of this bake run, for report.json's devices: "opencl: " and
+    the device's name, or "cpu (numba)" where there is no such OpenCL device (the solve then warns
+    and runs on Numba)."""
+    from ...solver.opencl.backend import OpenCLUnavailable, device_name, parse_device
+
+    try:
+        return "opencl: " + device_name(parse_device(device))
+    except OpenCLUnavailable:
+        return "cpu (numba)"
 
 
 def _cull_name(cull):

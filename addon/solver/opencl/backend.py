@@ -66,8 +66,8 @@ TWO_BOUNCE_KERNELS = ("det_batch", "stage_a", "gather_systems", "scan_samples", 
 # within an eighth of the device's memory: thousands of work-items a launch).
 STAGE_A_SCRATCH_BYTES = 256 << 20
 GPU_STAGE_A_SCRATCH_BYTES = 4 << 30
-# A two-bounce batch's system store on GPUs (staged.BATCH_BYTES on CPUs): batches of thousands of
-# tuples keep a GPU busy between the host's two waits.
+# A two-bounce batch's system store on GPUs (staged.BATCH_BYTES on CPUs), within a 32nd of the
+# device's memory: batches of thousands of tuples keep a GPU busy between the host's two waits.
 GPU_BATCH_BYTES = 1 << 30
 # The refinement's per-piece sub-samples and pins held on the device at once (two_bounce.cl
 # refine_samples): the systems of a batch are refined in cuts whose storage fits this (GPUs:
@@ -677,8 +677,10 @@ class OpenCLSystemSolver:
         self.device = _two_bounce_program(index)
         self.k, self.local = self.device.kernels_two
         self.name = self.device.label
-        # staged.solve_staged's batch store: the default on CPUs, larger on GPUs
-        self.batch_bytes = None if self.device.is_cpu else GPU_BATCH_BYTES
+        # staged.solve_staged's batch store: the default on CPUs, larger on GPUs (within a 32nd of
+        # the device's memory: the scan's buffers of a batch take several times the store)
+        d = self.device
+        self.batch_bytes = None if d.is_cpu else min(GPU_BATCH_BYTES, d.dev.global_mem_size // 32)
 
     def load(self, coef, sysint3, b_offset, live_mask, margin, pieces):
         """coef (S, stride) packed systems, sysint3 (S, 3) int32 (da, db, n), live_mask (S, pieces)

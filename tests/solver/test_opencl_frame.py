@@ -2,12 +2,12 @@
 what the Numba functions of addon/solver/spoly/two_bounce/frame.py and sqrt.py compute, bit for
 bit.
 
-frame.cl is a library of static functions (no kernel); this test builds it, after the tables of
-two_bounce_tables() and two_vertex.cl, into a test-only program with kernels of its own (one
-work-item per case) and compares, case by case: tuple_frame (every returned value, geo, geo_l,
-the statistics row), the sampling / centroid part of sqrt_pieces_to_solve (ok, mask without the
-beta_mask bits, fallback piece), heron_sqrt_cut (ok, cut, six coefficients) for r1 = 1/eta and
-eta, sqrt_band for every piece, and sqrt_piece / centroid_piece on a list of x values.
+frame.cl is a library of static functions (no kernel); this test builds it (fixtures.opencl
+library_program: after the two-bounce tables and two_vertex.cl) into a test-only program with
+its own kernels (one work-item per case) and compares, case by case: tuple_frame (every returned
+value, geo, geo_l, the statistics row), sqrt_sampling (the β/S² samples: ok, mask without the
+beta_mask bits, fallback piece, xlo, xhi), heron_sqrt_cut (ok, cut, six coefficients) for r1 =
+1/eta and eta, sqrt_band for every piece, and sqrt_piece / centroid_piece on a list of x values.
 Geometry: bench/workloads.py (planted_two_bounce, random_two_bounce) for the four chains, both
 orientations of each tuple, and degenerate tuples (zero-area triangles, an endpoint on a
 triangle's plane, zero and constant shading normals, the plane-of-incidence fallback).  PoCL on
@@ -25,12 +25,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 if os.path.join(ROOT, "bench") not in sys.path:
     sys.path.insert(0, os.path.join(ROOT, "bench"))
 
-from addon.solver.opencl import backend as opencl_backend  # noqa: E402
 from addon.solver.spoly.two_bounce import frame, params, sqrt  # noqa: E402
-from fixtures.opencl import opencl_device_or_skip  # noqa: E402
+from fixtures.opencl import library_program, opencl_device_or_skip  # noqa: E402
 from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
 
-CL_DIR = os.path.join(ROOT, "addon", "solver", "opencl")
 CHAINS = ("RR", "RT", "TR", "TT")
 ETA = 1.5
 R_VALUES = (1.0 / ETA, ETA)  # r1: entering / leaving the medium at vertex 1
@@ -105,25 +103,12 @@ __kernel void piece_cases(__global const double *x, __global const int *mask, __
 """
 
 
-def _strip_comments(text):
-    return "\n".join(line.split("//", 1)[0] for line in text.splitlines())
-
-
 def _program(index):
-    d = opencl_backend._context(index)
-    parts = []
-    for name in ("two_vertex.cl", "frame.cl"):
-        with open(os.path.join(CL_DIR, name)) as f:
-            parts.append(f.read())
-    code = _strip_comments(parts[1])
-    assert "__kernel" not in code and "#pragma" not in code  # pasted after the host's pragmas
     kernels = TEST_KERNELS
     for key, value in dict(N_D=N_D, N_I=N_I, N_STATS=N_STATS, D_GEO=D_GEO, D_GEOL=D_GEOL, D_FRAME=D_FRAME, D_R=D_R,
                            D_BAND=D_BAND, I_R=I_R).items():
         kernels = kernels.replace(f"@{key}@", str(value))
-    source = ("#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL FP_CONTRACT OFF\n"
-              + opencl_backend.two_bounce_tables() + parts[0] + "\n" + parts[1] + "\n" + kernels)
-    return d, d.cl.Program(d.ctx, source).build(options=opencl_backend.two_bounce_defines())
+    return library_program(index, ("two_vertex.cl", "frame.cl"), kernels)
 
 
 def _degenerate(x0, x3, P, N, rng):

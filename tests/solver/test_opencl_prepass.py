@@ -26,14 +26,12 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 if os.path.join(ROOT, "bench") not in sys.path:
     sys.path.insert(0, os.path.join(ROOT, "bench"))
 
-from addon.solver.opencl import backend as opencl_backend  # noqa: E402
 from addon.solver.polynomials.bivariate import bmax  # noqa: E402
 from addon.solver.spoly.two_bounce import params, prepass, sqrt, staged, system  # noqa: E402
-from fixtures.opencl import opencl_device_or_skip  # noqa: E402
+from fixtures.opencl import library_program, opencl_device_or_skip  # noqa: E402
 from fixtures.stage_a_replay import oriented_systems  # noqa: E402
 from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
 
-CL_DIR = os.path.join(ROOT, "addon", "solver", "opencl")
 CHAINS = ("RR", "RT", "TR", "TT")
 ETA = 1.5
 N_PLANTED = 20  # planted tuples per chain
@@ -83,17 +81,7 @@ __kernel void pp_test_systems(__global double *biv_all, __global const int *ipar
 
 
 def _program(index):
-    d = opencl_backend._context(index)
-    parts = []
-    for name in ("biv.cl", "prepass.cl"):
-        with open(os.path.join(CL_DIR, name), encoding="utf-8") as f:
-            parts.append(f.read())
-    code = "\n".join(line.split("//", 1)[0] for line in parts[1].splitlines())
-    assert "__kernel" not in code and "#pragma" not in code  # a library, pasted after the host's pragmas
-    source = ("#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL FP_CONTRACT OFF\n"
-              + opencl_backend.two_bounce_tables() + parts[0] + "\n" + parts[1] + "\n"
-              + TEST_KERNELS.replace("@N_BOX@", str(N_BOX)))
-    return d, d.cl.Program(d.ctx, source).build(options=opencl_backend.two_bounce_defines())
+    return library_program(index, ("biv.cl", "prepass.cl"), TEST_KERNELS.replace("@N_BOX@", str(N_BOX)))
 
 
 def _oriented_systems(refract1, refract2, x0, x3, PA, NA, PB, NB_, eta, rng):

@@ -29,15 +29,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 if os.path.join(ROOT, "bench") not in sys.path:
     sys.path.insert(0, os.path.join(ROOT, "bench"))
 
-from addon.solver.opencl import backend as opencl_backend  # noqa: E402
 from addon.solver.polynomials import bivariate  # noqa: E402
 from addon.solver.spoly.two_bounce import sqrt, staged, system  # noqa: E402
 from addon.solver.spoly.two_bounce.params import BETA_SLOT, HIT_SLOT, MAXD, N_SLOTS, N_STATS, STAT_SKIPPED  # noqa: E402
-from fixtures.opencl import opencl_device_or_skip  # noqa: E402
+from fixtures.opencl import library_program, opencl_device_or_skip  # noqa: E402
 from fixtures.stage_a_replay import oriented_systems  # noqa: E402
 from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
 
-CL_DIR = os.path.join(ROOT, "addon", "solver", "opencl")
 CHAINS = ("RR", "RT", "TR", "TT")
 ETA = 1.5
 N_PLANTED = 64  # planted tuples drawn per chain (those breaking a side rule are dropped)
@@ -97,22 +95,10 @@ __kernel void bv_test_bernstein(__global const double *polys, __global const int
 """
 
 
-def _library(name):
-    with open(os.path.join(CL_DIR, name)) as f:
-        text = f.read()
-    code = "\n".join(line.split("//", 1)[0] for line in text.splitlines())
-    assert "__kernel" not in code and "#pragma" not in code  # pasted after the host's pragmas
-    return text
-
-
 @functools.lru_cache(maxsize=None)
 def _program(index):
     """(the _Device, {name: kernel}) of the test program (built once per device)."""
-    d = opencl_backend._context(index)
-    source = ("#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL FP_CONTRACT OFF\n"
-              + opencl_backend.two_bounce_tables() + _library("biv.cl") + "\n" + _library("system.cl") + "\n"
-              + TEST_KERNELS.replace("@N_IN_D@", str(N_IN_D)))
-    prg = d.cl.Program(d.ctx, source).build(options=opencl_backend.two_bounce_defines())
+    d, prg = library_program(index, ("biv.cl", "system.cl"), TEST_KERNELS.replace("@N_IN_D@", str(N_IN_D)))
     names = ("bv_test_build", "bv_test_prepare", "bv_test_beta", "bv_test_bernstein")
     return d, {name: d.cl.Kernel(prg, name) for name in names}
 

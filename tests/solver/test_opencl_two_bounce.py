@@ -156,9 +156,7 @@ def test_opencl_refinement_in_cuts_and_overflow_on_the_host(monkeypatch):
     solve_on_host = staged.solve_on_host
     monkeypatch.setattr(staged, "solve_on_host", lambda *a: on_host.extend(a[8]) or solve_on_host(*a))
     monkeypatch.setattr(staged, "REFINE_CAP", 2)
-    from addon.solver.spoly.two_bounce.params import SUB_SAMPLES
-
-    monkeypatch.setattr(opencl_backend, "REFINE_SUB_BYTES", 3 * 100 * ((SUB_SAMPLES + 3) * 20 + SUB_SAMPLES * 8 + 4))
+    monkeypatch.setattr(opencl_backend, "REFINE_SUB_BYTES", 3 * opencl_backend.refine_bytes_per_system(100))
     monkeypatch.setattr(opencl_backend, "STAGE_A_SCRATCH_BYTES", 5 << 20)  # stage A in launches of 5 tuples
     monkeypatch.setenv("CAUSTIC_OPENCL_STAGE_A", "device")
     ti, uv, totals = _solve_staged(OpenCLSystemSolver(index), "RT", x0, x3, P, N, eta)

@@ -21,15 +21,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 if os.path.join(ROOT, "bench") not in sys.path:
     sys.path.insert(0, os.path.join(ROOT, "bench"))
 
-from addon.solver.opencl import backend as opencl_backend  # noqa: E402
 from addon.solver.paths.one_vertex import line_crossing_barycentrics  # noqa: E402
 from addon.solver.paths.two_vertex import (pack_geometry, polish_and_validate2, trace_to_second,  # noqa: E402
                                            two_vertex_residual)
 from addon.solver.spoly.two_bounce.params import ACCEPT_RESIDUAL, POLISH_STEPS  # noqa: E402
-from fixtures.opencl import opencl_device_or_skip  # noqa: E402
+from fixtures.opencl import library_program, opencl_device_or_skip  # noqa: E402
 from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
 
-CL_FILE = os.path.join(ROOT, "addon", "solver", "opencl", "two_vertex.cl")
 CHAINS = ("RR", "RT", "TR", "TT")
 ETA = 1.5
 N_PLANTED = 40  # planted tuples per chain (of more drawn: those breaking a side rule are dropped)
@@ -94,14 +92,8 @@ __kernel void two_vertex_cases(__global const double *x0, __global const double 
 
 
 def _program(index):
-    d = opencl_backend._context(index)
-    with open(CL_FILE) as f:
-        library = f.read()
-    code = "\n".join(line.split("//", 1)[0] for line in library.splitlines())
-    assert "__kernel" not in code and "#pragma" not in code  # pasted after the host's pragmas
     kernels = TEST_KERNELS.replace("@N_D@", str(N_D)).replace("@N_I@", str(N_I))
-    source = "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n#pragma OPENCL FP_CONTRACT OFF\n" + library + kernels
-    return d, d.cl.Program(d.ctx, source).build(options=["-cl-std=CL1.2"])
+    return library_program(index, ("two_vertex.cl",), kernels)
 
 
 def _random_in_triangles(rng, n):

@@ -169,22 +169,16 @@ class _Device:
         self.path_capacity = 0
 
     def _build(self, path, defines=()):
-        """The program of path, built with ``-D name=value`` for each (name, value) of defines."""
+        """The program of the file path (:meth:`build_source`)."""
         with open(path) as f:
-            source = f.read()
-        source = _with_includes(source, os.path.dirname(path))
-        if "// @TWO_BOUNCE_TABLES@" in source:
-            lines = source.split("\n")
-            at = next(i for i, line in enumerate(lines) if line.startswith("// @TWO_BOUNCE_TABLES@"))
-            lines[at] = two_bounce_tables()
-            source = "\n".join(lines)
-        if "// @NODE_TABLES@" in source:
-            lines = source.split("\n")
-            at = next(i for i, line in enumerate(lines) if line.startswith("// @NODE_TABLES@"))
-            lines[at] = _node_tables()
-            source = "\n".join(lines)
+            return self.build_source(f.read(), os.path.dirname(path), defines)
+
+    def build_source(self, source, folder, defines=()):
+        """The program of source, its shared parts and generated tables pasted in
+        (:func:`_assemble`, sources from folder), built with ``-D name=value`` for each
+        (name, value) of defines."""
         options = ["-cl-std=CL1.2"] + [f"-D{name}={value}" for name, value in defines]
-        return self.cl.Program(self.ctx, source).build(options=options)
+        return self.cl.Program(self.ctx, _assemble(source, folder)).build(options=options)
 
     def work_group(self, kernel):
         """The work-group size for kernel here: CPU_WORK_GROUP on CPUs; on other devices
@@ -273,20 +267,26 @@ class _Device:
             self.profiler.host_time(stage, seconds)
 
 
-def _with_includes(source, folder):
+def _assemble(source, folder):
     """source with each line ``// @INCLUDE name@ ...`` replaced by the file name of folder (the
-    OpenCL sources shared between programs: roots.cl, two_vertex.cl), once each."""
+    OpenCL sources shared between programs: roots.cl, two_vertex.cl, ...), once each, and each
+    line ``// @NODE_TABLES@ ...`` / ``// @TWO_BOUNCE_TABLES@ ...`` by the solver's tables
+    (:func:`_node_tables`, :func:`two_bounce_tables`)."""
+    generated = {"// @NODE_TABLES@": _node_tables, "// @TWO_BOUNCE_TABLES@": two_bounce_tables}
     out = []
     done = set()
     for line in source.split("\n"):
-        if line.startswith("// @INCLUDE "):
+        marker = next((m for m in generated if line.startswith(m)), None)
+        if marker is not None:
+            out.append(generated[marker]())
+        elif line.startswith("// @INCLUDE "):
             name = line[len("// @INCLUDE "):].split("@", 1)[0]
             if name not in done:
                 with open(os.path.join(folder, name)) as f:
                     out.append(f.read())
                 done.add(name)
-            continue
-        out.append(line)
+        else:
+            out.append(line)
     return "\n".join(out)
 
 
@@ -585,6 +585,15 @@ def _read_paths(d, m, tuple_buf, uv_buf):
 # --- two bounces --------------------------------------------------------------------------------
 
 
+def refine_bytes_per_system(pieces):
+    """Device memory of one system's refinement sub-samples (two_bounce.cl refine_samples): per
+    piece SUB_SAMPLES + 3 samples (v, log|det|: 8 bytes each, sign: 4), SUB_SAMPLES pins (8) and
+    a determinant count (4)."""
+    from ..spoly.two_bounce.params import SUB_SAMPLES
+
+    return pieces * ((SUB_SAMPLES + 3) * 20 + SUB_SAMPLES * 8 + 4)
+
+
 def _stage_a_on_device(d):
     """Whether the two-bounce systems (stage A) are built on the device d (GPUs) or on Numba
     beside it (CPUs: the same cores, and Numba's vector kernels are ~2x faster than the
@@ -630,12 +639,6 @@ def two_bounce_tables():
     cuts = ", ".join(float(x).hex() for x in params.HERON_CUTS)
     return (f"__constant double SQRT_PIECES_T[{params.SQRT_PIECES.shape[0]}][5] = {{\n{rows}\n}};\n"
             f"__constant double HERON_CUTS_T[{params.HERON_CUTS.shape[0]}] = {{{cuts}}};\n")
-
-
-def two_bounce_defines():
-    """The build options two_bounce.cl needs (``-DNAME=value``), for test programs built from
-    its parts."""
-    return ["-cl-std=CL1.2"] + [f"-D{name}={value}" for name, value in _two_bounce_defines()]
 
 
 def _two_bounce_program(index):
@@ -806,12 +809,12 @@ class OpenCLSystemSolver:
         out_uv, out_count (state-1 tuples), stats (all); returns the refinement's per-system
         counts (-1: overflow)."""
         from ..spoly.two_bounce.params import REFINE_LEVELS, SUB_SAMPLES
-        from ..spoly.two_bounce.staged import REFINE_BYTES, REFINE_CAP
+        from ..spoly.two_bounce.staged import refine_capacity
 
         d, S, P = self.device, self.S, self.pieces
         ps, pieces, pn = np.int32(S), np.int32(P), np.int32(n)
         r1, r2 = np.int32(bool(refract1)), np.int32(bool(refract2))
-        cap = min(REFINE_CAP, max(32, REFINE_BYTES // (8 * max(S, 1))))
+        cap = refine_capacity(S)
         if not REFINE_LEVELS:
             refinable_buf = d.write("refined", np.zeros(S, dtype=np.int8))
         uv_buf = d.buffer("out_uv", out_uv.nbytes)
@@ -845,7 +848,7 @@ class OpenCLSystemSolver:
                  self.stats_buf, pn)
         # the refinement, in cuts of the systems whose sub-samples fit REFINE_SUB_BYTES
         row = SUB_SAMPLES + 3
-        per_system = P * (row * 20 + SUB_SAMPLES * 8 + 4)
+        per_system = refine_bytes_per_system(P)
         budget = REFINE_SUB_BYTES if d.is_cpu else min(GPU_REFINE_SUB_BYTES, d.dev.max_mem_alloc_size)
         cut = max(1, min(max(S, 1), budget // per_system))
         flags = d.buffer("refine_flags", S * P)

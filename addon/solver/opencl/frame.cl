@@ -9,7 +9,7 @@
 //     #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 //     #pragma OPENCL FP_CONTRACT OFF
 // (double precision, no fused multiply-adds), after two_bounce_tables() (SQRT_PIECES_T,
-// HERON_CUTS_T) and two_vertex.cl (tv_pack_geometry), built with two_bounce_defines() (STAT_SKIPPED,
+// HERON_CUTS_T) and two_vertex.cl (tv_pack_geometry), built with _two_bounce_defines() (STAT_SKIPPED,
 // HERON_CUT, HERON_TOL, HERON_FIT_GRID, HERON_CHECK_GRID, SQRT_BANDS, SQRT_BAND_REACH,
 // N_SQRT_PIECES, N_HERON_CUTS).  It defines no kernel, and every name starts with fr_ / FR_.
 // geo and geo_l are the packed geometry of pack_geometry and its local frame: 15 rows x 3,

@@ -6,7 +6,7 @@
 // (multiply, then add: the host builds with FP_CONTRACT OFF).
 //
 // Library of static functions (no kernel); every name is prefixed pp_ (macros PP_).  Pasted by
-// the host after the two-bounce build options (-DMAXD=... : backend.two_bounce_defines), the
+// the host after the two-bounce build options (-DMAXD=... : backend._two_bounce_defines), the
 // tables (SQRT_PIECES_T: backend.two_bounce_tables) and biv.cl (SLOT, AT, BIV_N).  A 2-D array
 // of the Python (biv[k], a, b, R, src, ...) is a slot pointer SLOT(biv, k) here.
 //
@@ -23,7 +23,7 @@
 // tolerances (4 doubles): 32 * LIVE_STACK + 32 bytes; the rest is scalars.
 #if !defined(MAXD) || !defined(N_SLOTS) || !defined(LIVE_STACK) || !defined(BETA_SLOT) || !defined(HIT_SLOT) || \
     !defined(N_SQRT_PIECES)
-#error "build with the two-bounce parameters (-DMAXD=... etc., opencl/backend.py two_bounce_defines)"
+#error "build with the two-bounce parameters (-DMAXD=... etc., opencl/backend.py _two_bounce_defines)"
 #endif
 
 #define PP_CHUNK 8  // simd.CHUNK: the lanes of the row operations and reductions

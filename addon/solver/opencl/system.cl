@@ -10,7 +10,7 @@
 // Pasted by the host after
 //     #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 //     #pragma OPENCL FP_CONTRACT OFF
-// the build options' defines (two_bounce_defines: MAXD, N_SLOTS, HIT_SLOT, BETA_SLOT,
+// the build options' defines (_two_bounce_defines: MAXD, N_SLOTS, HIT_SLOT, BETA_SLOT,
 // HIT_MARGIN_EXACT, HIT_MARGIN_APPROX, STAT_SKIPPED, ...), the tables of two_bounce_tables
 // (SQRT_PIECES_T) and biv.cl (BIV_N, BIV_SLOT_SIZE, SLOT, AT).  No kernel; every name starts
 // with bv_ / BV_.

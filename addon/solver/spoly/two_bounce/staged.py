@@ -62,6 +62,12 @@ SYS_CAP = 24  # systems per tuple held by stage A; a tuple with more is solved b
 MAX_ROOTS = 4096  # roots per system (the capacity of the one-kernel path's root list)
 REFINE_BYTES = 32 << 20  # the refinement's dense output: new roots per system within this (32-256 a system) ...
 REFINE_CAP = 256  # ... a system with more (planted TT: ~2 % have over 64) is refined again with MAX_ROOTS
+
+
+def refine_capacity(n_systems):
+    """New roots per system a device's refinement returns for a batch of n_systems: REFINE_CAP
+    within REFINE_BYTES, at least 32."""
+    return min(REFINE_CAP, max(32, REFINE_BYTES // (8 * max(n_systems, 1))))
 DEGREES = {(False, False): (8, 15), (False, True): (8, 22), (True, False): (16, 31), (True, True): (16, 46)}
 
 
@@ -561,7 +567,7 @@ def solve_systems_on_host(dev, b, out_uv, out_count, stats):
     # overflow the device's capacity is refined again on the host
     refined = (sysint[:, 1] == 1) & ((sysint[:, 0] & 2) == 0)  # the TIR fallback's system is not refined
     if REFINE_LEVELS and S:
-        cap = min(REFINE_CAP, max(32, REFINE_BYTES // (8 * S)))
+        cap = refine_capacity(S)
         ref_count, ref_dense, dets = dev.refine(productive, refined, cap)
         over = np.flatnonzero(ref_count < 0)
         if over.size:

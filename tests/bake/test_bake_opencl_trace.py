@@ -9,6 +9,7 @@ import pytest
 
 from addon.bake.estimators.forward_images import _bvh_args, scene_arrays
 from addon.bake.pipeline import BakeSettings, bake
+from addon.bake.scene import Light
 from addon.solver.estimators.forward_image import trace_chain_points
 from addon.solver.geometry.bvh import build_bvh
 from fixtures.bake_scenes import glass_sphere_scene, ring_scene, wavy_sheet
@@ -117,3 +118,53 @@ def test_two_bounce_path_points_bake_on_opencl_equals_numba():
     a, b = cpu.raw["floor"], ocl.raw["floor"]
     assert a.max() > 0
     np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * a.max())
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("case", ["sphere", "sheet", "sheet sun", "ring"])
+def test_landed_refinement_on_opencl_returns_numbas_records(monkeypatch, case):
+    """refine.cl (the landed refinement, one work-item per emitter) returns refine_kernel.py's
+    records: the same final and handed-back sub-triangles, every field bit for bit, in the same
+    order, and the bake the same texture; here with launches of a few emitters, record lists
+    that start empty (each launch overflows and runs again) and a shared-point table of 16 slots
+    (points traced again once it is half full)."""
+    from addon.solver.estimators import refine_kernel
+    from addon.solver.opencl import tracing
+
+    opencl_device_or_skip()
+    if case == "sphere":  # TT, TR, ...: lost points, borders, sub-triangles handed back
+        sc, res = glass_sphere_scene(resolution=48), 48
+    elif case == "ring":
+        sc, res = ring_scene(resolution=48), 48
+    else:  # the floor extended onto its plane: images beyond its edge dropped in the kernel
+        light = Light("Sun", "sun", (1.0, 1.0, 1.0), 3.0, direction=(0.2, -0.1, -1.0)) if case == "sheet sun" else None
+        sc, res = wavy_sheet(4, 64, n=30, light=light), 64
+    monkeypatch.setattr(tracing, "REFINE_TABLE_BITS", 4)
+    monkeypatch.setattr(tracing, "REFINE_TABLE_BYTES", 40 * 16 * 37)  # 37 emitters a launch
+    monkeypatch.setattr(tracing, "REFINE_RECORDS_PER_EMITTER", (0, 0))
+    calls = []
+    real = refine_kernel.refine_landed
+
+    def spy(*args, **kw):
+        out = real(*args, **kw)
+        calls.append((kw.get("device") is not None, out))
+        return out
+
+    monkeypatch.setattr(refine_kernel, "refine_landed", spy)
+    cpu = bake(sc, BakeSettings(resolution=res))
+    numba_calls = [c[1] for c in calls]
+    del calls[:]
+    ocl = bake(sc, BakeSettings(resolution=res, device="opencl"))
+    assert all(on_device for on_device, _ in calls) and len(calls) == len(numba_calls) > 0
+    finals = hands = 0
+    for a, (_, b) in zip(numba_calls, calls):
+        for k in a:
+            if k != "traced":
+                np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        finals += a["emitter"].size
+        hands += a["hand_emitter"].size
+    # the ring's sub-triangles at this size all reach across its shadow's edge: handed back
+    assert (finals > 500 or case == "ring") and (hands > 50 or case.startswith("sheet")), (finals, hands)
+    for k in cpu.images:
+        assert cpu.images[k].max() > 0
+        np.testing.assert_array_equal(ocl.images[k], cpu.images[k])

@@ -26,7 +26,7 @@ IMAGE_MARGIN = 0.25  # texels added around every image (plus twice its measured 
 IMAGE_COARSE = 2  # "flux": levels above the first grid where small images may stop (refine_image_triangles' coarse)
 IMAGE_COARSE_LINEAR = 4.0  # texels: ... those longer than this linear to IMAGE_RELATIVE x (this / their length)²
 EXTEND_FLAT_RECEIVERS = True  # rays that miss a flat receiver land on its plane, extended (False: cut by bisection; tests)
-LANDED_KERNEL = True  # Numba tracing: landed sub-triangles refined in one kernel (False: numpy levels only; tests)
+LANDED_KERNEL = True  # landed sub-triangles refined in one kernel, Numba or the OpenCL tracer's (False: numpy levels only; tests)
 FIRST_STEP_WORK = 5000.0  # with a ChunkSizer: the first chunk, before any is timed, at most this much estimated work
 FIRST_STEP_CASTERS = 16  # ... and at most this many casters (the estimate knows the caster's size, not its image's)
 REACH_STEP = 32768  # ... lit casters cone-tested per progress step
@@ -125,8 +125,8 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
         if caster_size is None:
             caster_size = caster_texels(tri_p[emit_tri], tri_p, receivers, only)
         extra["keep_lost_depth"] = lost_probe_depth(caster_size, int(coarse))
-    if tracer is None and LANDED_KERNEL:  # Numba: the landed sub-triangles refined in one kernel (the same rules)
-        extra["kernel_scene"] = (trace_args, bool(parallel))
+    if LANDED_KERNEL:  # the landed sub-triangles refined in one kernel, on the tracer's device (the same rules)
+        extra["kernel_scene"] = (trace_args, bool(parallel), tracer)
     tris = refine_image_triangles(trace, emit_tri.size, tri_rec, texel, grid=IMAGE_GRID, max_depth=max_depth,
                                   tolerance=IMAGE_TOLERANCE, coarse=coarse, shared=shared, top_points=mesh_points, planes=planes,
                                   **extra)

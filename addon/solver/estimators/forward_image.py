@@ -246,11 +246,12 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     instead of tracing them (:func:`~addon.solver.estimators.refine_kernel.mesh_point_traces`:
     a mesh's shared points traced once; counted by the caller).
     ``kernel_scene`` (with ``shared``): (``trace_chain_points``' arguments from x0 to planes,
-    parallel) of the scene ``trace`` traces, ``weight`` then being :func:`light_area_density`
+    parallel, device) of the scene ``trace`` traces, ``weight`` then being :func:`light_area_density`
     (or uniform for parallel light): the sub-triangles whose 6 points land on one receiver are
-    refined by :func:`~addon.solver.estimators.refine_kernel.refine_landed` in one kernel, the
-    others handed back to the levels below with the same rules (the same final sub-triangles,
-    in another order).
+    refined by :func:`~addon.solver.estimators.refine_kernel.refine_landed` in one kernel (on
+    ``device``, an OpenCL tracer, when it is not None), the others handed back to the levels
+    below with the same rules (the same final sub-triangles, in another order); without a
+    device the straight borders are cut in a Numba kernel too.
 
     Returns dict, the sub-triangles in emitter order: emitter (m,), bary (m, 3, 2) corners in the first triangle's (u1, v1),
     uv (m, 3, 2) their landing UVs, receiver (m,), deviation (m,) UV units, landed (m,) the
@@ -285,14 +286,17 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
     # whole triangles' midpoints (top_points)
     handed = {}
     kernel_finals = None
+    # the border kernel traces on Numba: with a device, the border rows are traced through ``trace``
+    border_scene = kernel_scene[0] if kernel_scene is not None and kernel_scene[2] is None else None
     whole = base.shape[0] == 1 and top_points is not None and np.asarray(top_points[0]).shape[0] == ne
     if kernel_scene is not None and dyadic:
         from .refine_kernel import refine_landed
 
-        trace_args, parallel = kernel_scene
+        trace_args, parallel, device = kernel_scene
         kernel_clock = time.perf_counter()
         k = refine_landed(ne, base, -c0, dyadic, trace_args, receiver_of_tri, texel_size, tolerance, relative, coarse_texels,
-                          coarse_linear_texels, max_depth, weight is not None, parallel, top_points if whole else None)
+                          coarse_linear_texels, max_depth, weight is not None, parallel, top_points if whole else None,
+                          device=device)
         traced = k["traced"]
         kernel_seconds += time.perf_counter() - kernel_clock
         kernel_finals = k["depth"]
@@ -435,9 +439,9 @@ def refine_image_triangles(trace, n_emitters, receiver_of_tri, texel_size, grid=
         kernel_clock = time.perf_counter()
         b_em, b_bary, b_uv, b_rec, b_dev, b_take, b_traced = _straight_border(
             trace, emitter[bi], bary[bi], mid[bi], uv[bi], muv[bi], robj[bi], receiver_of_tri, BORDER_STEPS,
-            depth >= int(max_depth), kernel_scene[0] if kernel_scene is not None else None)
+            depth >= int(max_depth), border_scene)
         traced += b_traced
-        if kernel_scene is not None:
+        if border_scene is not None:
             kernel_seconds += time.perf_counter() - kernel_clock
         border[bi[~b_take]] = False  # a curved border: split further
         bi = bi[b_take]

@@ -332,7 +332,7 @@ def refine_emitters(e_first, e_last, base, depth0, dyadic, x0, t1_of, bounces, r
 
 
 def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri, texel_size, tolerance, relative,
-                  coarse_texels, coarse_linear_texels, max_depth, density, parallel, mesh_points=None):
+                  coarse_texels, coarse_linear_texels, max_depth, density, parallel, mesh_points=None, device=None):
     """:func:`refine_emitters` over emitters [0, ``n_emitters``) in runs of
     ``EMITTERS_PER_CALL`` on the solver's threads, joined in emitter order.  ``trace_args``:
     the arguments of ``trace_chain_points`` from ``x0`` to ``planes`` (x0, t1_of, bounces,
@@ -342,7 +342,10 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
     depth, inherited image scale, bary, and rec (scene triangle, -1 lost), uv, fac of its 6
     points (corners, then edge midpoints 01, 12, 20); and the points traced.  When ``base`` is
     the whole triangle its 6 points are ``mesh_points`` (:func:`mesh_point_traces` of these
-    emitters, traced by the caller) or, with ``MESH_SHARED``, traced here that way."""
+    emitters, traced by the caller) or, with ``MESH_SHARED``, traced here that way.  ``device``: an
+    OpenCL tracer of this scene and these emitters (``opencl.tracing.OpenCLPointTracer``) refines
+    them on its device instead (refine.cl: the same records in the same order; only the count of
+    traced points differs, its shared-point table being smaller)."""
     runs = [(a, min(int(n_emitters), a + EMITTERS_PER_CALL)) for a in range(0, int(n_emitters), EMITTERS_PER_CALL)]
     base = np.ascontiguousarray(base, dtype=np.float64)
     top, top_traced = (np.zeros((0, 6), dtype=np.int64), np.zeros((0, 6, 2)), np.zeros((0, 6))), 0
@@ -350,14 +353,21 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
     if whole and mesh_points is not None:
         top = tuple(mesh_points)  # traced by the caller (counted there)
     elif whole and MESH_SHARED:
-        top, top_traced = mesh_point_traces(int(n_emitters), trace_args)
-    fixed = (base, int(depth0), int(dyadic)) + tuple(trace_args) + (
-        np.ascontiguousarray(receiver_of_tri, dtype=np.int64), np.ascontiguousarray(texel_size, dtype=np.float64),
-        float(tolerance), float(relative), float(coarse_texels), float(coarse_linear_texels), int(max_depth), bool(density),
-        bool(parallel)) + top
-    results = run_calls(lambda r: refine_emitters(r[0], r[1], *fixed), runs)
-    f = np.concatenate([r[0] for r in results]) if results else np.zeros((0, F_WIDTH))
-    h = np.concatenate([r[1] for r in results]) if results else np.zeros((0, H_WIDTH))
+        top, top_traced = mesh_point_traces(int(n_emitters), trace_args,
+                                            trace=device.trace_points if device is not None else None)
+    if device is not None:
+        f, h, traced = device.refine_emitters(int(n_emitters), base, int(depth0), int(dyadic), receiver_of_tri, texel_size,
+                                              tolerance, relative, coarse_texels, coarse_linear_texels, int(max_depth),
+                                              bool(density), bool(parallel), top)
+    else:
+        fixed = (base, int(depth0), int(dyadic)) + tuple(trace_args) + (
+            np.ascontiguousarray(receiver_of_tri, dtype=np.int64), np.ascontiguousarray(texel_size, dtype=np.float64),
+            float(tolerance), float(relative), float(coarse_texels), float(coarse_linear_texels), int(max_depth),
+            bool(density), bool(parallel)) + top
+        results = run_calls(lambda r: refine_emitters(r[0], r[1], *fixed), runs)
+        f = np.concatenate([r[0] for r in results]) if results else np.zeros((0, F_WIDTH))
+        h = np.concatenate([r[1] for r in results]) if results else np.zeros((0, H_WIDTH))
+        traced = int(sum(r[2] for r in results))
     return dict(emitter=f[:, F_EMITTER].astype(np.int64), receiver=f[:, F_RECEIVER].astype(np.int64),
                 depth=f[:, F_DEPTH].astype(np.int64), deviation=f[:, F_DEV].copy(),
                 bary=f[:, F_BARY:F_UV].reshape(-1, 3, 2).copy(), uv=f[:, F_UV:F_MID_UV].reshape(-1, 3, 2).copy(),
@@ -365,7 +375,7 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
                 hand_emitter=h[:, H_EMITTER].astype(np.int64), hand_depth=h[:, H_DEPTH].astype(np.int64),
                 hand_inherited=h[:, H_INHERITED].copy(), hand_bary=h[:, H_BARY:H_REC].reshape(-1, 3, 2).copy(),
                 hand_rec=h[:, H_REC:H_UV].astype(np.int64), hand_uv=h[:, H_UV:H_FAC].reshape(-1, 6, 2).copy(),
-                hand_fac=h[:, H_FAC:H_WIDTH].copy(), traced=top_traced + int(sum(r[2] for r in results)))
+                hand_fac=h[:, H_FAC:H_WIDTH].copy(), traced=top_traced + traced)
 
 
 CORNER_BARY = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])

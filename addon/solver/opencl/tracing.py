@@ -19,7 +19,12 @@ from ..geometry.receiver_planes import no_planes
 from .backend import _context
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "trace.cl")
-_programs = {}  # device index -> the built trace kernel
+_REFINE_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "refine.cl")
+_programs = {}  # device index -> the built trace kernel; (device index, stack) -> the refine kernel
+REFINE_TABLE_BITS = 9  # refine.cl's per-emitter shared-point table: 512 slots (filled to half; then points are traced again)
+REFINE_TABLE_BYTES = 64 << 20  # the tables of one refine launch on a CPU device (emitters per launch follow)
+GPU_REFINE_TABLE_BYTES = 1 << 30  # ... on a GPU
+REFINE_RECORDS_PER_EMITTER = (8, 1)  # first room for final / handed-back records per emitter of a launch (then grown to the count)
 _kept = {}  # id of a host array -> (weak reference to it, {(device index, what): (sources, buffers)})
 
 
@@ -28,6 +33,20 @@ def _kernel(index):
     if index not in _programs:
         _programs[index] = d.cl.Kernel(d._build(_KERNEL_FILE), "trace_chain_points")
     return d, _programs[index]
+
+
+def _refine_kernel(index, stack):
+    """refine.cl's refine_emitters on device ``index`` for a depth-first stack of ``stack``
+    entries, with refine_kernel.py's record layouts."""
+    from ..estimators import refine_kernel as rk
+
+    d = _context(index)
+    key = (index, "refine", stack, REFINE_TABLE_BITS)
+    if key not in _programs:
+        layout = [(name, getattr(rk, name)) for name in dir(rk) if name[:2] in ("F_", "H_") and name[2:].isupper()]
+        defines = [("REFINE_STACK", int(stack)), ("TABLE_BITS", REFINE_TABLE_BITS)] + [(k, int(v)) for k, v in layout]
+        _programs[key] = d.cl.Kernel(d._build(_REFINE_FILE, defines), "refine_emitters")
+    return _programs[key]
 
 
 def kept_buffers(index, what, sources, convert):
@@ -68,6 +87,7 @@ class OpenCLPointTracer:
     def __init__(self, index, bounces, refract1, refract2, second_ok, tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role,
                  bvh_args, x0, t1_of, eps, planes=None):
         self.device, self.kernel = _kernel(index)
+        self.index = index
         d = self.device
         self.local = d.work_group(self.kernel)
         self.name = d.label
@@ -78,6 +98,8 @@ class OpenCLPointTracer:
                                                  np.ascontiguousarray(a[2], dtype=np.uint8),
                                                  np.ascontiguousarray(a[3], dtype=np.float64)])
         self.n_planes = np.int32(planes.shape[0])
+        self.n_emitters = int(np.shape(t1_of)[0])
+        self._caps = (0, 0)  # the record lists' room on the device (refine_emitters)
         self.scalars = (np.int32(bounces), np.int32(1 if refract1 else 0), np.int32(1 if refract2 else 0))
         self.eps = np.float64(eps)
         self.emitters = d.upload((np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(t1_of, dtype=np.int64)))
@@ -102,3 +124,86 @@ class OpenCLPointTracer:
         d.queue.finish()
         if d.profiler is not None:
             d.profiler.syncs += 1
+
+    def trace_points(self, e, u, v):
+        """(second triangle, receiver triangle, UV, transport factor) of points (e[i], u[i], v[i])."""
+        m = e.shape[0]
+        out = (np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((m, 2)), np.empty(m))
+        self.trace(e, u, v, *out)
+        return out
+
+    def refine_emitters(self, n_emitters, base, depth0, dyadic, receiver_of_tri, texel_size, tolerance, relative,
+                        coarse_texels, coarse_linear_texels, max_depth, density, parallel, top):
+        """``refine_kernel.refine_emitters`` of emitters [0, ``n_emitters``) on the device
+        (refine.cl, the same decisions and points), in launches of as many emitters as their
+        shared-point tables allow.  Returns (final records (nf, F_WIDTH), handed-back records
+        (nh, H_WIDTH), points traced), the records in the Numba kernel's order (emitter, then
+        depth first)."""
+        from ..estimators.refine_kernel import F_WIDTH, H_WIDTH
+
+        d = self.device
+        n_emitters = int(n_emitters)
+        base = np.ascontiguousarray(base, dtype=np.float64)
+        stack = base.shape[0] + 3 * (max(0, int(max_depth) - int(depth0)) + 1) + 4
+        kernel = _refine_kernel(self.index, stack)
+        slots = 1 << REFINE_TABLE_BITS
+        budget = REFINE_TABLE_BYTES if d.is_cpu else GPU_REFINE_TABLE_BYTES
+        batch = max(1, min(n_emitters, budget // (40 * slots)))
+        has_top = base.shape[0] == 1 and top[0].shape[0] == self.n_emitters
+        top = tuple(np.ascontiguousarray(a, dtype=dt) for a, dt in zip(top, (np.int64, np.float64, np.float64)))
+        fixed_in = [d.write(f"refine_{k}", a) for k, a in (
+            ("base", base), ("receiver_of_tri", np.ascontiguousarray(receiver_of_tri, dtype=np.int64)),
+            ("texel", np.ascontiguousarray(texel_size, dtype=np.float64)), ("top_rec", top[0]), ("top_uv", top[1]),
+            ("top_fac", top[2]))]
+        tables = [d.buffer("refine_key", 8 * slots * batch), d.buffer("refine_rec", 8 * slots * batch),
+                  d.buffer("refine_val", 24 * slots * batch)]
+        per_buf = d.buffer("refine_per_emitter", 24 * batch)
+        count_buf = d.buffer("refine_counts", 8)
+        caps = [max(self._caps[k], REFINE_RECORDS_PER_EMITTER[k] * batch) for k in range(2)]
+        x0, t1_of = self.emitters
+        tri_rec, tri_uv, second_ok, planes = self.receivers
+        tri_p, tri_n, tri_ior, tri_role = self.scene[:4]
+        local = d.work_group(kernel)
+        finals, hands, traced = [], [], 0
+        counts = np.zeros(2, dtype=np.int32)
+        for a in range(0, n_emitters, batch):
+            m = min(batch, n_emitters - a)
+            while True:
+                outs = [d.buffer("refine_finals", 8 * (F_WIDTH + 1) * caps[0]), d.buffer("refine_hands", 8 * (H_WIDTH + 1) * caps[1])]
+                d.write("refine_counts", np.zeros(2, dtype=np.int32))
+                d.launch(kernel, "kernel refine_emitters", m, local, np.int64(a), np.int32(m), fixed_in[0],
+                         np.int32(base.shape[0]), np.int64(depth0), np.int64(dyadic), x0, t1_of, *self.scalars, second_ok,
+                         tri_rec, tri_uv, tri_p, tri_n, tri_ior, tri_role, *self.scene[4:], self.eps, planes, self.n_planes,
+                         fixed_in[1], fixed_in[2], np.float64(tolerance), np.float64(relative), np.float64(coarse_texels),
+                         np.float64(coarse_linear_texels), np.int64(max_depth), np.int32(bool(density)),
+                         np.int32(bool(parallel)), np.int32(has_top), *fixed_in[3:], *tables, outs[0], np.int32(caps[0]),
+                         outs[1], np.int32(caps[1]), count_buf, per_buf)
+                d.read(counts, count_buf)
+                if counts[0] <= caps[0] and counts[1] <= caps[1]:
+                    break
+                caps = [max(caps[0], int(1.25 * counts[0]) + 1), max(caps[1], int(1.25 * counts[1]) + 1)]
+            self._caps = caps
+            per = np.empty((m, 3), dtype=np.int64)
+            d.read(per, per_buf, wait=False)
+            f = np.empty((int(counts[0]), F_WIDTH + 1))
+            h = np.empty((int(counts[1]), H_WIDTH + 1))
+            d.read(f, outs[0], wait=False)
+            d.read(h, outs[1], wait=False)
+            d.queue.finish()
+            finals.append(_in_order(f, per[:, 0], a))
+            hands.append(_in_order(h, per[:, 1], a))
+            traced += int(per[:, 2].sum())
+        f = np.concatenate(finals) if finals else np.zeros((0, F_WIDTH))
+        h = np.concatenate(hands) if hands else np.zeros((0, H_WIDTH))
+        return f, h, traced
+
+
+def _in_order(rows, count, first):
+    """Records (k, width + 1) of emitters first.. (column 0 the emitter, the last column its
+    ordinal in that emitter's depth-first order; ``count`` per emitter) in emitter, then
+    depth-first order, without the ordinal."""
+    start = np.cumsum(count) - count
+    out = np.empty((rows.shape[0], rows.shape[1] - 1))
+    if rows.shape[0]:
+        out[start[rows[:, 0].astype(np.int64) - first] + rows[:, -1].astype(np.int64)] = rows[:, :-1]
+    return out

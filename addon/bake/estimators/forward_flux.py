@@ -24,9 +24,15 @@ the 6 traced points instead of tracing the centroid (:func:`_centroid_transport`
 :func:`flux_textures_reference` is the numpy form, used with ``coarse`` 0 and every point
 traced for each sub-triangle when ``ForwardFlux.reference`` is set (tests/bake/test_bake_forward_flux.py compares the two;
 bench/animation.py times both).
+
+With ``device="opencl[:N]"`` the default form refines, traces and splats on that OpenCL device
+(``addon/solver/opencl``: refine.cl, trace.cl, splat.cl; a pass's textures stay there until its
+end) and computes the per-sub-triangle terms on Numba between: the same texture bit for bit
+(tests/bake/test_bake_opencl_trace.py).
 """
 
 import time
+import warnings
 
 import numpy as np
 
@@ -43,6 +49,13 @@ CASTER_CHUNK = 16384  # at most this many first casters refined and splatted tog
 CHUNK_WORK = 1000000  # ... and about this many sub-triangles by their estimate (forward_images.image_chunks)
 
 
+def _device_textures(index, sizes):
+    """:class:`~addon.solver.opencl.splatting.OpenCLSplat` (imported when a bake asks for a device)."""
+    from ...solver.opencl.splatting import OpenCLSplat
+
+    return OpenCLSplat(index, sizes)
+
+
 class ForwardFlux(Estimator):
     name = "forward-flux"
     reference = False  # True: the numpy reference form (no coarse levels, every point traced; tests, benchmarks)
@@ -52,6 +65,7 @@ class ForwardFlux(Estimator):
         self.coarse = 0 if self.reference else IMAGE_COARSE
         self.flux_fn = flux_textures_reference if self.reference else flux_textures
         self.total = None  # (H W, 3) W per texel per receiver, summed over passes and caster chunks
+        self.splat_device = None  # False once the bake's OpenCL device could not splat
         self.reports = []
 
     def prepare(self):
@@ -67,7 +81,7 @@ class ForwardFlux(Estimator):
             where = f"{item.chain}: forward images (light {li + 1}, sample {m + 1})"
             yield p / len(passes), where
             report = None
-            flux = None  # this pass's flux per receiver: its chunks' splats, added to the total at its end
+            flux = None  # this pass's flux textures (HostFlux / OpenCLSplat): its chunks' splats, added to the total at its end
             step = float(ctx.settings.step_seconds)
             sizer = ChunkSizer(seconds=step) if step > 0.0 else None
             t0 = time.perf_counter()
@@ -84,20 +98,40 @@ class ForwardFlux(Estimator):
                 ctx.timer.add("image", time.perf_counter() - t0)
                 t0 = time.perf_counter()
                 if flux is None:
-                    flux = [np.zeros((r.resolution[0] * r.resolution[1], 3)) for r in ctx.receivers]
+                    flux = self._pass_textures()
                 self.flux_fn(ctx, item, state, ls, m, flux)
                 ctx.timer.add("flux", time.perf_counter() - t0)
                 if sizer is not None:
                     sizer.took(time.perf_counter() - t_chunk)
                 report = _add_report(report, state.report)
                 if state.report["device"] != "numba":
-                    self.device = state.report["device"] + " (tracing)"
+                    on = "refinement, tracing" if isinstance(flux, HostFlux) else "refinement, tracing, splat"
+                    self.device = f"{state.report['device']} ({on})"
                 yield (p + done / count) / len(passes), f"{where}, casters {done}/{count}"
                 t0 = time.perf_counter()
             ctx.timer.add("image", time.perf_counter() - t0)
             if report is not None:
+                t0 = time.perf_counter()
+                flux = flux.arrays()
+                ctx.timer.add("flux.splat", time.perf_counter() - t0)
                 self.total = flux if self.total is None else [a + b for a, b in zip(self.total, flux)]
                 self.reports.append({"light": item.light, "light_sample": m, "chain": item.chain, **report})
+
+    def _pass_textures(self):
+        """A pass's flux textures, zero: on the bake's OpenCL device (the default form; the same
+        bits as Numba's) or on the host."""
+        ctx = self.ctx
+        sizes = [tuple(r.resolution) for r in ctx.receivers]
+        if not self.reference and ctx.settings.device not in (None, "numba") and self.splat_device is not False:
+            from ...solver.opencl.backend import OpenCLUnavailable, parse_device
+
+            try:
+                return _device_textures(parse_device(ctx.settings.device), sizes)
+            except OpenCLUnavailable as ex:  # the tracer has warned when there is no device
+                self.splat_device = False
+                if "splat.cl" in str(ex):
+                    warnings.warn(f"{ex}; splatting on Numba instead", RuntimeWarning, stacklevel=2)
+        return HostFlux(sizes)
 
     def receiver_flux(self, rec_index):
         return None if self.total is None else self.total[rec_index]
@@ -127,9 +161,9 @@ def _add_report(total, chunk):
 
 
 def flux_textures(ctx, item, state, ls, m, out):
-    """Add the flux (W per texel, into ``out``: one (H W, 3) array per receiver) of planned
-    chain ``item``'s final sub-triangles in ``state`` for light sample ``m`` (see the module
-    doc); their power also goes into ``ctx.ledger``.  The estimate of
+    """Add the flux (W per texel, into ``out``: the pass's textures, :class:`HostFlux` or
+    ``OpenCLSplat``) of planned chain ``item``'s final sub-triangles in ``state`` for light
+    sample ``m`` (see the module doc); their power also goes into ``ctx.ledger``.  The estimate of
     :func:`flux_textures_reference`, its per-sub-triangle terms in kernels, without the
     centroid's shadow test (the points' shadow segments decide)."""
     extent = ctx.extent
@@ -233,15 +267,32 @@ def _coloured_flux(ctx, item, tris, t1, t2, power, rgb, share):
     return flux
 
 
+class HostFlux:
+    """A pass's flux textures on the host, (H W, 3) per receiver of ``sizes`` ((W, H) each),
+    splatted by Numba (:func:`~addon.solver.estimators.splat.splat_triangles`); the interface
+    of :class:`~addon.solver.opencl.splatting.OpenCLSplat`."""
+
+    def __init__(self, sizes):
+        self.sizes = [(int(w), int(h)) for w, h in sizes]
+        self.out = [np.zeros((w * h, 3)) for w, h in self.sizes]
+
+    def add(self, r, tri_uv, flux, density, region=None):
+        W, H = self.sizes[r]
+        splat_triangles(np.ascontiguousarray(tri_uv), np.ascontiguousarray(flux), W, H, self.out[r],
+                        np.ascontiguousarray(density), region=region)
+
+    def arrays(self):
+        return self.out
+
+
 def _splat(receivers, tris, flux, density, out, regions=None):
-    """Splat the sub-triangles' ``flux`` with corner ``density`` onto their receivers' ``out``,
-    clipped to the receiver's ``regions[r]`` where it has one (:func:`_regions`)."""
-    for r, recv in enumerate(receivers):
+    """Splat the sub-triangles' ``flux`` with corner ``density`` onto their receivers' textures
+    in ``out`` (:class:`HostFlux` or an OpenCL one), clipped to the receiver's ``regions[r]``
+    where it has one (:func:`_regions`)."""
+    for r in range(len(receivers)):
         sel = np.flatnonzero(tris["receiver"] == r)
         if sel.size:
-            W, H = recv.resolution
-            splat_triangles(np.ascontiguousarray(tris["uv"][sel]), np.ascontiguousarray(flux[sel]), int(W), int(H), out[r],
-                            np.ascontiguousarray(density[sel]), region=None if regions is None else regions[r])
+            out.add(r, tris["uv"][sel], flux[sel], density[sel], region=None if regions is None else regions[r])
 
 
 def flux_textures_reference(ctx, item, state, ls, m, out):

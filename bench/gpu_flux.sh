@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The forward-flux device check, for one call of the device tool on a lent NVIDIA machine (see
 # ../shared/GPU.md and bench/gpu_check.sh): the environment of bench/gpu_env.sh, then
-# bench/flux_device.py (the wavy sheet baked with its points traced by Numba on
-# every core and by the GPU).  The first bake compiles the Numba pipeline (minutes there);
+# bench/flux_device.py (the wavy sheet baked by Numba on every core and with its refinement,
+# tracing and splat on the GPU).  The first bake compiles the Numba pipeline (minutes there);
 # RESOLUTIONS (default 512,1024) and FRAMES (default 1) size it.  Logs and BENCHMARKS.md go to $OUT.
 set -u
 OUT=${OUT:-/tmp/out}

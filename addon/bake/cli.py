@@ -62,10 +62,10 @@ def add_arguments(parser):
     parser.add_argument("--margin", type=int, default=16, help="texels of padding over UV seams (default 16)")
     parser.add_argument("--threads", type=int, default=0, help="worker threads (default: all cores)")
     parser.add_argument("--device", default="numba", metavar="DEVICE",
-                        help="numba (CPU, default), opencl (first OpenCL device) or opencl:N: forward-flux traces its "
-                        "points there (the same texture), path-points solves every chain there (two bounces: the "
-                        "resultant's determinants on the device, the rest on the CPU); a missing pyopencl / device "
-                        "runs on Numba with a warning")
+                        help="numba (CPU, default), opencl (first OpenCL device) or opencl:N: forward-flux refines its "
+                        "sub-triangles, traces their points and splats them there (the same texture; the flux terms "
+                        "on the CPU), path-points solves every chain there (on a CPU device two bounces build their "
+                        "systems on Numba beside it); a missing pyopencl / device runs on Numba with a warning")
     parser.add_argument("--estimator", default=None, choices=ESTIMATORS,
                         help="forward-flux (default: forward-traced sub-triangles, their flux spread over their images: "
                         "texel averages, noise-free), path-points (every exact path at every texel supersample, solved by "

@@ -34,9 +34,9 @@ BOUNCE_ITEMS = (
 DEVICE_ITEMS = (
     ("numba", "CPU", "Solve on the CPU with Numba"),
     ("opencl", "OpenCL",
-     "Use the first OpenCL device with double precision: Forward Flux traces its points there (the same "
-     "texture); Exact Paths solves one-bounce chains there entirely and two-bounce chains' resultant "
-     "determinants; no OpenCL device / pyopencl falls back to the CPU with a warning"),
+     "Use the first OpenCL device with double precision: Forward Flux refines, traces and splats there "
+     "(the same texture); Exact Paths solves one- and two-bounce chains there; no OpenCL device / "
+     "pyopencl falls back to the CPU with a warning"),
 )
 QUALITY_ITEMS = (
     ("PREVIEW", "Preview", "Fast look: 1 sample per texel, 1 light sample (the fields below are ignored)"),

@@ -168,3 +168,28 @@ def test_landed_refinement_on_opencl_returns_numbas_records(monkeypatch, case):
     for k in cpu.images:
         assert cpu.images[k].max() > 0
         np.testing.assert_array_equal(ocl.images[k], cpu.images[k])
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("part", ["refine", "splat"])
+def test_forward_flux_kernel_that_does_not_build_warns_and_uses_numba(monkeypatch, tmp_path, part):
+    """A driver that rejects refine.cl or splat.cl (here a source with a syntax error) is no crash:
+    the bake warns with the build log, does that part on Numba and bakes the same texture."""
+    from addon.solver.opencl import splatting, tracing
+
+    opencl_device_or_skip()
+    broken = tmp_path / f"{part}.cl"
+    broken.write_text("__kernel void nothing(__global double *x) { x[0] = ; }\n")
+    if part == "refine":
+        monkeypatch.setattr(tracing, "_REFINE_FILE", str(broken))
+    else:
+        monkeypatch.setattr(splatting, "_KERNEL_FILE", str(broken))
+    sc = wavy_sheet(4, 48, n=20)
+    cpu = bake(sc, BakeSettings(resolution=48))
+    doing = {"refine": "refining", "splat": "splatting"}[part]
+    with pytest.warns(RuntimeWarning, match=f"(?s)OpenCL unavailable.*{part}.cl does not build.*expected expression.*{doing} on Numba"):
+        ocl = bake(sc, BakeSettings(resolution=48, device="opencl"))
+    assert ocl.report["devices"]["forward-flux"].startswith("opencl: ")
+    for k in cpu.images:
+        assert cpu.images[k].max() > 0
+        np.testing.assert_array_equal(ocl.images[k], cpu.images[k])

@@ -127,10 +127,10 @@ class ForwardFlux(Estimator):
 
             try:
                 return _device_textures(parse_device(ctx.settings.device), sizes)
-            except OpenCLUnavailable as ex:  # the tracer has warned when there is no device
+            except OpenCLUnavailable as ex:  # no device: the tracer has warned already
                 self.splat_device = False
                 if "splat.cl" in str(ex):
-                    warnings.warn(f"{ex}; splatting on Numba instead", RuntimeWarning, stacklevel=2)
+                    warnings.warn(f"OpenCL unavailable ({ex}); splatting on Numba instead", RuntimeWarning, stacklevel=2)
         return HostFlux(sizes)
 
     def receiver_flux(self, rec_index):

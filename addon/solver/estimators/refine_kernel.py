@@ -39,6 +39,7 @@ order, so the result does not depend on the thread count.
 """
 
 import math
+import warnings
 
 import numpy as np
 
@@ -356,10 +357,16 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
         top, top_traced = mesh_point_traces(int(n_emitters), trace_args,
                                             trace=device.trace_points if device is not None else None)
     if device is not None:
-        f, h, traced = device.refine_emitters(int(n_emitters), base, int(depth0), int(dyadic), receiver_of_tri, texel_size,
-                                              tolerance, relative, coarse_texels, coarse_linear_texels, int(max_depth),
-                                              bool(density), bool(parallel), top)
-    else:
+        from ..opencl.backend import OpenCLUnavailable
+
+        try:
+            f, h, traced = device.refine_emitters(int(n_emitters), base, int(depth0), int(dyadic), receiver_of_tri,
+                                                  texel_size, tolerance, relative, coarse_texels, coarse_linear_texels,
+                                                  int(max_depth), bool(density), bool(parallel), top)
+        except OpenCLUnavailable as ex:  # a driver that rejects refine.cl: the same records on Numba
+            warnings.warn(f"OpenCL unavailable ({ex}); refining on Numba instead", RuntimeWarning, stacklevel=2)
+            device = None
+    if device is None:
         fixed = (base, int(depth0), int(dyadic)) + tuple(trace_args) + (
             np.ascontiguousarray(receiver_of_tri, dtype=np.int64), np.ascontiguousarray(texel_size, dtype=np.float64),
             float(tolerance), float(relative), float(coarse_texels), float(coarse_linear_texels), int(max_depth),

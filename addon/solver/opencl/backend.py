@@ -165,6 +165,7 @@ class _Device:
         self.kernels_scan = tuple(cl.Kernel(scan, name) for name in ("scan_blocks", "scan_sums", "scan_add"))
         self.local_scan = min(SCAN_WORK_GROUP, *(self.kernel_info(k)[0] for k in self.kernels_scan))
         self.kernels_two = None
+        self.kernels = {}  # (file, kernel name, defines) -> kernel, or the OpenCLUnavailable of its build (kernel())
         self.buffers = {}
         self.path_capacity = 0
 
@@ -172,6 +173,22 @@ class _Device:
         """The program of the file path (:meth:`build_source`)."""
         with open(path) as f:
             return self.build_source(f.read(), os.path.dirname(path), defines)
+
+    def kernel(self, path, name, defines=()):
+        """Kernel ``name`` of the program of file ``path`` (:meth:`_build`), built once; a
+        program the driver rejects raises OpenCLUnavailable with its log, now and on every
+        later call (the callers fall back to Numba)."""
+        key = (path, name, tuple(defines))
+        got = self.kernels.get(key)
+        if got is None:
+            try:
+                got = self.cl.Kernel(self._build(path, defines), name)
+            except self.cl.Error as ex:
+                got = OpenCLUnavailable(f"{os.path.basename(path)} does not build on {self.label}: {str(ex).strip()[:2000]}")
+            self.kernels[key] = got
+        if isinstance(got, OpenCLUnavailable):
+            raise got
+        return got
 
     def build_source(self, source, folder, defines=()):
         """The program of source, its shared parts and generated tables pasted in

@@ -12,21 +12,15 @@ import os
 
 import numpy as np
 
-from .backend import OpenCLUnavailable, _context, _fill_zero
+from .backend import _context, _fill_zero
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "splat.cl")
-_programs = {}  # device index -> the built splat kernel
 CPU_BANDS = 64  # bands of rows on a CPU device; other devices: a band per row
 
 
 def _kernel(index):
     d = _context(index)
-    if index not in _programs:
-        try:
-            _programs[index] = d.cl.Kernel(d._build(_KERNEL_FILE), "splat_bands")
-        except d.cl.Error as ex:  # a driver that rejects the program: the caller splats on Numba
-            raise OpenCLUnavailable(f"splat.cl did not build on {d.label}: {ex}") from ex
-    return d, _programs[index]
+    return d, d.kernel(_KERNEL_FILE, "splat_bands")  # OpenCLUnavailable: the caller splats on Numba
 
 
 class OpenCLSplat:

@@ -20,7 +20,6 @@ from .backend import _context
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "trace.cl")
 _REFINE_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "refine.cl")
-_programs = {}  # device index -> the built trace kernel; (device index, stack) -> the refine kernel
 REFINE_TABLE_BITS = 9  # refine.cl's per-emitter shared-point table: 512 slots (filled to half; then points are traced again)
 REFINE_TABLE_BYTES = 64 << 20  # the tables of one refine launch on a CPU device (emitters per launch follow)
 GPU_REFINE_TABLE_BYTES = 1 << 30  # ... on a GPU
@@ -30,9 +29,7 @@ _kept = {}  # id of a host array -> (weak reference to it, {(device index, what)
 
 def _kernel(index):
     d = _context(index)
-    if index not in _programs:
-        _programs[index] = d.cl.Kernel(d._build(_KERNEL_FILE), "trace_chain_points")
-    return d, _programs[index]
+    return d, d.kernel(_KERNEL_FILE, "trace_chain_points")
 
 
 def _refine_kernel(index, stack):
@@ -40,13 +37,9 @@ def _refine_kernel(index, stack):
     entries, with refine_kernel.py's record layouts."""
     from ..estimators import refine_kernel as rk
 
-    d = _context(index)
-    key = (index, "refine", stack, REFINE_TABLE_BITS)
-    if key not in _programs:
-        layout = [(name, getattr(rk, name)) for name in dir(rk) if name[:2] in ("F_", "H_") and name[2:].isupper()]
-        defines = [("REFINE_STACK", int(stack)), ("TABLE_BITS", REFINE_TABLE_BITS)] + [(k, int(v)) for k, v in layout]
-        _programs[key] = d.cl.Kernel(d._build(_REFINE_FILE, defines), "refine_emitters")
-    return _programs[key]
+    layout = [(name, getattr(rk, name)) for name in dir(rk) if name[:2] in ("F_", "H_") and name[2:].isupper()]
+    defines = [("REFINE_STACK", int(stack)), ("TABLE_BITS", REFINE_TABLE_BITS)] + [(k, int(v)) for k, v in layout]
+    return _context(index).kernel(_REFINE_FILE, "refine_emitters", defines)
 
 
 def kept_buffers(index, what, sources, convert):

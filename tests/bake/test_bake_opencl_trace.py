@@ -121,18 +121,20 @@ def test_two_bounce_path_points_bake_on_opencl_equals_numba():
 
 
 @pytest.mark.opencl
-@pytest.mark.parametrize("case", ["sphere", "sheet", "sheet sun", "ring"])
+@pytest.mark.parametrize("case", ["sphere", "sphere seeded", "sheet", "sheet sun", "ring"])
 def test_landed_refinement_on_opencl_returns_numbas_records(monkeypatch, case):
     """refine.cl (the landed refinement, one work-item per emitter) returns refine_kernel.py's
     records: the same final and handed-back sub-triangles, every field bit for bit, in the same
     order, and the bake the same texture; here with launches of a few emitters, record lists
     that start empty (each launch overflows and runs again) and a shared-point table of 16 slots
-    (points traced again once it is half full)."""
+    (points traced again once it is half full).  "seeded": the path-seeded estimator's images
+    (straight to the margin only, no density test)."""
     from addon.solver.estimators import refine_kernel
     from addon.solver.opencl import tracing
 
     opencl_device_or_skip()
-    if case == "sphere":  # TT, TR, ...: lost points, borders, sub-triangles handed back
+    settings = {"two_bounce": "seeded"} if case == "sphere seeded" else {}
+    if case.startswith("sphere"):  # TT, TR, ...: lost points, borders, sub-triangles handed back
         sc, res = glass_sphere_scene(resolution=48), 48
     elif case == "ring":
         sc, res = ring_scene(resolution=48), 48
@@ -151,10 +153,10 @@ def test_landed_refinement_on_opencl_returns_numbas_records(monkeypatch, case):
         return out
 
     monkeypatch.setattr(refine_kernel, "refine_landed", spy)
-    cpu = bake(sc, BakeSettings(resolution=res))
+    cpu = bake(sc, BakeSettings(resolution=res, **settings))
     numba_calls = [c[1] for c in calls]
     del calls[:]
-    ocl = bake(sc, BakeSettings(resolution=res, device="opencl"))
+    ocl = bake(sc, BakeSettings(resolution=res, device="opencl", **settings))
     assert all(on_device for on_device, _ in calls) and len(calls) == len(numba_calls) > 0
     finals = hands = 0
     for a, (_, b) in zip(numba_calls, calls):

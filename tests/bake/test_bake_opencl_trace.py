@@ -195,3 +195,23 @@ def test_forward_flux_kernel_that_does_not_build_warns_and_uses_numba(monkeypatc
     for k in cpu.images:
         assert cpu.images[k].max() > 0
         np.testing.assert_array_equal(ocl.images[k], cpu.images[k])
+
+
+@pytest.mark.opencl
+def test_forward_flux_gpu_shapes_bake_numbas_texture(monkeypatch):
+    """The launch shapes a GPU gets (all of a chunk's emitters in one refine launch with the GPU
+    table budget, a splat band per row, small work-groups), run here on PoCL taken for a GPU:
+    the same texture bit for bit."""
+    from addon.solver.opencl import backend
+
+    index = opencl_device_or_skip()
+    d = backend._context(index)
+    sc = wavy_sheet(3, 64, n=30)
+    cpu = bake(sc, BakeSettings(resolution=64))
+    monkeypatch.setattr(d, "is_cpu", False)
+    assert d.small_work_group(d.kernel(backend._SCAN_FILE, "scan_blocks")) <= backend.SMALL_WORK_GROUP
+    ocl = bake(sc, BakeSettings(resolution=64, device=f"opencl:{index}"))
+    assert ocl.report["devices"]["forward-flux"].endswith("(refinement, tracing, splat)")
+    for k in cpu.images:
+        assert cpu.images[k].max() > 0
+        np.testing.assert_array_equal(ocl.images[k], cpu.images[k])

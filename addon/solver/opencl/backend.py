@@ -46,6 +46,7 @@ CPU_WORK_GROUP = 8
 # Work-group size asked for on GPUs (clamped to what the kernel allows): whole warps /
 # wavefronts, a few per group (the fastest of 32-256 on an H200: bench/results/opencl_shapes_gpu.md).
 GPU_WORK_GROUP = 256
+SMALL_WORK_GROUP = 32  # ... for launches of few, long work-items (the forward-flux refine and splat: _Device.small_work_group)
 # Tuples per one-bounce launch: bounds the device buffers (~200 bytes in, ~40 bytes of
 # path records and, in the split pipeline, ~150 bytes of flags, slots and offsets per tuple)
 # while keeping launches large.
@@ -209,6 +210,13 @@ class _Device:
         multiple = kernel.get_work_group_info(cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE, self.dev)
         size = min(wanted, limit)
         return max(multiple * (size // multiple), 1) if size >= multiple else max(size, 1)
+
+    def small_work_group(self, kernel):
+        """The work-group size for a launch of few, long work-items (a chunk's emitters, a
+        texture's rows): :meth:`work_group` on CPUs; on other devices at most SMALL_WORK_GROUP, so
+        that its groups spread over many compute units instead of filling a few."""
+        size = self.work_group(kernel)
+        return size if self.is_cpu else min(size, SMALL_WORK_GROUP)
 
     def kernel_info(self, kernel):
         """(kernel's maximum work-group size, private memory bytes per work-item or None)."""

@@ -38,7 +38,7 @@ class OpenCLSplat:
             buf = d.cl.Buffer(d.ctx, d.cl.mem_flags.READ_WRITE, max(24 * w * h, 64))
             _fill_zero(d, buf, max(24 * w * h, 64))
             self.textures.append(buf)
-        self.local = d.work_group(self.kernel)
+        self.local = d.small_work_group(self.kernel)  # a band per row: ~10^3 work-items, each over a chunk's triangles
 
     def add(self, r, tri_uv, flux, density, region=None):
         """Splat triangles (UV corners ``tri_uv`` (m, 3, 2), ``flux`` (m, 3), corner ``density``

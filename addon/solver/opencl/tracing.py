@@ -156,7 +156,7 @@ class OpenCLPointTracer:
         x0, t1_of = self.emitters
         tri_rec, tri_uv, second_ok, planes = self.receivers
         tri_p, tri_n, tri_ior, tri_role = self.scene[:4]
-        local = d.work_group(kernel)
+        local = d.small_work_group(kernel)  # a chunk's emitters: ~10^3, each a depth-first walk
         finals, hands, traced = [], [], 0
         counts = np.zeros(2, dtype=np.int32)
         for a in range(0, n_emitters, batch):

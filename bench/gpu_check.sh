@@ -15,14 +15,8 @@
 set -u
 N1=${N1:-1000000}
 N2=${N2:-0}
-OUT=${OUT:-/tmp/out}
-mkdir -p "$OUT"
 cd "$(dirname "$0")/.."
-T0=$(date +%s)
-log() { echo "[$(( $(date +%s) - T0 )) s] $*" | tee -a "$OUT/steps.txt"; }
-
-log "environment (bench/gpu_env.sh)"
-GPU_LOG="$OUT/steps.txt" . bench/gpu_env.sh
+. bench/gpu_env.sh  # OUT, log, the environment
 DEV=$OPENCL_DEVICE
 
 log "Numba one-bounce compile, in the background"

@@ -1,9 +1,15 @@
-# Sourced by bench/gpu_check.sh and bench/gpu_flux.sh on a lent NVIDIA machine (see
-# ../shared/GPU.md), from the repository root: pyopencl from the carried wheels (.whl/) into
-# /tmp/site, NVIDIA's OpenCL library as the only ICD (left as it is where the library is missing:
-# PoCL here), the Numba cache in /tmp/nc, and OPENCL_DEVICE = the first NVIDIA device with double
-# precision (0 when there is none).  Problems are appended to $GPU_LOG (default /dev/stderr).
-GPU_LOG=${GPU_LOG:-/dev/stderr}
+# Sourced by the bench/gpu_*.sh scripts on a lent NVIDIA machine (see ../shared/GPU.md), from the
+# repository root: $OUT (default /tmp/out) made, log() (seconds since the start, appended to
+# $OUT/steps.txt), pyopencl from the carried wheels (.whl/) into /tmp/site, NVIDIA's OpenCL library
+# as the only ICD (left as it is where the library is missing: PoCL here), the Numba cache in
+# /tmp/nc, and OPENCL_DEVICE = the first NVIDIA device with double precision (0 when there is
+# none).  Problems are appended to $GPU_LOG (default $OUT/steps.txt).
+OUT=${OUT:-/tmp/out}
+mkdir -p "$OUT"
+T0=$(date +%s)
+log() { echo "[$(( $(date +%s) - T0 )) s] $*" | tee -a "$OUT/steps.txt"; }
+GPU_LOG=${GPU_LOG:-$OUT/steps.txt}
+log "environment (bench/gpu_env.sh)"
 NVLIB=/usr/local/nvidia/lib64/libnvidia-opencl.so
 if [ -d .whl ]; then
   python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl > /tmp/pip.txt 2>&1 \

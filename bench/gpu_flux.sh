@@ -5,10 +5,8 @@
 # tracing and splat on the GPU).  The first bake compiles the Numba pipeline (minutes there);
 # RESOLUTIONS (default 512,1024) and FRAMES (default 1) size it.  Logs and BENCHMARKS.md go to $OUT.
 set -u
-OUT=${OUT:-/tmp/out}
-mkdir -p "$OUT"
 cd "$(dirname "$0")/.."
-. bench/gpu_env.sh
+. bench/gpu_env.sh  # OUT, log, the environment
 DEV=$OPENCL_DEVICE
 echo "OpenCL device $DEV"
 timeout "${LIMIT:-230}" python3 bench/flux_device.py --device "$DEV" --resolutions "${RESOLUTIONS:-512,1024}" \

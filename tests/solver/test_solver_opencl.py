@@ -122,6 +122,28 @@ def _mixed_batch(n_random, n_planted, chain, seed):
     return x0, x2, P, N
 
 
+@pytest.mark.opencl
+def test_device_buffers_by_role_and_inputs_read_in_place(monkeypatch):
+    """_Device.buffer keeps a role's buffer while it is large enough and replaces it by one at
+    least 1.5 times as large; read_only gives the kernels the array's own memory on a CPU device
+    (and a written role buffer elsewhere): either way the device reads the array's values."""
+    index = opencl_device_or_skip()
+    d = opencl_backend._context(index)
+    monkeypatch.setattr(d, "buffers", {})
+    a = d.buffer("t", 4000)
+    assert d.buffer("t", 1000) is a
+    b = d.buffer("t", 5000)
+    assert b is not a and b.size >= 6000
+    values = np.random.default_rng(2).normal(size=1000)
+    for cpu in (True, False):
+        monkeypatch.setattr(d, "is_cpu", cpu)
+        buf = d.read_only("t_in", values)
+        assert ("t_in" in d.buffers) is not cpu
+        back = np.empty_like(values)
+        d.read(back, buf)
+        np.testing.assert_array_equal(back, values)
+
+
 @pytest.mark.parametrize("stages", ["1", "2"])
 @pytest.mark.parametrize("chain", ["R", "T"])
 def test_opencl_compaction_and_buffer_reuse(chain, stages, monkeypatch):
@@ -147,6 +169,9 @@ def test_opencl_compaction_and_buffer_reuse(chain, stages, monkeypatch):
         np.testing.assert_allclose(ocl.uv, numba.uv, rtol=0, atol=1e-9)
         assert (ocl.report.paths, ocl.report.skipped, ocl.report.overflow) == \
             (numba.report.paths, numba.report.skipped, numba.report.overflow)
+        if dev.is_cpu:  # a CPU device reads the tuples where they are (_Device.read_only): no copy
+            assert "x_start" not in dev.buffers
+            continue
         buf = dev.buffers["x_start"]
         assert buf.size >= 24 * n
         if i == 1:

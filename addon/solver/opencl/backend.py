@@ -270,6 +270,16 @@ class _Device:
                 self.profiler.event(stage, evt)
         return buf
 
+    def read_only(self, role, array, stage="host->device"):
+        """A device buffer holding ``array`` for the commands enqueued next: on a CPU device the
+        array itself (USE_HOST_PTR: no copy, the device reads host memory; the caller keeps the
+        array alive and unchanged until those commands are done), elsewhere role's buffer
+        written (:meth:`write`)."""
+        if self.is_cpu and array.nbytes and array.flags.c_contiguous:
+            flags = self.cl.mem_flags.READ_ONLY | self.cl.mem_flags.USE_HOST_PTR
+            return self.cl.Buffer(self.ctx, flags, hostbuf=array)
+        return self.write(role, array, stage)
+
     def read(self, array, buf, stage="device->host", wait=True):
         if array.nbytes:
             evt = self.cl.enqueue_copy(self.queue, array, buf, is_blocking=wait)
@@ -429,7 +439,8 @@ def solve_one_bounce_opencl(index, refract, x_start, x_end, P, N, eta):
     d.host("pack", time.perf_counter() - t0)
 
     def launch(b0, b1):
-        bufs = [d.write(role, a[b0:b1]) for role, a in zip(("x_start", "x_end", "P", "N", "eta"), arrays)]
+        # the tuples stay alive here until _in_batches has read every batch's paths back
+        bufs = [d.read_only(role, a[b0:b1]) for role, a in zip(("x_start", "x_end", "P", "N", "eta"), arrays)]
         return _one_bounce_launch(d, refract, b1 - b0, b0, bufs, None)
 
     tuple_index, uv, totals, ordered = _in_batches(d, n, launch)
@@ -453,7 +464,7 @@ def solve_one_bounce_pairs(index, refract, table, e, s):
     d.host("validate", time.perf_counter() - t0)
 
     def launch(b0, b1):
-        pairs = (d.write("tuple_e", e[b0:b1]), d.write("tuple_s", s[b0:b1]), np.int32(table.n_emitters),
+        pairs = (d.read_only("tuple_e", e[b0:b1]), d.read_only("tuple_s", s[b0:b1]), np.int32(table.n_emitters),
                  np.int32(table.n_points))
         return _one_bounce_launch(d, refract, b1 - b0, b0, table.buffers, pairs)
 

@@ -77,7 +77,7 @@ def main():
     lines = [f"Device {index}: **{d.label}** ({'CPU' if d.is_cpu else 'GPU/accelerator'}, {d.dev.max_compute_units} compute "
              f"units); host {platform.machine()}, {os.cpu_count()} cores, Numba {threads} threads, Python "
              f"{platform.python_version()}; mean of {args.frames} frames after a warm-up bake each; date {time.strftime('%Y-%m-%d')}.",
-             "", "| scene | texels | Numba s/frame | OpenCL s/frame | frame Numba / OpenCL | refine + trace Numba / OpenCL (s) "
+             "", "Kernels: " + kernel_line(index), "", "| scene | texels | Numba s/frame | OpenCL s/frame | frame Numba / OpenCL | refine + trace Numba / OpenCL (s) "
              "| splat Numba / OpenCL (s) | same texture |", "|---|---|---|---|---|---|---|---|"]
     lines += [line(r, device) for r in rows]
     print("\n".join(lines))
@@ -100,6 +100,22 @@ ABOUT = ("The 115,200-triangle wavy sheet (`tests/fixtures/bake_scenes.wavy_shee
          "stage times are approximate (its work is waited for in the next blocking call). Target on an H100/H200: "
          "1024² in at most 0.5 s a frame. One block per kind of device, each written by its last run.")
 NOT_MEASURED = "Not measured with this code yet: run `bench/gpu_flux.sh` on a lent GPU machine."
+
+
+def kernel_line(index):
+    """The forward-flux kernels' launch sizes and private memory on device index."""
+    from addon.solver.opencl import splatting, tracing
+
+    d, trace = tracing._kernel(index)
+    _, splat = splatting._kernel(index)
+    refine = tracing._refine_kernel(index, 32)  # the default bake's stack: 1 + 3 (6 + 2 + 1) + 4
+    parts = []
+    for name, k, local in (("refine_emitters", refine, d.small_work_group(refine)), ("trace_chain_points", trace, d.work_group(trace)),
+                           ("splat_bands", splat, d.small_work_group(splat))):
+        limit, private = d.kernel_info(k)
+        parts.append(f"`{name}` work-group {local} (kernel maximum {limit}, private memory "
+                     f"{format(private, ',') + ' bytes' if private is not None else 'not reported'} per work-item)")
+    return "; ".join(parts) + "."
 
 
 def line(r, device):

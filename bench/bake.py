@@ -93,6 +93,8 @@ def main(argv=None):
     section = _table(rows, args.samples, args.bounces)
     print(section)
     if not args.no_write:
+        from solver import write_section  # bench/solver.py's, shared by the bench scripts
+
         write_section(os.path.join(ROOT, "BENCHMARKS.md"), "bake", "Bake: sample scenes (`bench/bake.py`)", section)
 
 
@@ -124,19 +126,6 @@ def _table(rows, samples, bounces):
         s = r["stages"]
         lines.append(f"| {r['scene']} | {r['res']}² | " + " | ".join(f"{s.get(k, 0.0):.2f}" for k in keys) + " |")
     return "\n".join(lines)
-
-
-def write_section(path, key, title, body):
-    """Replace (or append) the section between <!-- key:begin --> and <!-- key:end -->."""
-    begin, end = f"<!-- {key}:begin -->", f"<!-- {key}:end -->"
-    block = f"{begin}\n## {title}\n\n{body}\n{end}"
-    text = open(path).read() if os.path.exists(path) else "# Benchmarks\n"
-    if begin in text and end in text:
-        text = text[: text.index(begin)] + block + text[text.index(end) + len(end):]
-    else:
-        text = text.rstrip("\n") + "\n\n" + block + "\n"
-    with open(path, "w") as fh:
-        fh.write(text)
 
 
 if __name__ == "__main__":

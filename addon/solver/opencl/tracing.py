@@ -22,7 +22,7 @@ _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "trace.c
 _REFINE_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "refine.cl")
 REFINE_TABLE_BITS = 9  # refine.cl's per-emitter shared-point table: 512 slots (filled to half; then points are traced again)
 REFINE_TABLE_BYTES = 64 << 20  # the tables of one refine launch on a CPU device (emitters per launch follow)
-GPU_REFINE_TABLE_BYTES = 1 << 30  # ... on a GPU
+GPU_REFINE_TABLE_BYTES = 1 << 30  # ... on a GPU (within a 32nd of its memory)
 REFINE_RECORDS_PER_EMITTER = (8, 1)  # first room for final / handed-back records per emitter of a launch (then grown to the count)
 _kept = {}  # id of a host array -> (weak reference to it, {(device index, what): (sources, buffers)})
 
@@ -140,7 +140,7 @@ class OpenCLPointTracer:
         stack = base.shape[0] + 3 * (max(0, int(max_depth) - int(depth0)) + 1) + 4
         kernel = _refine_kernel(self.index, stack)
         slots = 1 << REFINE_TABLE_BITS
-        budget = REFINE_TABLE_BYTES if d.is_cpu else GPU_REFINE_TABLE_BYTES
+        budget = REFINE_TABLE_BYTES if d.is_cpu else min(GPU_REFINE_TABLE_BYTES, d.dev.global_mem_size // 32)
         batch = max(1, min(n_emitters, budget // (40 * slots)))
         has_top = base.shape[0] == 1 and top[0].shape[0] == self.n_emitters
         top = tuple(np.ascontiguousarray(a, dtype=dt) for a, dt in zip(top, (np.int64, np.float64, np.float64)))

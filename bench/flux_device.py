@@ -71,6 +71,7 @@ def main():
         row = dict(res=res, same="yes" if same else "NO")
         for key, vals in acc.items():
             row[key] = tuple(float(np.mean([v[k] for v in vals])) for k in range(3))
+        row["profile"] = profiled_frame(index, wavy_sheet(args.frames + 1, res), res, device)
         rows.append(row)
         print(line(row, device), flush=True)
     kind = "cpu" if d.is_cpu else "gpu"
@@ -80,6 +81,8 @@ def main():
              "", "Kernels: " + kernel_line(index), "", "| scene | texels | Numba s/frame | OpenCL s/frame | frame Numba / OpenCL | refine + trace Numba / OpenCL (s) "
              "| splat Numba / OpenCL (s) | same texture |", "|---|---|---|---|---|---|---|---|"]
     lines += [line(r, device) for r in rows]
+    lines += [""] + [f"OpenCL device time of one more frame at {r['res']}², by command (profiling events): {r['profile']}."
+                     for r in rows]
     print("\n".join(lines))
     if not args.no_write:
         path = os.path.join(ROOT, "BENCHMARKS.md")
@@ -100,6 +103,21 @@ ABOUT = ("The 115,200-triangle wavy sheet (`tests/fixtures/bake_scenes.wavy_shee
          "stage times are approximate (its work is waited for in the next blocking call). Target on an H100/H200: "
          "1024² in at most 0.5 s a frame. One block per kind of device, each written by its last run.")
 NOT_MEASURED = "Not measured with this code yet: run `bench/gpu_flux.sh` on a lent GPU machine."
+
+
+def profiled_frame(index, scene, res, device):
+    """One OpenCL bake with profiling events: its device seconds by command, launches and waits."""
+    from addon.solver.opencl import backend
+
+    profiler = backend.Profiler()
+    backend.set_profiling(index, profiler)
+    try:
+        wall = bake_frame(scene, res, device)[0]
+    finally:
+        backend.set_profiling(index, None)
+    spent = sorted(profiler.device_seconds().items(), key=lambda kv: -kv[1])
+    return (", ".join(f"{stage} {sec:.3f} s" for stage, sec in spent) +
+            f"; {profiler.launches} launches, {profiler.syncs} waits, frame {wall:.2f} s with profiling")
 
 
 def kernel_line(index):

@@ -4,8 +4,8 @@ pass (its caster chunks add to them) and come back once.
 
 Each band of rows is one work-item taking every sub-triangle in order, so a texel sums its
 sub-triangles' shares in their order: the same bits as the Numba splat (same arithmetic, FP
-contraction off).  A CPU device takes ``CPU_BANDS`` bands (Numba's ``SPLAT_BANDS`` come to few
-work-items for its cores), other devices one row a band.
+contraction off).  A CPU device takes one work-group of bands per compute unit (each band scans
+every triangle: more bands than cores only repeat that scan), other devices one row a band.
 """
 
 import os
@@ -15,7 +15,6 @@ import numpy as np
 from .backend import _context, _fill_zero
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "splat.cl")
-CPU_BANDS = 64  # bands of rows on a CPU device; other devices: a band per row
 
 
 def _kernel(index):
@@ -49,7 +48,7 @@ class OpenCLSplat:
         if m == 0 or H == 0:
             return
         d = self.device
-        bands = min(CPU_BANDS, H) if d.is_cpu else H
+        bands = min(self.local * d.dev.max_compute_units, H) if d.is_cpu else H
         rows = max(1, -(-H // bands))
         band_first = np.append(np.arange(0, H, rows, dtype=np.int64), np.int64(H))
         region = np.zeros((0, 3)) if region is None else np.ascontiguousarray(region, dtype=np.float64)
@@ -68,4 +67,6 @@ class OpenCLSplat:
             self.device.read(a, buf, wait=False)
             out.append(a)
         self.device.queue.finish()
+        if self.device.profiler is not None:
+            self.device.profiler.syncs += 1
         return out

@@ -183,6 +183,8 @@ class OpenCLPointTracer:
             d.read(f, outs[0], wait=False)
             d.read(h, outs[1], wait=False)
             d.queue.finish()
+            if d.profiler is not None:
+                d.profiler.syncs += 1
             finals.append(_in_order(f, per[:, 0], a))
             hands.append(_in_order(h, per[:, 1], a))
             traced += int(per[:, 2].sum())

@@ -25,11 +25,16 @@ def _triangles(rng, m):
 
 
 @pytest.mark.opencl
+@pytest.mark.parametrize("gpu", [False, True])
 @pytest.mark.parametrize("shape", [(37, 29), (64, 64), (5, 300)])
-def test_device_splat_is_numbas_bit_for_bit(shape):
+def test_device_splat_is_numbas_bit_for_bit(shape, gpu, monkeypatch):
+    """gpu: the device taken for a GPU (a band per row, small work-groups): the same bits."""
+    from addon.solver.opencl import backend
     from addon.solver.opencl.splatting import OpenCLSplat
 
     index = opencl_device_or_skip()
+    if gpu:
+        monkeypatch.setattr(backend._context(index), "is_cpu", False)
     W, H = shape
     rng = np.random.default_rng(W * H)
     region = np.array([[1.0, 0.0, -0.05], [-1.0, -1.0, 1.6], [0.0, 1.0, 0.02]])  # u >= 0.05, u + v <= 1.6, v >= -0.02

@@ -215,3 +215,25 @@ def test_forward_flux_gpu_shapes_bake_numbas_texture(monkeypatch):
     for k in cpu.images:
         assert cpu.images[k].max() > 0
         np.testing.assert_array_equal(ocl.images[k], cpu.images[k])
+
+
+@pytest.mark.opencl
+def test_forward_flux_on_opencl_two_receivers_of_other_sizes():
+    """A glass sphere over two floors of different, non-square texture sizes (each its own
+    device texture, its sub-triangles splatted onto it): Numba's textures bit for bit."""
+    from addon.bake.scene import build_scene
+    from fixtures.bake_scenes import floor, uv_sphere
+
+    opencl_device_or_skip()
+    P, N = uv_sphere(24, 12)
+    left = floor(half=0.8, cx=-0.8, name="left")
+    right = floor(half=0.8, cx=0.8, name="right")
+    left["resolution"], right["resolution"] = (40, 24), (17, 33)
+    sc = build_scene([left, right, dict(name="sphere", tri_p=P, tri_n=N, role="both", ior=1.5)],
+                     [Light("Point", "point", (1.0, 1.0, 1.0), 80.0, position=(0.3, 0.1, 3.0))])
+    cpu = bake(sc, BakeSettings())  # resolution 0: each receiver's own
+    ocl = bake(sc, BakeSettings(device="opencl"))
+    assert {k: v.shape for k, v in ocl.images.items()} == {"left": (24, 40, 3), "right": (33, 17, 3)}
+    for k in cpu.images:
+        assert cpu.images[k].max() > 0
+        np.testing.assert_array_equal(ocl.images[k], cpu.images[k])

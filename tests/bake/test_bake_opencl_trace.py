@@ -199,19 +199,27 @@ def test_forward_flux_kernel_that_does_not_build_warns_and_uses_numba(monkeypatc
 
 @pytest.mark.opencl
 def test_forward_flux_gpu_shapes_bake_numbas_texture(monkeypatch):
-    """The launch shapes a GPU gets (all of a chunk's emitters in one refine launch with the GPU
-    table budget, a splat band per row, small work-groups), run here on PoCL taken for a GPU:
-    the same texture bit for bit."""
+    """The launch shapes a GPU gets (chunks of GPU_CHUNK_SCALE times the casters, all of a
+    chunk's emitters in one refine launch with the GPU table budget, a splat band per row, small
+    work-groups), run here on PoCL taken for a GPU: the same texture bit for bit."""
     from addon.solver.opencl import backend
+
+    from addon.bake.estimators import forward_flux
 
     index = opencl_device_or_skip()
     d = backend._context(index)
     sc = wavy_sheet(3, 64, n=30)
+    monkeypatch.setattr(forward_flux, "CASTER_CHUNK", 100)
     cpu = bake(sc, BakeSettings(resolution=64))
     monkeypatch.setattr(d, "is_cpu", False)
     assert d.small_work_group(d.kernel(backend._SCAN_FILE, "scan_blocks")) <= backend.SMALL_WORK_GROUP
     ocl = bake(sc, BakeSettings(resolution=64, device=f"opencl:{index}"))
     assert ocl.report["devices"]["forward-flux"].endswith("(refinement, tracing, splat)")
+    assert backend.device_is_gpu(f"opencl:{index}") and not backend.device_is_gpu("numba")
+    passes = [r["estimators"]["forward-flux"]["passes"][0] for r in (cpu.report, ocl.report)]
+    casters = passes[0]["emitters"]
+    assert casters > 1000 and passes[0]["chunks"] == -(-casters // 100)
+    assert passes[1]["chunks"] == -(-casters // (100 * forward_flux.GPU_CHUNK_SCALE))
     for k in cpu.images:
         assert cpu.images[k].max() > 0
         np.testing.assert_array_equal(ocl.images[k], cpu.images[k])

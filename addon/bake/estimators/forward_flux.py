@@ -47,6 +47,7 @@ from .forward_images import IMAGE_COARSE, ChunkSizer, image_chunks
 
 CASTER_CHUNK = 16384  # at most this many first casters refined and splatted together (a chunk: memory, a progress step)
 CHUNK_WORK = 1000000  # ... and about this many sub-triangles by their estimate (forward_images.image_chunks)
+GPU_CHUNK_SCALE = 4  # both, times this on a GPU device (its refine launch has a work-item per caster of the chunk)
 
 
 def _device_textures(index, sizes):
@@ -66,14 +67,20 @@ class ForwardFlux(Estimator):
         self.flux_fn = flux_textures_reference if self.reference else flux_textures
         self.total = None  # (H W, 3) W per texel per receiver, summed over passes and caster chunks
         self.splat_device = None  # False once the bake's OpenCL device could not splat
+        self.chunk_scale = 1
+        if not self.reference and ctx.settings.device not in (None, "numba"):
+            from ...solver.opencl.backend import device_is_gpu
+
+            self.chunk_scale = GPU_CHUNK_SCALE if device_is_gpu(ctx.settings.device) else 1
         self.reports = []
 
     def prepare(self):
         """Per light sample and chain (a pass), the reaching first casters in chunks of at most
-        ``CHUNK_WORK`` and ``CASTER_CHUNK`` (memory), sized by time when the settings'
-        ``step_seconds`` is set (a ChunkSizer: so that a progress step, and Esc, come that often;
-        the operator's bake): each chunk's forward images are refined and their flux splatted
-        before the next.  The texture does not depend on the cut."""
+        ``CHUNK_WORK`` and ``CASTER_CHUNK`` (memory; both ``GPU_CHUNK_SCALE`` times larger on a
+        GPU device, whose refine launch takes a chunk's casters as its work-items), sized by
+        time when the settings' ``step_seconds`` is set (a ChunkSizer: so that a progress step,
+        and Esc, come that often; the operator's bake): each chunk's forward images are refined
+        and their flux splatted before the next.  The texture does not depend on the cut."""
         ctx = self.ctx
         passes = [(li, ls, m, item) for li, ls in enumerate(ctx.lsamples) for m in range(ls.size)
                   for item in self.items if item.light == li]
@@ -85,8 +92,8 @@ class ForwardFlux(Estimator):
             step = float(ctx.settings.step_seconds)
             sizer = ChunkSizer(seconds=step) if step > 0.0 else None
             t0 = time.perf_counter()
-            for got in image_chunks(ctx, item, ls, m, "flux", CHUNK_WORK, CASTER_CHUNK, self.coarse,
-                                    shared=not self.reference, sizer=sizer):
+            for got in image_chunks(ctx, item, ls, m, "flux", CHUNK_WORK * self.chunk_scale, CASTER_CHUNK * self.chunk_scale,
+                                    self.coarse, shared=not self.reference, sizer=sizer):
                 if isinstance(got, str):  # a step before the first chunk (cone tests, mesh points)
                     ctx.timer.add("image", time.perf_counter() - t0)
                     yield p / len(passes), f"{where}, {got}"

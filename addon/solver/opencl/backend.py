@@ -367,6 +367,17 @@ def device_name(index):
     return _context(index).label
 
 
+def device_is_gpu(device):
+    """Whether ``device`` ("numba", "opencl" or "opencl:N") names an OpenCL device that is not a
+    CPU (False also when there is no such device: the caller runs on Numba)."""
+    if device in (None, "numba"):
+        return False
+    try:
+        return not _context(parse_device(device)).is_cpu
+    except OpenCLUnavailable:
+        return False
+
+
 def set_profiling(index, profiler):
     """Record per-stage times of device index's calls into profiler (a :class:`Profiler`;
     None stops recording).  The queue is recreated with profiling events enabled."""

@@ -245,3 +245,33 @@ def test_forward_flux_on_opencl_two_receivers_of_other_sizes():
     for k in cpu.images:
         assert cpu.images[k].max() > 0
         np.testing.assert_array_equal(ocl.images[k], cpu.images[k])
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("trouble", ["no such device", "no room on the device"])
+def test_forward_flux_device_trouble_warns_and_bakes_numbas_texture(monkeypatch, trouble):
+    """A device that does not exist, or one without room for the pass's flux textures (here an
+    allocation failure), is no crash: the bake warns and does that part on Numba, the same
+    texture."""
+    import pyopencl as cl
+
+    from addon.solver.opencl import splatting
+
+    index = opencl_device_or_skip()
+    sc = wavy_sheet(4, 48, n=20)
+    cpu = bake(sc, BakeSettings(resolution=48))
+    if trouble == "no such device":
+        device, expected = "opencl:99", "(?s)OpenCL unavailable.*does not exist.*splatting on Numba"
+    else:
+        def full(d, buf, nbytes):
+            raise cl.MemoryError("clEnqueueFillBuffer failed: MEM_OBJECT_ALLOCATION_FAILURE")
+
+        monkeypatch.setattr(splatting, "_fill_zero", full)
+        device, expected = f"opencl:{index}", "(?s)no room for the flux textures.*ALLOCATION_FAILURE.*splatting on Numba"
+    with pytest.warns(RuntimeWarning, match=expected):
+        got = bake(sc, BakeSettings(resolution=48, device=device))
+    label = got.report["devices"]["forward-flux"]
+    assert label == "cpu (numba)" if trouble == "no such device" else label.endswith("(refinement, tracing)")
+    for k in cpu.images:
+        assert cpu.images[k].max() > 0
+        np.testing.assert_array_equal(got.images[k], cpu.images[k])

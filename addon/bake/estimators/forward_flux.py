@@ -134,10 +134,9 @@ class ForwardFlux(Estimator):
 
             try:
                 return _device_textures(parse_device(ctx.settings.device), sizes)
-            except OpenCLUnavailable as ex:  # no device: the tracer has warned already
+            except OpenCLUnavailable as ex:  # no device, a program it rejects, no room for the textures
                 self.splat_device = False
-                if "splat.cl" in str(ex):
-                    warnings.warn(f"OpenCL unavailable ({ex}); splatting on Numba instead", RuntimeWarning, stacklevel=2)
+                warnings.warn(f"OpenCL unavailable ({ex}); splatting on Numba instead", RuntimeWarning, stacklevel=2)
         return HostFlux(sizes)
 
     def receiver_flux(self, rec_index):

@@ -12,7 +12,7 @@ import os
 
 import numpy as np
 
-from .backend import _context, _fill_zero
+from .backend import OpenCLUnavailable, _context, _fill_zero
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "splat.cl")
 
@@ -33,10 +33,14 @@ class OpenCLSplat:
         self.name = d.label
         self.sizes = [(int(w), int(h)) for w, h in sizes]
         self.textures = []
-        for w, h in self.sizes:
-            buf = d.cl.Buffer(d.ctx, d.cl.mem_flags.READ_WRITE, max(24 * w * h, 64))
-            _fill_zero(d, buf, max(24 * w * h, 64))
-            self.textures.append(buf)
+        try:
+            for w, h in self.sizes:
+                buf = d.cl.Buffer(d.ctx, d.cl.mem_flags.READ_WRITE, max(24 * w * h, 64))
+                _fill_zero(d, buf, max(24 * w * h, 64))
+                self.textures.append(buf)
+            d.queue.finish()  # an allocation the device cannot make fails here, not in a later splat
+        except d.cl.Error as ex:
+            raise OpenCLUnavailable(f"no room for the flux textures on {d.label}: {ex}") from ex
         self.local = d.small_work_group(self.kernel)  # a band per row: ~10^3 work-items, each over a chunk's triangles
 
     def add(self, r, tri_uv, flux, density, region=None):

@@ -112,8 +112,8 @@ class ForwardFlux(Estimator):
                     sizer.took(time.perf_counter() - t_chunk)
                 report = _add_report(report, state.report)
                 if state.report["device"] != "numba":
-                    on = "refinement, tracing" if isinstance(flux, HostFlux) else "refinement, tracing, splat"
-                    self.device = f"{state.report['device']} ({on})"
+                    on = ["refinement"] * state.report["refined_on_device"] + ["tracing"] + ["splat"] * (not isinstance(flux, HostFlux))
+                    self.device = f"{state.report['device']} ({', '.join(on)})"
                 yield (p + done / count) / len(passes), f"{where}, casters {done}/{count}"
                 t0 = time.perf_counter()
             ctx.timer.add("image", time.perf_counter() - t0)
@@ -160,7 +160,7 @@ def _add_report(total, chunk):
             a, b = list(total[k]), list(v)
             n = max(len(a), len(b))
             out[k] = [(a[i] if i < len(a) else 0) + (b[i] if i < len(b) else 0) for i in range(n)]
-        elif k not in ("reach", "device", "extended_receivers"):  # the same for every chunk
+        elif k not in ("reach", "device", "extended_receivers", "refined_on_device"):  # the same for every chunk
             out[k] = total[k] + v
     out["chunks"] = total["chunks"] + 1
     return out

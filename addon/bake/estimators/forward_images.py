@@ -138,6 +138,7 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
               "dropped": int(tris["dropped"]), "partial": int(tris["partial"]), "border": int(tris["border"]), "final_per_depth": tris["final_per_depth"],
               "seconds": time.perf_counter() - t0, "trace_seconds": clock[0] + tris["kernel_seconds"],
               "device": "opencl: " + tracer.name if tracer is not None else "numba",
+              "refined_on_device": tracer is not None and LANDED_KERNEL and tracer.refined_here,
               "extended_receivers": [receivers[int(r)].name for r in planes[:, 13]]}
     return ImageState(chain, emit_tri, x0, tris, arrays, report)
 

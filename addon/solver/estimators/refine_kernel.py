@@ -363,8 +363,9 @@ def refine_landed(n_emitters, base, depth0, dyadic, trace_args, receiver_of_tri,
             f, h, traced = device.refine_emitters(int(n_emitters), base, int(depth0), int(dyadic), receiver_of_tri,
                                                   texel_size, tolerance, relative, coarse_texels, coarse_linear_texels,
                                                   int(max_depth), bool(density), bool(parallel), top)
-        except OpenCLUnavailable as ex:  # a driver that rejects refine.cl: the same records on Numba
+        except OpenCLUnavailable as ex:  # a program the driver rejects, no room: the same records on Numba
             warnings.warn(f"OpenCL unavailable ({ex}); refining on Numba instead", RuntimeWarning, stacklevel=2)
+            device.refined_here = False  # for the bake's report
             device = None
     if device is None:
         fixed = (base, int(depth0), int(dyadic)) + tuple(trace_args) + (

@@ -16,7 +16,7 @@ import weakref
 import numpy as np
 
 from ..geometry.receiver_planes import no_planes
-from .backend import _context
+from .backend import OpenCLUnavailable, _context
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "trace.cl")
 _REFINE_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "refine.cl")
@@ -93,6 +93,7 @@ class OpenCLPointTracer:
         self.n_planes = np.int32(planes.shape[0])
         self.n_emitters = int(np.shape(t1_of)[0])
         self._caps = (0, 0)  # the record lists' room on the device (refine_emitters)
+        self.refined_here = True  # False once refine_landed fell back to Numba for this tracer
         self.scalars = (np.int32(bounces), np.int32(1 if refract1 else 0), np.int32(1 if refract2 else 0))
         self.eps = np.float64(eps)
         self.emitters = d.upload((np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(t1_of, dtype=np.int64)))
@@ -131,7 +132,17 @@ class OpenCLPointTracer:
         (refine.cl, the same decisions and points), in launches of as many emitters as their
         shared-point tables allow.  Returns (final records (nf, F_WIDTH), handed-back records
         (nh, H_WIDTH), points traced), the records in the Numba kernel's order (emitter, then
-        depth first)."""
+        depth first).  OpenCLUnavailable when the device cannot (its program rejected, no room
+        for the tables or records): the caller refines on Numba."""
+        d = self.device
+        try:
+            return self._refine_emitters(n_emitters, base, depth0, dyadic, receiver_of_tri, texel_size, tolerance, relative,
+                                         coarse_texels, coarse_linear_texels, max_depth, density, parallel, top)
+        except d.cl.Error as ex:
+            raise OpenCLUnavailable(f"refine_emitters failed on {d.label}: {ex}") from ex
+
+    def _refine_emitters(self, n_emitters, base, depth0, dyadic, receiver_of_tri, texel_size, tolerance, relative,
+                         coarse_texels, coarse_linear_texels, max_depth, density, parallel, top):
         from ..estimators.refine_kernel import F_WIDTH, H_WIDTH
 
         d = self.device

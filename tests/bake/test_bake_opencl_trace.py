@@ -158,6 +158,8 @@ def test_landed_refinement_on_opencl_returns_numbas_records(monkeypatch, case):
     del calls[:]
     ocl = bake(sc, BakeSettings(resolution=res, device="opencl", **settings))
     assert all(on_device for on_device, _ in calls) and len(calls) == len(numba_calls) > 0
+    if settings:  # the two-bounce chains' path-seeded images were refined and traced on the device
+        assert ocl.report["devices"]["path-seeded"].endswith("(refinement, tracing of the forward images; Newton on the CPU)")
     finals = hands = 0
     for a, (_, b) in zip(numba_calls, calls):
         for k in a:

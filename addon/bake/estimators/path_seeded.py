@@ -38,6 +38,9 @@ class PathSeeded(Estimator):
                     if item.light != li or rec_index not in item.receivers:
                         continue
                     state = self.images.get(idx, item, ls, m)
+                    if state is not None and state.report["device"] != "numba":  # its images' refinement, tracing
+                        on = "refinement, tracing" if state.report["refined_on_device"] else "tracing"
+                        self.device = f"{state.report['device']} ({on} of the forward images; Newton on the CPU)"
                     st = self._pass(item, ls, m, band, rec_index, sums, state)
                     self.add_counts(item.chain, st)
         return

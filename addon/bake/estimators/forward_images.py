@@ -80,11 +80,12 @@ def prepare(scene, bvh, eps, chain, emit_tri, x0, second, receivers, max_depth=6
     the chain is baked onto (None: all); ``coarse`` levels above the first grid where small
     images may stop and ``shared`` whether points shared by sub-triangles are traced once
     (:func:`refine_image_triangles`); ``triangle_arrays`` :func:`scene_arrays` of these
-    arguments when the caller has them (a chunk of casters); ``device`` "opencl[:N]" traces
-    the points on that OpenCL device (the same points as Numba; without pyopencl or a device
-    it warns and uses Numba); ``caster_size`` the emitters' :func:`caster_texels` when the caller
+    arguments when the caller has them (a chunk of casters); ``device`` "opencl[:N]" refines
+    the landed sub-triangles and traces the points on that OpenCL device (the same
+    sub-triangles and points as Numba; without pyopencl or a device it warns and uses Numba); ``caster_size`` the emitters' :func:`caster_texels` when the caller
     has them; ``mesh_points`` the emitters' whole-triangle traces (:func:`pass_mesh_points`).
-    Returns an ImageState, ``report["device"]`` where it traced."""
+    Returns an ImageState, ``report["device"]`` where it traced (``report["refined_on_device"]``
+    whether the landed refinement ran there too)."""
     t0 = time.perf_counter()
     trace_args = _trace_arguments(scene, bvh, eps, chain, emit_tri, x0,
                                   triangle_arrays or scene_arrays(scene, receivers, second, only))

@@ -1,5 +1,6 @@
 """Shared test set-up: make ``import addon``, ``fixtures.*`` and ``reference.*`` work from any
-working directory.
+working directory, and the benchmarks' workload generators and tools (bench/: ``workloads``,
+``cycles_bake``) importable after everything else.
 
 Layout: solver/, bake/, ui/, packaging/ hold the tests (no test module imports another);
 fixtures/ the scene builders and shared measures; reference/ the independent oracles (brute
@@ -14,3 +15,6 @@ REPO_ROOT = os.path.dirname(TESTS)
 for p in (TESTS, REPO_ROOT):
     if p not in sys.path:
         sys.path.insert(0, p)
+BENCH = os.path.join(REPO_ROOT, "bench")
+if BENCH not in sys.path:
+    sys.path.append(BENCH)  # last: its modules (solver, bake, plan, ...) never hide another

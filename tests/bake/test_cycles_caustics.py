@@ -27,10 +27,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.bpy
 
-import sys  # noqa: E402
-
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-sys.path.insert(0, os.path.join(ROOT, "bench"))
 
 from addon.bake.pipeline import BakeSettings, bake  # noqa: E402
 from addon.bake.extract import extract_scene, open_blend  # noqa: E402

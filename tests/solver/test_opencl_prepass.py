@@ -16,21 +16,15 @@ the CPU in CI; skipped without a device.
 """
 
 import math
-import os
-import sys
 
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-if os.path.join(ROOT, "bench") not in sys.path:
-    sys.path.insert(0, os.path.join(ROOT, "bench"))
-
-from addon.solver.polynomials.bivariate import bmax  # noqa: E402
-from addon.solver.spoly.two_bounce import params, prepass, sqrt, staged, system  # noqa: E402
-from fixtures.opencl import library_program, opencl_device_or_skip  # noqa: E402
-from fixtures.stage_a_replay import oriented_systems  # noqa: E402
-from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
+from addon.solver.polynomials.bivariate import bmax
+from addon.solver.spoly.two_bounce import params, prepass, sqrt, staged, system
+from fixtures.opencl import library_program, opencl_device_or_skip
+from fixtures.stage_a_replay import oriented_systems
+from workloads import planted_two_bounce, random_two_bounce
 
 CHAINS = ("RR", "RT", "TR", "TT")
 ETA = 1.5

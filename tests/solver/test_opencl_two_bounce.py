@@ -8,23 +8,17 @@ in CI; tests that need a device skip without one.  Tuples: bench/workloads.py (p
 tests/reference/two_bounce_data.py (the sets of test_solver_two_bounce.py, fewer of them).
 """
 
-import os
-import sys
 import warnings
 
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-if os.path.join(ROOT, "bench") not in sys.path:
-    sys.path.insert(0, os.path.join(ROOT, "bench"))
-
 from addon.solver.opencl import backend as opencl_backend
 from fixtures.opencl import opencl_device_or_skip
-from addon.solver import solve_tuples  # noqa: E402
-from addon.solver.spoly.api import SpecularPolynomialSolver, compact_paths  # noqa: E402
-from reference.two_bounce_data import plant_two_bounce, random_two_bounce as random_pairs  # noqa: E402
-from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
+from addon.solver import solve_tuples
+from addon.solver.spoly.api import SpecularPolynomialSolver, compact_paths
+from reference.two_bounce_data import plant_two_bounce, random_two_bounce as random_pairs
+from workloads import planted_two_bounce, random_two_bounce
 
 CHAINS = ("RR", "RT", "TR", "TT")
 N_EACH = 24  # tuples per source: ~1 min for the file on a loaded 2-core PoCL machine (warm Numba cache)

@@ -11,22 +11,15 @@ for the four chains; polish starts near the planted paths (mostly accepted) and 
 of the triangles (mostly rejected).  PoCL on the CPU in CI; skipped without a device.
 """
 
-import os
-import sys
-
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-if os.path.join(ROOT, "bench") not in sys.path:
-    sys.path.insert(0, os.path.join(ROOT, "bench"))
-
-from addon.solver.paths.one_vertex import line_crossing_barycentrics  # noqa: E402
-from addon.solver.paths.two_vertex import (pack_geometry, polish_and_validate2, trace_to_second,  # noqa: E402
+from addon.solver.paths.one_vertex import line_crossing_barycentrics
+from addon.solver.paths.two_vertex import (pack_geometry, polish_and_validate2, trace_to_second,
                                            two_vertex_residual)
-from addon.solver.spoly.two_bounce.params import ACCEPT_RESIDUAL, POLISH_STEPS  # noqa: E402
-from fixtures.opencl import library_program, opencl_device_or_skip  # noqa: E402
-from workloads import planted_two_bounce, random_two_bounce  # noqa: E402
+from addon.solver.spoly.two_bounce.params import ACCEPT_RESIDUAL, POLISH_STEPS
+from fixtures.opencl import library_program, opencl_device_or_skip
+from workloads import planted_two_bounce, random_two_bounce
 
 CHAINS = ("RR", "RT", "TR", "TT")
 ETA = 1.5

@@ -1,8 +1,5 @@
 """The optional OpenCL back end (PoCL on the CPU in CI) returns the Numba back end's paths."""
 
-import os
-import sys
-
 import numpy as np
 import pytest
 
@@ -11,8 +8,7 @@ from fixtures.opencl import opencl_device_or_skip
 from addon.solver import solve_tuples
 from addon.solver.spoly.api import SpecularPolynomialSolver
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "bench"))
-from workloads import planted_tuples, random_tuples  # noqa: E402
+from workloads import planted_tuples, random_tuples
 
 
 @pytest.mark.opencl

@@ -166,7 +166,8 @@ class _Device:
         self.kernels_scan = tuple(cl.Kernel(scan, name) for name in ("scan_blocks", "scan_sums", "scan_add"))
         self.local_scan = min(SCAN_WORK_GROUP, *(self.kernel_info(k)[0] for k in self.kernels_scan))
         self.kernels_two = None
-        self.kernels = {}  # (file, kernel name, defines) -> kernel, or the OpenCLUnavailable of its build (kernel())
+        self.programs = {}  # (file, defines) -> program, or the OpenCLUnavailable of its build (program())
+        self.kernels = {}  # (file, kernel name, defines) -> kernel (kernel())
         self.buffers = {}
         self.path_capacity = 0
 
@@ -175,21 +176,28 @@ class _Device:
         with open(path) as f:
             return self.build_source(f.read(), os.path.dirname(path), defines)
 
-    def kernel(self, path, name, defines=()):
-        """Kernel ``name`` of the program of file ``path`` (:meth:`_build`), built once; a
-        program the driver rejects raises OpenCLUnavailable with its log, now and on every
-        later call (the callers fall back to Numba)."""
-        key = (path, name, tuple(defines))
-        got = self.kernels.get(key)
+    def program(self, path, defines=()):
+        """The program of file ``path`` with ``defines`` (:meth:`_build`), built once; a program
+        the driver rejects raises OpenCLUnavailable with its log, now and on every later call
+        (the callers fall back to Numba)."""
+        key = (path, tuple(defines))
+        got = self.programs.get(key)
         if got is None:
             try:
-                got = self.cl.Kernel(self._build(path, defines), name)
+                got = self._build(path, defines)
             except self.cl.Error as ex:
                 got = OpenCLUnavailable(f"{os.path.basename(path)} does not build on {self.label}: {str(ex).strip()[:2000]}")
-            self.kernels[key] = got
+            self.programs[key] = got
         if isinstance(got, OpenCLUnavailable):
             raise got
         return got
+
+    def kernel(self, path, name, defines=()):
+        """Kernel ``name`` of :meth:`program` (path, defines), made once."""
+        key = (path, name, tuple(defines))
+        if key not in self.kernels:
+            self.kernels[key] = self.cl.Kernel(self.program(path, defines), name)
+        return self.kernels[key]
 
     def build_source(self, source, folder, defines=()):
         """The program of source, its shared parts and generated tables pasted in
@@ -693,12 +701,8 @@ def _two_bounce_program(index):
     built once."""
     d = _context(index)  # OpenCLUnavailable / OpenCLNoDoublePrecision as for one bounce
     if d.kernels_two is None:
-        try:
-            program = d._build(_KERNEL_FILE_2, _two_bounce_defines())
-        except d.cl.Error as ex:  # a driver that rejects the program: the caller falls back to Numba
-            raise OpenCLUnavailable(f"the two-bounce OpenCL program does not build on {d.label}: "
-                                    f"{str(ex).strip()[:2000]}") from ex
-        kernels = {name: d.cl.Kernel(program, name) for name in TWO_BOUNCE_KERNELS}
+        # OpenCLUnavailable for a driver that rejects the program: the caller falls back to Numba
+        kernels = {name: d.kernel(_KERNEL_FILE_2, name, _two_bounce_defines()) for name in TWO_BOUNCE_KERNELS}
         # ~18 KB of private scratch per work-item (the Bézout matrix): small groups on CPUs
         # (see CPU_WORK_GROUP); on a GPU it lives in per-thread local memory.
         d.kernels_two = (kernels, min(d.work_group(k) for k in kernels.values()))

@@ -210,6 +210,12 @@ def region_shares(tri_uv, density, region):
 SPLAT_BANDS = 16  # the parallel splat's bands of rows (each scans every triangle's bounding box)
 
 
+def band_first_rows(H, bands):
+    """(b + 1,) the first row of each of at most ``bands`` equal bands of rows [0, H), then H."""
+    rows = max(1, -(-int(H) // max(1, int(bands))))
+    return np.append(np.arange(0, int(H), rows, dtype=np.int64), np.int64(H))
+
+
 def splat_triangles(tri_uv, flux, W, H, out, density, bands=SPLAT_BANDS, region=None):
     """Deposit each triangle's flux (m, 3) over the texels of a W x H texture by the exact
     overlap of the triangle (UV) with each texel (polygon clipping).  ``density`` (m, 3):
@@ -225,8 +231,7 @@ def splat_triangles(tri_uv, flux, W, H, out, density, bands=SPLAT_BANDS, region=
     in one band, so it sums its triangles' shares in triangle order, bit for bit what one band
     (one thread) gives (tests/solver/test_solver_forward_image.py)."""
     H = int(H)
-    rows = max(1, -(-H // max(1, int(bands))))
-    band_first = np.append(np.arange(0, H, rows, dtype=np.int64), np.int64(H))
+    band_first = band_first_rows(H, bands)
     region = np.zeros((0, 3)) if region is None else np.ascontiguousarray(region, dtype=np.float64)
     if tri_uv.shape[0] and H > 0:
         _splat_bands(tri_uv, flux, int(W), H, out, density, band_first, region)

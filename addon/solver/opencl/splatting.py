@@ -12,6 +12,7 @@ import os
 
 import numpy as np
 
+from ..estimators.splat import band_first_rows
 from .backend import OpenCLUnavailable, _context, _fill_zero
 
 _KERNEL_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "splat.cl")
@@ -52,9 +53,7 @@ class OpenCLSplat:
         if m == 0 or H == 0:
             return
         d = self.device
-        bands = min(self.local * d.dev.max_compute_units, H) if d.is_cpu else H
-        rows = max(1, -(-H // bands))
-        band_first = np.append(np.arange(0, H, rows, dtype=np.int64), np.int64(H))
+        band_first = band_first_rows(H, self.local * d.dev.max_compute_units if d.is_cpu else H)
         region = np.zeros((0, 3)) if region is None else np.ascontiguousarray(region, dtype=np.float64)
         bufs = [d.write(f"splat_{k}", np.ascontiguousarray(a, dtype=dt)) for k, a, dt in (
             ("uv", tri_uv, np.float64), ("flux", flux, np.float64), ("density", density, np.float64),

@@ -41,7 +41,7 @@ from .memory import check_budget, out_of_memory
 from .output import write_files, write_text
 from .names import frame_report_filename, safe_filename, texture_filename
 from .plan import CHAINS, candidate_chains, plan_steps
-from .raster import bands, grid_side, pad, raster_texels, rasterise
+from .raster import bands, grid_side, pad, raster_texels, rasterise, texel_irradiance
 from .scene import SceneError
 from .settings import BakeSettings, check_settings, resolve_aliases
 
@@ -437,10 +437,7 @@ def _bake_gen(scene, settings):
             yield progress.tell("rows", rows_done / max(1, total_rows), f"{rec.name}: rows {j1}/{H}")
         if key is not None:
             _keep(_COVER_CACHE, key, cover)
-        covered = cover > 0
-        img = np.zeros((W * H, 3))
-        img[covered] = sums[covered] / cover[covered, None]
-        flux = None
+        flux = area = None
         for est in estimators:
             f = yield from est.receiver_flux(rec_index)
             if f is not None:
@@ -456,9 +453,11 @@ def _bake_gen(scene, settings):
                     yield progress.tell("areas", (area_rows + j1) / max(1, total_rows), f"{rec.name}: texel areas, rows {j1}/{H}")
                     t0 = time.perf_counter()
                 area = _keep(_AREA_CACHE, key, area)
-            ok = covered & (area > 0)
-            img[ok] += flux[ok] / area[ok, None]
             timer.add("texel_area", time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        img, stats = texel_irradiance(sums, cover, flux, area)
+        covered = cover > 0
+        timer.add("texels", time.perf_counter() - t0)
         area_rows += H
         t0 = time.perf_counter()
         img = img.reshape(H, W, 3)
@@ -469,13 +468,10 @@ def _bake_gen(scene, settings):
         images[rec.name] = padded.astype(np.float32)
         coverage[rec.name] = cov2
         raw[rec.name] = img
-        touched = int(np.count_nonzero(np.any(img.reshape(-1, 3) > 0, axis=1)))
-        rec_report[rec.name] = {
-            "resolution": [W, H], "uv_map": rec.uv_map, "texels_covered": int(covered.sum()), "texels_touched": touched,
-            "caustic_power": ctx.ledger.total(receiver=rec_index),
-            "max_irradiance": float(img.max()) if img.size else 0.0,
-            "mean_irradiance_covered": float(img.reshape(-1, 3)[covered].mean()) if covered.any() else 0.0,
-        }
+        rec_report[rec.name] = {"resolution": [W, H], "uv_map": rec.uv_map, "texels_covered": stats["texels_covered"],
+                                "texels_touched": stats["texels_touched"], "caustic_power": ctx.ledger.total(receiver=rec_index),
+                                "max_irradiance": stats["max_irradiance"],
+                                "mean_irradiance_covered": stats["mean_irradiance_covered"]}
     report = _report(ctx, plan, estimators, rec_report, time.perf_counter() - t_start)
     return BakeResult(images, coverage, raw, report)
 

@@ -204,15 +204,83 @@ def bands(receiver, samples, max_samples=1 << 20):
     return [(j, min(H, j + rows)) for j in range(0, H, rows)]
 
 
+TEXEL_BLOCK = 4096  # texels per work item of texel_irradiance (its partial statistics: one row per block)
+
+
+def texel_irradiance(sums, cover, flux=None, area=None):
+    """A receiver's (W*H, 3) texel values and their statistics.  A covered texel (``cover``
+    > 0 samples) holds the mean of its samples, ``sums`` / ``cover``, plus, where a flux
+    estimator deposited ``flux`` (W*H, 3) watts and the texel has world ``area`` > 0 (m²,
+    ``texel_areas``), the irradiance flux / area; other texels are 0.  Returns (values,
+    {"texels_covered", "texels_touched" (a positive channel), "max_irradiance",
+    "mean_irradiance_covered"}).  One pass over the texels in parallel blocks."""
+    n = cover.shape[0]
+    img = np.zeros((n, 3))
+    has_flux = flux is not None
+    if not has_flux:
+        flux, area = np.zeros((0, 3)), np.zeros(0)
+    partial = np.zeros((-(-n // TEXEL_BLOCK), 4))
+    _texel_values(np.ascontiguousarray(sums, dtype=np.float64), np.ascontiguousarray(cover, dtype=np.int64),
+                  np.ascontiguousarray(flux, dtype=np.float64), np.ascontiguousarray(area, dtype=np.float64), has_flux,
+                  img, partial)
+    covered = int(partial[:, 0].sum())
+    peak = float(partial[:, 2].max()) if n else 0.0
+    return img, {"texels_covered": covered, "texels_touched": int(partial[:, 1].sum()), "max_irradiance": peak,
+                 "mean_irradiance_covered": float(partial[:, 3].sum() / (3 * covered)) if covered else 0.0}
+
+
+@parallel_range("partial")
+def _texel_values(sums, cover, flux, area, has_flux, img, partial, first, last):
+    """:func:`texel_irradiance` for blocks [first, last) of TEXEL_BLOCK texels; partial[block]
+    = (covered, touched, max (NaN if any value is), sum over covered texels and channels)."""
+    n = cover.shape[0]
+    for blk in range(first, last):
+        covered = 0.0
+        touched = 0.0
+        peak = 0.0  # the uncovered texels' 0
+        nan = False
+        total = 0.0
+        for t in range(blk * TEXEL_BLOCK, min(n, blk * TEXEL_BLOCK + TEXEL_BLOCK)):
+            if cover[t] <= 0:
+                continue
+            covered += 1.0
+            positive = False
+            for c in range(3):
+                v = sums[t, c] / cover[t]
+                if has_flux and area[t] > 0.0:
+                    v = v + flux[t, c] / area[t]
+                img[t, c] = v
+                total += v
+                if v > 0.0:
+                    positive = True
+                    if v > peak:
+                        peak = v
+                elif v != v:
+                    nan = True
+            if positive:
+                touched += 1.0
+        partial[blk, 0] = covered
+        partial[blk, 1] = touched
+        partial[blk, 2] = np.nan if nan else peak
+        partial[blk, 3] = total
+
+
 @kernel
 def _pad(img, covered, margin):
     H, W, C = img.shape
     done = covered.copy()
+    todo = 0
+    for j in range(H):
+        for i in range(W):
+            if not done[j, i]:
+                todo += 1
+    # a pass's new texels are held aside (at most every texel not yet covered) and written
+    # after the pass, so each pass reads only the texels done before it
+    new_at = np.empty(todo, dtype=np.int64)
+    new_value = np.empty((todo, C))
     acc = np.zeros(C)
     for _ in range(margin):
-        new = done.copy()
-        out = img.copy()
-        changed = False
+        n_new = 0
         for j in range(H):
             for i in range(W):
                 if done[j, i]:
@@ -230,13 +298,17 @@ def _pad(img, covered, margin):
                                 acc[c] += img[jj, ii, c]
                 if cnt > 0.0:
                     for c in range(C):
-                        out[j, i, c] = acc[c] / cnt
-                    new[j, i] = True
-                    changed = True
-        img[:, :, :] = out
-        done[:, :] = new
-        if not changed:
+                        new_value[n_new, c] = acc[c] / cnt
+                    new_at[n_new] = j * W + i
+                    n_new += 1
+        if n_new == 0:
             break
+        for k in range(n_new):
+            j = new_at[k] // W
+            i = new_at[k] - j * W
+            for c in range(C):
+                img[j, i, c] = new_value[k, c]
+            done[j, i] = True
     return done
 
 
@@ -254,6 +326,6 @@ def pad(image, covered, margin=16):
     cov = np.ascontiguousarray(covered, dtype=np.bool_)
     if img.shape[:2] != cov.shape:
         raise ValueError(f"image {img.shape[:2]} and coverage {cov.shape} differ")
-    img[~cov] = 0.0
+    np.copyto(img, 0.0, where=~cov[:, :, None])
     done = _pad(img, cov, int(max(0, margin)))
     return (img[:, :, 0] if squeeze else img), done

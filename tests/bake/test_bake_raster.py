@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from addon.bake.raster import bands, grid_side, pad, rasterise
+from addon.bake.raster import TEXEL_BLOCK, bands, grid_side, pad, rasterise, texel_irradiance
 from addon.bake.scene import Light, build_scene
 
 
@@ -132,3 +132,68 @@ def test_pad_extends_like_bake_margin():
     cov[0, 0] = True
     _, done = pad(np.ones((6, 6)), cov, margin=3)
     assert done[3, 3] and not done[4, 0] and done[3, 0]
+
+
+def _pad_by_definition(img, cov, margin):
+    """pad's rule written plainly: each pass, every uncovered texel touching a texel done
+    before the pass (8-neighbourhood) takes their mean."""
+    img = np.where(cov[:, :, None], img, 0.0)
+    done = cov.copy()
+    H, W = cov.shape
+    for _ in range(margin):
+        out, new = img.copy(), done.copy()
+        for j in range(H):
+            for i in range(W):
+                if not done[j, i]:
+                    near = [(jj, ii) for jj in range(j - 1, j + 2) for ii in range(i - 1, i + 2)
+                            if 0 <= jj < H and 0 <= ii < W and done[jj, ii]]
+                    if near:
+                        acc = np.zeros(img.shape[2])
+                        for jj, ii in near:
+                            acc += img[jj, ii]
+                        out[j, i], new[j, i] = acc / len(near), True
+        img, done = out, new
+    return img, done
+
+
+def test_pad_reads_only_the_texels_done_before_each_pass():
+    out, done = pad(np.array([[2.0, 0.0, 0.0, 6.0]]), np.array([[True, False, False, True]]), margin=1)
+    assert out.tolist() == [[2.0, 2.0, 6.0, 6.0]] and done.all()  # not 2, 4 (a pass reading its own results)
+    rng = np.random.default_rng(5)
+    for _ in range(12):
+        H, W = rng.integers(1, 14, 2)
+        img = rng.random((H, W, 3))
+        cov = rng.random((H, W)) < rng.uniform(0.02, 0.6)
+        margin = int(rng.integers(0, 6))
+        got, got_done = pad(img, cov, margin)
+        want, want_done = _pad_by_definition(img, cov, margin)
+        assert np.array_equal(got_done, want_done)
+        np.testing.assert_array_equal(got, want)  # the same sums in the same order
+
+
+def test_texel_irradiance_is_sample_means_plus_flux_over_area():
+    rng = np.random.default_rng(9)
+    n = 3 * TEXEL_BLOCK + 17  # blocks and a partial one
+    cover = rng.integers(0, 5, n)
+    sums = rng.random((n, 3)) * cover[:, None]
+    flux = rng.random((n, 3))
+    area = np.where(rng.random(n) < 0.1, 0.0, rng.uniform(1e-4, 1e-2, n))
+    covered = cover > 0
+    want = np.zeros((n, 3))
+    want[covered] = sums[covered] / cover[covered, None]
+    ok = covered & (area > 0)
+    want[ok] += flux[ok] / area[ok, None]
+    img, stats = texel_irradiance(sums, cover, flux, area)
+    np.testing.assert_array_equal(img, want)
+    assert stats["texels_covered"] == covered.sum()
+    assert stats["texels_touched"] == np.count_nonzero((want > 0).any(axis=1))
+    assert stats["max_irradiance"] == want.max()
+    assert stats["mean_irradiance_covered"] == pytest.approx(want[covered].mean(), rel=1e-13)
+    img, stats = texel_irradiance(sums, cover)  # no flux estimator: the sample means alone
+    np.testing.assert_array_equal(img[covered], sums[covered] / cover[covered, None])
+    assert not img[~covered].any() and stats["max_irradiance"] == img.max()
+    flux[7] = np.nan
+    cover[7], area[7] = 1, 1.0
+    assert np.isnan(texel_irradiance(sums, cover, flux, area)[1]["max_irradiance"])  # as ndarray.max
+    assert texel_irradiance(np.zeros((0, 3)), np.zeros(0, np.int64))[1] == {
+        "texels_covered": 0, "texels_touched": 0, "max_irradiance": 0.0, "mean_irradiance_covered": 0.0}

@@ -102,7 +102,7 @@ def profiled_run(index, solve, chain):
         timer.wrap(api, "canonical_order", "sort")
     else:
         timer.wrap(api, "compact_paths", "compact")
-        for name, label in (("stage_a", "A"), ("solve_on_host", "host"), ("_solve_batch", "batch")):
+        for name, label in (("stage_a_on_host", "A"), ("solve_on_host", "host"), ("_solve_batch", "batch")):
             timer.wrap(two_bounce_staged, name, label)
         timer.wrap(opencl_backend.OpenCLSystemSolver, "solve_batch", "device calls")
     opencl_backend.set_profiling(index, prof)

@@ -170,26 +170,23 @@ def test_opencl_determinant_equals_det_bezout():
     from addon.solver.opencl.backend import OpenCLSystemSolver
     from addon.solver.spoly.two_bounce.params import MAXD, N_STATS
     from addon.solver.spoly.two_bounce.resultant import det_bezout
-    from addon.solver.spoly.two_bounce.staged import SYS_CAP, _unpack_v_major, layout, stage_a
+    from addon.solver.spoly.two_bounce.staged import SYS_CAP, _unpack_v_major, layout, stage_a_on_host
 
     x0, x3, P, N, eta = _tuples("TT", 6)
     n = x0.shape[0]
     stride, b_offset = layout(True, True)
-    coef = np.zeros((n, SYS_CAP, stride))
-    sysint = np.zeros((n, SYS_CAP, 7), dtype=np.int64)
-    nsys = np.zeros(n, dtype=np.int64)
-    state = np.zeros(n, dtype=np.int64)
-    stage_a(True, True, x0, x3, P, N, eta, b_offset, coef, sysint, nsys, state, np.zeros((n, N_STATS), dtype=np.int64),
-            100, np.zeros((n, SYS_CAP, 100), dtype=np.int64))
-    t, k = np.nonzero((np.arange(SYS_CAP)[None, :] < nsys[:, None]) & (sysint[:, :, 1] == 1))
-    assert t.size >= 20
-    coef, sysint = np.ascontiguousarray(coef[t, k]), sysint[t, k]
+    _, systems = stage_a_on_host(True, True, x0, x3, P, N, eta, 100, stride, b_offset, SYS_CAP,
+                                 np.zeros((n, N_STATS), dtype=np.int64))
+    solvable = systems.sysint[:, 1] == 1
+    assert solvable.sum() >= 20
+    coef, sysint = np.ascontiguousarray(systems.coef[solvable]), systems.sysint[solvable]
+    count = coef.shape[0]
     assert sysint[:, 6].max() > 30  # TT: Bézout matrices up to 46 x 46
     dev = OpenCLSystemSolver(index)
-    dev.load(coef, np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32), b_offset, np.ones((t.size, 100), np.int8),
-             np.full(t.size, 0.02), 100)
+    dev.load(coef, np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32), b_offset, np.ones((count, 100), np.int8),
+             np.full(count, 0.02), 100)
     rng = np.random.default_rng(7)
-    job_sys = np.repeat(np.arange(t.size), 40).astype(np.int32)
+    job_sys = np.repeat(np.arange(count), 40).astype(np.int32)
     job_v = rng.uniform(-0.02, 1.02, job_sys.size)
     sign, log, _ = dev.dets(job_sys, job_v)
     a = np.zeros((MAXD + 1, MAXD + 1))

@@ -45,7 +45,7 @@ compares the staging on Numba and on OpenCL with the one-kernel solver.  Limits:
 
 import numpy as np
 
-from ...runtime.jit import kernel, parallel_range
+from ...runtime.jit import kernel, parallel_range, run_calls
 from ...paths.two_vertex import pack_geometry
 from .params import (BOTH_DIRECTIONS, CHUNK, LIVE_PREPASS, LIVE_STACK, MAX_PATHS_TWO_BOUNCE, MAX_PIECES, MAXD, N_SLOTS,
                      N_STATS, REFINE_LEVELS, SQRT_PIECES, STAT_DETS, STAT_NEAR, STAT_PATHS, STAT_ROOTS, STAT_SKIPPED,
@@ -219,42 +219,83 @@ def _stage_a_oriented(refract1, refract2, x0, x3, PA, NA, PB, NB, eta, rev, biv,
     return nsys
 
 
-@parallel_range("x_start", CHUNK)
-def stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, pieces, live_mask, first, last):
-    """Stage A over a batch: systems per tuple into coef (n, cap, stride) and sysint
-    (n, cap, 7) = (rev + 2 · not refined, status, da, db, na, nb, n) (bit 1: the TIR fallback's
-    system, sign changes only, as ``_solve_oriented``), their count nsys (n,), and state (n,):
-    0 nothing to solve, 1 staged, 2 more than cap systems (solved by the one-kernel path in
-    stage E); live_mask (n, cap, pieces): the scan pieces of each system ``live_pieces`` keeps."""
-    n = x_start.shape[0]
-    for ch in range(first, last):
-        biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
-        geo = np.zeros((3, 15, 3))
-        live_work = np.zeros((2, MAX_PIECES + 1))
-        for t in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
-            _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, t,
-                           biv, geo, pieces, live_mask, live_work)
+@kernel
+def stage_a_systems(refract1, refract2, x_start, x_end, P, N, eta, b_offset, stride, sys_cap, pieces, nsys, state, stats,
+                    first, last):
+    """Stage A over tuples [first, last): their system count nsys, state (0 nothing to solve, 1
+    staged, 2 more than sys_cap systems: solved by the one-kernel path in stage E) and stats;
+    returns the systems of the staged tuples, tuple by tuple in stage A's order: (coef (m,
+    stride) packed a and b (row i of a total-degree-d polynomial: the coefficients of u^i v^j;
+    the rest of a row is not written), sysint (m, 7) = (rev + 2 · not refined, status, da, db,
+    na, nb, n) (bit 1: the TIR fallback's system, sign changes only, as ``_solve_oriented``),
+    live (m, pieces) the scan pieces ``live_pieces`` keeps (0 for a system not to solve)).
+    A tuple's systems go to a scratch of sys_cap rows and then to the output, which grows by
+    doubling: the output holds the systems found, not room for sys_cap per tuple."""
+    biv = np.zeros((N_SLOTS, MAXD + 1, MAXD + 1))
+    geo = np.zeros((3, 15, 3))
+    live_work = np.zeros((2, MAX_PIECES + 1))
+    p = max(pieces, 1)
+    tuple_coef = np.empty((sys_cap, stride))
+    tuple_int = np.zeros((sys_cap, 7), dtype=np.int64)
+    tuple_live = np.zeros((sys_cap, p), dtype=np.int8)
+    room = 2 * max(1, last - first)
+    coef = np.empty((room, stride))
+    sysint = np.zeros((room, 7), dtype=np.int64)
+    live = np.zeros((room, p), dtype=np.int8)
+    m = 0
+    for t in range(first, last):
+        k = _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, tuple_coef, tuple_int, stats[t], t, biv,
+                           geo, pieces, tuple_live, live_work)
+        nsys[t] = max(k, 0)
+        state[t] = 0 if k < 0 else (2 if k > sys_cap else 1)
+        if state[t] != 1:
+            continue
+        if m + k > room:
+            while m + k > room:
+                room *= 2
+            coef = _grown(coef, room, m)
+            sysint = _grown(sysint, room, m)
+            live = _grown(live, room, m)
+        for i in range(k):
+            status = tuple_int[i, 1]
+            for c in range(7):
+                sysint[m + i, c] = tuple_int[i, c]
+            if status == 1:
+                coef[m + i, :] = tuple_coef[i, :]
+                live[m + i, :] = tuple_live[i, :]
+            else:
+                live[m + i, :] = 0
+        m += k
+    return coef[:m], sysint[:m], live[:m]
 
 
 @kernel
-def _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, t, biv, geo,
-                   pieces, live_mask, live_work):
+def _grown(a, rows, keep):
+    """A copy of a with ``rows`` rows, its first ``keep`` rows a's (the rest not set)."""
+    out = np.empty((rows,) + a.shape[1:], dtype=a.dtype)
+    out[:keep] = a[:keep]
+    return out
+
+
+@kernel
+def _stage_a_tuple(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, stats, t, biv, geo, pieces,
+                   live_mask, live_work):
+    """Stage A of tuple t: its systems into coef, sysint, live_mask (room for sysint.shape[0]
+    of them); returns their count (more than the room: the tuple goes to the one-kernel
+    path), or -1 when the tuple has nothing to solve."""
     for k in range(N_STATS):
-        stats[t, k] = 0
+        stats[k] = 0
     x0 = (x_start[t, 0], x_start[t, 1], x_start[t, 2])
     x3 = (x_end[t, 0], x_end[t, 1], x_end[t, 2])
-    nsys[t] = 0
     if not pack_geometry(x0, x3, P[t, 0], N[t, 0], P[t, 1], N[t, 1], geo[0]) or not (eta[t] > 0.0):
-        stats[t, STAT_SKIPPED] = 1
-        state[t] = 0
-        return
+        stats[STAT_SKIPPED] = 1
+        return -1
     m = _stage_a_oriented(refract1, refract2, x0, x3, P[t, 0], N[t, 0], P[t, 1], N[t, 1], eta[t], 0, biv, geo[0],
-                          geo[1], b_offset, coef[t], sysint[t], 0, stats[t], pieces, live_mask[t], live_work)
+                          geo[1], b_offset, coef, sysint, 0, stats, pieces, live_mask, live_work)
     if BOTH_DIRECTIONS:
         m = _stage_a_oriented(refract2, refract1, x3, x0, P[t, 1], N[t, 1], P[t, 0], N[t, 0], eta[t], 1, biv,
-                              geo[2], geo[1], b_offset, coef[t], sysint[t], m, stats[t], pieces, live_mask[t], live_work)
-    nsys[t] = m
-    state[t] = 2 if m > sysint.shape[1] else 1
+                              geo[2], geo[1], b_offset, coef, sysint, m, stats, pieces, live_mask, live_work)
+    return m
 
 
 # --- stages C and E: candidates ---------------------------------------------------------------
@@ -634,27 +675,22 @@ def _solve_batch(dev, refract1, refract2, x_start, x_end, P, N, eta, pieces, str
 
 
 def stage_a_on_host(refract1, refract2, x_start, x_end, P, N, eta, pieces, stride, b_offset, sys_cap, stats):
-    """Stage A on Numba over a batch, its systems compacted tuple by tuple: (state (n,),
-    :class:`Systems`)."""
+    """Stage A on Numba over a batch (:func:`stage_a_systems`, CHUNK tuples a call on numba's
+    threads), its systems compacted tuple by tuple: (state (n,), :class:`Systems`)."""
     nb = x_start.shape[0]
-    # coef is not cleared: of a system's row only its packed a and b are ever read (_unpack, the
-    # device's coeffs_at), and stage A writes them; the live mask is 0 / 1 (int8: an eighth of
-    # the bytes to clear)
-    coef = np.empty((nb, sys_cap, stride))
-    sysint = np.zeros((nb, sys_cap, 7), dtype=np.int64)
     nsys = np.zeros(nb, dtype=np.int64)
     state = np.zeros(nb, dtype=np.int64)
-    live_mask = np.zeros((nb, sys_cap, max(pieces, 1)), dtype=np.int8)
-    stage_a(refract1, refract2, x_start, x_end, P, N, eta, b_offset, coef, sysint, nsys, state, stats, pieces, live_mask)
-    # compact: the systems of staged tuples, tuple by tuple in stage A's order
+    inputs = [np.ascontiguousarray(a, dtype=np.float64) for a in (x_start, x_end, P, N, eta)]
+    ranges = [(a, min(nb, a + CHUNK)) for a in range(0, nb, CHUNK)]
+    parts = run_calls(lambda r: stage_a_systems(bool(refract1), bool(refract2), *inputs, b_offset, stride, sys_cap, pieces, nsys,
+                                                state, stats, r[0], r[1]), ranges)
+    coef = np.concatenate([c for c, _, _ in parts]) if parts else np.zeros((0, stride))
+    sysint = np.concatenate([i for _, i, _ in parts]) if parts else np.zeros((0, 7), dtype=np.int64)
+    live_mask = np.concatenate([v for _, _, v in parts]) if parts else np.zeros((0, max(pieces, 1)), dtype=np.int8)
     m = np.where(state == 1, nsys, 0)
     sys_first = np.concatenate([[0], np.cumsum(m)]).astype(np.int64)
     S = int(sys_first[-1])
     owner = np.repeat(np.arange(nb), m)
-    slot = np.arange(S) - np.repeat(sys_first[:-1], m)
-    coef = np.ascontiguousarray(coef[owner, slot])
-    sysint = np.ascontiguousarray(sysint[owner, slot])
-    live_mask = np.ascontiguousarray(live_mask[owner, slot])
     sysint3 = np.ascontiguousarray(sysint[:, [2, 3, 6]], dtype=np.int32)
     r1_oriented = np.where((sysint[:, 0] & 1) == 1, refract2, refract1) if S else np.zeros(0, dtype=bool)
     margin = np.where(r1_oriented, V_MARGIN_APPROX, V_MARGIN_EXACT)

@@ -7,6 +7,7 @@ Installing happens in subprocesses (tests/packaging/_install_check.py) whose BLE
 a temporary folder, so neither this process's bpy state nor the user's profile is touched.
 """
 
+import glob
 import json
 import os
 import re
@@ -31,6 +32,9 @@ PLATFORM_WHEEL_TAG = {
     "windows-x64": re.compile(r"win_amd64\.whl$"),
     "macos-arm64": re.compile(r"macosx_\d+_\d+_arm64\.whl$"),
 }
+# every OpenCL source of the tree (the programs and the files they include): all must ship
+OPENCL_SOURCES = sorted(os.path.relpath(p, ROOT).replace(os.sep, "/")
+                        for p in glob.glob(os.path.join(ROOT, "addon", "solver", "opencl", "*.cl")))
 
 
 @pytest.fixture(scope="session")
@@ -89,12 +93,7 @@ def test_zip_contents(zips):
         # The add-on itself.
         for required in ("__init__.py", "blender_manifest.toml", "addon/__init__.py",
                          "addon/ui/__init__.py", "addon/ui/operators.py", "addon/ui/panels.py",
-                         "addon/ui/properties.py", "addon/ui/state.py", "addon/solver/runtime/jit.py",
-                         "addon/solver/opencl/one_bounce.cl", "addon/solver/opencl/two_bounce.cl",
-                         "addon/solver/opencl/scan.cl", "addon/solver/opencl/trace.cl", "addon/solver/opencl/roots.cl",
-                         "addon/solver/opencl/two_vertex.cl", "addon/solver/opencl/biv.cl", "addon/solver/opencl/frame.cl",
-                         "addon/solver/opencl/system.cl", "addon/solver/opencl/prepass.cl",
-                         "addon/solver/opencl/stage_a.cl"):
+                         "addon/ui/properties.py", "addon/ui/state.py", "addon/solver/runtime/jit.py", *OPENCL_SOURCES):
             assert required in names, (platform, required)
         # Nothing from development.
         for name in names:

@@ -1,5 +1,7 @@
 """The optional OpenCL back end (PoCL on the CPU in CI) returns the Numba back end's paths."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -33,6 +35,23 @@ def test_opencl_returns_the_numba_paths(chain, stages, monkeypatch):
     # (two compilers); the paths may not.
     assert abs(ocl.report.roots - numba.report.roots) <= 0.01 * numba.report.roots
     assert abs(ocl.report.candidates - numba.report.candidates) <= 0.01 * numba.report.candidates
+
+
+def test_program_sources_paste_their_includes_once_nested(tmp_path):
+    """backend._assemble: an included file's own includes are pasted too, each file once per
+    program whichever file asks first; the shipped programs hold every Python-semantics max /
+    min helper exactly once (numba_math.cl, included by several of their files)."""
+    (tmp_path / "a.cl").write_text("A1\n// @INCLUDE c.cl@ (c)\nA2")
+    (tmp_path / "b.cl").write_text("// @INCLUDE c.cl@\nB")
+    (tmp_path / "c.cl").write_text("C")
+    out = opencl_backend._assemble("top\n// @INCLUDE a.cl@\n// @INCLUDE b.cl@\n// @INCLUDE a.cl@\nend", str(tmp_path))
+    assert out.split("\n") == ["top", "A1", "C", "A2", "B", "end"]
+    folder = os.path.dirname(opencl_backend._KERNEL_FILE_2)
+    for program in ("two_bounce.cl", "refine.cl", "splat.cl"):
+        with open(os.path.join(folder, program)) as f:
+            text = opencl_backend._assemble(f.read(), folder)
+        assert text.count("#define NB_MAX(") == 1, program
+        assert not any(line.startswith("// @INCLUDE ") for line in text.split("\n")), program
 
 
 def test_bad_device_names_are_value_errors():

@@ -310,14 +310,15 @@ class _Device:
             self.profiler.host_time(stage, seconds)
 
 
-def _assemble(source, folder):
+def _assemble(source, folder, done=None):
     """source with each line ``// @INCLUDE name@ ...`` replaced by the file name of folder (the
-    OpenCL sources shared between programs: roots.cl, two_vertex.cl, ...), once each, and each
-    line ``// @NODE_TABLES@ ...`` / ``// @TWO_BOUNCE_TABLES@ ...`` by the solver's tables
+    OpenCL sources shared between programs: roots.cl, two_vertex.cl, numba_math.cl, ...),
+    assembled in turn (an included file may include others), each file once per program, and
+    each line ``// @NODE_TABLES@ ...`` / ``// @TWO_BOUNCE_TABLES@ ...`` by the solver's tables
     (:func:`_node_tables`, :func:`two_bounce_tables`)."""
     generated = {"// @NODE_TABLES@": _node_tables, "// @TWO_BOUNCE_TABLES@": two_bounce_tables}
     out = []
-    done = set()
+    done = set() if done is None else done
     for line in source.split("\n"):
         marker = next((m for m in generated if line.startswith(m)), None)
         if marker is not None:
@@ -325,9 +326,9 @@ def _assemble(source, folder):
         elif line.startswith("// @INCLUDE "):
             name = line[len("// @INCLUDE "):].split("@", 1)[0]
             if name not in done:
-                with open(os.path.join(folder, name)) as f:
-                    out.append(f.read())
                 done.add(name)
+                with open(os.path.join(folder, name)) as f:
+                    out.append(_assemble(f.read(), folder, done))
         else:
             out.append(line)
     return "\n".join(out)

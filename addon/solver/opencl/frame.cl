@@ -20,9 +20,7 @@
 
 #define FR_G(m, r, c) ((m)[3 * (r) + (c)])
 
-// Python's / Numba's max(a, b) and min(a, b)
-static double fr_max(double a, double b) { return b > a ? b : a; }
-static double fr_min(double a, double b) { return b < a ? b : a; }
+// @INCLUDE numba_math.cl@ (NB_MAX, NB_MIN)
 
 // What tuple_frame returns besides geo and geo_l (all zero / false where ok is false).
 typedef struct {
@@ -55,8 +53,8 @@ static void fr_corner_sides(const double *p0, const double *e1, const double *e2
             q[0] = p0[0] + e2[0]; q[1] = p0[1] + e2[1]; q[2] = p0[2] + e2[2];
         }
         double sd = (q[0] - o[0]) * n[0] + (q[1] - o[1]) * n[1] + (q[2] - o[2]) * n[2];
-        l = fr_min(l, sd * side);
-        h = fr_max(h, sd * side);
+        l = NB_MIN(l, sd * side);
+        h = NB_MAX(h, sd * side);
     }
     *lo = l;
     *hi = h;
@@ -79,9 +77,9 @@ static fr_frame fr_tuple_frame(bool refract1, bool refract2, __global const doub
     double e21[3] = {FR_G(geo, 8, 0), FR_G(geo, 8, 1), FR_G(geo, 8, 2)};
     double e22[3] = {FR_G(geo, 9, 0), FR_G(geo, 9, 1), FR_G(geo, 9, 2)};
     const double zero[3] = {0.0, 0.0, 0.0};
-    double L1 = fr_max(sqrt(e11[0] * e11[0] + e11[1] * e11[1] + e11[2] * e11[2]),
+    double L1 = NB_MAX(sqrt(e11[0] * e11[0] + e11[1] * e11[1] + e11[2] * e11[2]),
                        sqrt(e12[0] * e12[0] + e12[1] * e12[1] + e12[2] * e12[2]));
-    double L2 = fr_max(sqrt(e21[0] * e21[0] + e21[1] * e21[1] + e21[2] * e21[2]),
+    double L2 = NB_MAX(sqrt(e21[0] * e21[0] + e21[1] * e21[1] + e21[2] * e21[2]),
                        sqrt(e22[0] * e22[0] + e22[1] * e22[1] + e22[2] * e22[2]));
     double side0 = FR_G(geo, 0, 0) * ng1[0] + FR_G(geo, 0, 1) * ng1[1] + FR_G(geo, 0, 2) * ng1[2];
     if (fabs(side0) <= 1e-12 * L1) {
@@ -137,8 +135,8 @@ static fr_frame fr_tuple_frame(bool refract1, bool refract2, __global const doub
         any_back1 = any_back1 || s_1 < 0.0;
         any_front2 = any_front2 || s_2 > 0.0;
         any_back2 = any_back2 || s_2 < 0.0;
-        nmax1 = fr_max(nmax1, n1c[0] * n1c[0] + n1c[1] * n1c[1] + n1c[2] * n1c[2]);
-        nscale2 = fr_max(nscale2, sqrt(n2c[0] * n2c[0] + n2c[1] * n2c[1] + n2c[2] * n2c[2]));
+        nmax1 = NB_MAX(nmax1, n1c[0] * n1c[0] + n1c[1] * n1c[1] + n1c[2] * n1c[2]);
+        nscale2 = NB_MAX(nscale2, sqrt(n2c[0] * n2c[0] + n2c[1] * n2c[1] + n2c[2] * n2c[2]));
     }
     for (int r = 11; r <= 12; ++r) {
         if (fabs(FR_G(geo, r, 0)) + fabs(FR_G(geo, r, 1)) + fabs(FR_G(geo, r, 2)) > 1e-12 * nscale2) flat2 = false;
@@ -180,7 +178,7 @@ static fr_frame fr_tuple_frame(bool refract1, bool refract2, __global const doub
             q[0] = e12[0]; q[1] = e12[1]; q[2] = e12[2];
         }
         double dv[3] = {q[0] - FR_G(geo, 0, 0), q[1] - FR_G(geo, 0, 1), q[2] - FR_G(geo, 0, 2)};
-        dmax = fr_max(dmax, (dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]) * inv * inv);
+        dmax = NB_MAX(dmax, (dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]) * inv * inv);
     }
     fr_frame F;
     F.ok = true;
@@ -265,8 +263,8 @@ static bool fr_sqrt_sampling(bool refract1, const double *geo, double inv, doubl
                 double dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2];
                 double beta = n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn;
                 double x = beta / (S * S);
-                lo = fr_min(lo, x);
-                hi = fr_max(hi, x);
+                lo = NB_MIN(lo, x);
+                hi = NB_MAX(hi, x);
                 if (x >= 0.0) m |= 1 << fr_sqrt_piece(x);
             }
         }
@@ -278,7 +276,7 @@ static bool fr_sqrt_sampling(bool refract1, const double *geo, double inv, doubl
         double n2_ = nn[0] * nn[0] + nn[1] * nn[1] + nn[2] * nn[2];
         double d2_ = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2];
         double dn = nn[0] * dv[0] + nn[1] * dv[1] + nn[2] * dv[2];
-        double xc = fr_min(1.0, fr_max(0.0, (n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn) / (S * S)));
+        double xc = NB_MIN(1.0, NB_MAX(0.0, (n2_ * d2_ * (1.0 - r1 * r1) + r1 * r1 * dn * dn) / (S * S)));
         *xlo = lo;
         *xhi = hi;
         if (hi <= 0.0) {  // TIR everywhere on the triangle

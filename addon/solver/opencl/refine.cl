@@ -24,8 +24,7 @@
 #define H_ROW (H_WIDTH + 1)
 
 // Numba's max / min of two floats (the first argument when they are unordered)
-#define NB_MAX(a, b) ((b) > (a) ? (b) : (a))
-#define NB_MIN(a, b) ((b) < (a) ? (b) : (a))
+// @INCLUDE numba_math.cl@ (NB_MAX, NB_MIN)
 
 __constant int CHILD_CORNERS[12] = {0, 3, 5, 3, 1, 4, 5, 4, 2, 3, 4, 5};
 

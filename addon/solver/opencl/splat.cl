@@ -10,8 +10,7 @@
 #define MAX_POLYGON 48  // splat.py MAX_POLYGON
 
 // Numba's max / min (the first argument when unordered)
-#define NB_MAX(a, b) ((b) > (a) ? (b) : (a))
-#define NB_MIN(a, b) ((b) < (a) ? (b) : (a))
+// @INCLUDE numba_math.cl@ (NB_MAX, NB_MIN)
 
 // splat.py _clip_half: polygon (xs, ys)[:n] clipped to x_axis >= bound (or <=) into (ox, oy)
 static int clip_half(const double *xs, const double *ys, int n, int axis, double bound, int keep_greater, double *ox,

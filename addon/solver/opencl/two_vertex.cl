@@ -44,8 +44,7 @@ static tv3 tv_tangent_derivative(tv3 unit, tv3 d, double length) {
     double s = tv_dot(unit, d);
     return tv_vec((d.x - s * unit.x) / length, (d.y - s * unit.y) / length, (d.z - s * unit.z) / length);
 }
-// Python's / Numba's max(a, b): b if b > a, else a
-static double tv_max(double a, double b) { return b > a ? b : a; }
+// @INCLUDE numba_math.cl@ (NB_MAX, NB_MIN)
 
 // What _vertex returns besides ok: the residual and what its derivative needs.
 typedef struct { tv3 res, wi, wo, nh; double li, lo, ln, s, c, r, sk; } tv_vertex_state;
@@ -138,7 +137,7 @@ static bool tv_pack_geometry(__global const double *x0, __global const double *x
         tv3 eb = tv_row(geo, ra + 1);
         tv3 g = tv_cross(ea, eb);
         double lg = tv_norm(g);
-        double le = tv_max(tv_norm(ea), tv_norm(eb));
+        double le = NB_MAX(tv_norm(ea), tv_norm(eb));
         if (!(lg > 1e-14 * le * le)) {
             ok = false;
             lg = 1.0;
@@ -242,7 +241,7 @@ static void tv_normal_equations(const double *jac, const double *res, double *A,
 static double tv_max_vertex_error(const double *res) {
     double e1 = sqrt(res[0] * res[0] + res[1] * res[1] + res[2] * res[2]);
     double e2 = sqrt(res[3] * res[3] + res[4] * res[4] + res[5] * res[5]);
-    return tv_max(e1, e2);
+    return NB_MAX(e1, e2);
 }
 
 // two_vertex.py polish_and_validate2: Gauss-Newton (with backtracking) on the two-vertex residual
@@ -268,7 +267,7 @@ static bool tv_polish_and_validate(double *th, const double *geo, bool refract1,
         }
         tv_normal_equations(jac, res, A, b);
         if (!tv_solve4(A, b, step)) break;
-        last_step = tv_max(tv_max(fabs(step[0]), fabs(step[1])), tv_max(fabs(step[2]), fabs(step[3])));
+        last_step = NB_MAX(NB_MAX(fabs(step[0]), fabs(step[1])), NB_MAX(fabs(step[2]), fabs(step[3])));
         if (!(last_step < 10.0)) break;
         bool improved = false;
         double lam = 1.0, err2 = 0.0;

@@ -116,8 +116,10 @@ def profiled_frame(index, scene, res, device):
     finally:
         backend.set_profiling(index, None)
     spent = sorted(profiler.device_seconds().items(), key=lambda kv: -kv[1])
+    busy = sum(sec for _, sec in spent)
     return (", ".join(f"{stage} {sec:.3f} s" for stage, sec in spent) +
-            f"; {profiler.launches} launches, {profiler.syncs} waits, frame {wall:.2f} s with profiling")
+            f"; {profiler.launches} launches, {profiler.syncs} waits, frame {wall:.2f} s with profiling, of which the "
+            f"device was idle {wall - busy:.2f} s (the host's share: what a frame would take with an instant device)")
 
 
 def kernel_line(index):

@@ -232,7 +232,9 @@ static double split_between_crossings(const double *b, int deg) {
 }
 
 // De Casteljau split of the Bernstein piece in stack[top] at t (roots.py
-// roots_in_unit_interval_bernstein): as halve_piece, at lo + t (hi - lo).
+// roots_in_unit_interval_bernstein): as halve_piece, at lo + t (hi - lo).  Not halve_piece with
+// t = 1/2: a + t (b - a) and (a + b) / 2 round differently, and each finder matches its roots.py
+// twin bit for bit (control_polygon_crossing returns 1/2 when it finds no crossing).
 static void split_piece(double stack[STACK + 1][MAXD + 4], int top, int deg, double lo, double hi, double depth,
                         double t) {
     double *row = stack[top], *left = stack[top + 1], *work = stack[STACK];

@@ -6,25 +6,45 @@ import bpy
 from .state import SHORT_MISSING_NUMBA, STATE, numba_missing
 
 
-class RENDER_PT_caustic_bake(bpy.types.Panel):
-    bl_label = "Caustic Bake"
-    bl_idname = "RENDER_PT_caustic_bake"
+class _PropertiesPanel:
+    """What every panel here shares: the Properties editor, closed until opened."""
+
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
-    bl_context = "render"
     bl_options = {"DEFAULT_CLOSED"}
+
+
+def _settings_layout(layout):
+    """``layout`` set out for settings: labels split from their fields, no animation dots."""
+    layout.use_property_split = True
+    layout.use_property_decorate = False
+    return layout
+
+
+class _ScenePanel(_PropertiesPanel):
+    """A panel of the scene's Caustic Bake settings (Properties -> Render)."""
+
+    bl_context = "render"
 
     @classmethod
     def poll(cls, context):
         return context.scene is not None and hasattr(context.scene, "caustic_bake")
 
+
+def _textures_go_to_unsaved_blend(props):
+    """Whether the output folder is relative ("//...") while the .blend has not been saved."""
+    return not bpy.data.filepath and (props.output_dir or "//").startswith("//")
+
+
+class RENDER_PT_caustic_bake(_ScenePanel, bpy.types.Panel):
+    bl_label = "Caustic Bake"
+    bl_idname = "RENDER_PT_caustic_bake"
+
     def draw(self, context):
         from ..bake.extract import readiness
         from .operators import baked_images
 
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
+        layout = _settings_layout(self.layout)
         props = context.scene.caustic_bake
 
         missing = numba_missing()
@@ -89,27 +109,17 @@ class RENDER_PT_caustic_bake(bpy.types.Panel):
         col.separator()
         col.prop(props, "output_dir")
         col.prop(props, "pack")
-        if not bpy.data.filepath and (props.output_dir or "//").startswith("//"):
+        if _textures_go_to_unsaved_blend(props):
             col.label(text="Unsaved file: the textures will be packed", icon="PACKAGE")
 
 
-class RENDER_PT_caustic_bake_animation(bpy.types.Panel):
+class RENDER_PT_caustic_bake_animation(_ScenePanel, bpy.types.Panel):
     bl_label = "Animation"
     bl_idname = "RENDER_PT_caustic_bake_animation"
     bl_parent_id = "RENDER_PT_caustic_bake"
-    bl_space_type = "PROPERTIES"
-    bl_region_type = "WINDOW"
-    bl_context = "render"
-    bl_options = {"DEFAULT_CLOSED"}
-
-    @classmethod
-    def poll(cls, context):
-        return context.scene is not None and hasattr(context.scene, "caustic_bake")
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
+        layout = _settings_layout(self.layout)
         props = context.scene.caustic_bake
         col = layout.column()
         col.enabled = not STATE.running
@@ -118,17 +128,14 @@ class RENDER_PT_caustic_bake_animation(bpy.types.Panel):
             sc = context.scene
             n = max(0, sc.frame_end - sc.frame_start + 1)
             col.label(text="Frames {}-{}: {} EXR(s) per receiver".format(sc.frame_start, sc.frame_end, n), icon="SEQUENCE")
-            if not bpy.data.filepath and (props.output_dir or "//").startswith("//"):
+            if _textures_go_to_unsaved_blend(props):
                 col.label(text="Save the .blend first: a sequence is written, not packed", icon="ERROR")
 
 
-class OBJECT_PT_caustic_bake(bpy.types.Panel):
+class OBJECT_PT_caustic_bake(_PropertiesPanel, bpy.types.Panel):
     bl_label = "Caustic Bake"
     bl_idname = "OBJECT_PT_caustic_bake"
-    bl_space_type = "PROPERTIES"
-    bl_region_type = "WINDOW"
     bl_context = "object"
-    bl_options = {"DEFAULT_CLOSED"}
 
     @classmethod
     def poll(cls, context):
@@ -136,9 +143,7 @@ class OBJECT_PT_caustic_bake(bpy.types.Panel):
         return ob is not None and ob.type == "MESH" and hasattr(ob, "caustic_bake")
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
+        layout = _settings_layout(self.layout)
         ob = context.object
         props = ob.caustic_bake
         col = layout.column()

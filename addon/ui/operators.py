@@ -161,12 +161,14 @@ class ChunkWorker:
         self.jobs.put(None)
 
 
-ABANDONED = set()  # futures of cancelled bakes' chunks still running
+ABANDONED = set()  # futures of cancelled bakes' chunks still running or whose generator is not closed yet
 
 
 def abandoned_running():
-    """Whether a cancelled bake's last chunk is still running on its worker thread."""
-    return any(not f.done() for f in list(ABANDONED))
+    """Whether a cancelled bake's last chunk is still running on its worker thread, or its
+    generator is still being closed there.  (Not the future's done(): a future is done before
+    its done-callbacks, the closing among them, have run.)"""
+    return bool(ABANDONED)
 
 
 def _advance(steps):
@@ -377,9 +379,11 @@ class BakeJob:
             ABANDONED.add(pending)
 
             def close(fut, steps=steps):
-                if steps is not None:
-                    steps.close()
-                ABANDONED.discard(fut)
+                try:
+                    if steps is not None:
+                        steps.close()
+                finally:
+                    ABANDONED.discard(fut)  # only now may a new bake start (and never stuck if closing raised)
 
             pending.add_done_callback(close)
         elif steps is not None:

@@ -20,6 +20,7 @@ from fixtures.modal import Event, ModalStub
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SAMPLES = os.path.join(REPO, "sample_blends")
 CHUNK = 3.0  # seconds of the long chunk
+CLOSING = 0.3  # seconds its generator takes to close (its finally)
 
 
 
@@ -40,6 +41,7 @@ def test_esc_answers_while_a_long_chunk_runs(tmp_path, monkeypatch):
                 time.sleep(CHUNK)  # one chunk that takes seconds (a large forward image)
                 return (yield from gen)
             finally:
+                time.sleep(CLOSING)  # closing takes a while too: a new bake must wait for it as well
                 closed.append(time.monotonic())
 
         return steps()

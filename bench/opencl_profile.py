@@ -10,9 +10,10 @@ kernel, device→host read-back (OpenCL profiling events), the host sort into ca
 and the rest of the wall time.  Two bounces (RR, RT, TR, TT): inside the device call (stages
 A-E of ``two_bounce.staged``) the writes, each kernel and the read-backs, the one-kernel path
 on Numba for the tuples left to the host, the numpy glue, with the
-number of launches and of host waits.  Every row gives the OpenCL wall time (best of
---repeats, profiling off), the Numba wall time on the same tuples (all threads) and their
-ratio, and whether the paths are the same.
+number of launches and of host waits.  Every row gives the OpenCL wall time (profiling off)
+and the Numba wall time on the same tuples (all threads), the two called in turn, each the
+best of at least --repeats calls and 0.25 s (``solver.best_times``), their ratio, and whether
+the paths are the same.
 
 The device is the first with double precision, or ``--device N`` / ``OPENCL_DEVICE=N``.
 Prints the tables and writes them to bench/results/opencl_profile_{cpu,gpu}.md (by the device's
@@ -33,7 +34,7 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
 
-from solver import write_section  # noqa: E402
+from solver import PAIR_SECONDS, best_times, write_section  # noqa: E402
 from workloads import planted_tuples, planted_two_bounce, random_pairs, random_tuples, random_two_bounce  # noqa: E402
 
 ONE = ("R", "T")
@@ -68,15 +69,6 @@ class HostTimer:
 
 def wanted(args, chain, workload):
     return chain in args.rows or f"{chain}:{workload}" in args.rows
-
-
-def best_wall(fn, repeats):
-    best, result = float("inf"), None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        result = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, result
 
 
 def same_paths(a, b):
@@ -135,8 +127,8 @@ def one_bounce_rows(solver, index, args):
             n = x0.shape[0]
             solver.solve(chain, x0[:64], x2[:64], P[:64], N[:64], 1.5)
             solver.solve(chain, x0[:64], x2[:64], P[:64], N[:64], 1.5, device=device)
-            t_numba, a = best_wall(lambda: solver.solve(chain, x0, x2, P, N, 1.5), args.repeats)
-            t_ocl, b = best_wall(lambda: solver.solve(chain, x0, x2, P, N, 1.5, device=device), args.repeats)
+            (t_numba, a), (t_ocl, b) = best_times(lambda: solver.solve(chain, x0, x2, P, N, 1.5),
+                                                  lambda: solver.solve(chain, x0, x2, P, N, 1.5, device=device), args.repeats)
             wall, st, prof = profiled_run(index, lambda: solver.solve(chain, x0, x2, P, N, 1.5, device=device), chain)
             rows.append(dict(chain=chain, workload=name, tuples=n, paths=b.report.paths, numba=t_numba, opencl=t_ocl,
                              profiled=wall, stages=st, launches=prof.launches, syncs=prof.syncs, same=same_paths(a, b)))
@@ -157,8 +149,8 @@ def pair_row(solver, index, chain, args):
     table = TupleTable(chain, x0, P, N, 1.5, x2, device=f"opencl:{index}", solver=solver)
     table.solve(e[:64], s[:64])
     g0, g2, gP, gN = x0[e], x2[s], P[e], N[e]
-    t_numba, a = best_wall(lambda: solver.solve(chain, g0, g2, gP, gN, 1.5), args.repeats)
-    t_ocl, b = best_wall(lambda: table.solve(e, s), args.repeats)
+    (t_numba, a), (t_ocl, b) = best_times(lambda: solver.solve(chain, g0, g2, gP, gN, 1.5), lambda: table.solve(e, s),
+                                          args.repeats)
     wall, st, prof = profiled_run(index, lambda: table.solve(e, s), chain)
     return dict(chain=chain, workload="random pairs", tuples=e.size, paths=b.report.paths, numba=t_numba, opencl=t_ocl,
                 profiled=wall, stages=st, launches=prof.launches, syncs=prof.syncs, same=same_paths(a, b))
@@ -179,8 +171,8 @@ def two_bounce_rows(solver, index, args):
             n = x0.shape[0]
             solver.solve(chain, x0[:4], x3[:4], P[:4], N[:4], 1.5)
             solver.solve(chain, x0[:4], x3[:4], P[:4], N[:4], 1.5, device=device)
-            t_numba, a = best_wall(lambda: solver.solve(chain, x0, x3, P, N, 1.5), args.repeats)
-            t_ocl, b = best_wall(lambda: solver.solve(chain, x0, x3, P, N, 1.5, device=device), args.repeats)
+            (t_numba, a), (t_ocl, b) = best_times(lambda: solver.solve(chain, x0, x3, P, N, 1.5),
+                                                  lambda: solver.solve(chain, x0, x3, P, N, 1.5, device=device), args.repeats)
             wall, st, prof = profiled_run(index, lambda: solver.solve(chain, x0, x3, P, N, 1.5, device=device), chain)
             rows.append(dict(chain=chain, workload=name, tuples=n, paths=b.report.paths, numba=t_numba, opencl=t_ocl,
                              profiled=wall, stages=st, launches=prof.launches, syncs=prof.syncs, same=same_paths(a, b)))
@@ -274,7 +266,8 @@ def main():
 
     lines = [f"Device {index}: **{info['name']}** ({info['type']}, {info['compute_units']} compute units); "
              f"host {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-             f"Numba {threads} threads; best of {args.repeats}; date {time.strftime('%Y-%m-%d')}.", ""]
+             f"Numba {threads} threads; the two back ends called in turn, the best of at least {args.repeats} calls and "
+             f"{PAIR_SECONDS} s each; date {time.strftime('%Y-%m-%d')}.", ""]
     lines.append("Kernels: " + "; ".join(
         f"`{name}` work-group {k['local']} (kernel maximum {k['max_local']}, private memory "
         f"{'%s bytes' % format(k['private_bytes'], ',') if k['private_bytes'] is not None else 'not reported'} per work-item)"

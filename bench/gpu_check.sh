@@ -16,15 +16,13 @@ set -u
 N1=${N1:-1000000}
 N2=${N2:-0}
 cd "$(dirname "$0")/.."
-. bench/gpu_env.sh  # OUT, log, the environment
-DEV=$OPENCL_DEVICE
+. bench/gpu_env.sh  # OUT, log, DEV, WARM_UP_PY, the environment
 
 log "Numba one-bounce compile, in the background"
-python3 -c "import sys; sys.path.insert(0, '.'); from addon.solver import warm_up; print('warm-up s', warm_up(1))" \
+python3 -c "$WARM_UP_PY" 1 \
   > /tmp/warm.txt 2>&1 &
 WARM=$!
 
-nvidia-smi -L 2>&1 | tee -a "$OUT/steps.txt"
 python3 - <<'EOF' | tee -a "$OUT/steps.txt"
 import numba, numpy, platform, pyopencl as cl
 print("python", platform.python_version(), "numpy", numpy.__version__,
@@ -36,8 +34,6 @@ for p in cl.get_platforms():
               f" | {d.max_compute_units} CUs | driver {d.driver_version}")
         i += 1
 EOF
-
-log "OpenCL device $DEV"
 
 log "opencl_shapes"
 timeout 170 python3 bench/opencl_shapes.py --device "$DEV" --tuples "$N1,$((4 * N1))" --groups "${SHAPE_GROUPS:-128,256}" \

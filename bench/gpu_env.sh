@@ -2,8 +2,10 @@
 # repository root: $OUT (default /tmp/out) made, log() (seconds since the start, appended to
 # $OUT/steps.txt), pyopencl from the carried wheels (.whl/) into /tmp/site, NVIDIA's OpenCL library
 # as the only ICD (left as it is where the library is missing: PoCL here), the Numba cache in
-# /tmp/nc, and OPENCL_DEVICE = the first NVIDIA device with double precision (0 when there is
-# none).  Problems are appended to $GPU_LOG (default $OUT/steps.txt).
+# /tmp/nc, OPENCL_DEVICE (and DEV) = the first NVIDIA device with double precision (0 when there
+# is none), logged with nvidia-smi's list, and WARM_UP_PY: `python3 -c "$WARM_UP_PY" B` compiles
+# the Numba solver up to B bounces (addon.solver.warm_up).  Problems are appended to $GPU_LOG
+# (default $OUT/steps.txt).
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 T0=$(date +%s)
@@ -38,3 +40,7 @@ print(0)
 PY
 )
 export OPENCL_DEVICE
+DEV=$OPENCL_DEVICE
+nvidia-smi -L 2>&1 | tee -a "$OUT/steps.txt"
+log "OpenCL device $DEV"
+WARM_UP_PY='import sys; sys.path.insert(0, "."); from addon.solver import warm_up; print("warm-up s", warm_up(int(sys.argv[1])))'

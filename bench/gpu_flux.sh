@@ -6,9 +6,7 @@
 # RESOLUTIONS (default 512,1024) and FRAMES (default 1) size it.  Logs and BENCHMARKS.md go to $OUT.
 set -u
 cd "$(dirname "$0")/.."
-. bench/gpu_env.sh  # OUT, log, the environment
-DEV=$OPENCL_DEVICE
-echo "OpenCL device $DEV"
+. bench/gpu_env.sh  # OUT, log, DEV, the environment
 timeout "${LIMIT:-230}" python3 bench/flux_device.py --device "$DEV" --resolutions "${RESOLUTIONS:-512,1024}" \
   --frames "${FRAMES:-1}" 2>&1 | tee "$OUT/flux_device.txt"
 cp BENCHMARKS.md "$OUT/BENCHMARKS.md"

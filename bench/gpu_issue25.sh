@@ -19,13 +19,10 @@ N1=${N1:-1000000}
 N2=${N2:-2000}
 CHAINS=${CHAINS:-RR,TT}
 cd "$(dirname "$0")/.."
-. bench/gpu_env.sh  # OUT, log, the environment
-DEV=$OPENCL_DEVICE
-nvidia-smi -L 2>&1 | tee -a "$OUT/steps.txt"
-log "OpenCL device $DEV"
+. bench/gpu_env.sh  # OUT, log, DEV, WARM_UP_PY, the environment
 
 log "Numba one- and two-bounce compile, in the background"
-( timeout 300 python3 -c "import sys; sys.path.insert(0, '.'); from addon.solver import warm_up; print('warm-up s', warm_up(2))" \
+( timeout 300 python3 -c "$WARM_UP_PY" 2 \
   > "$OUT/warm.txt" 2>&1 ) &
 WARM=$!
 

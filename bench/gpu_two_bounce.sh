@@ -13,13 +13,10 @@ set -u
 N2=${N2:-2000}
 CHAINS=${CHAINS:-RR,RT,TR,TT}
 cd "$(dirname "$0")/.."
-. bench/gpu_env.sh  # OUT, log, the environment
-DEV=$OPENCL_DEVICE
-nvidia-smi -L 2>&1 | tee -a "$OUT/steps.txt"
-log "OpenCL device $DEV"
+. bench/gpu_env.sh  # OUT, log, DEV, WARM_UP_PY, the environment
 
 log "Numba two-bounce compile (warm_up(2))"
-timeout 240 python3 -c "import sys; sys.path.insert(0, '.'); from addon.solver import warm_up; print('warm-up s', warm_up(2))" \
+timeout 240 python3 -c "$WARM_UP_PY" 2 \
   > "$OUT/warm.txt" 2>&1
 log "warm-up exit $?: $(tail -1 "$OUT/warm.txt")"
 

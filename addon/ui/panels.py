@@ -31,18 +31,13 @@ class _ScenePanel(_PropertiesPanel):
         return context.scene is not None and hasattr(context.scene, "caustic_bake")
 
 
-def _textures_go_to_unsaved_blend(props):
-    """Whether the output folder is relative ("//...") while the .blend has not been saved."""
-    return not bpy.data.filepath and (props.output_dir or "//").startswith("//")
-
-
 class RENDER_PT_caustic_bake(_ScenePanel, bpy.types.Panel):
     bl_label = "Caustic Bake"
     bl_idname = "RENDER_PT_caustic_bake"
 
     def draw(self, context):
         from ..bake.extract import readiness
-        from .operators import baked_images
+        from .operators import baked_images, output_directory
 
         layout = _settings_layout(self.layout)
         props = context.scene.caustic_bake
@@ -109,7 +104,7 @@ class RENDER_PT_caustic_bake(_ScenePanel, bpy.types.Panel):
         col.separator()
         col.prop(props, "output_dir")
         col.prop(props, "pack")
-        if _textures_go_to_unsaved_blend(props):
+        if output_directory(props) is None:  # relative to an unsaved .blend: packed
             col.label(text="Unsaved file: the textures will be packed", icon="PACKAGE")
 
 
@@ -119,6 +114,8 @@ class RENDER_PT_caustic_bake_animation(_ScenePanel, bpy.types.Panel):
     bl_parent_id = "RENDER_PT_caustic_bake"
 
     def draw(self, context):
+        from .operators import output_directory
+
         layout = _settings_layout(self.layout)
         props = context.scene.caustic_bake
         col = layout.column()
@@ -128,7 +125,7 @@ class RENDER_PT_caustic_bake_animation(_ScenePanel, bpy.types.Panel):
             sc = context.scene
             n = max(0, sc.frame_end - sc.frame_start + 1)
             col.label(text="Frames {}-{}: {} EXR(s) per receiver".format(sc.frame_start, sc.frame_end, n), icon="SEQUENCE")
-            if _textures_go_to_unsaved_blend(props):
+            if output_directory(props) is None:  # relative to an unsaved .blend: nowhere to write a sequence
                 col.label(text="Save the .blend first: a sequence is written, not packed", icon="ERROR")
 
 

@@ -23,7 +23,6 @@
 #define F_ROW (F_WIDTH + 1)  // a final record and its ordinal
 #define H_ROW (H_WIDTH + 1)
 
-// Numba's max / min of two floats (the first argument when they are unordered)
 // @INCLUDE numba_math.cl@ (NB_MAX, NB_MIN)
 
 __constant int CHILD_CORNERS[12] = {0, 3, 5, 3, 1, 4, 5, 4, 2, 3, 4, 5};

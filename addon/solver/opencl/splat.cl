@@ -9,7 +9,6 @@
 
 #define MAX_POLYGON 48  // splat.py MAX_POLYGON
 
-// Numba's max / min (the first argument when unordered)
 // @INCLUDE numba_math.cl@ (NB_MAX, NB_MIN)
 
 // splat.py _clip_half: polygon (xs, ys)[:n] clipped to x_axis >= bound (or <=) into (ox, oy)

@@ -251,8 +251,7 @@ def stage_a_systems(refract1, refract2, x_start, x_end, P, N, eta, b_offset, str
         if state[t] != 1:
             continue
         if m + k > room:
-            while m + k > room:
-                room *= 2
+            room = max(2 * room, m + k)
             coef = _grown(coef, room, m)
             sysint = _grown(sysint, room, m)
             live = _grown(live, room, m)
